@@ -1,0 +1,1 @@
+"""The `wardmap` command line: thin entry points over the library."""

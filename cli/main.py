@@ -1,0 +1,63 @@
+"""``wardmap`` console script: one parser, one subcommand module per command.
+
+Every subcommand translates :class:`WardmapError` into one line on stderr and exit
+code 1; a Ctrl-C exits 130. Tracebacks appear only with ``-vv``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from collections.abc import Sequence
+from importlib.metadata import PackageNotFoundError, version
+
+from wardmap.cli import dataset_cmd, sim_cmd
+from wardmap.shared.errors import WardmapError
+from wardmap.shared.logsetup import configure_logging
+
+log = logging.getLogger("wardmap")
+
+
+def _version() -> str:
+    try:
+        return version("wardmap")
+    except PackageNotFoundError:  # running from a source tree that is not installed
+        return "unknown"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="wardmap",
+        description="Semantic SLAM for hospital service robots.",
+    )
+    parser.add_argument("--version", action="version", version=f"wardmap {_version()}")
+    parser.add_argument(
+        "-v", "--verbose", action="count", default=0, help="more log output (-v info, -vv debug)"
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    sim_cmd.register(sub)
+    dataset_cmd.register(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    configure_logging(args.verbose)
+    try:
+        rc = args.func(args)
+    except WardmapError as exc:
+        print(f"wardmap {args.command}: error: {exc}", file=sys.stderr)
+        if args.verbose >= 2:
+            raise
+        return 1
+    except KeyboardInterrupt:
+        print(f"wardmap {args.command}: interrupted", file=sys.stderr)
+        return 130
+    return int(rc or 0)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

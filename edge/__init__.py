@@ -1,0 +1,1 @@
+"""The edge agent: sensor sources, tracking frontend, durable outbox, daemon."""

@@ -1,0 +1,1 @@
+"""The map server: ingest, perception, association, mapping, storage, API."""

@@ -1,0 +1,1 @@
+"""The simulated hospital: world generation, rendering, sensor models, scenarios."""

@@ -1,0 +1,114 @@
+"""The ``wardmap`` command: bad input gives one clear line and exit code 1, never a traceback."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+TUM = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "tum_fr1_rpy_s3_first100"
+
+
+def wardmap(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "wardmap.cli", *args], capture_output=True, text=True, timeout=300
+    )
+
+
+def _one_line_error(p: subprocess.CompletedProcess[str], needle: str) -> None:
+    assert p.returncode == 1, p.stderr
+    assert "Traceback" not in p.stderr
+    lines = [ln for ln in p.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1, p.stderr
+    assert needle in lines[0]
+
+
+def test_sim_list_names_every_scenario() -> None:
+    """``wardmap sim --list`` prints each scenario with a description."""
+    p = wardmap("sim", "--list")
+    assert p.returncode == 0
+    for name in (
+        "aisle_slow_1",
+        "aisle_quick_3",
+        "ward_chairs",
+        "hospital_loop",
+        "walking_staff",
+        "dark_corridor",
+        "two_robots",
+    ):
+        assert name in p.stdout
+
+
+def test_unknown_scenario(tmp_path: Path) -> None:
+    """A misspelt scenario: one line naming the known scenarios, exit 1."""
+    _one_line_error(
+        wardmap("sim", "--scenario", "hospital_lop", "--out", str(tmp_path / "o")), "unknown scenario"
+    )
+
+
+def test_unwritable_output_folder(tmp_path: Path) -> None:
+    """An output path below a regular file cannot be created: one line, exit 1."""
+    blocker = tmp_path / "afile"
+    blocker.write_text("x")
+    p = wardmap("sim", "--scenario", "aisle_slow_1", "--out", str(blocker / "sub"), "--frames", "1")
+    _one_line_error(p, "wardmap sim: error:")
+
+
+def test_non_empty_output_folder_is_refused(tmp_path: Path) -> None:
+    """Existing data are never overwritten silently."""
+    (tmp_path / "keep.txt").write_text("precious")
+    p = wardmap("sim", "--scenario", "aisle_slow_1", "--out", str(tmp_path), "--frames", "1")
+    _one_line_error(p, "wardmap sim: error:")
+    assert (tmp_path / "keep.txt").read_text() == "precious"
+
+
+def test_sim_then_dataset_info(tmp_path: Path) -> None:
+    """A two-frame simulation, then ``dataset info --json`` reads it back."""
+    out = tmp_path / "clip"
+    p = wardmap("sim", "--scenario", "dark_corridor", "--seed", "2", "--out", str(out), "--frames", "2")
+    assert p.returncode == 0, p.stderr
+    info = wardmap("dataset", "info", str(out), "--json", "--check-images")
+    assert info.returncode == 0, info.stderr
+    summary = json.loads(info.stdout)
+    assert summary["frames"] == 2 and summary["thermal"] and summary["labels"]
+    assert summary["groundtruth_poses"] == 2 and summary["objects"] > 10
+
+
+@pytest.mark.parametrize(
+    ("setup", "needle"),
+    [
+        (lambda d: None, "wardmap dataset: error:"),
+        (lambda d: (d / "rgb.txt").write_text("# hdr\n1.0 rgb/1.png\n"), "wardmap dataset: error:"),
+        (
+            lambda d: (
+                (d / "rgb.txt").write_text("1.0 rgb/1.png extra junk\nnot-a-number x\n"),
+                (d / "depth.txt").write_text("1.0 depth/1.png\n"),
+            ),
+            "wardmap dataset: error:",
+        ),
+    ],
+    ids=["empty-folder", "missing-depth-list", "malformed-rows"],
+)
+def test_malformed_tum_folder(tmp_path: Path, setup: object, needle: str) -> None:
+    """A TUM-like folder with missing or malformed files: one line, exit 1."""
+    d = tmp_path / "rgbd_dataset_freiburg1_bad"
+    d.mkdir()
+    setup(d)  # type: ignore[operator]
+    _one_line_error(wardmap("dataset", "info", str(d)), needle)
+
+
+def test_missing_dataset_folder(tmp_path: Path) -> None:
+    """A path that does not exist: one line, exit 1."""
+    _one_line_error(wardmap("dataset", "info", str(tmp_path / "nope")), "wardmap dataset: error:")
+
+
+@pytest.mark.skipif(not TUM.is_dir(), reason="../shared/data/tum_fr1_rpy_s3_first100 not present")
+def test_dataset_info_on_real_tum_folder() -> None:
+    """The real TUM sample opens unchanged (camera chosen from the folder name)."""
+    p = wardmap("dataset", "info", str(TUM), "--json")
+    assert p.returncode == 0, p.stderr
+    summary = json.loads(p.stdout)
+    assert summary["frames"] == 100 and "fx=517.3" in summary["rgb_camera"]

@@ -1,0 +1,78 @@
+"""Packaging: every module imports from the editable install and from a built wheel,
+under the ``wardmap`` namespace only (no bare top-level ``shared`` or ``server``)."""
+
+from __future__ import annotations
+
+import importlib
+import os
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("cli", "edge", "server", "shared", "sim")
+
+
+def _modules() -> list[str]:
+    names = []
+    for pkg in PACKAGES:
+        for f in sorted((ROOT / pkg).rglob("*.py")):
+            rel = f.relative_to(ROOT / pkg).with_suffix("")
+            parts = [p for p in rel.parts if p != "__init__"]
+            if parts and parts[-1] == "__main__":
+                continue
+            names.append(".".join(["wardmap", pkg, *parts]))
+    return names
+
+
+def test_every_module_imports_from_the_install() -> None:
+    """Import each module by its wardmap.* name in this environment."""
+    for name in _modules():
+        importlib.import_module(name)
+
+
+@pytest.mark.slow
+def test_built_wheel_imports_every_module(tmp_path: Path) -> None:
+    """Build a wheel, unpack it, and import every module from the unpacked copy."""
+    out = tmp_path / "dist"
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "wheel",
+            "--no-deps",
+            "--no-build-isolation",
+            "-q",
+            "-w",
+            str(out),
+            str(ROOT),
+        ],
+        check=True,
+        capture_output=True,
+        timeout=300,
+    )
+    wheels = list(out.glob("wardmap-*.whl"))
+    assert len(wheels) == 1
+    with zipfile.ZipFile(wheels[0]) as zf:
+        names = zf.namelist()
+        zf.extractall(tmp_path / "site")
+    top = {n.split("/")[0] for n in names}
+    assert "shared" not in top and "server" not in top and "edge" not in top and "sim" not in top
+    assert "wardmap/shared/data/knowledge_graph.toml" in names
+    script = (
+        "import importlib, sys\n"
+        f"mods = {_modules()!r}\n"
+        "for m in mods:\n"
+        "    mod = importlib.import_module(m)\n"
+        "    assert mod.__file__.startswith(sys.argv[1]), (m, mod.__file__)\n"
+        "from wardmap.shared.knowledge import KnowledgeGraph\n"
+        "assert KnowledgeGraph.load().names\n"
+    )
+    env = dict(os.environ, PYTHONPATH=str(tmp_path / "site"))
+    subprocess.run(
+        [sys.executable, "-c", script, str(tmp_path / "site")], check=True, env=env, cwd=tmp_path, timeout=120
+    )
