@@ -16,13 +16,16 @@ import os
 os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 
 import argparse
+import functools
 import statistics
 import time
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from wardmap.sim.raster import Mesh, build_mipmaps, render
+from wardmap.sim.raster import Mesh, MipAtlas, RenderOut, build_mipmaps, render
 
 CORRIDOR_LENGTH_M = 80.0
 CORRIDOR_WIDTH_M = 3.0
@@ -35,9 +38,9 @@ RGB_K = (320.0, 320.0, 319.5, 239.5)  # 90 deg horizontal field of view at 640x4
 THERMAL_K = (220.0, 220.0, 193.5, 141.5)
 
 
-def _quad(p0: NDArray[np.float64], du: NDArray[np.float64], dv: NDArray[np.float64]) -> tuple[
-    NDArray[np.float64], NDArray[np.float64]
-]:
+def _quad(
+    p0: NDArray[np.float64], du: NDArray[np.float64], dv: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Two triangles (2, 3, 3) of the parallelogram p0 + a du + b dv and their uv (2, 3, 2)."""
     c = np.array([p0, p0 + du, p0 + du + dv, p0 + dv])
     lu, lv = np.linalg.norm(du) * TEXELS_PER_M, np.linalg.norm(dv) * TEXELS_PER_M
@@ -54,20 +57,25 @@ def _tiled_plane(
         for b in range(nv):
             q, t = _quad(origin + a * du + b * dv, du, dv)
             tris.append(q)
-            uvs.append(t + np.array([a * np.linalg.norm(du), b * np.linalg.norm(dv)]) * TEXELS_PER_M)
+            uvs.append(
+                t + np.array([a * np.linalg.norm(du), b * np.linalg.norm(dv)]) * TEXELS_PER_M
+            )
     return np.concatenate(tris), np.concatenate(uvs)
 
 
-def _box(center: NDArray[np.float64], size: NDArray[np.float64]) -> tuple[
-    NDArray[np.float64], NDArray[np.float64]
-]:
+def _box(
+    center: NDArray[np.float64], size: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """12 triangles of an axis-aligned box."""
     lo = center - size / 2
     ex, ey, ez = np.diag(size)
     faces = [
-        (lo, ex, ey), (lo + ez, ex, ey),  # bottom, top
-        (lo, ex, ez), (lo + ey, ex, ez),  # front, back
-        (lo, ey, ez), (lo + ex, ey, ez),  # sides
+        (lo, ex, ey),
+        (lo + ez, ex, ey),  # bottom, top
+        (lo, ex, ez),
+        (lo + ey, ex, ez),  # front, back
+        (lo, ey, ez),
+        (lo + ex, ey, ez),  # sides
     ]
     tris, uvs = zip(*(_quad(p, u, v) for p, u, v in faces), strict=True)
     return np.concatenate(tris), np.concatenate(uvs)
@@ -78,7 +86,7 @@ def build_corridor(n_boxes: int, seed: int) -> tuple[Mesh, NDArray[np.uint8]]:
     rng = np.random.default_rng(seed)
     L, W, H = CORRIDOR_LENGTH_M, CORRIDOR_WIDTH_M, CORRIDOR_HEIGHT_M
     nl, nw, nh = int(L / TILE_M), int(W / TILE_M), int(np.ceil(H / TILE_M))
-    ex, ey, ez = np.eye(3) * TILE_M
+    ex, ey = np.eye(3)[:2] * TILE_M
     hz = np.array([0.0, 0.0, H / nh])
     parts = [
         (_tiled_plane(np.zeros(3), ex, ey, nl, nw), 0, 0, 1, 0.9),  # floor
@@ -126,12 +134,26 @@ def camera_path(n: int) -> list[NDArray[np.float64]]:
         T_world_camera = np.eye(4)
         T_world_camera[:3, :3] = R_world_camera
         T_world_camera[:3, 3] = (x, CORRIDOR_WIDTH_M / 2, 1.2)
-        poses.append(np.linalg.inv(T_world_camera))
+        poses.append(np.asarray(np.linalg.inv(T_world_camera), dtype=np.float64))
     return poses
 
 
-def _time_pass(fn: object, poses: list[NDArray[np.float64]], warmup: int) -> float:
-    assert callable(fn)
+def _render_frame(
+    mesh: Mesh,
+    mips: MipAtlas,
+    K: tuple[float, float, float, float],
+    width: int,
+    height: int,
+    options: dict[str, Any],
+    T_camera_world: NDArray[np.float64],
+) -> RenderOut:
+    return render(mesh, mips, K, width, height, T_camera_world, **options)
+
+
+def _time_pass(
+    fn: Callable[[NDArray[np.float64]], object], poses: list[NDArray[np.float64]], warmup: int
+) -> float:
+    """Median wall time in ms of ``fn(T)`` over ``poses`` after ``warmup`` calls."""
     for T in poses[:warmup]:
         fn(T)
     times = []
@@ -161,26 +183,46 @@ def main() -> None:
     render(mesh, mips, RGB_K, 640, 480, poses[0])
     first_call_s = time.perf_counter() - t0
 
-    rows = [
-        ("RGB 640x480, trilinear (color + gray)", RGB_K, 640, 480,
-         {"sample_color": True, "sample_gray": True}),
-        ("RGB 640x480, bilinear (color + gray)", RGB_K, 640, 480,
-         {"sample_color": True, "sample_gray": True, "filtering": "bilinear"}),
-        ("RGB 640x480, depth/labels only", RGB_K, 640, 480,
-         {"sample_color": False, "sample_gray": False}),
-        ("thermal 388x284, trilinear (depth, material, gray)", THERMAL_K, 388, 284,
-         {"sample_color": False, "sample_gray": True}),
+    rows: list[tuple[str, tuple[float, float, float, float], int, int, dict[str, Any]]] = [
+        (
+            "RGB 640x480, trilinear (color + gray)",
+            RGB_K,
+            640,
+            480,
+            {"sample_color": True, "sample_gray": True},
+        ),
+        (
+            "RGB 640x480, bilinear (color + gray)",
+            RGB_K,
+            640,
+            480,
+            {"sample_color": True, "sample_gray": True, "filtering": "bilinear"},
+        ),
+        (
+            "RGB 640x480, depth/labels only",
+            RGB_K,
+            640,
+            480,
+            {"sample_color": False, "sample_gray": False},
+        ),
+        (
+            "thermal 388x284, trilinear (depth, material, gray)",
+            THERMAL_K,
+            388,
+            284,
+            {"sample_color": False, "sample_gray": True},
+        ),
     ]
-    print(f"scene: {mesh.n_triangles} triangles, {args.boxes} boxes, "
-          f"{mips.n_textures} textures {mips.size}^2; setup {setup_s:.2f} s, "
-          f"first render (JIT compile or cache load) {first_call_s:.2f} s")
+    print(
+        f"scene: {mesh.n_triangles} triangles, {args.boxes} boxes, "
+        f"{mips.n_textures} textures {mips.size}^2; setup {setup_s:.2f} s, "
+        f"first render (JIT compile or cache load) {first_call_s:.2f} s"
+    )
     print(f"median over {args.frames} frames after {args.warmup} warm-up frames, one core\n")
     print("| pass | ms/frame |")
     print("| --- | ---: |")
     for name, K, w, h, kw in rows:
-        def fn(T: NDArray[np.float64], K: tuple[float, ...] = K, w: int = w, h: int = h,
-               kw: dict[str, object] = kw) -> object:
-            return render(mesh, mips, K, w, h, T, **kw)  # type: ignore[arg-type]
+        fn = functools.partial(_render_frame, mesh, mips, K, w, h, kw)
         print(f"| {name} | {_time_pass(fn, poses, args.warmup):.2f} |")
 
 

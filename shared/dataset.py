@@ -22,12 +22,13 @@ from __future__ import annotations
 import json
 import logging
 import math
+import operator
 import re
 import shutil
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
-from types import TracebackType
+from types import MappingProxyType, TracebackType
 from typing import Any, Final, NamedTuple
 
 import cv2
@@ -66,10 +67,10 @@ GT_MAX_NEAREST_S: Final = 0.02
 LABEL_STAMP_TOL_S: Final = 5e-7
 """Label stamps equal rgb stamps; files store microseconds, so half a microsecond."""
 UINT16_MAX: Final = 65535
-PNG_COMPRESSION: Final = 3
+PNG_COMPRESSION: Final = 1
 """zlib level for written PNGs; fixed so output bytes never depend on library defaults."""
 
-TUM_CAMERAS: Final[Mapping[str, PinholeCamera]] = {
+TUM_CAMERAS: Final[Mapping[str, PinholeCamera]] = MappingProxyType({
     # Published by the TUM RGB-D benchmark ("file formats" page, calibrated colour camera).
     "freiburg1": PinholeCamera(
         640, 480, 517.3, 516.5, 318.6, 255.3, (0.2624, -0.9531, -0.0054, 0.0026, 1.1633)
@@ -78,7 +79,7 @@ TUM_CAMERAS: Final[Mapping[str, PinholeCamera]] = {
         640, 480, 520.9, 521.0, 325.1, 249.7, (0.2312, -0.7849, -0.0033, -0.0001, 0.9172)
     ),
     "freiburg3": PinholeCamera(640, 480, 535.4, 539.2, 320.1, 247.6),
-}
+})
 """Colour cameras of the TUM RGB-D sequences, keyed by the name used in their folders."""
 
 _TUM_NAME = re.compile(r"(?<![a-z0-9])(?:freiburg|fr)([123])(?![0-9])")
@@ -866,6 +867,7 @@ class DatasetReader:
             IndexError: ``i`` out of range.
             DatasetError: an image is missing, corrupt, or has the wrong type or size.
         """
+        i = operator.index(i)
         n = len(self)
         if not -n <= i < n:
             raise IndexError(f"frame index {i} out of range for {n} frames")

@@ -12,30 +12,39 @@ Conventions:
     * Texture coordinates are in texels of level 0 of the triangle's texture and wrap
       (repeat) outside ``[0, S)``.
 
-Pipeline (all in one ``@njit`` kernel, single thread, deterministic):
+Pipeline (two ``@njit`` passes, single thread, deterministic):
     1. Transform the corners to the camera frame; drop a triangle whose three corners
        lie outside one plane of the view frustum (near, far, four sides).
     2. Per surviving triangle, derive from its *unclipped* 3D corners the screen-space
        planes of ``1/z``, ``s/z`` and ``t/z`` (texture coordinates), so depth and
        texture coordinates are exact and perspective-correct whatever clipping does.
     3. Clip against ``z = near`` (Sutherland-Hodgman; a triangle becomes a polygon of
-       up to four corners, i.e. two triangles) and, only when a corner projects absurdly
-       far off screen, against a guard band. Intersections on an edge are always
-       computed from its inside corner, so neighbours sharing the edge get bit-equal
-       points.
+       up to four corners, i.e. two triangles) and, only when a corner projects more
+       than 8192 pixels off screen, against a guard band (keeps integer edge functions
+       small). Intersections on an edge are always computed from its inside corner, so
+       neighbours sharing the edge get bit-equal points.
     4. Snap corners to 1/256 pixel and rasterize row spans with exact integer edge
        functions and the top-left fill rule: edges shared by two triangles are covered
-       exactly once, with no cracks. Depth test: strictly nearer wins (``1/z`` larger).
+       exactly once, with no cracks. Depth test: strictly nearer wins (``1/z`` larger,
+       i.e. ``z`` strictly less); the first triangle in mesh order wins a tie.
     5. Resolve: one pass over the pixels reads the winning triangle id and shades the
-       pixel once (deferred), with per-pixel mip level from the analytic texture
-       coordinate derivatives and bilinear or trilinear filtering, wrap addressing.
+       pixel once (deferred shading: no texture work for hidden surfaces), with a
+       per-pixel mip level from the analytic texture-coordinate derivatives and
+       trilinear (default) or bilinear filtering, wrap addressing.
+
+Typical use (RGB camera, then the thermal camera from another pose)::
+
+    mips = build_mipmaps(textures)                  # once
+    rgb = render(mesh, mips, K_rgb, 640, 480, T_rgb_world)
+    th = render(mesh, mips, K_th, 388, 284, T_thermal_world, sample_color=False)
+    # th.depth, th.material, th.texel_gray; th.color is None
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from numba import njit
@@ -61,7 +70,7 @@ _LUMA = (0.299, 0.587, 0.114)  # ITU-R BT.601 luma weights for ``texel_gray``
 # --------------------------------------------------------------------------- data types
 
 
-def _cast_checked(arr: NDArray[np.generic], dtype: np.dtype[np.generic], name: str) -> NDArray[np.generic]:
+def _cast_checked(arr: NDArray[Any], dtype: np.dtype[Any], name: str) -> NDArray[Any]:
     """``arr`` as ``dtype``: floats from any real dtype, integers only when every value fits."""
     if dtype.kind == "f":
         if arr.dtype.kind not in "fiu":
@@ -220,7 +229,9 @@ def build_mipmaps(textures: ArrayLike) -> MipAtlas:
         raise GeometryError(f"build_mipmaps: expected dtype uint8, got {tex.dtype}")
     n_tex, size = tex.shape[0], tex.shape[1]
     if n_tex < 1 or size < 1 or size & (size - 1):
-        raise GeometryError(f"build_mipmaps: need >= 1 texture of power-of-two side, got {tex.shape}")
+        raise GeometryError(
+            f"build_mipmaps: need >= 1 texture of power-of-two side, got {tex.shape}"
+        )
     n_levels = size.bit_length()
     sides = [max(size >> level, _TILE) for level in range(n_levels)]
     offsets = np.concatenate([[0], np.cumsum([s * s for s in sides])]).astype(np.int64)
@@ -231,7 +242,9 @@ def build_mipmaps(textures: ArrayLike) -> MipAtlas:
             # 2x2 box filter of the unrounded previous level = mean of a 2^L block of
             # level 0, rounded once below (no drift across levels).
             level = 0.25 * (
-                level[:, 0::2, 0::2] + level[:, 1::2, 0::2] + level[:, 0::2, 1::2]
+                level[:, 0::2, 0::2]
+                + level[:, 1::2, 0::2]
+                + level[:, 0::2, 1::2]
                 + level[:, 1::2, 1::2]
             )
         rgb = np.rint(level).astype(np.uint32)
@@ -258,7 +271,7 @@ def _to_tiles(level: NDArray[np.uint32], side: int) -> NDArray[np.uint32]:
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _clip_polygon(src, n_src, dst, pa, pb, pc, pd, z_exact):  # type: ignore[no-untyped-def]
+def _clip_polygon(src, n_src, dst, pa, pb, pc, pd, z_exact):
     """Clip polygon ``src[:n_src]`` (camera frame) to ``pa x + pb y + pc z + pd >= 0``.
 
     Writes the result to ``dst`` and returns its corner count. The intersection on an
@@ -282,7 +295,7 @@ def _clip_polygon(src, n_src, dst, pa, pb, pc, pd, z_exact):  # type: ignore[no-
                 i_k, o_k, d_in, d_out = k, k2, da, db
             else:
                 i_k, o_k, d_in, d_out = k2, k, db, da
-            t = d_out / (d_out - d_in) if a_in else d_in / (d_in - d_out)
+            t = d_in / (d_in - d_out)
             for c in range(3):
                 dst[m, c] = src[i_k, c] + t * (src[o_k, c] - src[i_k, c])
             if z_exact > 0.0:
@@ -292,9 +305,7 @@ def _clip_polygon(src, n_src, dst, pa, pb, pc, pd, z_exact):  # type: ignore[no-
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _raster_triangle(  # type: ignore[no-untyped-def]
-    x0, y0, x1, y1, x2, y2, wa, wb, wc, tri, zbuf, idbuf
-):
+def _raster_triangle(x0, y0, x1, y1, x2, y2, wa, wb, wc, tri, zbuf, idbuf):
     """Rasterize one triangle with snapped corners (int, 1/_SUB pixel) into the buffers.
 
     Pixel ``(i, j)`` is covered when every edge function ``E`` satisfies ``E > 0``, or
@@ -330,47 +341,78 @@ def _raster_triangle(  # type: ignore[no-untyped-def]
     c_2 = (y0 - y2) * x2 - (x0 - x2) * y2
     if (y0 - y2) < 0 or ((y0 - y2) == 0 and (x0 - x2) > 0):
         c_2 += 1
+    # Span of i with A i + (B j + C) > 0 per edge, solved exactly and without a
+    # division per row: R_j = -(B j + C) = q D + r (floor division by D = |A|) is
+    # stepped row by row; the bound is i >= q + 1 (A > 0) or i <= -q - 1 (A < 0).
+    q_0, r_0, dq_0, dr_0, d_0 = _edge_walk_init(a_0, b_0, c_0, ymin)
+    q_1, r_1, dq_1, dr_1, d_1 = _edge_walk_init(a_1, b_1, c_1, ymin)
+    q_2, r_2, dq_2, dr_2, d_2 = _edge_walk_init(a_2, b_2, c_2, ymin)
     for j in range(ymin, ymax + 1):
         lo = xmin
         hi = xmax
-        # Span of i with A i + (B j + C) > 0 for each edge, solved exactly.
-        r = -(b_0 * j + c_0)
         if a_0 > 0:
-            lo = max(lo, r // a_0 + 1)
+            lo = max(lo, q_0 + 1)
         elif a_0 < 0:
-            hi = min(hi, -(r // -a_0) - 1)
-        elif r >= 0:
-            continue
-        r = -(b_1 * j + c_1)
+            hi = min(hi, -q_0 - 1)
+        elif b_0 * j + c_0 <= 0:  # horizontal edge, row outside
+            hi = -1
         if a_1 > 0:
-            lo = max(lo, r // a_1 + 1)
+            lo = max(lo, q_1 + 1)
         elif a_1 < 0:
-            hi = min(hi, -(r // -a_1) - 1)
-        elif r >= 0:
-            continue
-        r = -(b_2 * j + c_2)
+            hi = min(hi, -q_1 - 1)
+        elif b_1 * j + c_1 <= 0:
+            hi = -1
         if a_2 > 0:
-            lo = max(lo, r // a_2 + 1)
+            lo = max(lo, q_2 + 1)
         elif a_2 < 0:
-            hi = min(hi, -(r // -a_2) - 1)
-        elif r >= 0:
-            continue
-        if lo > hi:
-            continue
-        w_row = wb * j + wc
-        zrow = zbuf[j]
-        idrow = idbuf[j]
-        for i in range(lo, hi + 1):
-            w = wa * i + w_row
-            if w > zrow[i]:
-                zrow[i] = w
-                idrow[i] = tri
+            hi = min(hi, -q_2 - 1)
+        elif b_2 * j + c_2 <= 0:
+            hi = -1
+        if lo <= hi:
+            w_row = wb * j + wc
+            zrow = zbuf[j]
+            idrow = idbuf[j]
+            for i in range(lo, hi + 1):  # branch-free so that LLVM vectorizes it
+                w = wa * i + w_row
+                nearer = w > zrow[i]
+                zrow[i] = w if nearer else zrow[i]
+                idrow[i] = tri if nearer else idrow[i]
+        q_0 += dq_0
+        r_0 += dr_0
+        if r_0 >= d_0:
+            q_0 += 1
+            r_0 -= d_0
+        q_1 += dq_1
+        r_1 += dr_1
+        if r_1 >= d_1:
+            q_1 += 1
+            r_1 -= d_1
+        q_2 += dq_2
+        r_2 += dr_2
+        if r_2 >= d_2:
+            q_2 += 1
+            r_2 -= d_2
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _edge_walk_init(a, b, c, j0):
+    """Start of the exact row walk of edge ``E = a i + b j + c`` (int64) at row ``j0``.
+
+    Returns ``(q, r, dq, dr, d)``: ``-(b j0 + c) = q d + r`` and ``-b = dq d + dr`` with
+    ``d = |a|`` and ``0 <= r, dr < d`` (floor division); all zero with ``d = 1`` for a
+    horizontal edge (a = 0), which the caller tests directly.
+    """
+    d = abs(a)
+    if d == 0:
+        return 0, 0, 0, 0, 1
+    rr = -(b * j0 + c)
+    q = rr // d
+    dq = (-b) // d
+    return q, rr - q * d, dq, -b - dq * d, d
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _visibility(  # type: ignore[no-untyped-def]
-    vertices, uv, R, t, fx, fy, cx, cy, width, height, near, far, cull_back
-):
+def _visibility(vertices, uv, R, t, fx, fy, cx, cy, width, height, near, far, cull_back):
     """Depth pass: returns ``(zbuf, idbuf, planes)``.
 
     ``zbuf`` float64 (H, W) holds 1/z of the nearest surface (1/far where none),
@@ -381,7 +423,7 @@ def _visibility(  # type: ignore[no-untyped-def]
     n_tri = vertices.shape[0]
     zbuf = np.full((height, width), 1.0 / far)
     idbuf = np.full((height, width), -1, dtype=np.int32)
-    planes = np.zeros((n_tri, 9))
+    planes = np.empty((n_tri, 9))  # rows of culled triangles stay unset and unread
     P = np.empty((3, 3))
     poly_a = np.empty((16, 3))
     poly_b = np.empty((16, 3))
@@ -513,14 +555,24 @@ def _visibility(  # type: ignore[no-untyped-def]
             sy[k] = np.int64(math.floor((fy * src[k, 1] * iz + cy) * _SUB + 0.5))
         for k in range(1, n_poly - 1):
             _raster_triangle(
-                sx[0], sy[0], sx[k], sy[k], sx[k + 1], sy[k + 1],
-                planes[tri, 0], planes[tri, 1], planes[tri, 2], tri, zbuf, idbuf,
+                sx[0],
+                sy[0],
+                sx[k],
+                sy[k],
+                sx[k + 1],
+                sy[k + 1],
+                planes[tri, 0],
+                planes[tri, 1],
+                planes[tri, 2],
+                tri,
+                zbuf,
+                idbuf,
             )
     return zbuf, idbuf, planes
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _bilinear(texels, tex, offset, side, scale, s, t, want_rgb):  # type: ignore[no-untyped-def]
+def _bilinear(texels, tex, offset, side, scale, s, t, want_rgb):
     """Bilinear sample of one level (side ``side``, wrap) at level-0 texel coords (s, t).
 
     Returns ``(r, g, b, luma)`` in 0..255 (r, g, b are 0 when ``want_rgb`` is False).
@@ -554,20 +606,34 @@ def _bilinear(texels, tex, offset, side, scale, s, t, want_rgb):  # type: ignore
     if want_rgb:
         r = w00 * (t00 & 255) + w01 * (t01 & 255) + w10 * (t10 & 255) + w11 * (t11 & 255)
         g = (
-            w00 * ((t00 >> 8) & 255) + w01 * ((t01 >> 8) & 255)
-            + w10 * ((t10 >> 8) & 255) + w11 * ((t11 >> 8) & 255)
+            w00 * ((t00 >> 8) & 255)
+            + w01 * ((t01 >> 8) & 255)
+            + w10 * ((t10 >> 8) & 255)
+            + w11 * ((t11 >> 8) & 255)
         )
         b = (
-            w00 * ((t00 >> 16) & 255) + w01 * ((t01 >> 16) & 255)
-            + w10 * ((t10 >> 16) & 255) + w11 * ((t11 >> 16) & 255)
+            w00 * ((t00 >> 16) & 255)
+            + w01 * ((t01 >> 16) & 255)
+            + w10 * ((t10 >> 16) & 255)
+            + w11 * ((t11 >> 16) & 255)
         )
     return r, g, b, luma
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _resolve(  # type: ignore[no-untyped-def]
-    idbuf, planes, texture, instance, material, shade, texels, offsets, tex_size,
-    want_color, want_gray, trilinear,
+def _resolve(
+    idbuf,
+    planes,
+    texture,
+    instance,
+    material,
+    shade,
+    texels,
+    offsets,
+    tex_size,
+    want_color,
+    want_gray,
+    trilinear,
 ):
     """Shading pass: one texture lookup per covered pixel. Returns the output images.
 
@@ -644,7 +710,13 @@ def _resolve(  # type: ignore[no-untyped-def]
             r, g, b, y = _bilinear(texels, tex, offsets[level], side, scale, s, tt, want_color)
             if frac > 0.0:
                 r2, g2, b2, y2 = _bilinear(
-                    texels, tex, offsets[level + 1], max(side >> 1, 4), 0.5 * scale, s, tt,
+                    texels,
+                    tex,
+                    offsets[level + 1],
+                    max(side >> 1, 4),
+                    0.5 * scale,
+                    s,
+                    tt,
                     want_color,
                 )
                 r += frac * (r2 - r)
@@ -725,13 +797,33 @@ def render(
     R = np.ascontiguousarray(T[:3, :3])
     t = np.ascontiguousarray(T[:3, 3])
     _, idbuf, planes = _visibility(
-        mesh.vertices, mesh.uv, R, t, fx, fy, cx, cy, int(width), int(height),
-        float(near), float(far), bool(cull_backfaces),
+        mesh.vertices,
+        mesh.uv,
+        R,
+        t,
+        fx,
+        fy,
+        cx,
+        cy,
+        int(width),
+        int(height),
+        float(near),
+        float(far),
+        bool(cull_backfaces),
     )
     depth, inst, mat, color, gray = _resolve(
-        idbuf, planes, mesh.texture, mesh.instance, mesh.material, mesh.shade,
-        textures_mips.texels, textures_mips.offsets, textures_mips.size,
-        bool(sample_color), bool(sample_gray), filtering == "trilinear",
+        idbuf,
+        planes,
+        mesh.texture,
+        mesh.instance,
+        mesh.material,
+        mesh.shade,
+        textures_mips.texels,
+        textures_mips.offsets,
+        textures_mips.size,
+        bool(sample_color),
+        bool(sample_gray),
+        filtering == "trilinear",
     )
     return RenderOut(
         depth=depth,

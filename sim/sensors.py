@@ -128,7 +128,7 @@ class SensorSimulator:
         if out.color is None:
             raise RuntimeError("renderer returned no colour")
         gain = np.where(self.emissive[out.material], np.float32(max(light, 0.8)), np.float32(light))
-        noise = rng.normal(0.0, rig.rgb_noise_std, size=out.color.shape).astype(np.float32)
+        noise = rng.standard_normal(size=out.color.shape, dtype=np.float32) * np.float32(rig.rgb_noise_std)
         rgb_f = out.color * (255.0 * gain)[..., None] + noise
         rgb = np.clip(rgb_f + 0.5, 0, 255).astype(np.uint8)
 
@@ -151,7 +151,9 @@ class SensorSimulator:
             raise RuntimeError("renderer returned no grey level")
         temp = self.temp_k[tout.material] + self.contrast_k[tout.material] * (tout.texel_gray - 0.5)
         temp_blur = cv2.GaussianBlur(temp, (0, 0), rig.thermal_blur_px)
-        temp_noisy = temp_blur + rng.normal(0.0, rig.thermal_netd_k, size=temp.shape).astype(np.float32)
+        temp_noisy = temp_blur + rng.standard_normal(size=temp.shape, dtype=np.float32) * np.float32(
+            rig.thermal_netd_k
+        )
         return SensorFrame(rgb, depth, out.instance.copy(), temp_noisy.astype(np.float32), depth_true)
 
     def _depth_noise(

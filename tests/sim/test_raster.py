@@ -6,6 +6,8 @@ ray intersection is known in closed form.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 from numpy.typing import NDArray
@@ -63,7 +65,7 @@ def _pose(position: F64, yaw: float, pitch: float) -> F64:
     T_world_camera = np.eye(4)
     T_world_camera[:3, :3] = np.column_stack([right, down, fwd])
     T_world_camera[:3, 3] = position
-    return np.linalg.inv(T_world_camera)
+    return np.asarray(np.linalg.inv(T_world_camera), dtype=np.float64)
 
 
 def _rays_world(T_camera_world: F64, width: int = W, height: int = H) -> tuple[F64, F64]:
@@ -71,13 +73,13 @@ def _rays_world(T_camera_world: F64, width: int = W, height: int = H) -> tuple[F
     fx, fy, cx, cy = K
     u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
     rays_cam = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], axis=-1)
-    T_world_camera = np.linalg.inv(T_camera_world)
-    return T_world_camera[:3, 3], rays_cam @ T_world_camera[:3, :3].T
+    T_world_camera = np.asarray(np.linalg.inv(T_camera_world), dtype=np.float64)
+    return T_world_camera[:3, 3], np.asarray(rays_cam @ T_world_camera[:3, :3].T, dtype=np.float64)
 
 
-def _render(mesh: Mesh, atlas: MipAtlas, T_camera_world: F64 | None = None, **kw: object) -> RenderOut:
+def _render(mesh: Mesh, atlas: MipAtlas, T_camera_world: F64 | None = None, **kw: Any) -> RenderOut:
     T = np.eye(4) if T_camera_world is None else T_camera_world
-    return render(mesh, atlas, K, W, H, T, **kw)  # type: ignore[arg-type]
+    return render(mesh, atlas, K, W, H, T, **kw)
 
 
 def _floor(half_extent_m: float, instance: int = 7) -> tuple[F64, F64, int]:
@@ -125,10 +127,12 @@ def test_fronto_parallel_quad_depth_coverage_and_flat_colour() -> None:
 def test_nearer_quad_hides_farther_one_whatever_the_order(near_first: bool) -> None:
     """A small quad at 1.5 m in front of a large one at 3 m: where both project, the
     near one wins (instance and depth), independent of triangle order."""
-    near_q = _quad_tris(np.array([[-0.2, -0.2, 1.5], [0.2, -0.2, 1.5], [0.2, 0.2, 1.5],
-                                  [-0.2, 0.2, 1.5]]))
-    far_q = _quad_tris(np.array([[-1.0, -1.0, 3.0], [1.0, -1.0, 3.0], [1.0, 1.0, 3.0],
-                                 [-1.0, 1.0, 3.0]]))
+    near_q = _quad_tris(
+        np.array([[-0.2, -0.2, 1.5], [0.2, -0.2, 1.5], [0.2, 0.2, 1.5], [-0.2, 0.2, 1.5]])
+    )
+    far_q = _quad_tris(
+        np.array([[-1.0, -1.0, 3.0], [1.0, -1.0, 3.0], [1.0, 1.0, 3.0], [-1.0, 1.0, 3.0]])
+    )
     parts = [(*near_q, 1), (*far_q, 2)]
     out = _render(_mesh(parts if near_first else parts[::-1]), _flat_atlas())
     fx, _, cx, cy = K
@@ -152,8 +156,9 @@ def test_floor_crossing_near_plane_has_no_holes_and_analytic_depth(seed: int) ->
     pixels off screen (guard-band clipping). Every pixel whose ray meets the floor
     closer than ``far`` is covered, and its depth equals the ray-plane intersection."""
     rng = np.random.default_rng(seed)
-    T = _pose(np.array([*rng.uniform(-3, 3, 2), 1.2]), rng.uniform(-np.pi, np.pi),
-              rng.uniform(0.1, 0.6))
+    T = _pose(
+        np.array([*rng.uniform(-3, 3, 2), 1.2]), rng.uniform(-np.pi, np.pi), rng.uniform(0.1, 0.6)
+    )
     far = 20.0
     out = _render(_mesh([_floor(1000.0)]), _flat_atlas(), T, far=far)
     centre, d = _rays_world(T)
@@ -205,8 +210,9 @@ def test_quad_split_on_its_diagonal_covers_each_pixel_once() -> None:
     inside = (u >= 20) & (u < 90) & (v >= 10) & (v < 80)  # top-left rule on the border
     np.testing.assert_array_equal(out.instance == 1, inside)
     assert np.all(out.instance[~inside] == 9)
-    cover = [_render(_mesh([(tris[k : k + 1], uv[k : k + 1], 1)]), atlas).instance == 1
-             for k in range(2)]
+    cover = [
+        _render(_mesh([(tris[k : k + 1], uv[k : k + 1], 1)]), atlas).instance == 1 for k in range(2)
+    ]
     assert not np.any(cover[0] & cover[1]), "pixels on the diagonal written twice"
     np.testing.assert_array_equal(cover[0] | cover[1], inside)
     diag = (u - 20 == v - 10) & inside
@@ -265,23 +271,43 @@ def test_same_input_gives_byte_identical_output() -> None:
             for sign in (-1, 1):
                 o = c.copy()
                 o[ax] += sign * s[ax] / 2
-                e1, e2 = np.eye(3)[(ax + 1) % 3] * s[(ax + 1) % 3], np.eye(3)[(ax + 2) % 3] * s[(ax + 2) % 3]
-                corners = np.array([o - e1 / 2 - e2 / 2, o + e1 / 2 - e2 / 2, o + e1 / 2 + e2 / 2,
-                                    o - e1 / 2 + e2 / 2])
+                e1, e2 = (
+                    np.eye(3)[(ax + 1) % 3] * s[(ax + 1) % 3],
+                    np.eye(3)[(ax + 2) % 3] * s[(ax + 2) % 3],
+                )
+                corners = np.array(
+                    [
+                        o - e1 / 2 - e2 / 2,
+                        o + e1 / 2 - e2 / 2,
+                        o + e1 / 2 + e2 / 2,
+                        o - e1 / 2 + e2 / 2,
+                    ]
+                )
                 parts.append((*_quad_tris(corners, rng.uniform(0, 300, (4, 2))), k + 1))
     mesh = _mesh(parts)
     tex = rng.integers(0, 256, (2, 64, 64, 3), dtype=np.uint8)
     atlas = build_mipmaps(tex)
     T = _pose(np.array([-6.0, 0.3, 1.1]), 0.1, 0.15)
     a = _render(mesh, atlas, T)
-    copy = Mesh(mesh.vertices.copy(), mesh.uv.copy(), mesh.texture.copy(), mesh.instance.copy(),
-                mesh.material.copy(), mesh.shade.copy())
+    copy = Mesh(
+        mesh.vertices.copy(),
+        mesh.uv.copy(),
+        mesh.texture.copy(),
+        mesh.instance.copy(),
+        mesh.material.copy(),
+        mesh.shade.copy(),
+    )
     b = _render(copy, atlas, T)
     assert a.color is not None and b.color is not None
     assert a.texel_gray is not None and b.texel_gray is not None
     assert (a.instance > 0).sum() > 1000
-    for x, y in [(a.depth, b.depth), (a.instance, b.instance), (a.material, b.material),
-                 (a.color, b.color), (a.texel_gray, b.texel_gray)]:
+    for x, y in [
+        (a.depth, b.depth),
+        (a.instance, b.instance),
+        (a.material, b.material),
+        (a.color, b.color),
+        (a.texel_gray, b.texel_gray),
+    ]:
         assert x.tobytes() == y.tobytes()
 
 
@@ -293,8 +319,11 @@ def test_moved_camera_sees_wall_where_geometry_says(seed: int) -> None:
     rng = np.random.default_rng(seed)
     wall = np.array([[5.0, -10, -2], [5.0, 10, -2], [5.0, 10, 6], [5.0, -10, 6]])
     mesh = _mesh([(*_quad_tris(wall), 2)])
-    T = _pose(np.array([*rng.uniform(-2, 2, 2), rng.uniform(0.5, 2.0)]),
-              rng.uniform(-0.6, 0.6), rng.uniform(-0.3, 0.3))
+    T = _pose(
+        np.array([*rng.uniform(-2, 2, 2), rng.uniform(0.5, 2.0)]),
+        rng.uniform(-0.6, 0.6),
+        rng.uniform(-0.3, 0.3),
+    )
     out = _render(mesh, _flat_atlas(), T)
     centre, d = _rays_world(T)
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -391,12 +420,29 @@ def test_backface_culling_is_optional() -> None:
         assert culled.any() == drawn_when_culling
 
 
+def test_edge_on_triangle_through_camera_centre_draws_nothing() -> None:
+    """A triangle whose plane contains the camera centre projects to a line: it is
+    skipped (no pixels, no division by zero) while a normal quad behind it still draws."""
+    edge_on = np.array([[[0.0, -1.0, 1.0], [0.0, 1.0, 1.0], [0.0, 0.0, 5.0]]])
+    wall = _quad_tris(np.array([[-20, -20, 6.0], [20, -20, 6.0], [20, 20, 6.0], [-20, 20, 6.0]]))
+    out = _render(_mesh([(edge_on, np.zeros((1, 3, 2)), 1), (*wall, 2)]), _flat_atlas())
+    assert not np.any(out.instance == 1)
+    assert np.all(out.instance == 2)
+    assert np.all(np.isfinite(out.depth))
+
+
 def test_beyond_far_and_empty_scene_render_nothing() -> None:
     """A quad at 25 m with far = 20 m, and an empty mesh, both give all-zero images."""
     atlas = _flat_atlas()
     q = _quad_tris(np.array([[-9, -9, 25.0], [9, -9, 25.0], [9, 9, 25.0], [-9, 9, 25.0]]))
-    empty = Mesh(np.zeros((0, 3, 3)), np.zeros((0, 3, 2)), np.zeros(0, np.int32),
-                 np.zeros(0, np.uint16), np.zeros(0, np.uint16), np.zeros(0, np.float32))
+    empty = Mesh(
+        np.zeros((0, 3, 3)),
+        np.zeros((0, 3, 2)),
+        np.zeros(0, np.int32),
+        np.zeros(0, np.uint16),
+        np.zeros(0, np.uint16),
+        np.zeros(0, np.float32),
+    )
     for mesh in (_mesh([(*q, 1)]), empty):
         out = _render(mesh, atlas, far=20.0)
         assert out.color is not None and out.texel_gray is not None
@@ -431,13 +477,13 @@ def test_bad_inputs_raise_geometry_error() -> None:
         build_mipmaps(np.zeros((1, 16, 16, 3), dtype=np.float32))
     tris, uv = _quad_tris(np.eye(4, 3))
     zeros = np.zeros(2, dtype=int)
-    with pytest.raises(GeometryError, match=r"Mesh.uv: expected shape"):
+    with pytest.raises(GeometryError, match=r"Mesh\.uv: expected shape"):
         Mesh(tris, uv[:, :2], zeros, zeros, zeros, np.ones(2))
     with pytest.raises(GeometryError, match="non-finite"):
         Mesh(np.full((2, 3, 3), np.nan), uv, zeros, zeros, zeros, np.ones(2))
-    with pytest.raises(GeometryError, match="Mesh.instance: values outside"):
+    with pytest.raises(GeometryError, match=r"Mesh\.instance: values outside"):
         Mesh(tris, uv, zeros, np.full(2, -1), zeros, np.ones(2))
-    with pytest.raises(GeometryError, match="Mesh.texture: expected an integer dtype"):
+    with pytest.raises(GeometryError, match=r"Mesh\.texture: expected an integer dtype"):
         Mesh(tris, uv, np.zeros(2), zeros, zeros, np.ones(2))
     mesh = _mesh([(tris, uv, 1)], texture=3)
     atlas = _flat_atlas()
