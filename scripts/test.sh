@@ -8,7 +8,7 @@ VENV=${VENV:-.venv}
 if [ ! -x "$VENV/bin/python" ]; then
     "$PY" -m venv "$VENV"
 fi
-"$VENV/bin/python" -m pip install -q --upgrade pip
+"$VENV/bin/python" -m pip install -q --upgrade pip "setuptools>=68" wheel
 "$VENV/bin/python" -m pip install -q -e '.[dev]'
 "$VENV/bin/ruff" check .
 # mypy sees the source folders under their installed names (wardmap.shared, ...).
