@@ -12,7 +12,7 @@ import sys
 from collections.abc import Sequence
 from importlib.metadata import PackageNotFoundError, version
 
-from wardmap.cli import dataset_cmd, sim_cmd
+from wardmap.cli import dataset_cmd, sim_cmd, track_cmd
 from wardmap.shared.errors import WardmapError
 from wardmap.shared.logsetup import configure_logging
 
@@ -39,6 +39,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub.required = True
     sim_cmd.register(sub)
     dataset_cmd.register(sub)
+    track_cmd.register(sub)
     return parser
 
 

@@ -1,0 +1,150 @@
+"""Tracking frontend benchmark: ATE (evo, SE3 alignment) and speed on every scenario.
+
+Generates the simulator's scenarios (cached under --data), runs ``wardmap track``'s
+library function on each, and scores the trajectory against ground truth. Also runs
+the real TUM sample from ../shared when present. One core (numba/OpenCV threads = 1).
+
+    python bench/tracking.py [--data out/bench_data] [--seed 0] [--write BENCHMARKS.md]
+                             [--only NAME ...] [--detector ../shared/models/yolox_nano.onnx]
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("NUMBA_NUM_THREADS", "1")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import argparse
+import sys
+import tempfile
+from pathlib import Path
+
+import cv2
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _report import git_rev, machine, write_section
+
+from wardmap.edge.offline import track_dataset
+from wardmap.shared.dataset import DatasetReader
+from wardmap.shared.metrics import ate
+from wardmap.shared.se3 import transform_from_tum
+from wardmap.sim.runner import generate
+from wardmap.sim.scenarios import SCENARIOS
+
+ROOT = Path(__file__).resolve().parents[1]
+TUM = ROOT.parent / "shared" / "data" / "tum_fr1_rpy_s3_first100"
+DETECTOR = ROOT.parent / "shared" / "models" / "yolox_nano.onnx"
+GOALS = {
+    "aisle": "ATE <= 3 cm",
+    "ward_chairs": "ATE <= 3 cm",
+    "dark_corridor": "no lost frames, ATE <= 5 cm",
+    "tum": "no lost frames, ATE <= 3 cm",
+}
+
+
+def read_tum(path: Path) -> tuple[list[float], list]:
+    stamps, poses = [], []
+    for line in path.read_text().splitlines():
+        if line.startswith("#") or not line.strip():
+            continue
+        v = [float(x) for x in line.split()]
+        stamps.append(v[0])
+        poses.append(transform_from_tum(v[1:]))
+    return stamps, poses
+
+
+def run_one(folder: Path, labels: str, tmp: Path) -> dict:
+    traj = tmp / f"{folder.name}_{labels.split(':')[0]}.txt"
+    summary = track_dataset(folder, traj, labels=labels)
+    gt = DatasetReader(folder).groundtruth()
+    assert gt is not None
+    st, T = read_tum(traj)
+    res = ate(st, T, gt[0], gt[1])
+    ms = summary["ms_per_frame"]["total"]
+    lab = summary["labels_ms"]
+    return {
+        "ate_cm": 100 * res.rmse,
+        "frames": summary["frames"],
+        "lost": summary["lost_frames"],
+        "kf": summary["keyframes"],
+        "med": ms["median"],
+        "p95": ms["p95"],
+        "labels": "-" if lab is None else f"{lab['median']:.1f}",
+        "sources": summary["sources"],
+    }
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", type=Path, default=ROOT / "out" / "bench_data")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--only", nargs="*", help="scenario names (default: all, plus tum)")
+    ap.add_argument("--detector", type=Path, default=DETECTOR, help="YOLOX ONNX model for onnx labels")
+    ap.add_argument("--write", type=Path, help="update this markdown file's tracking section")
+    args = ap.parse_args()
+    cv2.setNumThreads(1)
+    names = args.only or [*SCENARIOS, "tum"]
+    rows = []
+    with tempfile.TemporaryDirectory() as tmpd:
+        tmp = Path(tmpd)
+        for name in names:
+            if name == "tum":
+                if not TUM.is_dir():
+                    print(f"skip tum: {TUM} absent", file=sys.stderr)
+                    continue
+                folders = [("tum_fr1_rpy_s3_first100", TUM)]
+            else:
+                out = args.data / f"{name}_s{args.seed}"
+                if not (out / "sim.json").exists() and not (out / "robot_0" / "sim.json").exists():
+                    print(f"generating {name} ...", file=sys.stderr)
+                    generate(name, args.seed, out, overwrite=True)
+                folders = (
+                    [(f"{name}/{p.name}", p) for p in sorted(out.glob("robot_*"))]
+                    if (out / "robot_0").exists()
+                    else [(name, out)]
+                )
+            for label, folder in folders:
+                label_specs = ["none"]
+                if name == "walking_staff":
+                    label_specs += ["oracle"] + ([f"onnx:{args.detector}"] if args.detector.is_file() else [])
+                base = None
+                for spec in label_specs:
+                    print(f"tracking {label} labels={spec.split(':')[0]} ...", file=sys.stderr)
+                    r = run_one(folder, spec, tmp)
+                    ratio = "" if base is None else f"{100 * r['ate_cm'] / base:.0f}% of none"
+                    base = r["ate_cm"] if base is None else base
+                    src = ", ".join(f"{k} {v}" for k, v in sorted(r["sources"].items()))
+                    goal = next((g for k, g in GOALS.items() if label.startswith(k)), "")
+                    if name == "walking_staff" and spec != "none":
+                        goal = "<= 25% of none"
+                    rows.append(
+                        f"| {label} | {spec.split(':')[0]} | {r['frames']} | {r['kf']} | {r['lost']} "
+                        f"| {r['ate_cm']:.2f} | {ratio} | {goal} | {r['med']:.1f} | {r['p95']:.1f} "
+                        f"| {r['labels']} | {src} |"
+                    )
+                    print(rows[-1])
+    table = "\n".join(
+        [
+            "| sequence | labels | frames | keyframes | lost | ATE RMSE cm | vs none | goal "
+            "| ms/frame median | ms/frame p95 | label ms median | pose sources |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|",
+            *rows,
+        ]
+    )
+    body = (
+        "## Tracking frontend (issue 3)\n\n"
+        f"Command: `python bench/tracking.py --seed {args.seed} --write BENCHMARKS.md`  \n"
+        f"Machine: {machine()}; one core (numba/OpenCV threads = 1); commit {git_rev()}.\n"
+        "ATE: evo, SE3 (Umeyama) alignment, translation RMSE. ms/frame: the whole frontend, "
+        "label inference excluded (its own column).\n\n" + table
+    )
+    print(body)
+    if args.write:
+        write_section(args.write, "tracking", body)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,710 @@
+"""The edge tracking frontend (papers 001 and 003): one camera frame in, one pose out.
+
+Per frame: ORB features on a grid (paper 003 Eq. 3-5) -> dynamic-point removal with the
+semantic descriptor and the knowledge graph (paper 001 Eq. 6-8) -> guided matching
+against the local map, predicted by wheel odometry (or a constant-velocity model) ->
+EPnP in RANSAC -> Huber motion-only refinement -> keyframe decision. When RGB is too
+dark or yields too few inliers: relocalisation against recent keyframes, then tracking
+on thermal SIFT with depth moved through the calibration (paper 003 Sec. IV-C), then
+wheel odometry. Every result says which source produced the pose.
+
+The tracker's world frame is the robot's odom frame when odometry and ``T_base_rgb``
+are known at the first frame (so poses are ``T_odom_camera``), else the first camera
+frame.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Literal
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from wardmap.edge.features import (
+    Features,
+    OrbConfig,
+    OrbExtractor,
+    SiftConfig,
+    extract_sift_adaptive,
+    match_descriptors,
+    match_projected,
+    thermal_to_gray8,
+)
+from wardmap.edge.mapstore import Keyframe, MapPoints
+from wardmap.edge.pose import refine_pose_huber, solve_pnp_ransac
+from wardmap.shared.camera import PinholeCamera
+from wardmap.shared.dataset import Calibration
+from wardmap.shared.errors import ConfigError
+from wardmap.shared.se3 import inverse, rotation_angle, transform_points
+from wardmap.shared.semantic import SemanticConfig, dynamic_mask, semantic_distance
+
+log = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+PoseSource = Literal["init", "rgb", "relocalised", "thermal", "odometry", "motion_model", "none"]
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    """Frontend parameters (``[tracker]`` table in a TOML config).
+
+    Attributes:
+        orb: ORB extraction (paper 003 grid).
+        sift: thermal SIFT with adaptive contrast threshold (paper 003 Sec. IV-C).
+        semantic: dynamic-point removal (paper 001: n = 21, delta = 55, distance 110).
+        match_radius_px: search radius around a map point's predicted pixel.
+        match_radius_lost_px: wider radius for a second attempt.
+        max_hamming: largest ORB descriptor distance of a match.
+        min_inliers: fewest PnP inliers for a visual pose.
+        min_depth_m, max_depth_m: depth range for new map points.
+        dark_mean_level: mean grey level below which RGB is too dark to track.
+        kf_max_interval_s: a keyframe at least this often while tracking.
+        kf_translation_m, kf_rotation_deg: motion since the last keyframe that makes one.
+        kf_tracked_ratio: a keyframe when fewer than this share of the last keyframe's
+            inliers are still tracked (ORB-SLAM2's rule).
+        local_keyframes: map points last seen this many keyframes ago are dropped.
+        max_map_points: cap on the local map (oldest dropped first).
+        reloc_keyframes: recent keyframes tried when relocalising.
+        thermal: use the thermal fallback when the data has thermal images.
+        max_fuse_weight: cap of a map point's averaging weight (lets points keep adapting).
+    """
+
+    orb: OrbConfig = field(default_factory=OrbConfig)
+    sift: SiftConfig = field(default_factory=SiftConfig)
+    semantic: SemanticConfig = field(default_factory=SemanticConfig)
+    match_radius_px: float = 15.0
+    match_radius_lost_px: float = 40.0
+    max_hamming: int = 64
+    min_inliers: int = 25
+    min_depth_m: float = 0.3
+    max_depth_m: float = 6.0
+    dark_mean_level: float = 18.0
+    kf_max_interval_s: float = 1.0
+    kf_translation_m: float = 0.25
+    kf_rotation_deg: float = 10.0
+    kf_tracked_ratio: float = 0.7
+    local_keyframes: int = 12
+    max_map_points: int = 6000
+    reloc_keyframes: int = 8
+    thermal: bool = True
+    max_fuse_weight: float = 20.0
+
+    def __post_init__(self) -> None:
+        if self.min_inliers < 6:
+            raise ConfigError("tracker.min_inliers must be at least 6 (EPnP needs >= 4 + RANSAC)")
+        if not 0 < self.min_depth_m < self.max_depth_m:
+            raise ConfigError("tracker: need 0 < min_depth_m < max_depth_m")
+        if self.match_radius_px <= 0 or self.match_radius_lost_px < self.match_radius_px:
+            raise ConfigError("tracker: need 0 < match_radius_px <= match_radius_lost_px")
+
+
+@dataclass(frozen=True)
+class TrackInput:
+    """One frame for the tracker.
+
+    Attributes:
+        stamp: seconds.
+        rgb: uint8 (H, W, 3) RGB, or None if the colour image is missing.
+        depth_m: float32 (H, W) metres, 0 = no data (NaN treated as no data).
+        thermal_k: float32 (h, w) kelvin, or None.
+        T_odom_base: wheel-odometry pose of the base at ``stamp`` (4, 4), or None.
+        class_image: uint8 (H, W) knowledge-graph class per pixel, or None (no labels).
+        problem: a known problem with this frame (e.g. an unreadable file); it is lost.
+    """
+
+    stamp: float
+    rgb: NDArray[np.uint8] | None
+    depth_m: NDArray[np.float32] | None
+    thermal_k: NDArray[np.float32] | None = None
+    T_odom_base: F64 | None = None
+    class_image: NDArray[np.uint8] | None = None
+    problem: str = ""
+
+
+@dataclass(frozen=True)
+class TrackResult:
+    """The tracker's answer for one frame.
+
+    ``T_world_camera`` is always set (a prediction when lost). ``lost`` is True when no
+    sensor measured the pose (neither vision nor odometry); ``reason`` says why.
+    """
+
+    stamp: float
+    T_world_camera: F64
+    source: PoseSource
+    lost: bool
+    reason: str
+    n_features: int
+    n_dynamic: int
+    n_matches: int
+    n_inliers: int
+    keyframe: bool
+    timings_ms: dict[str, float]
+
+
+class Tracker:
+    """Stateful frontend for one camera stream. Not thread-safe: one owner calls ``track``."""
+
+    def __init__(
+        self,
+        calibration: Calibration,
+        config: TrackerConfig | None = None,
+        mobility_lut: NDArray[np.uint8] | None = None,
+    ) -> None:
+        self.cfg = config or TrackerConfig()
+        self.calib = calibration
+        self.cam: PinholeCamera = calibration.rgb
+        self.orb = OrbExtractor(self.cfg.orb)
+        self.mobility_lut = mobility_lut
+        self.map = MapPoints()
+        self.keyframes: list[Keyframe] = []  # the most recent ones, for relocalisation
+        self._kf_count = 0  # keyframes made so far (indexes never repeat)
+        self._frame_index = -1
+        self._T_world_cam: F64 | None = None
+        self._velocity: F64 = np.eye(4)  # T_prev_cur of the last step (camera frames)
+        self._prev_stamp: float | None = None
+        self._prev_odom: F64 | None = None
+        self._kf_inliers = 0
+        self._kf_T: F64 | None = None
+        self._kf_stamp = -np.inf
+        self._thermal_ref: tuple[Features, F64] | None = None
+        self._thermal_ref_T: F64 = np.eye(4)
+        # Last keyframe's thermal image, depth and pose: turned into a SIFT reference only
+        # when RGB fails, so normal tracking pays nothing for the thermal fallback.
+        self._thermal_pending: tuple[NDArray[np.float32], NDArray[np.float32], F64] | None = None
+        self._sift_contrast: float | None = None
+        self._T_world_odom: F64 | None = None
+
+    # ------------------------------------------------------------------ public
+    def track(self, inp: TrackInput) -> TrackResult:
+        """Estimate the camera pose of one frame; never raises on bad frame content."""
+        self._frame_index += 1
+        timings: dict[str, float] = {}
+        t_start = time.perf_counter()
+        prior, prior_source = self._predict(inp)
+        bad = _frame_problem(inp, self.cam)
+        if bad:
+            return self._fallback(inp, prior, prior_source, bad, timings, t_start, n_feat=0)
+
+        assert inp.rgb is not None and inp.depth_m is not None  # checked by _frame_problem
+        depth = np.nan_to_num(inp.depth_m, nan=0.0, posinf=0.0, neginf=0.0)
+        gray: NDArray[np.uint8] = np.asarray(cv2.cvtColor(inp.rgb, cv2.COLOR_RGB2GRAY), np.uint8)
+        dark = float(gray.mean()) < self.cfg.dark_mean_level
+        t0 = time.perf_counter()
+        feats = self.orb.extract(gray) if not dark else None
+        timings["features"] = _ms(t0)
+
+        n_dyn = 0
+        sem = None
+        if (
+            feats is not None
+            and len(feats.uv)
+            and inp.class_image is not None
+            and self.mobility_lut is not None
+            and self.cfg.semantic.enabled
+        ):
+            t0 = time.perf_counter()
+            res = dynamic_mask(
+                inp.class_image,
+                feats.uv,
+                feats.angle_deg,
+                self.mobility_lut,
+                n=self.cfg.semantic.n,
+                delta=self.cfg.semantic.delta,
+            )
+            keep = ~res.dynamic
+            n_dyn = int(res.dynamic.sum())
+            feats = _select(feats, keep)
+            sem = res.descriptors[keep]
+            timings["dynamic"] = _ms(t0)
+
+        if feats is None or len(feats.uv) < self.cfg.min_inliers:
+            reason = "RGB too dark" if dark else f"too few features ({0 if feats is None else len(feats.uv)})"
+            return self._fallback(
+                inp,
+                prior,
+                prior_source,
+                reason,
+                timings,
+                t_start,
+                n_feat=0 if feats is None else len(feats.uv),
+                n_dyn=n_dyn,
+                depth=depth,
+            )
+
+        kp_depth = _depth_at(depth, feats.uv)
+        if len(self.map) == 0:
+            T = prior
+            self._insert_keyframe(inp.stamp, T, feats, kp_depth, sem, new_all=True)
+            self._accept(inp, T, n_inliers=len(feats.uv))
+            self._maybe_thermal_ref(inp, depth, T, timings)
+            return self._result(
+                inp, T, "init", False, "", feats, n_dyn, 0, len(feats.uv), True, timings, t_start
+            )
+
+        t0 = time.perf_counter()
+        T_cw_prior = inverse(prior)
+        m_idx, f_idx = self._match_map(T_cw_prior, feats, sem, self.cfg.match_radius_px)
+        if len(m_idx) < self.cfg.min_inliers:
+            m_idx, f_idx = self._match_map(T_cw_prior, feats, sem, self.cfg.match_radius_lost_px)
+        timings["match"] = _ms(t0)
+
+        t0 = time.perf_counter()
+        T_cw, inl = self._pose_from_matches(m_idx, f_idx, feats, T_cw_prior)
+        timings["pose"] = _ms(t0)
+        source: PoseSource = "rgb"
+        if T_cw is None:
+            t0 = time.perf_counter()
+            T_cw, inl, m_idx, f_idx = self._relocalise(feats)
+            timings["relocalise"] = _ms(t0)
+            source = "relocalised"
+        if T_cw is None:
+            # Image is fine but the map does not fit: thermal / odometry give the pose, and a
+            # fresh map is started from this frame so RGB tracking resumes.
+            result = self._fallback(
+                inp,
+                prior,
+                prior_source,
+                "RGB tracking failed",
+                timings,
+                t_start,
+                n_feat=len(feats.uv),
+                n_dyn=n_dyn,
+                depth=depth,
+                n_matches=len(m_idx),
+            )
+            self._restart_map(inp.stamp, result.T_world_camera, feats, kp_depth, sem)
+            return result
+
+        T = inverse(T_cw)
+        n_inl = int(inl.sum())
+        t0 = time.perf_counter()
+        self._fuse(T_cw, m_idx[inl], feats.uv[f_idx[inl]], kp_depth[f_idx[inl]])
+        is_kf = self._need_keyframe(inp.stamp, T, n_inl)
+        if is_kf:
+            matched = np.zeros(len(feats.uv), bool)
+            matched[f_idx[inl]] = True
+            self.map.kf_last[m_idx[inl]] = self._kf_count
+            self._insert_keyframe(inp.stamp, T, feats, kp_depth, sem, skip=matched)
+            self._maybe_thermal_ref(inp, depth, T, timings)
+        timings["map"] = _ms(t0)
+        self._accept(inp, T, n_inliers=n_inl, keyframe=is_kf)
+        return self._result(
+            inp, T, source, False, "", feats, n_dyn, len(m_idx), n_inl, is_kf, timings, t_start
+        )
+
+    # ------------------------------------------------------------------ prediction
+    def _predict(self, inp: TrackInput) -> tuple[F64, PoseSource]:
+        """Prior pose ``T_world_camera``: odometry increment, else constant velocity."""
+        T_base_rgb = self.calib.T_base_rgb
+        if self._T_world_cam is None:
+            if inp.T_odom_base is not None and T_base_rgb is not None:
+                self._T_world_odom = np.eye(4)
+                return inp.T_odom_base @ T_base_rgb, "odometry"
+            return np.eye(4), "none"
+        if inp.T_odom_base is not None and self._prev_odom is not None and T_base_rgb is not None:
+            step = inverse(T_base_rgb) @ inverse(self._prev_odom) @ inp.T_odom_base @ T_base_rgb
+            return self._T_world_cam @ step, "odometry"
+        return self._T_world_cam @ self._velocity, "motion_model"
+
+    # ------------------------------------------------------------------ matching / pose
+    def _match_map(
+        self, T_cw: F64, feats: Features, sem: NDArray[np.uint8] | None, radius: float
+    ) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+        if len(self.map) == 0:
+            return np.zeros(0, np.intp), np.zeros(0, np.intp)
+        pts_c = transform_points(T_cw, self.map.pos_world)
+        uv, ok = self.cam.project(pts_c)
+        ok &= self.cam.in_image(uv, margin=2.0) & (pts_c[:, 2] > 0.1)
+        vis = np.flatnonzero(ok)
+        if len(vis) == 0:
+            return np.zeros(0, np.intp), np.zeros(0, np.intp)
+        mi, fi = match_projected(self.map.desc[vis], uv[vis], feats, radius, max_hamming=self.cfg.max_hamming)
+        m_idx, f_idx = vis[mi], np.asarray(fi, np.intp)
+        if sem is not None and self.map.sem is not None and len(m_idx):
+            d = semantic_distance(self.map.sem[m_idx], sem[f_idx])
+            good = d <= self.cfg.semantic.max_semantic_distance
+            m_idx, f_idx = m_idx[good], f_idx[good]
+        return m_idx, f_idx
+
+    def _pose_from_matches(
+        self, m_idx: NDArray[np.intp], f_idx: NDArray[np.intp], feats: Features, T_cw_prior: F64
+    ) -> tuple[F64 | None, NDArray[np.bool_]]:
+        if len(m_idx) < self.cfg.min_inliers:
+            return None, np.zeros(len(m_idx), bool)
+        P = self.map.pos_world[m_idx]
+        uv = feats.uv[f_idx].astype(np.float64)
+        pnp = solve_pnp_ransac(P, uv, self.cam, T_cam_world_guess=T_cw_prior)
+        if not pnp.ok or int(pnp.inliers.sum()) < self.cfg.min_inliers:
+            return None, np.zeros(len(m_idx), bool)
+        sigma = np.power(self.cfg.orb.scale_factor, feats.octave[f_idx].astype(np.float64))
+        T_cw, inl, _ = refine_pose_huber(P, uv, self.cam, pnp.T_cam_world, sigma_px=sigma)
+        if int(inl.sum()) < self.cfg.min_inliers:
+            return None, inl
+        return T_cw, inl
+
+    def _relocalise(
+        self, feats: Features
+    ) -> tuple[F64 | None, NDArray[np.bool_], NDArray[np.intp], NDArray[np.intp]]:
+        """Match against recent keyframes by descriptor alone; EPnP on the best one."""
+        best: tuple[F64 | None, NDArray[np.bool_], NDArray[np.intp], NDArray[np.intp]] = (
+            None,
+            np.zeros(0, bool),
+            np.zeros(0, np.intp),
+            np.zeros(0, np.intp),
+        )
+        best_n = 0
+        for kf in reversed(self.keyframes[-self.cfg.reloc_keyframes :]):
+            if len(kf.desc) < self.cfg.min_inliers:
+                continue
+            ki, fi, _ = match_descriptors(kf.desc, feats.descriptors, ratio=0.8)
+            if len(ki) < self.cfg.min_inliers:
+                continue
+            pnp = solve_pnp_ransac(kf.points_world[ki], feats.uv[fi].astype(np.float64), self.cam)
+            n = int(pnp.inliers.sum()) if pnp.ok else 0
+            if n >= self.cfg.min_inliers and n > best_n:
+                T_cw, inl, _ = refine_pose_huber(
+                    kf.points_world[ki], feats.uv[fi].astype(np.float64), self.cam, pnp.T_cam_world
+                )
+                best_n = int(inl.sum())
+                best = (T_cw, inl, np.zeros(0, np.intp), np.zeros(0, np.intp))
+        if best[0] is None:
+            return best
+        # Re-match the local map from the relocalised pose so map points are fused as usual.
+        T_reloc = best[0]
+        m_idx, f_idx = self._match_map(T_reloc, feats, None, self.cfg.match_radius_px)
+        T_new, inl = self._pose_from_matches(m_idx, f_idx, feats, T_reloc)
+        if T_new is None:
+            return None, np.zeros(0, bool), np.zeros(0, np.intp), np.zeros(0, np.intp)
+        return T_new, inl, m_idx, f_idx
+
+    # ------------------------------------------------------------------ thermal fallback
+    def _thermal_pose(
+        self, inp: TrackInput, depth: NDArray[np.float32] | None, prior: F64, timings: dict[str, float]
+    ) -> F64 | None:
+        """Paper 003 Sec. IV-C: SIFT on thermal, 3D from depth through the calibration, EPnP."""
+        th = self.calib.thermal
+        T_rgb_th = self.calib.T_rgb_thermal
+        if not self.cfg.thermal or th is None or T_rgb_th is None or inp.thermal_k is None:
+            return None
+        t0 = time.perf_counter()
+        if self._thermal_pending is not None:
+            ref_k, ref_depth, ref_T = self._thermal_pending
+            self._thermal_pending = None
+            ref_feats, self._sift_contrast = extract_sift_adaptive(
+                thermal_to_gray8(ref_k), self.cfg.sift, start_contrast=self._sift_contrast
+            )
+            self._set_thermal_ref(ref_feats, ref_depth, ref_T)
+        if self._thermal_ref is None:
+            return None
+        gray = thermal_to_gray8(inp.thermal_k)
+        feats, self._sift_contrast = extract_sift_adaptive(
+            gray, self.cfg.sift, start_contrast=self._sift_contrast
+        )
+        ref_feats, ref_world = self._thermal_ref
+        ri, fi, _ = match_descriptors(ref_feats.descriptors, feats.descriptors, ratio=0.8)
+        timings["thermal"] = _ms(t0)
+        if len(ri) < self.cfg.min_inliers:
+            return None
+        T_th_world_prior = inverse(T_rgb_th) @ inverse(prior)
+        pnp = solve_pnp_ransac(
+            ref_world[ri],
+            feats.uv[fi].astype(np.float64),
+            th,
+            T_cam_world_guess=T_th_world_prior,
+            reprojection_px=2.5,
+        )
+        if not pnp.ok or int(pnp.inliers.sum()) < self.cfg.min_inliers:
+            return None
+        T_th_w, inl, _ = refine_pose_huber(
+            ref_world[ri], feats.uv[fi].astype(np.float64), th, pnp.T_cam_world
+        )
+        if int(inl.sum()) < self.cfg.min_inliers:
+            return None
+        T = inverse(T_rgb_th @ T_th_w)
+        # Refresh the thermal reference (a thermal keyframe) only when it is wearing out:
+        # chaining frame to frame would accumulate drift.
+        n_inl = int(inl.sum())
+        if depth is not None and (
+            n_inl < max(2 * self.cfg.min_inliers, 0.3 * len(ref_world))
+            or np.linalg.norm(T[:3, 3] - self._thermal_ref_T[:3, 3]) > 0.5
+        ):
+            self._set_thermal_ref(feats, depth, T)
+        return T
+
+    def _maybe_thermal_ref(
+        self, inp: TrackInput, depth: NDArray[np.float32], T: F64, timings: dict[str, float]
+    ) -> None:
+        if not self.cfg.thermal or inp.thermal_k is None or self.calib.thermal is None:
+            return
+        self._thermal_pending = (inp.thermal_k, depth, T.copy())
+
+    def _set_thermal_ref(self, feats: Features, depth: NDArray[np.float32], T_world_cam: F64) -> None:
+        th, T_rgb_th = self.calib.thermal, self.calib.T_rgb_thermal
+        if th is None or T_rgb_th is None:
+            return
+        depth_th = depth_in_other_camera(depth, self.cam, th, inverse(T_rgb_th))
+        z = _depth_at(depth_th, feats.uv)
+        ok = (z > self.cfg.min_depth_m) & (z < 1.4 * self.cfg.max_depth_m)
+        if ok.sum() < self.cfg.min_inliers:
+            return
+        pts_th = th.unproject(feats.uv[ok].astype(np.float64), z[ok])
+        pts_world = transform_points(T_world_cam @ T_rgb_th, pts_th)
+        self._thermal_ref = (_select(feats, ok), pts_world)
+        self._thermal_ref_T = T_world_cam.copy()
+
+    # ------------------------------------------------------------------ map upkeep
+    def _fuse(
+        self, T_cw: F64, idx: NDArray[np.intp], uv: NDArray[np.float32], z: NDArray[np.float64]
+    ) -> None:
+        ok = (z > self.cfg.min_depth_m) & (z < self.cfg.max_depth_m)
+        self.map.n_seen[idx] += 1
+        if not ok.any():
+            return
+        pts = transform_points(inverse(T_cw), self.cam.unproject(uv[ok].astype(np.float64), z[ok]))
+        self.map.fuse(idx[ok], pts, 1.0 / np.maximum(z[ok], 0.5) ** 4, self.cfg.max_fuse_weight)
+
+    def _need_keyframe(self, stamp: float, T: F64, n_inliers: int) -> bool:
+        if self._kf_T is None:
+            return True
+        rel = inverse(self._kf_T) @ T
+        return bool(
+            stamp - self._kf_stamp >= self.cfg.kf_max_interval_s
+            or np.linalg.norm(rel[:3, 3]) >= self.cfg.kf_translation_m
+            or np.degrees(rotation_angle(rel[:3, :3])) >= self.cfg.kf_rotation_deg
+            or n_inliers < self.cfg.kf_tracked_ratio * self._kf_inliers
+        )
+
+    def _insert_keyframe(
+        self,
+        stamp: float,
+        T: F64,
+        feats: Features,
+        kp_depth: NDArray[np.float64],
+        sem: NDArray[np.uint8] | None,
+        *,
+        skip: NDArray[np.bool_] | None = None,
+        new_all: bool = False,
+    ) -> None:
+        kf_index = self._kf_count
+        self._kf_count += 1
+        ok = (kp_depth > self.cfg.min_depth_m) & (kp_depth < self.cfg.max_depth_m)
+        pts_world = transform_points(T, self.cam.unproject(feats.uv[ok].astype(np.float64), kp_depth[ok]))
+        desc = np.asarray(feats.descriptors, np.uint8)  # ORB: (N, 32) uint8
+        self.keyframes.append(
+            Keyframe(
+                kf_index, self._frame_index, stamp, T.copy(), desc[ok], pts_world, feats.uv[ok]
+            )
+        )
+        self.keyframes = self.keyframes[-max(self.cfg.reloc_keyframes, 2) :]
+        new = ok & ~skip if skip is not None and not new_all else ok
+        z = kp_depth[new]
+        pts_new = transform_points(T, self.cam.unproject(feats.uv[new].astype(np.float64), z))
+        self.map.add(
+            pts_new,
+            desc[new],
+            None if sem is None else sem[new],
+            1.0 / np.maximum(z, 0.5) ** 4,
+            kf_index,
+        )
+        # Forget points not seen for a while and cap the map size.
+        keep = self.map.kf_last >= kf_index - self.cfg.local_keyframes
+        if keep.sum() > self.cfg.max_map_points:
+            order = np.argsort(-self.map.kf_last, kind="stable")
+            keep = np.zeros(len(self.map), bool)
+            keep[order[: self.cfg.max_map_points]] = True
+        self.map.keep(keep)
+        self._kf_T = T.copy()
+        self._kf_stamp = stamp
+
+    def _restart_map(
+        self,
+        stamp: float,
+        T: F64,
+        feats: Features,
+        kp_depth: NDArray[np.float64],
+        sem: NDArray[np.uint8] | None,
+    ) -> None:
+        ok = (kp_depth > self.cfg.min_depth_m) & (kp_depth < self.cfg.max_depth_m)
+        if ok.sum() < 2 * self.cfg.min_inliers:
+            return
+        self.map = MapPoints()
+        self._insert_keyframe(stamp, T, feats, kp_depth, sem, new_all=True)
+        self._kf_inliers = int(ok.sum())
+
+    # ------------------------------------------------------------------ bookkeeping
+    def _accept(self, inp: TrackInput, T: F64, *, n_inliers: int, keyframe: bool = True) -> None:
+        if self._T_world_cam is not None:
+            self._velocity = inverse(self._T_world_cam) @ T
+        self._T_world_cam = T
+        self._prev_stamp = inp.stamp
+        if inp.T_odom_base is not None:
+            self._prev_odom = inp.T_odom_base
+        if keyframe:
+            self._kf_inliers = n_inliers
+
+    def _fallback(
+        self,
+        inp: TrackInput,
+        prior: F64,
+        prior_source: PoseSource,
+        reason: str,
+        timings: dict[str, float],
+        t_start: float,
+        *,
+        n_feat: int,
+        n_dyn: int = 0,
+        depth: NDArray[np.float32] | None = None,
+        n_matches: int = 0,
+    ) -> TrackResult:
+        """No RGB pose: try thermal, then odometry; else keep the prediction and report lost."""
+        T_th = self._thermal_pose(inp, depth, prior, timings) if depth is not None else None
+        if T_th is not None:
+            self._accept(inp, T_th, n_inliers=self._kf_inliers, keyframe=False)
+            return self._result(
+                inp,
+                T_th,
+                "thermal",
+                False,
+                reason,
+                None,
+                n_dyn,
+                n_matches,
+                0,
+                False,
+                timings,
+                t_start,
+                n_feat=n_feat,
+            )
+        if prior_source == "odometry":
+            self._accept(inp, prior, n_inliers=self._kf_inliers, keyframe=False)
+            return self._result(
+                inp,
+                prior,
+                "odometry",
+                False,
+                reason,
+                None,
+                n_dyn,
+                n_matches,
+                0,
+                False,
+                timings,
+                t_start,
+                n_feat=n_feat,
+            )
+        self._accept(inp, prior, n_inliers=self._kf_inliers, keyframe=False)
+        return self._result(
+            inp,
+            prior,
+            "none" if prior_source == "none" else "motion_model",
+            True,
+            reason,
+            None,
+            n_dyn,
+            n_matches,
+            0,
+            False,
+            timings,
+            t_start,
+            n_feat=n_feat,
+        )
+
+    def _result(
+        self,
+        inp: TrackInput,
+        T: F64,
+        source: PoseSource,
+        lost: bool,
+        reason: str,
+        feats: Features | None,
+        n_dyn: int,
+        n_matches: int,
+        n_inliers: int,
+        keyframe: bool,
+        timings: dict[str, float],
+        t_start: float,
+        *,
+        n_feat: int | None = None,
+    ) -> TrackResult:
+        timings["total"] = _ms(t_start)
+        n = n_feat if n_feat is not None else (0 if feats is None else len(feats.uv))
+        return TrackResult(
+            inp.stamp, T.copy(), source, lost, reason, n, n_dyn, n_matches, n_inliers, keyframe, timings
+        )
+
+
+# ---------------------------------------------------------------------- helpers
+def _ms(t0: float) -> float:
+    return (time.perf_counter() - t0) * 1e3
+
+
+def _frame_problem(inp: TrackInput, cam: PinholeCamera) -> str:
+    """Why a frame cannot be tracked visually at all ('' when it can)."""
+    if inp.problem:
+        return inp.problem
+    if inp.rgb is None or inp.rgb.size == 0:
+        return "empty colour image"
+    if inp.rgb.shape[:2] != (cam.height, cam.width) or inp.rgb.ndim != 3:
+        return f"colour image has shape {inp.rgb.shape}, expected ({cam.height}, {cam.width}, 3)"
+    if inp.depth_m is None or inp.depth_m.size == 0:
+        return "empty depth image"
+    if inp.depth_m.shape != (cam.height, cam.width):
+        return f"depth image has shape {inp.depth_m.shape}, expected ({cam.height}, {cam.width})"
+    finite = np.isfinite(inp.depth_m)
+    if not np.any(finite & (inp.depth_m > 0)):
+        return "depth image has no valid pixel"
+    return ""
+
+
+def _depth_at(depth: NDArray[np.float32], uv: NDArray[np.float32]) -> NDArray[np.float64]:
+    """Depth (N,) metres at the nearest pixel of each keypoint (0 = none)."""
+    h, w = depth.shape
+    u = np.clip(np.rint(uv[:, 0]).astype(np.intp), 0, w - 1)
+    v = np.clip(np.rint(uv[:, 1]).astype(np.intp), 0, h - 1)
+    return depth[v, u].astype(np.float64)
+
+
+def _select(f: Features, mask: NDArray[np.bool_]) -> Features:
+    return Features(
+        f.uv[mask],
+        f.angle_deg[mask],
+        f.response[mask],
+        f.octave[mask],
+        f.size[mask],
+        f.descriptors[mask],
+        f.kind,
+    )
+
+
+def depth_in_other_camera(
+    depth: NDArray[np.float32], cam: PinholeCamera, other: PinholeCamera, T_other_cam: F64
+) -> NDArray[np.float32]:
+    """Re-project a depth image (H, W) of ``cam`` into ``other``'s image: (h, w) metres, 0 = none.
+
+    Every valid depth pixel is moved with ``T_other_cam`` and splatted (nearest wins) at
+    its projection; small holes are closed with a 3x3 min-of-valid filter.
+    """
+    v, u = np.nonzero(depth > 0)
+    if len(v) == 0:
+        return np.zeros((other.height, other.width), np.float32)
+    step = max(1, int(np.sqrt(len(v) / (other.width * other.height * 2.0))))
+    v, u = v[::step], u[::step]
+    pts = transform_points(
+        T_other_cam, cam.unproject(np.column_stack([u, v]).astype(np.float64), depth[v, u])
+    )
+    uv, ok = other.project(pts)
+    ok &= other.in_image(uv)
+    ui = np.rint(uv[ok, 0]).astype(np.intp)
+    vi = np.rint(uv[ok, 1]).astype(np.intp)
+    z = pts[ok, 2].astype(np.float32)
+    out = np.full((other.height, other.width), np.inf, np.float32)
+    np.minimum.at(out, (vi, ui), z)
+    filled = cv2.erode(out, np.ones((3, 3), np.uint8))
+    out = np.where(np.isinf(out), filled, out)
+    out[np.isinf(out)] = 0.0
+    return out

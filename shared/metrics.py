@@ -1,0 +1,72 @@
+"""Trajectory metrics (evo): absolute trajectory error after alignment.
+
+Thin wrappers around evo's ``core`` (pure math), so every tool in wardmap scores
+trajectories the same way: associate by stamp, align (SE3 by default, Umeyama/Horn),
+then the RMSE of translation differences (metres).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from wardmap.shared.errors import DatasetError
+
+F64 = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class AteResult:
+    """Absolute trajectory error (metres) over ``n`` associated poses."""
+
+    rmse: float
+    mean: float
+    median: float
+    max: float
+    n: int
+
+
+def ate(
+    stamps_est: ArrayLike,
+    T_est: ArrayLike,
+    stamps_ref: ArrayLike,
+    T_ref: ArrayLike,
+    *,
+    align: Literal["se3", "sim3", "none"] = "se3",
+    max_diff_s: float = 0.02,
+) -> AteResult:
+    """ATE of an estimate (N, 4, 4) against a reference (M, 4, 4), both ``T_world_camera``.
+
+    Poses are associated by nearest stamp within ``max_diff_s`` (evo's sync), the estimate
+    is aligned to the reference (``se3``: rotation + translation; ``sim3``: plus scale),
+    and the translation error statistics are returned.
+
+    Raises:
+        DatasetError: fewer than 3 associated poses.
+    """
+    from evo.core import metrics, sync
+    from evo.core.trajectory import PoseTrajectory3D
+
+    est = PoseTrajectory3D(
+        poses_se3=list(np.asarray(T_est, np.float64)), timestamps=np.asarray(stamps_est, np.float64)
+    )
+    ref = PoseTrajectory3D(
+        poses_se3=list(np.asarray(T_ref, np.float64)), timestamps=np.asarray(stamps_ref, np.float64)
+    )
+    try:
+        ref_s, est_s = sync.associate_trajectories(ref, est, max_diff=max_diff_s)
+    except sync.SyncException as exc:
+        raise DatasetError(f"cannot associate trajectories: {exc}") from exc
+    if ref_s.num_poses < 3:
+        raise DatasetError(f"only {ref_s.num_poses} poses associate within {max_diff_s} s")
+    if align != "none":
+        est_s.align(ref_s, correct_scale=(align == "sim3"))
+    ape = metrics.APE(metrics.PoseRelation.translation_part)
+    ape.process_data((ref_s, est_s))
+    s = ape.get_all_statistics()
+    return AteResult(
+        float(s["rmse"]), float(s["mean"]), float(s["median"]), float(s["max"]), int(ref_s.num_poses)
+    )

@@ -1,0 +1,139 @@
+"""The tracking frontend on a short simulated clip, and bad frames that must not crash it."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from wardmap.edge.offline import track_dataset
+from wardmap.edge.tracker import Tracker, TrackInput
+from wardmap.shared.dataset import DatasetReader
+from wardmap.shared.metrics import ate
+from wardmap.shared.se3 import transform_from_tum
+from wardmap.sim.runner import generate
+
+
+@pytest.fixture(scope="module")
+def aisle_clip(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Eighty frames (8 s, 3 m) of the straight aisle, with thermal and odometry."""
+    out = tmp_path_factory.mktemp("clip") / "aisle"
+    generate("aisle_slow_1", 1, out, frames=80)
+    return out
+
+
+def _read_tum(path: Path) -> tuple[list[float], list[np.ndarray]]:
+    rows = [list(map(float, ln.split())) for ln in path.read_text().splitlines() if not ln.startswith("#")]
+    return [r[0] for r in rows], [transform_from_tum(r[1:]) for r in rows]
+
+
+def test_tracks_a_simulated_clip_within_2cm(aisle_clip: Path, tmp_path: Path) -> None:
+    """Every frame gets a pose from RGB; ATE (SE3-aligned) is below 2 cm over 3 m."""
+    out = tmp_path / "traj.txt"
+    summary = track_dataset(aisle_clip, out, labels="none")
+    assert summary["frames"] == 80 and summary["lost_frames"] == 0
+    assert summary["sources"].get("rgb", 0) >= 75
+    assert summary["keyframes"] >= 3
+    stamps, poses = _read_tum(out)
+    assert len(stamps) == 80
+    gt = DatasetReader(aisle_clip).groundtruth()
+    assert gt is not None
+    assert ate(stamps, poses, gt[0], gt[1]).rmse < 0.02
+    assert set(summary["ms_per_frame"]) >= {"features", "match", "pose", "total"}
+
+
+def test_oracle_labels_remove_points(tmp_path: Path) -> None:
+    """With oracle labels on walking_staff, people's keypoints are reported dynamic."""
+    data = tmp_path / "staff"
+    generate("walking_staff", 0, data, frames=70)
+    summary = track_dataset(data, tmp_path / "t.txt", labels="oracle", max_frames=70)
+    assert summary["lost_frames"] == 0
+    assert summary["labels_ms"] is not None
+
+
+def _frames(reader: DatasetReader, n: int) -> list[TrackInput]:
+    out = []
+    for i in range(n):
+        f = reader.frame(i)
+        out.append(TrackInput(f.stamp, f.rgb, f.depth_m, f.thermal_k, None, None))
+    return out
+
+
+@pytest.mark.parametrize(
+    ("corrupt", "reason"),
+    [
+        (lambda f: TrackInput(f.stamp, None, f.depth_m), "empty colour image"),
+        (lambda f: TrackInput(f.stamp, np.zeros((0, 0, 3), np.uint8), f.depth_m), "empty colour image"),
+        (lambda f: TrackInput(f.stamp, f.rgb, np.zeros_like(f.depth_m)), "no valid pixel"),
+        (lambda f: TrackInput(f.stamp, f.rgb, np.full_like(f.depth_m, np.nan)), "no valid pixel"),
+        (lambda f: TrackInput(f.stamp, f.rgb, f.depth_m[:10]), "shape"),
+        (lambda f: TrackInput(f.stamp, np.zeros_like(f.rgb), f.depth_m), "too dark"),
+    ],
+    ids=["no-rgb", "empty-rgb", "zero-depth", "nan-depth", "bad-shape", "black-rgb"],
+)
+def test_bad_frames_are_lost_with_a_reason(aisle_clip: Path, corrupt: object, reason: str) -> None:
+    """A bad frame in the middle of a clip is marked lost (no odometry here) with a reason,
+    the run goes on, and the next good frame is tracked from RGB again."""
+    reader = DatasetReader(aisle_clip)
+    calib = reader.calibration
+    tracker = Tracker(calib)
+    frames = _frames(reader, 12)
+    for f in frames[:6]:
+        tracker.track(f)
+    bad = tracker.track(corrupt(frames[6]))  # type: ignore[operator]
+    assert bad.lost and reason in bad.reason
+    assert np.all(np.isfinite(bad.T_world_camera))
+    after = [tracker.track(f) for f in frames[7:]]
+    assert after[-1].source == "rgb" and not after[-1].lost
+
+
+def test_nan_in_depth_is_tolerated(aisle_clip: Path) -> None:
+    """Scattered NaNs in depth are treated as missing depth, not as a failure."""
+    reader = DatasetReader(aisle_clip)
+    tracker = Tracker(reader.calibration)
+    rng = np.random.default_rng(0)
+    for f in _frames(reader, 5):
+        d = f.depth_m.copy() if f.depth_m is not None else None
+        assert d is not None
+        d[rng.random(d.shape) < 0.1] = np.nan
+        res = tracker.track(TrackInput(f.stamp, f.rgb, d))
+    assert res.source == "rgb"
+
+
+def test_cli_track_prints_json_last(aisle_clip: Path, tmp_path: Path) -> None:
+    """``wardmap track`` writes a TUM file and ends stdout with one JSON object."""
+    out = tmp_path / "t.txt"
+    p = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "wardmap.cli",
+            "track",
+            str(aisle_clip),
+            "--out",
+            str(out),
+            "--max-frames",
+            "10",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert p.returncode == 0, p.stderr
+    summary = json.loads(p.stdout.strip().splitlines()[-1])
+    assert summary["frames"] == 10 and "total" in summary["ms_per_frame"]
+    assert len(_read_tum(out)[0]) == 10
+
+
+def test_cli_track_bad_input(tmp_path: Path) -> None:
+    """A missing data set or an unknown label source: one line, exit code 1."""
+    for args in (["track", str(tmp_path / "nope"), "--out", str(tmp_path / "t.txt")],):
+        p = subprocess.run(
+            [sys.executable, "-m", "wardmap.cli", *args], capture_output=True, text=True, timeout=120
+        )
+        assert p.returncode == 1 and "Traceback" not in p.stderr
+        assert len(p.stderr.strip().splitlines()) == 1
