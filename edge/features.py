@@ -437,7 +437,8 @@ class OrbExtractor:
         kps = detector.detect(img[y0 - 3 : y1 + 3, x0 - 3 : x1 + 3], None)
         if not kps:
             return np.zeros((0, 2), np.int32), np.zeros(0, np.float32)
-        xy = np.asarray(cv2.KeyPoint.convert(kps), np.float32).astype(np.int32) + np.array((x0 - 3, y0 - 3), np.int32)
+        offset = np.array((x0 - 3, y0 - 3), np.int32)
+        xy = np.asarray(cv2.KeyPoint.convert(kps), np.float32).astype(np.int32) + offset
         score = np.array([k.response for k in kps], np.float32)
         inside = (xy[:, 0] >= x0) & (xy[:, 0] < x1) & (xy[:, 1] >= y0) & (xy[:, 1] < y1)
         if not inside.all():
