@@ -58,6 +58,7 @@ class TrackerConfig:
         semantic: dynamic-point removal (paper 001: n = 21, delta = 55, distance 110).
         match_radius_px: search radius around a map point's predicted pixel.
         match_radius_lost_px: wider radius for a second attempt.
+        refine_radius_px: window of the second, pose-refining match pass (0 disables it).
         max_hamming: largest ORB descriptor distance of a match.
         min_inliers: fewest PnP inliers for a visual pose.
         min_depth_m, max_depth_m: depth range for new map points.
@@ -78,6 +79,7 @@ class TrackerConfig:
     semantic: SemanticConfig = field(default_factory=SemanticConfig)
     match_radius_px: float = 15.0
     match_radius_lost_px: float = 40.0
+    refine_radius_px: float = 4.0
     max_hamming: int = 64
     min_inliers: int = 25
     min_depth_m: float = 0.3
@@ -262,6 +264,8 @@ class Tracker:
             T_cw, inl, m_idx, f_idx = self._relocalise(feats)
             timings["relocalise"] = _ms(t0)
             source = "relocalised"
+            if T_cw is not None and prior_source == "odometry" and not _near(inverse(T_cw), prior, 0.5, 20.0):
+                T_cw = None  # wheel odometry says the match is elsewhere: a look-alike place
         if T_cw is None:
             # Image is fine but the map does not fit: thermal / odometry give the pose, and a
             # fresh map is started from this frame so RGB tracking resumes.
@@ -280,6 +284,19 @@ class Tracker:
             self._restart_map(inp.stamp, result.T_world_camera, feats, kp_depth, sem)
             return result
 
+        if source == "rgb" and self.cfg.refine_radius_px > 0:
+            # ORB-SLAM2's TrackLocalMap: re-project the local map with the estimated pose in
+            # a small window, gaining matches, and refine once more (no RANSAC needed).
+            t0 = time.perf_counter()
+            m2, f2 = self._match_map(T_cw, feats, sem, self.cfg.refine_radius_px)
+            if len(m2) >= int(inl.sum()):
+                sigma = np.power(self.cfg.orb.scale_factor, feats.octave[f2].astype(np.float64))
+                T2, inl2, _ = refine_pose_huber(
+                    self.map.pos_world[m2], feats.uv[f2].astype(np.float64), self.cam, T_cw, sigma_px=sigma
+                )
+                if int(inl2.sum()) >= self.cfg.min_inliers:
+                    T_cw, inl, m_idx, f_idx = T2, inl2, m2, f2
+            timings["refine"] = _ms(t0)
         T = inverse(T_cw)
         n_inl = int(inl.sum())
         t0 = time.perf_counter()
@@ -496,9 +513,7 @@ class Tracker:
         pts_world = transform_points(T, self.cam.unproject(feats.uv[ok].astype(np.float64), kp_depth[ok]))
         desc = np.asarray(feats.descriptors, np.uint8)  # ORB: (N, 32) uint8
         self.keyframes.append(
-            Keyframe(
-                kf_index, self._frame_index, stamp, T.copy(), desc[ok], pts_world, feats.uv[ok]
-            )
+            Keyframe(kf_index, self._frame_index, stamp, T.copy(), desc[ok], pts_world, feats.uv[ok])
         )
         self.keyframes = self.keyframes[-max(self.cfg.reloc_keyframes, 2) :]
         new = ok & ~skip if skip is not None and not new_all else ok
@@ -659,6 +674,12 @@ def _frame_problem(inp: TrackInput, cam: PinholeCamera) -> str:
     if not np.any(finite & (inp.depth_m > 0)):
         return "depth image has no valid pixel"
     return ""
+
+
+def _near(T_a: F64, T_b: F64, max_m: float, max_deg: float) -> bool:
+    """Whether two poses are within ``max_m`` metres and ``max_deg`` degrees of each other."""
+    rel = inverse(T_a) @ T_b
+    return bool(np.linalg.norm(rel[:3, 3]) <= max_m and np.degrees(rotation_angle(rel[:3, :3])) <= max_deg)
 
 
 def _depth_at(depth: NDArray[np.float32], uv: NDArray[np.float32]) -> NDArray[np.float64]:

@@ -16,6 +16,7 @@ from wardmap.edge.features import (
     OrbConfig,
     OrbExtractor,
     SiftConfig,
+    _water_fill,
     extract_orb,
     extract_sift_adaptive,
     match_descriptors,
@@ -167,6 +168,25 @@ def test_orb_mask_restricts_keypoints() -> None:
     f = extract_orb(img, mask=mask)
     assert len(f) > 300
     assert np.all(f.uv[:, 1] < 240.5)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_water_fill_meets_target_and_spreads_quota_evenly(seed: int) -> None:
+    """Random corner counts per bin: allotments sum to the target, never exceed what a
+    bin has, and every bin that could take more sits at the same multiple of its quota
+    (up to rounding): unused quota is redistributed in proportion to quota."""
+    rng = np.random.default_rng(seed)
+    available = rng.integers(0, 40, 384) * (rng.random(384) < 0.7)
+    quota = np.repeat(1000 * 0.1667 / (1 - 1.2**-8) * 1.2 ** -np.arange(8.0) / 48, 48)
+    alloc = _water_fill(available, quota, 1000)
+    assert alloc.sum() == min(1000, available.sum())
+    assert np.all((alloc >= 0) & (alloc <= available))
+    open_bins = alloc < available
+    if open_bins.any():
+        lam_low = ((alloc[open_bins] + 1) / quota[open_bins]).min()
+        assert np.all(alloc <= lam_low * quota + 1)
+    everything = _water_fill(available, quota, int(available.sum()) + 5)
+    np.testing.assert_array_equal(everything, available)
 
 
 def test_orb_rejects_bad_input() -> None:

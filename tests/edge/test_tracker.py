@@ -137,3 +137,29 @@ def test_cli_track_bad_input(tmp_path: Path) -> None:
         )
         assert p.returncode == 1 and "Traceback" not in p.stderr
         assert len(p.stderr.strip().splitlines()) == 1
+
+
+def test_example_config_matches_the_defaults() -> None:
+    """deploy/tracker.toml loads without error and equals the built-in defaults."""
+    from wardmap.edge.tracker import TrackerConfig
+    from wardmap.shared.config import load_config
+
+    path = Path(__file__).resolve().parents[2] / "deploy" / "tracker.toml"
+    assert load_config(TrackerConfig, path, section="tracker") == TrackerConfig()
+
+
+def test_bad_tracker_config_is_rejected(tmp_path: Path) -> None:
+    """A typo or an impossible value in the tracker config is a ConfigError."""
+    from wardmap.edge.tracker import TrackerConfig
+    from wardmap.shared.config import load_config
+    from wardmap.shared.errors import ConfigError
+
+    for text in (
+        "[tracker]\nmin_inlier = 30\n",
+        "[tracker]\nmin_inliers = 3\n",
+        "[tracker.orb]\nn_features = 'x'\n",
+    ):
+        p = tmp_path / "c.toml"
+        p.write_text(text)
+        with pytest.raises(ConfigError):
+            load_config(TrackerConfig, p, section="tracker")
