@@ -39,7 +39,7 @@ from wardmap.edge.pose import refine_pose_huber, solve_pnp_ransac
 from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.dataset import Calibration
 from wardmap.shared.errors import ConfigError
-from wardmap.shared.se3 import inverse, rotation_angle, transform_points
+from wardmap.shared.se3 import interpolate_transform, inverse, rotation_angle, transform_points
 from wardmap.shared.semantic import SemanticConfig, dynamic_mask, semantic_distance
 
 log = logging.getLogger(__name__)
@@ -71,6 +71,8 @@ class TrackerConfig:
         max_map_points: cap on the local map (oldest dropped first).
         reloc_keyframes: recent keyframes tried when relocalising.
         thermal: use the thermal fallback when the data has thermal images.
+        thermal_odometry_blend: weight of a thermal pose against the odometry prediction
+            (1 = thermal alone); thermal poses are noisier frame to frame than odometry.
         max_fuse_weight: cap of a map point's averaging weight (lets points keep adapting).
     """
 
@@ -93,6 +95,7 @@ class TrackerConfig:
     max_map_points: int = 6000
     reloc_keyframes: int = 8
     thermal: bool = True
+    thermal_odometry_blend: float = 0.3
     max_fuse_weight: float = 20.0
 
     def __post_init__(self) -> None:
@@ -175,6 +178,7 @@ class Tracker:
         self._kf_stamp = -np.inf
         self._thermal_ref: tuple[Features, F64] | None = None
         self._thermal_ref_T: F64 = np.eye(4)
+        self._thermal_last: tuple[Features, int, int] | None = None  # last thermal match
         # Last keyframe's thermal image, depth and pose: turned into a SIFT reference only
         # when RGB fails, so normal tracking pays nothing for the thermal fallback.
         self._thermal_pending: tuple[NDArray[np.float32], NDArray[np.float32], F64] | None = None
@@ -442,16 +446,8 @@ class Tracker:
         )
         if int(inl.sum()) < self.cfg.min_inliers:
             return None
-        T = inverse(T_rgb_th @ T_th_w)
-        # Refresh the thermal reference (a thermal keyframe) only when it is wearing out:
-        # chaining frame to frame would accumulate drift.
-        n_inl = int(inl.sum())
-        if depth is not None and (
-            n_inl < max(2 * self.cfg.min_inliers, 0.3 * len(ref_world))
-            or np.linalg.norm(T[:3, 3] - self._thermal_ref_T[:3, 3]) > 0.5
-        ):
-            self._set_thermal_ref(feats, depth, T)
-        return T
+        self._thermal_last = (feats, int(inl.sum()), len(ref_world))
+        return inverse(T_rgb_th @ T_th_w)
 
     def _maybe_thermal_ref(
         self, inp: TrackInput, depth: NDArray[np.float32], T: F64, timings: dict[str, float]
@@ -578,6 +574,17 @@ class Tracker:
     ) -> TrackResult:
         """No RGB pose: try thermal, then odometry; else keep the prediction and report lost."""
         T_th = self._thermal_pose(inp, depth, prior, timings) if depth is not None else None
+        if T_th is not None and prior_source == "odometry" and self.cfg.thermal_odometry_blend < 1.0:
+            # Complementary filter: thermal poses are jittery (low resolution), odometry
+            # increments are smooth but drift; move the odometry prediction part-way.
+            T_th = interpolate_transform(prior, T_th, self.cfg.thermal_odometry_blend)
+        if T_th is not None and depth is not None and self._thermal_last is not None:
+            # Refresh the thermal reference (a thermal keyframe) with the fused pose, and only
+            # when it wears out: chaining thermal poses frame to frame accumulates drift.
+            feats_th, n_inl, n_ref = self._thermal_last
+            worn = n_inl < max(2 * self.cfg.min_inliers, 0.3 * n_ref)
+            if worn or np.linalg.norm(T_th[:3, 3] - self._thermal_ref_T[:3, 3]) > 0.5:
+                self._set_thermal_ref(feats_th, depth, T_th)
         if T_th is not None:
             self._accept(inp, T_th, n_inliers=self._kf_inliers, keyframe=False)
             return self._result(
