@@ -71,6 +71,8 @@ class TrackerConfig:
         max_map_points: cap on the local map (oldest dropped first).
         reloc_keyframes: recent keyframes tried when relocalising.
         thermal: use the thermal fallback when the data has thermal images.
+        max_lost_before_restart: lost frames (no measured pose) after which a new map is
+            started from the current guess; before that, relocalisation keeps trying.
         thermal_odometry_blend: weight of a thermal pose against the odometry prediction
             (1 = thermal alone); thermal poses are noisier frame to frame than odometry.
         max_fuse_weight: cap of a map point's averaging weight (lets points keep adapting).
@@ -96,6 +98,7 @@ class TrackerConfig:
     reloc_keyframes: int = 8
     thermal: bool = True
     thermal_odometry_blend: float = 0.3
+    max_lost_before_restart: int = 5
     max_fuse_weight: float = 20.0
 
     def __post_init__(self) -> None:
@@ -168,6 +171,8 @@ class Tracker:
         self.map = MapPoints()
         self.keyframes: list[Keyframe] = []  # the most recent ones, for relocalisation
         self._kf_count = 0  # keyframes made so far (indexes never repeat)
+        self._last_frame: Keyframe | None = None  # last RGB-tracked frame, for relocalisation
+        self._rgb_failures = 0  # consecutive frames whose RGB image did not fit the map
         self._frame_index = -1
         self._T_world_cam: F64 | None = None
         self._velocity: F64 = np.eye(4)  # T_prev_cur of the last step (camera frames)
@@ -285,7 +290,12 @@ class Tracker:
                 depth=depth,
                 n_matches=len(m_idx),
             )
-            self._restart_map(inp.stamp, result.T_world_camera, feats, kp_depth, sem)
+            # Start a fresh map from this frame when its pose was measured (thermal, odometry);
+            # after a guess, keep the old map a few frames so relocalisation can recover.
+            self._rgb_failures += 1
+            if not result.lost or self._rgb_failures > self.cfg.max_lost_before_restart:
+                self._restart_map(inp.stamp, result.T_world_camera, feats, kp_depth, sem)
+                self._rgb_failures = 0
             return result
 
         if source == "rgb" and self.cfg.refine_radius_px > 0:
@@ -312,6 +322,8 @@ class Tracker:
             self.map.kf_last[m_idx[inl]] = self._kf_count
             self._insert_keyframe(inp.stamp, T, feats, kp_depth, sem, skip=matched)
             self._maybe_thermal_ref(inp, depth, T, timings)
+        self._last_frame = self._frame_snapshot(inp.stamp, T, feats, kp_depth)
+        self._rgb_failures = 0
         timings["map"] = _ms(t0)
         self._accept(inp, T, n_inliers=n_inl, keyframe=is_kf)
         return self._result(
@@ -379,7 +391,12 @@ class Tracker:
             np.zeros(0, np.intp),
         )
         best_n = 0
-        for kf in reversed(self.keyframes[-self.cfg.reloc_keyframes :]):
+        # The last tracked frame first (ORB-SLAM2's reference-frame tracking), then keyframes.
+        candidates = [self._last_frame] if self._last_frame is not None else []
+        candidates += list(reversed(self.keyframes[-self.cfg.reloc_keyframes :]))
+        for kf in candidates:
+            if best_n >= 3 * self.cfg.min_inliers:
+                break
             if len(kf.desc) < self.cfg.min_inliers:
                 continue
             ki, fi, _ = match_descriptors(kf.desc, feats.descriptors, ratio=0.8)
@@ -531,6 +548,14 @@ class Tracker:
         self.map.keep(keep)
         self._kf_T = T.copy()
         self._kf_stamp = stamp
+
+    def _frame_snapshot(
+        self, stamp: float, T: F64, feats: Features, kp_depth: NDArray[np.float64]
+    ) -> Keyframe:
+        ok = (kp_depth > self.cfg.min_depth_m) & (kp_depth < self.cfg.max_depth_m)
+        pts = transform_points(T, self.cam.unproject(feats.uv[ok].astype(np.float64), kp_depth[ok]))
+        desc = np.asarray(feats.descriptors, np.uint8)[ok]
+        return Keyframe(-1, self._frame_index, stamp, T.copy(), desc, pts, feats.uv[ok])
 
     def _restart_map(
         self,
