@@ -71,6 +71,8 @@ class TrackerConfig:
         max_map_points: cap on the local map (oldest dropped first).
         reloc_keyframes: recent keyframes tried when relocalising.
         thermal: use the thermal fallback when the data has thermal images.
+        direct_from_prior: refine from the prior without RANSAC when that keeps at least
+            half of the matches (ORB-SLAM2's motion-model tracking); EPnP RANSAC otherwise.
         max_lost_before_restart: lost frames (no measured pose) after which a new map is
             started from the current guess; before that, relocalisation keeps trying.
         thermal_odometry_blend: weight of a thermal pose against the odometry prediction
@@ -99,6 +101,7 @@ class TrackerConfig:
     thermal: bool = True
     thermal_odometry_blend: float = 0.3
     max_lost_before_restart: int = 5
+    direct_from_prior: bool = True
     max_fuse_weight: float = 20.0
 
     def __post_init__(self) -> None:
@@ -171,7 +174,8 @@ class Tracker:
         self.map = MapPoints()
         self.keyframes: list[Keyframe] = []  # the most recent ones, for relocalisation
         self._kf_count = 0  # keyframes made so far (indexes never repeat)
-        self._last_frame: Keyframe | None = None  # last RGB-tracked frame, for relocalisation
+        # Last RGB-tracked frame, for relocalisation; made into a Keyframe only when needed.
+        self._last_frame_raw: tuple[float, F64, Features, NDArray[np.float64]] | None = None
         self._rgb_failures = 0  # consecutive frames whose RGB image did not fit the map
         self._frame_index = -1
         self._T_world_cam: F64 | None = None
@@ -322,7 +326,7 @@ class Tracker:
             self.map.kf_last[m_idx[inl]] = self._kf_count
             self._insert_keyframe(inp.stamp, T, feats, kp_depth, sem, skip=matched)
             self._maybe_thermal_ref(inp, depth, T, timings)
-        self._last_frame = self._frame_snapshot(inp.stamp, T, feats, kp_depth)
+        self._last_frame_raw = (inp.stamp, T, feats, kp_depth)
         self._rgb_failures = 0
         timings["map"] = _ms(t0)
         self._accept(inp, T, n_inliers=n_inl, keyframe=is_kf)
@@ -371,10 +375,16 @@ class Tracker:
             return None, np.zeros(len(m_idx), bool)
         P = self.map.pos_world[m_idx]
         uv = feats.uv[f_idx].astype(np.float64)
+        sigma = np.power(self.cfg.orb.scale_factor, feats.octave[f_idx].astype(np.float64))
+        if self.cfg.direct_from_prior:
+            # ORB-SLAM2 tracks from its motion model without RANSAC: the Huber refinement
+            # started at the prior. RANSAC (EPnP) only when that keeps too few inliers.
+            T_cw, inl, _ = refine_pose_huber(P, uv, self.cam, T_cw_prior, sigma_px=sigma)
+            if int(inl.sum()) >= max(self.cfg.min_inliers, 0.5 * len(m_idx)):
+                return T_cw, inl
         pnp = solve_pnp_ransac(P, uv, self.cam, T_cam_world_guess=T_cw_prior)
         if not pnp.ok or int(pnp.inliers.sum()) < self.cfg.min_inliers:
             return None, np.zeros(len(m_idx), bool)
-        sigma = np.power(self.cfg.orb.scale_factor, feats.octave[f_idx].astype(np.float64))
         T_cw, inl, _ = refine_pose_huber(P, uv, self.cam, pnp.T_cam_world, sigma_px=sigma)
         if int(inl.sum()) < self.cfg.min_inliers:
             return None, inl
@@ -392,7 +402,7 @@ class Tracker:
         )
         best_n = 0
         # The last tracked frame first (ORB-SLAM2's reference-frame tracking), then keyframes.
-        candidates = [self._last_frame] if self._last_frame is not None else []
+        candidates = [self._frame_snapshot(*self._last_frame_raw)] if self._last_frame_raw is not None else []
         candidates += list(reversed(self.keyframes[-self.cfg.reloc_keyframes :]))
         for kf in candidates:
             if best_n >= 3 * self.cfg.min_inliers:
