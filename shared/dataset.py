@@ -622,6 +622,19 @@ def _read_associations(path: Path) -> tuple[_ListFile, _ListFile]:
             _ListFile(path, _readonly(depth_s), tuple(depth_f), lines))
 
 
+def read_tum_trajectory(path: str | Path) -> tuple[F64, F64]:
+    """Read a TUM trajectory file: stamps (N,) seconds and poses (N, 4, 4).
+
+    Raises:
+        DatasetError: missing file, malformed row (with its line number), bad quaternion,
+            stamps not increasing, or no pose at all.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise DatasetError(f"trajectory file not found: {p}")
+    return _read_trajectory(p)
+
+
 def _read_trajectory(path: Path) -> tuple[F64, F64]:
     rows = _read_rows(path)
     names = ("timestamp", "tx", "ty", "tz", "qx", "qy", "qz", "qw")

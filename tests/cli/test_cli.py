@@ -112,3 +112,32 @@ def test_dataset_info_on_real_tum_folder() -> None:
     assert p.returncode == 0, p.stderr
     summary = json.loads(p.stdout)
     assert summary["frames"] == 100 and "fx=517.3" in summary["rgb_camera"]
+
+
+TRAJ = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "tum_trajectories"
+
+
+@pytest.mark.skipif(not TRAJ.is_dir(), reason="../shared/data/tum_trajectories absent")
+def test_eval_ate_on_reference_trajectories() -> None:
+    """``wardmap eval ate`` scores RGBD-SLAM on fr1/xyz: about 1.3 cm (TUM's published order)."""
+    p = wardmap(
+        "eval",
+        "ate",
+        str(TRAJ / "freiburg1_xyz-rgbdslam.txt"),
+        "--reference",
+        str(TRAJ / "freiburg1_xyz-groundtruth.txt"),
+    )
+    assert p.returncode == 0, p.stderr
+    r = json.loads(p.stdout)
+    assert 0.005 < r["ate_rmse_m"] < 0.03 and r["pairs"] > 700
+
+
+def test_eval_ate_bad_input(tmp_path: Path) -> None:
+    """Missing or malformed trajectory files: one line, exit 1."""
+    _one_line_error(
+        wardmap("eval", "ate", str(tmp_path / "nope.txt"), "--reference", str(tmp_path / "x")),
+        "wardmap eval: error:",
+    )
+    bad = tmp_path / "bad.txt"
+    bad.write_text("1.0 0 0 0 0 0 0\n")  # 7 columns: missing qw
+    _one_line_error(wardmap("eval", "ate", str(bad), "--reference", str(bad)), "wardmap eval: error:")
