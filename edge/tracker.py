@@ -620,55 +620,16 @@ class Tracker:
             worn = n_inl < max(2 * self.cfg.min_inliers, 0.3 * n_ref)
             if worn or np.linalg.norm(T_th[:3, 3] - self._thermal_ref_T[:3, 3]) > 0.5:
                 self._set_thermal_ref(feats_th, depth, T_th)
+        source: PoseSource
         if T_th is not None:
-            self._accept(inp, T_th, n_inliers=self._kf_inliers, keyframe=False)
-            return self._result(
-                inp,
-                T_th,
-                "thermal",
-                False,
-                reason,
-                None,
-                n_dyn,
-                n_matches,
-                0,
-                False,
-                timings,
-                t_start,
-                n_feat=n_feat,
-            )
-        if prior_source == "odometry":
-            self._accept(inp, prior, n_inliers=self._kf_inliers, keyframe=False)
-            return self._result(
-                inp,
-                prior,
-                "odometry",
-                False,
-                reason,
-                None,
-                n_dyn,
-                n_matches,
-                0,
-                False,
-                timings,
-                t_start,
-                n_feat=n_feat,
-            )
-        self._accept(inp, prior, n_inliers=self._kf_inliers, keyframe=False)
+            T, source, lost = T_th, "thermal", False
+        elif prior_source == "odometry":
+            T, source, lost = prior, "odometry", False
+        else:
+            T, source, lost = prior, "none" if prior_source == "none" else "motion_model", True
+        self._accept(inp, T, n_inliers=self._kf_inliers, keyframe=False)
         return self._result(
-            inp,
-            prior,
-            "none" if prior_source == "none" else "motion_model",
-            True,
-            reason,
-            None,
-            n_dyn,
-            n_matches,
-            0,
-            False,
-            timings,
-            t_start,
-            n_feat=n_feat,
+            inp, T, source, lost, reason, None, n_dyn, n_matches, 0, False, timings, t_start, n_feat=n_feat
         )
 
     def _result(
