@@ -241,7 +241,6 @@ def _walking_staff(seed: int) -> Scene:
         accel=1.0,
         t0=2.0,
     )
-    leg1 = Track(leg1.t, leg1.x, leg1.y, leg1.yaw, leg1.s)
     leg2 = plan_path(
         [stop, [stop[0] + 0.3, 1.8], [20.0, 2.0]], speed=1.0, turn_radius=0.4, max_yaw_rate=2.0, accel=1.0
     )
@@ -264,9 +263,7 @@ def _walking_staff(seed: int) -> Scene:
         arms_forward=True,
     )
     t_drop = float(leg1.t[-1]) + 1.0
-    yaw_desk = float(np.arctan2(desk.T_world_model[1, 0], desk.T_world_model[0, 0]))
     T_drop = desk.T_world_model @ yaw_transform(0.1, 0.3, 0.4, 0.78)
-    del yaw_desk
     gun = Carried(b.new_id(), "temperature_gun", models.temperature_gun(), p4, t_drop, T_drop)
     actors: list[Actor] = [p1, p2, cart, p3, p4, gun]
     return Scene(

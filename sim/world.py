@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -118,19 +118,6 @@ class World:
     free: list[Rect]
     walls: list[WallSegment]
     next_id: int
-    notes: dict[str, object] = field(default_factory=dict)
-
-    def objects_json(self) -> list[dict[str, object]]:
-        return [
-            {
-                "id": o.id,
-                "class": o.cls,
-                "T_world_object": np.round(o.T_world_object, 6).tolist(),
-                "size": np.round(o.size, 4).tolist(),
-                "note": o.note,
-            }
-            for o in self.objects
-        ]
 
 
 class WorldBuilder:
@@ -157,7 +144,7 @@ class WorldBuilder:
         return name
 
     def _base_textures(self) -> None:
-        T, r = textures, self.rng
+        T = textures
         solid = lambda col: lambda g: T.fabric(g, col)  # noqa: E731
         self.texture("floor", lambda g: T.speckled(g, (196, 190, 178), grid=2))
         self.texture("floor_ward", lambda g: T.speckled(g, (170, 190, 200), grid=2, grout=(120, 135, 140)))
@@ -185,7 +172,6 @@ class WorldBuilder:
         self.texture("extinguisher", lambda g: T.sign(g, "FIRE", (200, 20, 20), (255, 255, 255)))
         self.texture("radiator", lambda g: T.panelled(g, (235, 235, 235), 1, 8))
         self.texture("mirror", lambda g: T.metal(g, (180, 190, 200)))
-        _ = r
 
     # ---- layout ---------------------------------------------------------------------
     def add_free(self, x0: float, y0: float, x1: float, y1: float, kind: str = "corridor") -> None:
@@ -277,7 +263,6 @@ class WorldBuilder:
             uv[:, 1] *= WALL_TEXELS_PER_M
             self._soups.append(quad_soup(c, uv, tex, material_id("wall"), 0, np.array([*w.normal, 0.0])))
             self._wall_box(k, 0.0, w.length, 0.008, 0.05, 0.1, "skirting", "plastic")
-            del k
 
     def _wall_box(
         self,
