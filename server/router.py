@@ -1,0 +1,135 @@
+"""The wardmap Zenoh router: one zenoh session in router mode, nothing else.
+
+Robots and map servers connect to it by explicit ``tcp/HOST:PORT`` endpoints (multicast
+scouting and shared memory are off by default, see :func:`router_config`). This module
+is the only place the router touches zenoh; the CLI (``wardmap router``) is a thin
+wrapper around :func:`run_router`.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import signal
+import threading
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from pathlib import Path
+from types import FrameType
+from typing import Any
+
+from wardmap.shared.errors import ConfigError, WardmapError
+from wardmap.shared.zenoh_config import config_leaves, router_config
+
+log = logging.getLogger(__name__)
+
+__all__ = ["RouterError", "run_router"]
+
+
+class RouterError(WardmapError):
+    """The Zenoh router cannot start (e.g. a listen port is already in use)."""
+
+
+def _load_config(listen: Sequence[str], config_file: Path | None) -> Any:
+    """Build the ``zenoh.Config``: the user's file (if any), then wardmap's values on top.
+
+    ``mode``, ``listen/endpoints`` and wardmap's defaults (shared memory off, multicast
+    scouting off) win over the file; each value of the file that they replace is logged
+    as a warning, so nothing is overridden silently.
+    """
+    import zenoh
+
+    ours = router_config(listen)
+    if config_file is None:
+        return zenoh.Config.from_json5(json.dumps(ours))
+    path = Path(config_file)
+    if not path.is_file():
+        raise ConfigError(f"zenoh config file not found: {path}")
+    try:
+        conf = zenoh.Config.from_file(str(path))
+    except zenoh.ZError as exc:
+        raise ConfigError(f"bad zenoh config file {path}: {_first_line(exc)}") from exc
+    for key, value in config_leaves(ours):
+        before = conf.get_json(key)
+        if before is not None and before != value and key != "listen/endpoints":
+            log.warning(
+                "%s sets %s=%s; wardmap router uses %s", path, key, json.dumps(before), json.dumps(value)
+            )
+        conf.insert_json5(key, json.dumps(value))
+    return conf
+
+
+def _first_line(exc: BaseException) -> str:
+    """Zenoh error text on one line, without its Rust source location (`` at /path/file.rs:NN.``).
+
+    Parse errors of config files span several lines (``--> 2:1``, a code excerpt,
+    ``= expected ...``); only the location and the explanation are kept.
+    """
+    lines = [ln.strip() for ln in str(exc).strip().splitlines() if ln.strip()]
+    if not lines:
+        return type(exc).__name__
+    picked = [ln for ln in lines if ln.startswith(("-->", "= "))] if len(lines) > 1 else lines
+    text = " ".join(picked or lines[:1])
+    cut = text.rfind(" at /")
+    return text[:cut] if cut > 0 else text
+
+
+@contextmanager
+def _stop_on_signals(stop: threading.Event) -> Iterator[None]:
+    """Set ``stop`` on SIGTERM/SIGINT while inside the block (main thread only)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum: int, _frame: FrameType | None) -> None:
+        log.info("received %s, stopping router", signal.Signals(signum).name)
+        stop.set()
+
+    previous = {s: signal.signal(s, handler) for s in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        yield
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+
+
+def run_router(
+    listen: Sequence[str],
+    *,
+    config_file: Path | None = None,
+    stop: threading.Event | None = None,
+    on_ready: Callable[[list[str]], None] | None = None,
+) -> None:
+    """Run a Zenoh router listening on ``listen`` until ``stop`` is set or SIGTERM/SIGINT.
+
+    Args:
+        listen: endpoints ``tcp/HOST:PORT`` to listen on (at least one).
+        config_file: optional zenoh JSON5/JSON/YAML config laid under wardmap's values.
+        stop: event that ends the router when set; signals set it too when this runs in
+            the main thread.
+        on_ready: called once with the listen endpoints after the router is open.
+
+    Raises:
+        ConfigError: bad endpoint or config file.
+        RouterError: zenoh cannot open the router (e.g. address already in use).
+    """
+    import zenoh
+
+    stop = stop if stop is not None else threading.Event()
+    conf = _load_config(listen, config_file)
+    endpoints = list(listen)
+    with _stop_on_signals(stop):
+        try:
+            session = zenoh.open(conf)
+        except zenoh.ZError as exc:
+            msg = _first_line(exc)
+            if "address already in use" in msg.lower():
+                raise RouterError(f"cannot listen on {', '.join(endpoints)}: address already in use") from exc
+            raise RouterError(f"cannot start zenoh router on {', '.join(endpoints)}: {msg}") from exc
+        with session:
+            log.info("zenoh router %s listening on %s", session.info.zid(), ", ".join(endpoints))
+            if on_ready is not None:
+                on_ready(endpoints)
+            stop.wait()
+            log.info("closing zenoh router")
+    log.info("zenoh router closed")

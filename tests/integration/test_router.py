@@ -1,0 +1,187 @@
+"""Multi-process tests of ``wardmap router``: a real router subprocess, real zenoh clients on loopback.
+
+Every session is a client with shared memory and multicast scouting off, connected to the
+router by its tcp endpoint on 127.0.0.1; the tests synchronise on the router's ready line,
+zenoh matching/liveliness events and threading events, never on sleeps.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import queue
+import signal
+import socket
+import subprocess
+import sys
+import threading
+from collections.abc import Iterator
+from typing import IO, Any
+
+import pytest
+
+zenoh = pytest.importorskip("zenoh")
+
+from wardmap.shared.zenoh_config import (  # noqa: E402  (after the importorskip guard)
+    ALL_KEYFRAMES,
+    ALL_LIVELINESS,
+    client_config,
+    keyframe_key,
+    liveliness_key,
+)
+
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(60)]
+
+READY_TIMEOUT_S = 15.0
+EVENT_TIMEOUT_S = 10.0
+
+
+def _free_port() -> int:
+    """A TCP port on 127.0.0.1 that was free a moment ago (the OS picks it)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _router_cmd(endpoint: str) -> list[str]:
+    return [sys.executable, "-m", "wardmap.cli", "router", "--listen", endpoint]
+
+
+def _env() -> dict[str, str]:
+    env = dict(os.environ)
+    env.pop("RUST_LOG", None)  # the router's stderr must carry wardmap's lines only
+    return env
+
+
+def _read_line(stream: IO[str], timeout_s: float) -> str | None:
+    """The next line of ``stream``, read on a helper thread; None on timeout or EOF."""
+    lines: queue.Queue[str] = queue.Queue(maxsize=1)
+    threading.Thread(target=lambda: lines.put(stream.readline()), daemon=True).start()
+    try:
+        return lines.get(timeout=timeout_s) or None
+    except queue.Empty:
+        return None
+
+
+def _stop(proc: subprocess.Popen[str]) -> None:
+    """Terminate the router if it still runs; kill it if it ignores SIGTERM."""
+    if proc.poll() is None:
+        proc.terminate()
+        try:
+            proc.wait(timeout=5)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(timeout=5)
+    for stream in (proc.stdout, proc.stderr):
+        if stream is not None:
+            stream.close()
+
+
+@pytest.fixture
+def router() -> Iterator[tuple[subprocess.Popen[str], str]]:
+    """A ``wardmap router`` subprocess on a free loopback port, after its ready line."""
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    proc = subprocess.Popen(
+        _router_cmd(endpoint), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env()
+    )
+    try:
+        assert proc.stdout is not None
+        line = _read_line(proc.stdout, READY_TIMEOUT_S)
+        if line is None:
+            proc.kill()
+            _, err = proc.communicate(timeout=5)
+            pytest.fail(f"router not ready within {READY_TIMEOUT_S} s; stderr: {err!r}")
+        assert line.strip() == f"router listening on {endpoint}"
+        yield proc, endpoint
+    finally:
+        _stop(proc)
+
+
+def _open_client(endpoint: str) -> Any:
+    """A zenoh client session connected to ``endpoint`` (shm off, multicast scouting off)."""
+    return zenoh.open(zenoh.Config.from_json5(json.dumps(client_config([endpoint]))))
+
+
+def test_keyframes_through_router_in_order_then_sigterm(router: tuple[subprocess.Popen[str], str]) -> None:
+    """200 payloads of 50 KB published reliable/BLOCK arrive intact and in order; SIGTERM exits 0."""
+    proc, endpoint = router
+    n, size = 200, 50 * 1024
+    payloads = [i.to_bytes(4, "big") + bytes([i % 251]) * (size - 4) for i in range(n)]
+    received: list[tuple[str, bytes]] = []
+    all_in = threading.Event()
+    matched = threading.Event()
+
+    def on_sample(sample: Any) -> None:  # zenoh delivers callbacks one at a time per subscriber
+        received.append((str(sample.key_expr), sample.payload.to_bytes()))
+        if len(received) >= n:
+            all_in.set()
+
+    def on_matching(status: Any) -> None:
+        if status.matching:
+            matched.set()
+
+    with (
+        _open_client(endpoint) as sub_session,
+        _open_client(endpoint) as pub_session,
+        sub_session.declare_subscriber(ALL_KEYFRAMES, on_sample),
+        pub_session.declare_publisher(
+            keyframe_key("r1"),
+            reliability=zenoh.Reliability.RELIABLE,
+            congestion_control=zenoh.CongestionControl.BLOCK,
+        ) as publisher,
+    ):
+        with publisher.declare_matching_listener(on_matching):
+            if publisher.matching_status:
+                matched.set()
+            assert matched.wait(EVENT_TIMEOUT_S), "publisher never matched the subscriber via the router"
+        for payload in payloads:
+            publisher.put(payload)
+        assert all_in.wait(EVENT_TIMEOUT_S), f"only {len(received)} of {n} samples arrived"
+    assert len(received) == n
+    assert all(key == "wardmap/v1/robot/r1/keyframe" for key, _ in received)
+    assert [int.from_bytes(p[:4], "big") for _, p in received] == list(range(n))
+    assert [p for _, p in received] == payloads
+
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(timeout=5) == 0
+    assert proc.stderr is not None
+    assert "Traceback" not in proc.stderr.read()
+
+
+def test_port_in_use_exits_1_with_one_line() -> None:
+    """A router whose port is taken exits 1 with one clear stderr line and no traceback."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as holder:
+        holder.bind(("127.0.0.1", 0))
+        holder.listen()
+        endpoint = f"tcp/127.0.0.1:{holder.getsockname()[1]}"
+        done = subprocess.run(_router_cmd(endpoint), capture_output=True, text=True, timeout=30, env=_env())
+    assert done.returncode == 1
+    assert done.stdout == ""
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1, done.stderr
+    assert lines[0].startswith("wardmap router: error:")
+    assert endpoint in lines[0]
+    assert "address already in use" in lines[0]
+    assert "Traceback" not in done.stderr
+
+
+def test_liveliness_token_appears_and_disappears(router: tuple[subprocess.Popen[str], str]) -> None:
+    """A robot's liveliness token is seen (history=True) and seen to vanish when its session closes."""
+    _, endpoint = router
+    events: queue.Queue[tuple[str, str]] = queue.Queue()
+
+    def on_liveliness(sample: Any) -> None:
+        events.put((str(sample.kind), str(sample.key_expr)))
+
+    key = liveliness_key("r1")
+    with _open_client(endpoint) as watcher:
+        robot = _open_client(endpoint)
+        try:
+            token = robot.liveliness().declare_token(key)  # held until its session closes
+            with watcher.liveliness().declare_subscriber(ALL_LIVELINESS, on_liveliness, history=True):
+                assert events.get(timeout=EVENT_TIMEOUT_S) == (str(zenoh.SampleKind.PUT), key)
+                robot.close()  # closing the session withdraws the token; no explicit undeclare
+                assert events.get(timeout=EVENT_TIMEOUT_S) == (str(zenoh.SampleKind.DELETE), key)
+        finally:
+            robot.close()  # idempotent
+    del token
