@@ -44,6 +44,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import Final
 
+from wardmap.shared import sqlitedb
 from wardmap.shared.errors import WardmapError
 
 log = logging.getLogger(__name__)
@@ -52,10 +53,9 @@ GIB: Final = 1 << 30
 APPLICATION_ID: Final = 0x77726D6F  # "wrmo": marks the SQLite file as a wardmap outbox
 BUSY_TIMEOUT_S: Final = 5.0
 
-Migration = tuple[str, ...]
 """SQL statements that take the schema from version ``i`` to ``i + 1`` (``MIGRATIONS[i]``)."""
 
-MIGRATIONS: Final[tuple[Migration, ...]] = (
+MIGRATIONS: Final[tuple[sqlitedb.Migration, ...]] = (
     # v1: the outbox, the sessions (start order and persisted next_seq), and meta.
     (
         "CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL)",
@@ -89,6 +89,19 @@ class OutboxError(WardmapError):
 
 class OutboxFull(OutboxError):  # noqa: N818 - the name the edge agent API specifies
     """The outbox holds ``max_items`` items or ``max_bytes`` bytes; wait for acks and retry."""
+
+
+def _record_schema_version(conn: sqlite3.Connection, version: int) -> None:
+    conn.execute(
+        "INSERT INTO meta (key, value) VALUES ('schema_version', ?) "
+        "ON CONFLICT (key) DO UPDATE SET value = excluded.value",
+        (str(version),),
+    )
+
+
+OUTBOX_DB: Final = sqlitedb.SqliteKind(
+    "outbox database", APPLICATION_ID, MIGRATIONS, OutboxError, BUSY_TIMEOUT_S, _record_schema_version
+)
 
 
 @dataclass(frozen=True, slots=True)
@@ -195,8 +208,8 @@ class Outbox:
         lock_fd = _lock_file(path)
         conn: sqlite3.Connection | None = None
         try:
-            conn = _connect(path)
-            _check_and_migrate(conn, path)
+            conn = sqlitedb.connect(path, OUTBOX_DB)
+            sqlitedb.check_and_migrate(conn, path, OUTBOX_DB)
             outbox = cls(path, conn, lock_fd, max_items, max_bytes)
         except BaseException as exc:
             if conn is not None:
@@ -459,7 +472,7 @@ class Outbox:
         """One ``BEGIN IMMEDIATE`` .. ``COMMIT`` transaction; rolled back on any exception."""
         with self._db_errors(what):
             conn = self._connection()
-            with _transaction(conn):
+            with sqlitedb.transaction(conn):
                 yield conn
 
 
@@ -509,81 +522,6 @@ def _lock_file(path: Path) -> int:
         os.close(fd)
         raise OutboxError(f"cannot lock the outbox {path}: {exc}") from exc
     return fd
-
-
-def _connect(path: Path) -> sqlite3.Connection:
-    if path.is_dir():
-        raise OutboxError(f"cannot open the outbox {path}: it is a directory")
-    try:
-        conn = sqlite3.connect(path, timeout=BUSY_TIMEOUT_S, isolation_level=None, check_same_thread=False)
-    except sqlite3.Error as exc:
-        raise OutboxError(f"cannot open the outbox {path}: {exc}") from exc
-    try:
-        conn.execute(f"PRAGMA busy_timeout = {int(BUSY_TIMEOUT_S * 1000)}")
-        # Reading the header first: a file that is not SQLite fails here.
-        conn.execute("PRAGMA schema_version").fetchone()
-    except sqlite3.DatabaseError as exc:
-        conn.close()
-        raise OutboxError(f"{path} is not a wardmap outbox database or it is corrupt ({exc})") from exc
-    return conn
-
-
-def _check_and_migrate(conn: sqlite3.Connection, path: Path) -> None:
-    """Check the file is an outbox this build understands, set WAL + FULL, apply migrations."""
-    latest = len(MIGRATIONS)
-    try:
-        app_id = int(conn.execute("PRAGMA application_id").fetchone()[0])
-        version = int(conn.execute("PRAGMA user_version").fetchone()[0])
-        tables = [r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'")]
-    except sqlite3.DatabaseError as exc:
-        raise OutboxError(f"{path} is not a wardmap outbox database or it is corrupt ({exc})") from exc
-    if app_id != APPLICATION_ID and (app_id != 0 or version != 0 or tables):
-        raise OutboxError(
-            f"{path} is an SQLite file but not a wardmap outbox (application_id={app_id:#x}, "
-            f"user_version={version}, tables={tables}); refusing to touch it"
-        )
-    if version > latest:
-        raise OutboxError(
-            f"outbox {path} has schema version {version} but this wardmap knows up to {latest}: "
-            "it was written by a newer wardmap; upgrade wardmap to open it"
-        )
-    try:
-        mode = str(conn.execute("PRAGMA journal_mode = WAL").fetchone()[0]).lower()
-        if mode != "wal":
-            raise OutboxError(f"outbox {path}: cannot switch to WAL mode (journal_mode is {mode!r})")
-        conn.execute("PRAGMA synchronous = FULL")
-        if version < latest:
-            with _transaction(conn):
-                for i in range(version, latest):
-                    for statement in MIGRATIONS[i]:
-                        conn.execute(statement)
-                conn.execute(f"PRAGMA application_id = {APPLICATION_ID}")
-                conn.execute(f"PRAGMA user_version = {latest}")
-                conn.execute(
-                    "INSERT INTO meta (key, value) VALUES ('schema_version', ?) "
-                    "ON CONFLICT (key) DO UPDATE SET value = excluded.value",
-                    (str(latest),),
-                )
-            log.info("outbox %s: schema migrated from version %d to %d", path, version, latest)
-    except sqlite3.Error as exc:
-        raise OutboxError(f"outbox {path}: cannot prepare the database: {exc}") from exc
-
-
-@contextmanager
-def _transaction(conn: sqlite3.Connection) -> Iterator[None]:
-    conn.execute("BEGIN IMMEDIATE")
-    try:
-        yield
-    except BaseException:
-        if conn.in_transaction:
-            conn.execute("ROLLBACK")
-        raise
-    try:
-        conn.execute("COMMIT")
-    except BaseException:
-        if conn.in_transaction:
-            conn.execute("ROLLBACK")
-        raise
 
 
 def _check_key(key: object) -> OutboxKey:

@@ -49,6 +49,7 @@ from typing import Final, Literal, Protocol, TypeAlias
 import numpy as np
 from numpy.typing import NDArray
 
+from wardmap.shared import sqlitedb
 from wardmap.shared.errors import WardmapError
 from wardmap.shared.wire import KeyframeMsg
 
@@ -64,10 +65,9 @@ SQLITE_SCHEME: Final = "sqlite:///"
 _POSE_DTYPE: Final = np.dtype("<f8")
 _POSE_BYTES: Final = 16 * 8
 
-Migration = tuple[str, ...]
 """SQL statements that take the schema from version ``i`` to ``i + 1`` (``MIGRATIONS[i]``)."""
 
-MIGRATIONS: Final[tuple[Migration, ...]] = (
+MIGRATIONS: Final[tuple[sqlitedb.Migration, ...]] = (
     # v1: robots, sessions, keyframes, rejection counters.
     (
         """CREATE TABLE robots (
@@ -107,6 +107,11 @@ Cursor: TypeAlias = KeyCursor | float
 
 class StoreError(WardmapError):
     """The keyframe store cannot be opened or used (bad URL, bad file, bad argument, I/O failure)."""
+
+
+STORE_DB: Final = sqlitedb.SqliteKind(
+    "keyframe store", APPLICATION_ID, MIGRATIONS, StoreError, BUSY_TIMEOUT_S
+)
 
 
 @dataclass(frozen=True, slots=True)
@@ -242,12 +247,16 @@ def open_store(url: str) -> SqliteKeyframeStore:
         raise StoreError(f"store URL must be a str, got {type(url).__name__}")
     scheme = url.split(":", 1)[0] if ":" in url else ""
     if scheme in ("postgres", "postgresql") or scheme.startswith("postgresql+"):
-        raise StoreError(f"store URL {url.split('@')[-1]!r}: the PostgreSQL store is not available yet; "
-                         f"use {SQLITE_SCHEME}PATH")
+        raise StoreError(
+            f"store URL {url.split('@')[-1]!r}: the PostgreSQL store is not available yet; "
+            f"use {SQLITE_SCHEME}PATH"
+        )
     if not url.startswith(SQLITE_SCHEME):
-        raise StoreError(f"unknown store URL {url!r}: expected {SQLITE_SCHEME}PATH "
-                         f"(e.g. {SQLITE_SCHEME}wardmap.db or {SQLITE_SCHEME}/var/lib/wardmap/map.db)")
-    path = url[len(SQLITE_SCHEME):]
+        raise StoreError(
+            f"unknown store URL {url!r}: expected {SQLITE_SCHEME}PATH "
+            f"(e.g. {SQLITE_SCHEME}wardmap.db or {SQLITE_SCHEME}/var/lib/wardmap/map.db)"
+        )
+    path = url[len(SQLITE_SCHEME) :]
     if not path:
         raise StoreError(f"store URL {url!r} has no file path: expected {SQLITE_SCHEME}PATH")
     if path == ":memory:" or path.startswith("file:") or "?" in path:
@@ -287,7 +296,7 @@ class SqliteKeyframeStore:
         store = cls(path)
         try:
             conn = store._connection()  # this thread's connection; checks and migrates the file
-            _check_and_migrate(conn, path)
+            sqlitedb.check_and_migrate(conn, path, STORE_DB)
         except BaseException:
             store.close()
             raise
@@ -360,7 +369,9 @@ class SqliteKeyframeStore:
                 if not same:
                     log.warning(
                         "keyframe %s/%s/%d arrived again with different bytes (%d bytes); "
-                        "keeping the first copy", *key, len(data),
+                        "keeping the first copy",
+                        *key,
+                        len(data),
                     )
                 return "duplicate"
             conn.execute(
@@ -522,9 +533,9 @@ class SqliteKeyframeStore:
     # ------------------------------------------------------------------ internals
 
     @staticmethod
-    def _cursor_position(conn: sqlite3.Connection, robot_id: str, after: tuple[object, ...]) -> tuple[
-        float, str, int
-    ]:
+    def _cursor_position(
+        conn: sqlite3.Connection, robot_id: str, after: tuple[object, ...]
+    ) -> tuple[float, str, int]:
         if len(after) != 2 or not isinstance(after[0], str):
             raise StoreError(f"cursor must be (session_id, seq) or a stamp, got {after!r:.80}")
         session_id, seq = after[0], _check_seq(after[1])
@@ -543,7 +554,7 @@ class SqliteKeyframeStore:
         conn: sqlite3.Connection | None = getattr(self._local, "conn", None)
         if conn is not None:
             return conn
-        conn = _connect(self.path)
+        conn = sqlitedb.connect(self.path, STORE_DB)
         with self._conns_lock:
             if self._closed:
                 conn.close()
@@ -577,98 +588,11 @@ class SqliteKeyframeStore:
         """One ``BEGIN IMMEDIATE`` .. ``COMMIT`` transaction; rolled back on any exception."""
         with self._db_errors(what):
             conn = self._connection()
-            with _transaction(conn):
+            with sqlitedb.transaction(conn):
                 yield conn
 
 
 # ---------------------------------------------------------------------- helpers
-
-
-def _connect(path: Path) -> sqlite3.Connection:
-    """A connection in autocommit mode (explicit transactions) with WAL-safe settings."""
-    if path.is_dir():
-        raise StoreError(f"cannot open the keyframe store {path}: it is a directory")
-    try:
-        # check_same_thread=False only so close() may close it from another thread; it is
-        # otherwise used by the thread that opened it.
-        conn = sqlite3.connect(path, timeout=BUSY_TIMEOUT_S, isolation_level=None, check_same_thread=False)
-    except sqlite3.Error as exc:
-        raise StoreError(f"cannot open the keyframe store {path}: {exc}") from exc
-    try:
-        conn.execute(f"PRAGMA busy_timeout = {int(BUSY_TIMEOUT_S * 1000)}")
-        # Reading the header first: a file that is not SQLite fails here.
-        conn.execute("PRAGMA schema_version").fetchone()
-        conn.execute("PRAGMA synchronous = FULL")  # per connection, not stored in the file
-    except sqlite3.DatabaseError as exc:
-        conn.close()
-        raise StoreError(f"{path} is not a wardmap keyframe store or it is corrupt ({exc})") from exc
-    return conn
-
-
-def _check_and_migrate(conn: sqlite3.Connection, path: Path) -> None:
-    """Check the file is a store this build understands, switch to WAL, apply migrations."""
-    latest = len(MIGRATIONS)
-    try:
-        app_id, version, tables = _header(conn)
-    except sqlite3.DatabaseError as exc:
-        raise StoreError(f"{path} is not a wardmap keyframe store or it is corrupt ({exc})") from exc
-    _check_header(path, app_id, version, tables)
-    try:
-        mode = str(conn.execute("PRAGMA journal_mode = WAL").fetchone()[0]).lower()
-        if mode != "wal":
-            raise StoreError(f"keyframe store {path}: cannot switch to WAL mode (journal_mode is {mode!r})")
-        if version < latest:
-            with _transaction(conn):
-                # Read again under the write lock: another process may have migrated meanwhile.
-                app_id, version, tables = _header(conn)
-                _check_header(path, app_id, version, tables)
-                for i in range(version, latest):
-                    for statement in MIGRATIONS[i]:
-                        conn.execute(statement)
-                conn.execute(f"PRAGMA application_id = {APPLICATION_ID}")
-                conn.execute(f"PRAGMA user_version = {latest}")
-            if version < latest:
-                log.info("keyframe store %s: schema migrated from version %d to %d", path, version, latest)
-    except sqlite3.Error as exc:
-        raise StoreError(f"keyframe store {path}: cannot prepare the database: {exc}") from exc
-
-
-def _header(conn: sqlite3.Connection) -> tuple[int, int, list[str]]:
-    app_id = int(conn.execute("PRAGMA application_id").fetchone()[0])
-    version = int(conn.execute("PRAGMA user_version").fetchone()[0])
-    tables = [str(r[0]) for r in conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'")]
-    return app_id, version, tables
-
-
-def _check_header(path: Path, app_id: int, version: int, tables: list[str]) -> None:
-    latest = len(MIGRATIONS)
-    if app_id != APPLICATION_ID and (app_id != 0 or version != 0 or tables):
-        raise StoreError(
-            f"{path} is an SQLite file but not a wardmap keyframe store (application_id={app_id:#x}, "
-            f"user_version={version}, tables={tables}); refusing to touch it"
-        )
-    if version > latest:
-        raise StoreError(
-            f"keyframe store {path} has schema version {version} but this wardmap knows up to {latest}: "
-            "it was written by a newer wardmap; upgrade wardmap to open it"
-        )
-
-
-@contextmanager
-def _transaction(conn: sqlite3.Connection) -> Iterator[None]:
-    conn.execute("BEGIN IMMEDIATE")
-    try:
-        yield
-    except BaseException:
-        if conn.in_transaction:
-            conn.execute("ROLLBACK")
-        raise
-    try:
-        conn.execute("COMMIT")
-    except BaseException:
-        if conn.in_transaction:
-            conn.execute("ROLLBACK")
-        raise
 
 
 def _check_str(value: object, field: str) -> str:

@@ -8,6 +8,7 @@ child writes after each committed put, never on sleeps.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import os
 import queue
@@ -398,13 +399,14 @@ def test_migration_upgrade_keeps_data_and_failure_rolls_back(
         ob.put(ROBOT, SESSION, 0, 1.0, b"keep")
     v1 = outbox_mod.MIGRATIONS
     broken = (*v1, ("ALTER TABLE outbox ADD COLUMN broken",), ("nonsense",))
-    monkeypatch.setattr(outbox_mod, "MIGRATIONS", broken)
+    monkeypatch.setattr(outbox_mod, "OUTBOX_DB", dataclasses.replace(outbox_mod.OUTBOX_DB, migrations=broken))
     with pytest.raises(OutboxError, match="cannot prepare"):
         Outbox.open(path)
     with sqlite3.connect(path) as conn:
         assert conn.execute("PRAGMA user_version").fetchone()[0] == len(v1)
         assert "broken" not in [r[1] for r in conn.execute("PRAGMA table_info(outbox)")]
-    monkeypatch.setattr(outbox_mod, "MIGRATIONS", (*v1, ("ALTER TABLE outbox ADD COLUMN note TEXT",)))
+    v2 = (*v1, ("ALTER TABLE outbox ADD COLUMN note TEXT",))
+    monkeypatch.setattr(outbox_mod, "OUTBOX_DB", dataclasses.replace(outbox_mod.OUTBOX_DB, migrations=v2))
     with Outbox.open(path) as ob:
         assert [it.payload for it in ob.pending()] == [b"keep"]
     with sqlite3.connect(path) as conn:

@@ -8,6 +8,7 @@ committed insert, never on sleeps.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import signal
@@ -80,12 +81,24 @@ def base_keyframe() -> KeyframeMsg:
     return _BASE
 
 
-def keyframe(robot: str = "r1", session: str = "s1", seq: int = 0, stamp: float | None = None,
-             pose_source: wire.PoseSource = "rgb") -> tuple[KeyframeMsg, bytes]:
+def keyframe(
+    robot: str = "r1",
+    session: str = "s1",
+    seq: int = 0,
+    stamp: float | None = None,
+    pose_source: wire.PoseSource = "rgb",
+) -> tuple[KeyframeMsg, bytes]:
     """A keyframe with this key (stamp ``T0 + seq`` unless given) and its wire bytes."""
     t = T0 + seq if stamp is None else stamp
-    msg = replace(base_keyframe(), robot_id=robot, session_id=session, seq=seq, stamp=t,
-                  T_odom_camera=_pose(t - T0), pose_source=pose_source)
+    msg = replace(
+        base_keyframe(),
+        robot_id=robot,
+        session_id=session,
+        seq=seq,
+        stamp=t,
+        T_odom_camera=_pose(t - T0),
+        pose_source=pose_source,
+    )
     return msg, wire.encode(msg)
 
 
@@ -132,7 +145,11 @@ def test_insert_and_duplicate(db: str, caplog: pytest.LogCaptureFixture) -> None
         assert page.next_cursor is None
         [summary] = st.robots()
         assert (summary.keyframes, summary.sessions, summary.first_seen_s, summary.last_seen_s) == (
-            1, 1, 100.0, 100.0)
+            1,
+            1,
+            100.0,
+            100.0,
+        )
         stats = st.stats()
         assert (stats.robots, stats.sessions, stats.keyframes, stats.payload_bytes) == (1, 1, 1, len(data))
         assert stats.schema_version == len(MIGRATIONS)
@@ -252,8 +269,10 @@ def test_two_robots(db: str) -> None:
 def test_migration_from_empty_v0_file(tmp_path: Path) -> None:
     """A zero-byte file and an empty SQLite file at user_version 0 are migrated to the latest version
     in WAL mode and then accept inserts."""
-    for name, make in (("zero.db", lambda p: p.write_bytes(b"")),
-                       ("v0.db", lambda p: sqlite3.connect(p).close())):
+    for name, make in (
+        ("zero.db", lambda p: p.write_bytes(b"")),
+        ("v0.db", lambda p: sqlite3.connect(p).close()),
+    ):
         path = tmp_path / name
         make(path)
         with SqliteKeyframeStore.open(path) as st:
@@ -271,7 +290,7 @@ def test_failed_migration_rolls_back(tmp_path: Path, monkeypatch: pytest.MonkeyP
     """A migration that fails half-way leaves the file at version 0 with no tables (one transaction)."""
     path = tmp_path / "map.db"
     broken = ((*MIGRATIONS[0], "CREATE TABLE robots (x)"),)  # the second CREATE of robots fails
-    monkeypatch.setattr(store_mod, "MIGRATIONS", broken)
+    monkeypatch.setattr(store_mod, "STORE_DB", dataclasses.replace(store_mod.STORE_DB, migrations=broken))
     with pytest.raises(StoreError, match="cannot prepare"):
         SqliteKeyframeStore.open(path)
     assert _user_version(path) == 0
@@ -447,7 +466,9 @@ def test_crash_safety_sigkill(tmp_path: Path) -> None:
     path = tmp_path / "map.db"
     proc = subprocess.Popen(
         [sys.executable, "-c", _CHILD, str(path), str(Path(__file__).parent)],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
     )
     assert proc.stdout is not None
     reported: list[int] = []
