@@ -1,0 +1,47 @@
+"""``wardmap server``: run the map server (keyframe ingest from Zenoh + REST API)."""
+
+from __future__ import annotations
+
+import argparse
+
+from wardmap.shared.errors import ConfigError
+
+
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    p = sub.add_parser("server", help="run the map server", description=__doc__)
+    p.add_argument(
+        "--connect",
+        action="append",
+        required=True,
+        metavar="tcp/HOST:PORT",
+        help="zenoh router endpoint to connect to (repeatable), e.g. tcp/127.0.0.1:7447",
+    )
+    p.add_argument(
+        "--db", default="sqlite:///wardmap.db", metavar="URL", help="keyframe store (default: %(default)s)"
+    )
+    p.add_argument(
+        "--http", default="127.0.0.1:8080", metavar="HOST:PORT",
+        help="REST API address (default: %(default)s)",
+    )
+    p.set_defaults(func=run)
+
+
+def parse_http(text: str) -> tuple[str, int]:
+    """``HOST:PORT`` (``[IPv6]:PORT`` allowed) as ``(host, port)``; ConfigError otherwise."""
+    host, sep, port = text.rpartition(":")
+    host = host[1:-1] if host.startswith("[") and host.endswith("]") else host
+    if not sep or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
+        raise ConfigError(f"bad --http {text!r}: expected HOST:PORT, e.g. 127.0.0.1:8080")
+    return host, int(port)
+
+
+def run(args: argparse.Namespace) -> int:
+    from wardmap.server.app import run_server
+
+    host, port = parse_http(args.http)
+
+    def ready(url: str) -> None:
+        print(f"server ready: {url}", flush=True)
+
+    run_server(args.connect, args.db, host, port, on_ready=ready)
+    return 0

@@ -1,0 +1,576 @@
+"""The edge daemon (``wardmap edge``): data set -> tracker -> durable outbox -> Zenoh.
+
+One :class:`EdgeAgent` runs one robot. Threads and the state each one owns:
+
+- the *tracking* thread (the caller of :meth:`EdgeAgent.run`, normally the main thread)
+  owns the :class:`~wardmap.edge.tracker.Tracker`, reads frames, builds and encodes a
+  :class:`~wardmap.shared.wire.KeyframeMsg` for every keyframe and puts it into the
+  :class:`~wardmap.edge.outbox.Outbox` *before* anything is published. When the outbox is
+  full (:class:`~wardmap.edge.outbox.OutboxFull`) it waits for acks and retries:
+  backpressure slows the tracker, nothing is dropped.
+- the *sender* thread owns the Zenoh publishers and every network counter. It applies
+  acks, publishes due outbox items (never sent, or not acked within ``resend_after_s``)
+  reliable with congestion control ``BLOCK``, marks them sent, and publishes a
+  :class:`~wardmap.shared.wire.HeartbeatMsg` every ``heartbeat_period_s``.
+- the Zenoh ack-subscriber callback only enqueues the raw payload into the sender's
+  bounded inbox (policy :data:`INBOX_POLICY`).
+
+Acks: ``stored`` and ``duplicate`` remove the item from the outbox. ``rejected`` also
+removes it (the server validated it and will never accept that payload, so resending it
+is pointless) and counts the reason in ``rejected`` of the summary; it is logged as a
+warning.
+
+Keypoints: the tracker does not expose the features of its keyframes with the octave
+and orientation the wire needs, so the agent extracts ORB on the keyframe's grey image
+with the tracker's own extractor (same :class:`~wardmap.edge.features.OrbConfig`). They
+are therefore *before* dynamic-point removal.
+
+Depth is sent at stride :attr:`AgentConfig.depth_stride` (default 2: 1/2 resolution,
+~160 KB per keyframe instead of ~420 KB with full-resolution depth and thermal, see
+docs/wire.md, "Budget"); the stride falls back to 1 when the image size is not
+divisible by it.
+
+Stopping: :meth:`EdgeAgent.stop` (SIGTERM/SIGINT while :func:`run_agent` runs) ends
+tracking, then the agent waits up to ``flush_timeout_s`` for the outbox to empty and
+closes the session. Anything still unacked stays in the outbox and is re-sent with its
+original ``(robot, session, seq)`` by the next start.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import queue
+import signal
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import FrameType
+from typing import Any, Final
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from wardmap.edge.outbox import Outbox, OutboxFull, OutboxItem, SessionIds
+from wardmap.edge.tracker import Tracker, TrackerConfig, TrackInput, TrackResult
+from wardmap.shared.dataset import DatasetReader, Frame, pose_at
+from wardmap.shared.errors import ConfigError, DatasetError, WardmapError, WireError
+from wardmap.shared.knowledge import KnowledgeGraph
+from wardmap.shared.wire import (
+    HeartbeatMsg,
+    Intrinsics,
+    KeyframeMsg,
+    Keypoints,
+    PackedRaster,
+    decode_ack,
+    encode,
+    encode_depth,
+    encode_thermal,
+)
+from wardmap.shared.zenoh_config import (
+    ack_key,
+    client_config,
+    heartbeat_key,
+    keyframe_key,
+    liveliness_key,
+    validate_endpoint,
+    validate_robot_id,
+)
+
+log = logging.getLogger(__name__)
+
+INBOX_POLICY: Final = "drop-newest"
+"""Policy of the sender's bounded inbox (acks and wake-ups). When full, a new entry is
+dropped and counted (``inbox_dropped``). Safe: a dropped ack leaves its item in the
+outbox, it is re-sent after ``resend_after_s`` and the server answers ``duplicate``; a
+dropped wake-up only delays the next send by at most ``poll_s``."""
+
+_KICK: Final = b""  # inbox entry that only wakes the sender
+
+
+@dataclass(frozen=True)
+class AgentConfig:
+    """Settings of one edge agent (``[agent]`` table of a TOML config; CLI flags override).
+
+    Attributes:
+        rate_hz: frames per second fed to the tracker; 0 = as fast as possible.
+        max_frames: stop after this many frames (None: the whole data set).
+        resend_after_s: re-send an item not acked this long after its last send.
+        flush_timeout_s: on stop, wait at most this long for the outbox to empty.
+        heartbeat_period_s: period of the heartbeat message.
+        depth_stride: depth sent at 1/stride resolution (1, 2 or 4).
+        jpeg_quality: JPEG quality of the colour image (1-100).
+        send_batch: outbox items read per send round.
+        inbox_size: capacity of the sender's inbox (policy :data:`INBOX_POLICY`).
+        poll_s: longest the sender sleeps without a wake-up (resend and heartbeat checks).
+        outbox_max_items, outbox_max_bytes: outbox capacity (OutboxFull beyond: backpressure).
+    """
+
+    rate_hz: float = 0.0
+    max_frames: int | None = None
+    resend_after_s: float = 2.0
+    flush_timeout_s: float = 10.0
+    heartbeat_period_s: float = 1.0
+    depth_stride: int = 2
+    jpeg_quality: int = 85
+    send_batch: int = 16
+    inbox_size: int = 1024
+    poll_s: float = 0.1
+    outbox_max_items: int = 10_000
+    outbox_max_bytes: int = 2 << 30
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.rate_hz) and self.rate_hz >= 0):
+            raise ConfigError(f"agent.rate_hz must be >= 0 (0 = as fast as possible), got {self.rate_hz}")
+        if self.max_frames is not None and self.max_frames <= 0:
+            raise ConfigError(f"agent.max_frames must be positive, got {self.max_frames}")
+        for name in ("resend_after_s", "heartbeat_period_s", "poll_s"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"agent.{name} must be > 0, got {getattr(self, name)}")
+        if not self.flush_timeout_s >= 0:
+            raise ConfigError(f"agent.flush_timeout_s must be >= 0, got {self.flush_timeout_s}")
+        if self.depth_stride not in (1, 2, 4):
+            raise ConfigError(f"agent.depth_stride must be 1, 2 or 4, got {self.depth_stride}")
+        if not 1 <= self.jpeg_quality <= 100:
+            raise ConfigError(f"agent.jpeg_quality must be in 1..100, got {self.jpeg_quality}")
+        for name in ("send_batch", "inbox_size", "outbox_max_items", "outbox_max_bytes"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"agent.{name} must be >= 1, got {getattr(self, name)}")
+
+
+@dataclass
+class _SenderStats:
+    """Counters owned by the sender thread (read by others only after it has stopped)."""
+
+    sent: int = 0
+    resent: int = 0
+    acked: int = 0
+    duplicates: int = 0
+    rejected: Counter[str] = field(default_factory=Counter)
+    bad_acks: int = 0
+    heartbeats: int = 0
+
+
+@dataclass
+class _TrackStats:
+    """Counters owned by the tracking thread."""
+
+    frames: int = 0
+    keyframes: int = 0
+    lost: int = 0
+    outbox_full_waits: int = 0
+
+
+class EdgeAgent:
+    """One robot: tracker over a data-set folder, outbox, Zenoh sender.
+
+    Construct, then call :meth:`run` (blocks; returns a summary); :meth:`stop` may be
+    called from any thread or a signal handler.
+    """
+
+    def __init__(
+        self,
+        robot_id: str,
+        dataset: str | Path,
+        connect: Sequence[str],
+        outbox_path: str | Path,
+        *,
+        config: AgentConfig | None = None,
+        tracker_config: TrackerConfig | None = None,
+    ) -> None:
+        self.robot_id = validate_robot_id(robot_id)
+        self.connect = [validate_endpoint(e) for e in connect]
+        if not self.connect:
+            raise ConfigError("the edge agent needs at least one --connect endpoint")
+        self.dataset = Path(dataset)
+        if not self.dataset.is_dir():
+            raise DatasetError(f"data set {str(self.dataset)!r} is not a folder")
+        self.outbox_path = Path(outbox_path)
+        self.cfg = config or AgentConfig()
+        self.tracker_cfg = tracker_config or TrackerConfig()
+        self._stop = threading.Event()  # set once: end tracking
+        self._sender_stop = threading.Event()  # set once: end the sender thread
+        self._drained = threading.Event()  # set by the sender when the outbox is empty
+        self._space = threading.Event()  # set by the sender after it removed items
+        self._inbox: queue.Queue[bytes] = queue.Queue(maxsize=self.cfg.inbox_size)
+        self._inbox_dropped = 0  # guarded by _dropped_lock (enqueuers run on several threads)
+        self._dropped_lock = threading.Lock()
+        self._progress: tuple[int, int, int] = (0, 0, 0)  # (frames, keyframes, lost): atomic swap
+        self._sender_stats = _SenderStats()
+        self._sender_error: BaseException | None = None
+
+    # ------------------------------------------------------------------ control
+
+    def stop(self) -> None:
+        """Ask the agent to stop tracking, flush and exit (thread and signal safe)."""
+        self._stop.set()
+
+    def _enqueue(self, entry: bytes) -> None:
+        """Put into the sender's inbox without blocking (policy :data:`INBOX_POLICY`)."""
+        try:
+            self._inbox.put_nowait(entry)
+        except queue.Full:
+            with self._dropped_lock:
+                self._inbox_dropped += 1
+
+    # ------------------------------------------------------------------ run
+
+    def run(self, on_ready: Callable[[str, int], None] | None = None) -> dict[str, Any]:
+        """Track the data set, send keyframes, flush on stop; return a JSON-able summary.
+
+        ``on_ready(session_id, pending_items)`` is called once the session, the
+        publishers, the ack subscriber and the liveliness token are declared.
+        """
+        import zenoh  # the only zenoh user on the edge; imported here, not at module import
+
+        reader = DatasetReader(self.dataset)
+        kg = KnowledgeGraph.load()
+        tracker = Tracker(reader.calibration, self.tracker_cfg, kg.mobility_lut())
+        n_frames = len(reader) if self.cfg.max_frames is None else min(self.cfg.max_frames, len(reader))
+        zcfg = zenoh.Config.from_json5(json.dumps(client_config(self.connect)))
+        t_start = time.monotonic()
+        track = _TrackStats()
+        with Outbox.open(
+            self.outbox_path, max_items=self.cfg.outbox_max_items, max_bytes=self.cfg.outbox_max_bytes
+        ) as outbox:
+            ids = outbox.start_session(self.robot_id)
+            try:
+                session = zenoh.open(zcfg)
+            except zenoh.ZError as exc:
+                detail = str(exc).split(" at /", 1)[0]  # drop zenoh's Rust source location
+                raise WardmapError(f"cannot connect to {', '.join(self.connect)}: {detail}") from exc
+            with session, contextlib.ExitStack() as decl:
+                decl.enter_context(session.declare_subscriber(ack_key(self.robot_id), self._on_ack))
+                token = session.liveliness().declare_token(liveliness_key(self.robot_id))
+                decl.callback(token.undeclare)
+                sender = threading.Thread(
+                    target=self._sender_main, args=(zenoh, session, outbox, ids), name="edge-sender"
+                )
+                sender.start()
+                try:
+                    if on_ready is not None:
+                        on_ready(ids.session_id, len(outbox))
+                    self._track_loop(reader, tracker, outbox, ids, n_frames, track)
+                    flushed = self._flush(outbox)
+                finally:
+                    self._stop.set()
+                    self._sender_stop.set()
+                    self._enqueue(_KICK)
+                    sender.join()
+            pending = len(outbox)
+        if self._sender_error is not None:
+            raise WardmapError(f"edge sender failed: {self._sender_error}") from self._sender_error
+        s = self._sender_stats
+        return {
+            "robot_id": self.robot_id,
+            "session_id": ids.session_id,
+            "frames": track.frames,
+            "keyframes": track.keyframes,
+            "lost_frames": track.lost,
+            "sent": s.sent,
+            "resent": s.resent,
+            "acked": s.acked,
+            "duplicates": s.duplicates,
+            "rejected": dict(s.rejected),
+            "bad_acks": s.bad_acks,
+            "inbox_dropped": self._inbox_dropped,
+            "outbox_full_waits": track.outbox_full_waits,
+            "pending": pending,
+            "flushed": flushed,
+            "seconds": round(time.monotonic() - t_start, 3),
+        }
+
+    # ------------------------------------------------------------------ tracking thread
+
+    def _track_loop(
+        self,
+        reader: DatasetReader,
+        tracker: Tracker,
+        outbox: Outbox,
+        ids: SessionIds,
+        n_frames: int,
+        track: _TrackStats,
+    ) -> None:
+        odo = reader.odometry()
+        calib = reader.calibration
+        intrinsics = Intrinsics.from_camera(calib.rgb, calib.depth_scale)
+        period = 1.0 / self.cfg.rate_hz if self.cfg.rate_hz > 0 else 0.0
+        next_t = time.monotonic()
+        for i in range(n_frames):
+            if self._stop.is_set():
+                break
+            if period:
+                delay = next_t - time.monotonic()
+                if delay > 0 and self._stop.wait(delay):
+                    break
+                next_t = max(next_t + period, time.monotonic() - period)
+            stamp = float(reader.stamps[i])
+            T_odom_base = _odom_at(odo, stamp)
+            frame: Frame | None
+            try:
+                frame = reader.frame(i)
+            except DatasetError as exc:
+                log.warning("frame %d: %s", i, exc)
+                frame = None
+            if frame is None:
+                inp = TrackInput(stamp, None, None, T_odom_base=T_odom_base, problem="cannot read frame")
+            else:
+                inp = TrackInput(stamp, frame.rgb, frame.depth_m, frame.thermal_k, T_odom_base)
+            res = tracker.track(inp)
+            track.frames += 1
+            track.lost += int(res.lost)
+            if res.keyframe and frame is not None:
+                msg = self._keyframe_msg(tracker, frame, res, T_odom_base, intrinsics, ids)
+                if not self._put_with_backpressure(ids, msg, track):
+                    break
+                track.keyframes += 1
+            self._progress = (track.frames, track.keyframes, track.lost)
+        self._progress = (track.frames, track.keyframes, track.lost)
+
+    def _keyframe_msg(
+        self,
+        tracker: Tracker,
+        frame: Frame,
+        res: TrackResult,
+        T_odom_base: NDArray[np.float64] | None,
+        intrinsics: Intrinsics,
+        ids: SessionIds,
+    ) -> KeyframeMsg:
+        """The wire message of a keyframe; its seq is the session's next one (put right after)."""
+        gray = np.asarray(cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2GRAY), np.uint8)
+        depth = np.nan_to_num(frame.depth_m, nan=0.0, posinf=0.0, neginf=0.0)
+        feats = tracker.orb.extract(gray)
+        h, w = depth.shape
+        col = np.clip(np.rint(feats.uv[:, 0]).astype(np.int64), 0, w - 1)
+        row = np.clip(np.rint(feats.uv[:, 1]).astype(np.int64), 0, h - 1)
+        kp_depth = np.maximum(depth[row, col], 0.0).astype(np.float32)
+        keypoints = Keypoints(
+            uv=np.ascontiguousarray(feats.uv, np.float32),
+            octave=feats.octave.astype(np.int16),
+            angle_deg=np.clip(feats.angle_deg, 0.0, 360.0).astype(np.float32),
+            depth_m=kp_depth,
+            descriptors=np.ascontiguousarray(feats.descriptors, np.uint8),
+        )
+        bgr = cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR)
+        ok, jpeg = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, self.cfg.jpeg_quality])
+        if not ok:
+            raise WardmapError(f"cannot JPEG-encode the colour image of frame {frame.index}")
+        s = self.cfg.depth_stride if h % self.cfg.depth_stride == 0 and w % self.cfg.depth_stride == 0 else 1
+        thermal = None
+        if frame.thermal_k is not None:
+            thermal = PackedRaster(*encode_thermal(np.nan_to_num(frame.thermal_k, nan=0.0)))
+        return KeyframeMsg(
+            robot_id=self.robot_id,
+            session_id=ids.session_id,
+            seq=ids.next_seq,
+            stamp=float(frame.stamp),
+            T_odom_camera=res.T_world_camera,
+            pose_source=res.source,
+            keypoints=keypoints,
+            rgb_jpeg=jpeg.tobytes(),
+            depth=PackedRaster(*encode_depth(depth[::s, ::s])),
+            intrinsics=intrinsics,
+            T_odom_base=T_odom_base,
+            thermal=thermal,
+        )
+
+    def _put_with_backpressure(self, ids: SessionIds, msg: KeyframeMsg, track: _TrackStats) -> bool:
+        """Put ``msg`` into the outbox; while it is full, wait for acks (never drop); True if stored.
+
+        Only a stop request ends the wait; that keyframe is then not stored (logged, False).
+        """
+        payload = encode(msg)
+        while True:
+            self._space.clear()
+            try:
+                seq = ids.put(msg.stamp, payload)
+            except OutboxFull:
+                track.outbox_full_waits += 1
+                log.warning("outbox full: tracking waits for acks")
+                while not self._space.wait(self.cfg.poll_s):
+                    if self._stop.is_set():
+                        log.warning("stopped with the outbox full: keyframe %.6f not stored", msg.stamp)
+                        return False
+                continue
+            if seq != msg.seq:  # only this thread puts into this session
+                raise WardmapError(f"outbox seq {seq} differs from the message's {msg.seq}")
+            self._drained.clear()
+            self._enqueue(_KICK)
+            return True
+
+    def _flush(self, outbox: Outbox) -> bool:
+        """Wait up to ``flush_timeout_s`` for the outbox to empty; True if it did."""
+        deadline = time.monotonic() + self.cfg.flush_timeout_s
+        while len(outbox):
+            remaining = deadline - time.monotonic()
+            if remaining <= 0 or self._sender_stop.is_set():
+                log.info("flush: %d items stay in the outbox for the next start", len(outbox))
+                return False
+            self._drained.wait(min(remaining, self.cfg.poll_s))
+        return True
+
+    # ------------------------------------------------------------------ zenoh callback
+
+    def _on_ack(self, sample: Any) -> None:
+        """Ack subscriber callback: enqueue the raw payload, nothing else."""
+        self._enqueue(sample.payload.to_bytes())
+
+    # ------------------------------------------------------------------ sender thread
+
+    def _sender_main(self, zenoh: Any, session: Any, outbox: Outbox, ids: SessionIds) -> None:
+        try:
+            self._sender_loop(zenoh, session, outbox, ids)
+        except BaseException as exc:  # reported by run(); the tracker must not wait forever
+            log.exception("edge sender failed")
+            self._sender_error = exc
+            self._stop.set()
+            self._sender_stop.set()
+
+    def _sender_loop(self, zenoh: Any, session: Any, outbox: Outbox, ids: SessionIds) -> None:
+        cfg = self.cfg
+        stats = self._sender_stats
+        with contextlib.ExitStack() as decl:
+            publishers: dict[str, Any] = {}
+
+            def publisher(robot_id: str) -> Any:
+                # One publisher per robot id in the outbox (normally just ours).
+                if robot_id not in publishers:
+                    publishers[robot_id] = decl.enter_context(
+                        session.declare_publisher(
+                            keyframe_key(robot_id),
+                            reliability=zenoh.Reliability.RELIABLE,
+                            congestion_control=zenoh.CongestionControl.BLOCK,
+                        )
+                    )
+                return publishers[robot_id]
+
+            heartbeat = decl.enter_context(
+                session.declare_publisher(
+                    heartbeat_key(self.robot_id),
+                    reliability=zenoh.Reliability.RELIABLE,
+                    congestion_control=zenoh.CongestionControl.BLOCK,
+                )
+            )
+            next_heartbeat = time.monotonic()
+            while not self._sender_stop.is_set():
+                self._apply_acks(outbox, stats)
+                due = outbox.pending(cfg.send_batch, resend_after_s=cfg.resend_after_s)
+                if due:
+                    self._publish(publisher, outbox, due, stats)
+                if not len(outbox):
+                    self._drained.set()
+                now = time.monotonic()
+                if now >= next_heartbeat:
+                    self._heartbeat(heartbeat, outbox, ids, stats)
+                    next_heartbeat = now + cfg.heartbeat_period_s
+                if len(due) == cfg.send_batch:
+                    continue  # more are due: keep sending
+                wait = max(0.0, min(cfg.poll_s, next_heartbeat - time.monotonic()))
+                try:
+                    entry = self._inbox.get(timeout=wait)
+                except queue.Empty:
+                    continue
+                self._handle_entry(entry, outbox, stats)
+            self._apply_acks(outbox, stats)
+            self._heartbeat(heartbeat, outbox, ids, stats)
+
+    def _apply_acks(self, outbox: Outbox, stats: _SenderStats) -> None:
+        while True:
+            try:
+                entry = self._inbox.get_nowait()
+            except queue.Empty:
+                return
+            self._handle_entry(entry, outbox, stats)
+
+    def _handle_entry(self, entry: bytes, outbox: Outbox, stats: _SenderStats) -> None:
+        if entry == _KICK:
+            return
+        try:
+            ack = decode_ack(entry)
+        except WireError as exc:
+            stats.bad_acks += 1
+            log.warning("ignoring a bad ack: %s", exc)
+            return
+        if ack.robot_id != self.robot_id:
+            stats.bad_acks += 1
+            log.warning("ignoring an ack for robot %r on robot %r's key", ack.robot_id, self.robot_id)
+            return
+        if ack.status == "rejected":
+            # The server will never accept this payload: resending is pointless; drop it, count why.
+            stats.rejected[ack.reason or "(no reason)"] += 1
+            log.warning("keyframe %s/%d rejected by the server: %s", ack.session_id, ack.seq, ack.reason)
+            outbox.ack(ack.robot_id, ack.session_id, ack.seq)
+        elif outbox.ack(ack.robot_id, ack.session_id, ack.seq):
+            stats.acked += 1
+            stats.duplicates += int(ack.status == "duplicate")
+        self._space.set()
+        if not len(outbox):
+            self._drained.set()
+
+    def _publish(
+        self, publisher: Callable[[str], Any], outbox: Outbox, items: list[OutboxItem], stats: _SenderStats
+    ) -> None:
+        for item in items:
+            publisher(item.robot_id).put(item.payload)
+            stats.sent += 1
+            stats.resent += int(item.attempts > 0)
+            if item.attempts > 0:
+                log.info("re-sent %s/%s/%d (attempt %d)", *item.key, item.attempts + 1)
+        outbox.mark_sent([item.key for item in items])
+
+    def _heartbeat(self, pub: Any, outbox: Outbox, ids: SessionIds, stats: _SenderStats) -> None:
+        frames, keyframes, lost = self._progress
+        msg = HeartbeatMsg(
+            robot_id=self.robot_id,
+            session_id=ids.session_id,
+            stamp=time.time(),
+            stats={
+                "frames": frames,
+                "keyframes": keyframes,
+                "lost": lost,
+                "pending": len(outbox),
+                "sent": stats.sent,
+                "acked": stats.acked,
+                "resent": stats.resent,
+                "rejected": sum(stats.rejected.values()),
+                "inbox_dropped": self._inbox_dropped,
+            },
+        )
+        pub.put(encode(msg))
+        stats.heartbeats += 1
+
+
+def _odom_at(odo: tuple[NDArray[np.float64], NDArray[np.float64]] | None, stamp: float) -> Any:
+    if odo is None:
+        return None
+    return pose_at(odo[0], odo[1], stamp, max_bracket_s=0.1, max_nearest_s=0.05)
+
+
+@contextlib.contextmanager
+def stop_on_signals(agent: EdgeAgent) -> Iterator[None]:
+    """Call ``agent.stop()`` on SIGTERM/SIGINT while inside the block (main thread only)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum: int, _frame: FrameType | None) -> None:
+        log.info("received %s, stopping the edge agent", signal.Signals(signum).name)
+        agent.stop()
+
+    previous = {s: signal.signal(s, handler) for s in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        yield
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+
+
+def run_agent(agent: EdgeAgent, on_ready: Callable[[str, int], None] | None = None) -> dict[str, Any]:
+    """Run ``agent`` until its data set ends or a SIGTERM/SIGINT arrives; return its summary."""
+    with stop_on_signals(agent):
+        return agent.run(on_ready)

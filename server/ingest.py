@@ -1,0 +1,288 @@
+"""Keyframe ingest: zenoh subscriber -> decode + validate -> store -> ack.
+
+:class:`Ingest` owns one zenoh client session connected to the router(s), one subscriber
+on :data:`~wardmap.shared.zenoh_config.ALL_KEYFRAMES` and one worker thread. Samples reach
+the worker through a bounded zenoh FIFO channel (``zenoh.handlers.FifoChannel``).
+
+Queue policy: **FIFO, block when full (backpressure, never drop)**. When the channel holds
+``capacity`` samples, zenoh stops taking samples off the transport; the robots publish
+reliable with congestion control ``BLOCK``, so their puts wait instead of being dropped.
+
+For each sample the worker decodes the keyframe, checks that the robot id in the key equals
+the message's ``robot_id``, stores it and only *after* the insert committed publishes an
+:class:`~wardmap.shared.wire.AckMsg` (``stored`` or ``duplicate``) on
+:func:`~wardmap.shared.zenoh_config.ack_key`. Bad input never stops the worker: a
+:class:`~wardmap.shared.errors.WardmapError` is counted as a rejection in the store (and
+acked ``rejected`` when the robot is known); an unexpected exception is logged with the
+payload size and counted as ``internal``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from collections import OrderedDict, deque
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, Final
+
+from wardmap.server.router import _first_line
+from wardmap.server.store import KeyframeStore
+from wardmap.shared.errors import ConfigError, WardmapError, WireError
+from wardmap.shared.wire import AckMsg, AckStatus, decode_keyframe, encode
+from wardmap.shared.zenoh_config import ALL_KEYFRAMES, ack_key, client_config, robot_id_from_key
+
+log = logging.getLogger(__name__)
+
+__all__ = ["DEFAULT_CAPACITY", "Ingest", "IngestCounters", "IngestError"]
+
+DEFAULT_CAPACITY: Final = 256
+"""Samples the zenoh FIFO channel holds before zenoh applies backpressure."""
+MAX_ACK_PUBLISHERS: Final = 1024
+"""Ack publishers kept declared (one per robot); the least recently used is undeclared beyond this."""
+_MAX_REASON: Final = 200
+
+
+class IngestError(WardmapError):
+    """The ingest cannot start (bad endpoint, zenoh cannot open the session)."""
+
+
+@dataclass(frozen=True, slots=True)
+class IngestCounters:
+    """A snapshot of the ingest's counters since :meth:`Ingest.start`.
+
+    Attributes:
+        received: samples taken from the channel.
+        stored: keyframes newly stored (and acked ``stored``).
+        duplicates: keyframes already stored (acked ``duplicate``).
+        rejected: samples rejected (bad payload, key/robot mismatch, store error, internal).
+        queue_depth: samples the worker has taken from the zenoh channel and not yet
+            processed (a lower bound of the backlog: zenoh does not expose its channel's length).
+        ack_failures: acks that could not be published.
+    """
+
+    received: int
+    stored: int
+    duplicates: int
+    rejected: int
+    queue_depth: int
+    ack_failures: int
+
+
+class Ingest:
+    """Subscribe to every robot's keyframes, store them and ack them; see the module docstring.
+
+    Use ``start()`` / ``stop()`` or a ``with`` block. Thread safety: :meth:`counters` may be
+    called from any thread; everything else from the owning thread.
+    """
+
+    def __init__(
+        self,
+        connect: Sequence[str],
+        store: KeyframeStore,
+        *,
+        capacity: int = DEFAULT_CAPACITY,
+        clock: Any = time.time,
+    ) -> None:
+        """
+        Args:
+            connect: router endpoints ``tcp/HOST:PORT``.
+            store: where keyframes go; it must outlive this object's ``stop()``.
+            capacity: size of the zenoh FIFO channel (>= 1).
+            clock: wall-clock seconds for ``received_s`` (``time.time``).
+        """
+        if isinstance(capacity, bool) or not isinstance(capacity, int) or capacity < 1:
+            raise ConfigError(f"ingest capacity must be an int >= 1, got {capacity!r}")
+        self._config = client_config(connect)  # validates the endpoints now
+        self._connect = list(connect)
+        self._store = store
+        self._capacity = capacity
+        self._clock = clock
+        self._lock = threading.Lock()
+        self._counts = {"received": 0, "stored": 0, "duplicates": 0, "rejected": 0, "ack_failures": 0}
+        self._backlog: deque[Any] = deque()
+        self._session: Any = None
+        self._subscriber: Any = None
+        self._thread: threading.Thread | None = None
+        self._publishers: OrderedDict[str, Any] = OrderedDict()
+        self._stopping = threading.Event()
+
+    # ------------------------------------------------------------------ life cycle
+
+    def start(self) -> None:
+        """Open the session, declare the subscriber and start the worker.
+
+        Raises:
+            IngestError: zenoh cannot open the session (e.g. the router is unreachable).
+        """
+        import zenoh
+
+        if self._thread is not None:
+            raise IngestError("ingest already started")
+        try:
+            session = zenoh.open(zenoh.Config.from_json5(json.dumps(self._config)))
+        except zenoh.ZError as exc:
+            raise IngestError(f"cannot connect to {', '.join(self._connect)}: {_first_line(exc)}") from exc
+        try:
+            self._subscriber = session.declare_subscriber(
+                ALL_KEYFRAMES, zenoh.handlers.FifoChannel(self._capacity)
+            )
+        except BaseException:
+            session.close()
+            raise
+        self._session = session
+        self._stopping.clear()
+        self._thread = threading.Thread(target=self._run, name="wardmap-ingest", daemon=True)
+        self._thread.start()
+        log.info("ingest subscribed to %s via %s (FIFO capacity %d)", ALL_KEYFRAMES,
+                 ", ".join(self._connect), self._capacity)
+
+    def stop(self, timeout_s: float = 10.0) -> None:
+        """Close the session (which ends the channel), join the worker (idempotent).
+
+        Samples still in the channel when it closes are not acked; robots resend them and
+        get ``duplicate`` for any that were stored.
+        """
+        self._stopping.set()
+        session, self._session = self._session, None
+        if session is not None:
+            session.close()  # also undeclares the subscriber and the worker's ack publishers
+        thread, self._thread = self._thread, None
+        if thread is not None:
+            thread.join(timeout_s)
+            if thread.is_alive():
+                log.warning("ingest worker did not stop within %.1f s", timeout_s)
+        self._subscriber = None
+        self._publishers.clear()
+        log.info("ingest stopped")
+
+    def __enter__(self) -> Ingest:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def counters(self) -> IngestCounters:
+        """The counters now (consistent snapshot)."""
+        with self._lock:
+            c = dict(self._counts)
+            depth = len(self._backlog)
+        return IngestCounters(
+            c["received"], c["stored"], c["duplicates"], c["rejected"], depth, c["ack_failures"]
+        )
+
+    # ------------------------------------------------------------------ worker
+
+    def _count(self, name: str) -> None:
+        with self._lock:
+            self._counts[name] += 1
+
+    def _run(self) -> None:
+        import zenoh
+
+        sub = self._subscriber
+        while True:
+            try:
+                first = sub.recv()  # blocks; raises ZError once the session closed and the channel is empty
+            except zenoh.ZError:
+                break
+            # Take whatever else is already waiting (up to the capacity), so the backlog is visible.
+            with self._lock:
+                self._backlog.append(first)
+            for _ in range(self._capacity - 1):
+                nxt = sub.try_recv()
+                if nxt is None:
+                    break
+                with self._lock:
+                    self._backlog.append(nxt)
+            while True:
+                with self._lock:
+                    if not self._backlog:
+                        break
+                    sample = self._backlog.popleft()
+                self._handle(sample)
+        with self._lock:
+            self._backlog.clear()
+        log.debug("ingest worker ends")
+
+    def _handle(self, sample: Any) -> None:
+        self._count("received")
+        key = str(sample.key_expr)
+        payload: bytes = b""
+        try:
+            payload = sample.payload.to_bytes()
+            self._process(key, payload)
+        except Exception:
+            log.exception("internal error on a %d-byte sample on %s", len(payload), key[:200])
+            self._count("rejected")
+            self._count_rejection("internal")
+
+    def _process(self, key: str, payload: bytes) -> None:
+        try:
+            key_robot: str | None = robot_id_from_key(key)
+        except ConfigError:
+            key_robot = None
+        try:
+            msg = decode_keyframe(payload)
+        except WireError as exc:
+            self._reject(f"wire: {exc.field or 'payload'}", key_robot, None, str(exc))
+            return
+        if key_robot != msg.robot_id:
+            self._reject("robot_id mismatch", key_robot, msg, f"key robot {key_robot!r} != robot_id")
+            return
+        try:
+            result = self._store.insert(msg, payload, float(self._clock()))
+        except WardmapError as exc:
+            log.error("store rejected keyframe %s/%s/%d: %s", msg.robot_id, msg.session_id, msg.seq, exc)
+            self._reject("store", key_robot, msg, "server could not store the keyframe")
+            return
+        self._count("stored" if result == "stored" else "duplicates")
+        self._ack(msg.robot_id, AckMsg(msg.robot_id, msg.session_id, msg.seq, result))
+
+    def _reject(self, reason: str, robot: str | None, msg: Any, detail: str) -> None:
+        self._count("rejected")
+        self._count_rejection(reason)
+        log.debug("rejected sample (%s): %s", reason, detail)
+        if robot is None:
+            return
+        session_id, seq = ("unknown", 0) if msg is None else (msg.session_id, msg.seq)
+        status: AckStatus = "rejected"
+        try:
+            ack = AckMsg(robot, session_id, seq, status, detail[:_MAX_REASON])
+        except WireError:  # the message's ids are valid by construction; be safe anyway
+            return
+        self._ack(robot, ack)
+
+    def _count_rejection(self, reason: str) -> None:
+        try:
+            self._store.count_rejection(reason)
+        except WardmapError as exc:
+            log.error("cannot count rejection %r: %s", reason, exc)
+
+    def _ack(self, robot_id: str, ack: AckMsg) -> None:
+        import zenoh
+
+        session = self._session
+        if session is None or self._stopping.is_set():
+            return
+        try:
+            pub = self._publishers.get(robot_id)
+            if pub is None:
+                pub = session.declare_publisher(
+                    ack_key(robot_id),
+                    reliability=zenoh.Reliability.RELIABLE,
+                    congestion_control=zenoh.CongestionControl.BLOCK,
+                )
+                self._publishers[robot_id] = pub
+                if len(self._publishers) > MAX_ACK_PUBLISHERS:
+                    _, old = self._publishers.popitem(last=False)
+                    old.undeclare()
+            else:
+                self._publishers.move_to_end(robot_id)
+            pub.put(encode(ack))
+        except (zenoh.ZError, WardmapError) as exc:
+            self._count("ack_failures")
+            log.warning("cannot ack %s/%s/%d: %s", ack.robot_id, ack.session_id, ack.seq, exc)

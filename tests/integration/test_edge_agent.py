@@ -1,0 +1,294 @@
+"""Multi-process tests of ``wardmap edge``: a real router subprocess, the agent as a subprocess,
+and a tiny acker (a zenoh client in the test process that stands in for the server's ingest).
+
+Every session is a client with shared memory and multicast scouting off, connected to the
+router on 127.0.0.1; the tests wait on the router's ready line, the agent's stdout,
+heartbeats and threading events, never on sleeps.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import queue
+import signal
+import socket
+import subprocess
+import sys
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+from typing import IO, Any
+
+import pytest
+
+zenoh = pytest.importorskip("zenoh")
+
+from wardmap.edge.outbox import Outbox  # noqa: E402  (after the importorskip guard)
+from wardmap.shared.wire import AckMsg, decode_heartbeat, decode_keyframe, encode  # noqa: E402
+from wardmap.shared.zenoh_config import (  # noqa: E402
+    ALL_KEYFRAMES,
+    ack_key,
+    client_config,
+    heartbeat_key,
+)
+
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(90)]
+
+READY_TIMEOUT_S = 15.0
+EVENT_TIMEOUT_S = 20.0
+RUN_TIMEOUT_S = 60.0
+OUTBOX_FILE = "outbox.sqlite"
+
+
+def _free_port() -> int:
+    """A TCP port on 127.0.0.1 that was free a moment ago (the OS picks it)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _env() -> dict[str, str]:
+    env = dict(os.environ)
+    env.pop("RUST_LOG", None)
+    return env
+
+
+def _read_line(stream: IO[str], timeout_s: float) -> str | None:
+    """The next line of ``stream``, read on a helper thread; None on timeout or EOF."""
+    lines: queue.Queue[str] = queue.Queue(maxsize=1)
+    threading.Thread(target=lambda: lines.put(stream.readline()), daemon=True).start()
+    try:
+        return lines.get(timeout=timeout_s) or None
+    except queue.Empty:
+        return None
+
+
+def _stop(proc: subprocess.Popen[str]) -> None:
+    """Terminate ``proc`` if it still runs; kill it if it ignores SIGTERM; close its pipes."""
+    if proc.poll() is None:
+        proc.terminate()
+        try:
+            proc.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(timeout=5)
+    for stream in (proc.stdout, proc.stderr):
+        if stream is not None:
+            stream.close()
+
+
+def _edge_cmd(*args: str) -> list[str]:
+    return [sys.executable, "-m", "wardmap.cli", "edge", *args]
+
+
+def _open_client(endpoint: str) -> Any:
+    return zenoh.open(zenoh.Config.from_json5(json.dumps(client_config([endpoint]))))
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A 40-frame simulated sequence (aisle_slow_1, seed 0), generated once."""
+    from wardmap.sim.runner import generate
+
+    path = tmp_path_factory.mktemp("edge") / "aisle"
+    generate("aisle_slow_1", 0, path, frames=40)
+    return path
+
+
+@pytest.fixture(scope="module")
+def router() -> Iterator[str]:
+    """A ``wardmap router`` subprocess on a free loopback port, after its ready line; yields its endpoint."""
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "wardmap.cli", "router", "--listen", endpoint],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=_env(),
+    )
+    try:
+        assert proc.stdout is not None
+        line = _read_line(proc.stdout, READY_TIMEOUT_S)
+        if line is None:
+            pytest.fail("router not ready")
+        assert line.strip() == f"router listening on {endpoint}"
+        yield endpoint
+    finally:
+        _stop(proc)
+
+
+class Acker:
+    """Stands in for the server: acks every keyframe it decodes with status ``stored``.
+
+    The subscriber callback only enqueues (bounded queue, blocking: the test must see every
+    keyframe); a worker thread decodes, records ``(session_id, seq)`` and publishes the ack.
+    """
+
+    def __init__(self, endpoint: str) -> None:
+        self.endpoint = endpoint
+        self.received: list[tuple[str, int]] = []  # owned by the worker; read under _lock
+        self._lock = threading.Lock()
+        self._changed = threading.Condition(self._lock)
+        self._queue: queue.Queue[bytes | None] = queue.Queue(maxsize=256)
+        self._session: Any = None
+        self._worker = threading.Thread(target=self._work, name="acker", daemon=True)
+
+    def __enter__(self) -> Acker:
+        self._session = _open_client(self.endpoint)
+        self._sub = self._session.declare_subscriber(
+            ALL_KEYFRAMES, lambda s: self._queue.put(s.payload.to_bytes())
+        )
+        self._worker.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._queue.put(None)
+        self._worker.join(timeout=10)
+        self._sub.undeclare()
+        self._session.close()
+
+    def _work(self) -> None:
+        while (payload := self._queue.get()) is not None:
+            msg = decode_keyframe(payload)
+            ack = AckMsg(msg.robot_id, msg.session_id, msg.seq, "stored")
+            self._session.put(ack_key(msg.robot_id), encode(ack))
+            with self._changed:
+                self.received.append((msg.session_id, msg.seq))
+                self._changed.notify_all()
+
+    def keys(self) -> set[tuple[str, int]]:
+        with self._lock:
+            return set(self.received)
+
+    def wait_for(self, keys: set[tuple[str, int]], timeout_s: float) -> bool:
+        """True once every key in ``keys`` was received."""
+        with self._changed:
+            return self._changed.wait_for(lambda: keys <= set(self.received), timeout=timeout_s)
+
+
+def _summary(stdout: str) -> dict[str, Any]:
+    lines = stdout.strip().splitlines()
+    assert len(lines) == 2, stdout  # the ready line and the summary line
+    assert lines[0].startswith("edge ") and " ready: session " in lines[0]
+    summary: dict[str, Any] = json.loads(lines[1])
+    return summary
+
+
+def _outbox_keys(path: Path) -> list[tuple[str, str, int]]:
+    with Outbox.open(path) as outbox:
+        return [item.key for item in outbox.pending(10_000)]
+
+
+def test_edge_sends_every_keyframe_and_outbox_ends_empty(dataset: Path, router: str, tmp_path: Path) -> None:
+    """The whole 40-frame data set: every keyframe reaches the acker, is acked, the outbox ends empty."""
+    outbox_dir = tmp_path / "outbox"
+    with Acker(router) as acker:
+        args = ("--robot", "r1", "--source", str(dataset), "--connect", router, "--outbox", str(outbox_dir))
+        done = subprocess.run(
+            _edge_cmd(*args),
+            capture_output=True,
+            text=True,
+            timeout=RUN_TIMEOUT_S,
+            env=_env(),
+        )
+        assert done.returncode == 0, done.stderr
+        assert "Traceback" not in done.stderr
+        summary = _summary(done.stdout)
+        session = summary["session_id"]
+        expected = {(session, seq) for seq in range(summary["keyframes"])}
+        assert acker.keys() >= expected  # every keyframe arrived (the agent waited for their acks)
+    assert summary["frames"] == 40
+    assert summary["keyframes"] >= 2
+    assert summary["acked"] == summary["keyframes"]
+    assert summary["pending"] == 0 and summary["flushed"] is True
+    assert summary["rejected"] == {}
+    assert {k for k in acker.keys() if k[0] == session} == expected  # noqa: SIM118 (a method, not a dict)
+    assert _outbox_keys(outbox_dir / OUTBOX_FILE) == []
+
+
+def test_edge_resumes_unacked_keyframes_after_sigterm(dataset: Path, router: str, tmp_path: Path) -> None:
+    """No acker: keyframes stay in the outbox across SIGTERM; the next start re-sends them
+    with their original (session, seq) and they are acked."""
+    outbox_dir = tmp_path / "outbox"
+    config = tmp_path / "edge.toml"
+    config.write_text("[agent]\nflush_timeout_s = 1.0\nresend_after_s = 1.0\n")
+    heartbeats: queue.Queue[bytes] = queue.Queue(maxsize=64)
+    base = ("--robot", "r2", "--source", str(dataset), "--connect", router, "--outbox", str(outbox_dir))
+
+    def on_heartbeat(sample: Any) -> None:
+        with contextlib.suppress(queue.Full):  # drop-newest: the test only needs a recent one
+            heartbeats.put_nowait(sample.payload.to_bytes())
+
+    with _open_client(router) as watcher, watcher.declare_subscriber(heartbeat_key("r2"), on_heartbeat):
+        proc = subprocess.Popen(
+            _edge_cmd(*base, "--rate", "10", "--config", str(config)),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=_env(),
+        )
+        try:
+            assert proc.stdout is not None
+            ready = _read_line(proc.stdout, READY_TIMEOUT_S)
+            assert ready is not None and " ready: session " in ready
+            while True:  # until a heartbeat reports at least two keyframes in the outbox
+                hb = decode_heartbeat(heartbeats.get(timeout=EVENT_TIMEOUT_S))
+                if hb.stats["keyframes"] >= 2 and hb.stats["pending"] >= 2:
+                    break
+            proc.send_signal(signal.SIGTERM)
+            out, err = proc.communicate(timeout=RUN_TIMEOUT_S)
+        finally:
+            _stop(proc)
+    assert proc.returncode == 0, err
+    first = json.loads(out.strip().splitlines()[-1])
+    assert first["frames"] < 40  # stopped by SIGTERM, not by the end of the data set
+    assert first["acked"] == 0 and first["pending"] >= 2 and first["flushed"] is False
+    old = _outbox_keys(outbox_dir / OUTBOX_FILE)
+    assert len(old) == first["pending"]
+    assert {(r, s) for r, s, _ in old} == {("r2", first["session_id"])}
+    assert [seq for _, _, seq in old] == list(range(len(old)))
+
+    with Acker(router) as acker:
+        cmd = _edge_cmd(*base, "--max-frames", "1")
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=RUN_TIMEOUT_S, env=_env())
+        assert done.returncode == 0, done.stderr
+        second = _summary(done.stdout)
+        assert acker.wait_for({(sid, seq) for _, sid, seq in old}, EVENT_TIMEOUT_S)
+    assert second["session_id"] != first["session_id"]
+    assert second["frames"] == 1
+    assert second["resent"] >= len(old)  # attempts persist: the old items were sent by the first run
+    assert second["acked"] == len(old) + second["keyframes"]
+    assert second["pending"] == 0 and second["flushed"] is True
+    assert _outbox_keys(outbox_dir / OUTBOX_FILE) == []
+
+
+@pytest.mark.parametrize(
+    ("robot", "source", "connect", "needle"),
+    [
+        ("r1", "{missing}", "tcp/127.0.0.1:7447", "is not a folder"),
+        ("r1", "{dataset}", "tcp/nohost", "bad endpoint"),
+        ("bad id!", "{dataset}", "tcp/127.0.0.1:7447", "bad robot id"),
+        ("r1", "sim:aisle_slow_1:0", "tcp/127.0.0.1:7447", "not supported yet"),
+    ],
+)
+def test_edge_bad_inputs_exit_1_with_one_line(
+    dataset: Path, tmp_path: Path, robot: str, source: str, connect: str, needle: str
+) -> None:
+    """Bad robot id, endpoint or source: exit 1, one stderr line, nothing on stdout, no outbox made."""
+    src = source.format(missing=tmp_path / "nope", dataset=dataset)
+    outbox_dir = tmp_path / "outbox"
+    done = subprocess.run(
+        _edge_cmd("--robot", robot, "--source", src, "--connect", connect, "--outbox", str(outbox_dir)),
+        capture_output=True,
+        text=True,
+        timeout=30,
+        env=_env(),
+    )
+    assert done.returncode == 1
+    assert done.stdout == ""
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1, done.stderr
+    assert lines[0].startswith("wardmap edge: error:") and needle in lines[0]
+    assert not outbox_dir.exists()

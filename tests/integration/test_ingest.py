@@ -1,0 +1,268 @@
+"""End-to-end ingest: a real router subprocess, a real ``wardmap server`` subprocess, and this
+test process as two robots publishing keyframes over zenoh and listening for acks.
+
+Sessions are zenoh clients on 127.0.0.1 with shared memory and multicast scouting off. The
+test synchronises on ready lines, zenoh matching events and the ack queue, never on sleeps.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import queue
+import signal
+import socket
+import subprocess
+import sys
+import threading
+from collections import Counter
+from collections.abc import Iterator
+from dataclasses import replace
+from pathlib import Path
+from typing import IO, Any
+
+import cv2
+import httpx
+import numpy as np
+import pytest
+
+zenoh = pytest.importorskip("zenoh")
+
+from wardmap.shared import wire  # noqa: E402  (after the importorskip guard)
+from wardmap.shared.se3 import make_transform  # noqa: E402
+from wardmap.shared.wire import AckMsg, Intrinsics, KeyframeMsg, Keypoints, PackedRaster  # noqa: E402
+from wardmap.shared.zenoh_config import client_config, keyframe_key  # noqa: E402
+
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(60)]
+
+READY_TIMEOUT_S = 20.0
+EVENT_TIMEOUT_S = 10.0
+ALL_ACKS = "wardmap/v1/robot/*/ack"
+W, H = 64, 48
+T0 = 1_714_557_600.0
+
+
+def _free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _env() -> dict[str, str]:
+    env = dict(os.environ)
+    env.pop("RUST_LOG", None)
+    return env
+
+
+def _read_line(stream: IO[str], timeout_s: float) -> str | None:
+    lines: queue.Queue[str] = queue.Queue(maxsize=1)
+    threading.Thread(target=lambda: lines.put(stream.readline()), daemon=True).start()
+    try:
+        return lines.get(timeout=timeout_s) or None
+    except queue.Empty:
+        return None
+
+
+def _stop(proc: subprocess.Popen[str]) -> None:
+    if proc.poll() is None:
+        proc.terminate()
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(timeout=5)
+    for stream in (proc.stdout, proc.stderr):
+        if stream is not None:
+            stream.close()
+
+
+def _start(cmd: list[str], expect: str) -> subprocess.Popen[str]:
+    """Start ``cmd`` and wait for its ready line ``expect``; fail with its stderr otherwise."""
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env())
+    assert proc.stdout is not None
+    line = _read_line(proc.stdout, READY_TIMEOUT_S)
+    if line is None or line.strip() != expect:
+        proc.kill()
+        _, err = proc.communicate(timeout=5)
+        pytest.fail(f"{cmd[3]} not ready ({line!r}); stderr: {err[-2000:]!r}")
+    return proc
+
+
+@pytest.fixture
+def router() -> Iterator[str]:
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    proc = _start([sys.executable, "-m", "wardmap.cli", "router", "--listen", endpoint],
+                  f"router listening on {endpoint}")
+    try:
+        yield endpoint
+    finally:
+        _stop(proc)
+
+
+@pytest.fixture
+def server(router: str, tmp_path: Path) -> Iterator[tuple[subprocess.Popen[str], str]]:
+    port = _free_port()
+    url = f"http://127.0.0.1:{port}"
+    cmd = [sys.executable, "-m", "wardmap.cli", "server", "--connect", router,
+           "--db", f"sqlite:///{tmp_path / 'map.db'}", "--http", f"127.0.0.1:{port}"]
+    proc = _start(cmd, f"server ready: {url}")
+    try:
+        yield proc, url
+    finally:
+        _stop(proc)
+
+
+def _keyframes(robot: str, n: int) -> list[bytes]:
+    rng = np.random.default_rng(sum(robot.encode()))  # seeded per robot
+    ok, jpg = cv2.imencode(".jpg", rng.integers(0, 256, (H, W, 3), dtype=np.uint8))
+    assert ok
+    k = 4
+    base = KeyframeMsg(
+        robot_id=robot, session_id="s1", seq=0, stamp=T0, T_odom_camera=np.eye(4), pose_source="rgb",
+        keypoints=Keypoints(
+            uv=(rng.random((k, 2)) * [W - 1, H - 1]).astype(np.float32),
+            octave=np.zeros(k, np.int8),
+            angle_deg=(rng.random(k) * 360).astype(np.float32),
+            depth_m=rng.uniform(0.5, 4.0, k).astype(np.float32),
+            descriptors=rng.integers(0, 256, (k, 32), dtype=np.uint8),
+        ),
+        rgb_jpeg=bytes(jpg.tobytes()),
+        depth=PackedRaster(*wire.encode_depth(rng.uniform(0.5, 4.0, (H // 2, W // 2)))),
+        intrinsics=Intrinsics(W, H, 50.0, 50.0, 31.5, 23.5, (0.0, 0.0, 0.0, 0.0, 0.0), 5000.0),
+    )
+    return [
+        wire.encode(replace(base, seq=i, stamp=T0 + i, T_odom_camera=make_transform(np.eye(3), [i, 0, 0])))
+        for i in range(n)
+    ]
+
+
+def _garbage(valid: list[bytes], n: int) -> list[bytes]:
+    """``n`` payloads that must all be rejected: random bytes, truncations, trailing junk."""
+    rng = np.random.default_rng(7)
+    out: list[bytes] = []
+    for i in range(n):
+        p = valid[i % len(valid)]
+        kind = i % 3
+        if kind == 0:
+            out.append(rng.integers(0, 256, int(rng.integers(1, 2000)), dtype=np.uint8).tobytes())
+        elif kind == 1:
+            out.append(p[: int(rng.integers(1, len(p) - 1))])
+        else:
+            out.append(p + b"\x00junk")
+    return out
+
+
+def _metrics(text: str) -> dict[str, float]:
+    out = {}
+    for line in text.splitlines():
+        if line and not line.startswith("#"):
+            name, value = line.rsplit(" ", 1)
+            out[name] = float(value)
+    return out
+
+
+def _collect(acks: queue.Queue[tuple[str, AckMsg]], n: int) -> list[tuple[str, AckMsg]]:
+    got = []
+    for _ in range(n):
+        try:
+            got.append(acks.get(timeout=EVENT_TIMEOUT_S))
+        except queue.Empty:
+            pytest.fail(f"only {len(got)} of {n} acks arrived: {Counter(a.status for _, a in got)}")
+    return got
+
+
+def test_ingest_stores_acks_dedups_and_rejects(
+    server: tuple[subprocess.Popen[str], str], router: str
+) -> None:
+    """50 keyframes of each of 2 robots are acked stored; 10 resent are acked duplicate; 200 garbage
+    payloads (plus 10 keyframes on another robot's key) are acked rejected and counted; the API
+    shows 50 keyframes per robot and the server stays healthy and exits 0 on SIGTERM."""
+    proc, url = server
+    acks: queue.Queue[tuple[str, AckMsg]] = queue.Queue()
+
+    def on_ack(sample: Any) -> None:  # callbacks enqueue only
+        acks.put((str(sample.key_expr), wire.decode_ack(sample.payload.to_bytes())))
+
+    payloads = {r: _keyframes(r, 50) for r in ("r1", "r2")}
+    conf = zenoh.Config.from_json5(json.dumps(client_config([router])))
+    with (
+        zenoh.open(conf) as session,
+        session.declare_subscriber(ALL_ACKS, on_ack),
+        httpx.Client(base_url=url, timeout=10) as http,
+    ):
+        pubs = {}
+        for robot in payloads:
+            pub = session.declare_publisher(
+                keyframe_key(robot),
+                reliability=zenoh.Reliability.RELIABLE,
+                congestion_control=zenoh.CongestionControl.BLOCK,
+            )
+            matched = threading.Event()
+            with pub.declare_matching_listener(lambda s, ev=matched: ev.set() if s.matching else None):
+                if pub.matching_status.matching:
+                    matched.set()
+                assert matched.wait(EVENT_TIMEOUT_S), "the server's subscriber never matched"
+            pubs[robot] = pub
+
+        for i in range(50):
+            for robot, pub in pubs.items():
+                pub.put(payloads[robot][i])
+        stored = _collect(acks, 100)
+        assert {a.status for _, a in stored} == {"stored"}
+        for robot in pubs:
+            mine = sorted(a.seq for key, a in stored if a.robot_id == robot and key.endswith(f"/{robot}/ack"))
+            assert mine == list(range(50))
+
+        for i in range(10):
+            pubs["r1"].put(payloads["r1"][i])
+        dups = _collect(acks, 10)
+        got = sorted((a.robot_id, a.seq, a.status) for _, a in dups)
+        assert got == [("r1", i, "duplicate") for i in range(10)]
+
+        garbage = _garbage(payloads["r1"], 200)
+        for i, p in enumerate(garbage):
+            pubs["r1" if i % 2 else "r2"].put(p)
+        for i in range(10):  # valid bytes, wrong key: r1's keyframe on r2's key
+            pubs["r2"].put(payloads["r1"][i])
+        rejected = _collect(acks, 210)
+        assert {a.status for _, a in rejected} == {"rejected"}
+        assert acks.empty()
+
+        metrics = _metrics(http.get("/metrics").text)
+        reasons = {k: v for k, v in metrics.items() if k.startswith("wardmap_rejections_total")}
+        assert sum(reasons.values()) == 210, reasons
+        assert metrics['wardmap_rejections_total{reason="robot_id mismatch"}'] == 10
+        assert metrics["wardmap_keyframes_received_total"] == 320
+        assert metrics["wardmap_keyframes_stored_total"] == 100
+        assert metrics["wardmap_keyframes_duplicates_total"] == 10
+        assert metrics["wardmap_robots"] == 2
+
+        robots = {r["robot_id"]: r["keyframes"] for r in http.get("/v1/robots").json()["robots"]}
+        assert robots == {"r1": 50, "r2": 50}
+        assert http.get("/healthz").json() == {"status": "ok"}
+
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(timeout=15) == 0
+    assert proc.stderr is not None
+    assert "Traceback" not in proc.stderr.read()
+
+
+def test_server_bad_db_and_port_in_use_exit_1(router: str, tmp_path: Path) -> None:
+    """A bad store URL and an HTTP port already taken each give exit 1 and one stderr line."""
+    base = [sys.executable, "-m", "wardmap.cli", "server", "--connect", router]
+    bad_db = subprocess.run([*base, "--db", "mysql://x", "--http", f"127.0.0.1:{_free_port()}"],
+                            capture_output=True, text=True, timeout=30, env=_env())
+    assert bad_db.returncode == 1
+    assert bad_db.stderr.strip().splitlines() == [bad_db.stderr.strip()]
+    assert "unknown store URL" in bad_db.stderr
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as holder:
+        holder.bind(("127.0.0.1", 0))
+        holder.listen()
+        port = holder.getsockname()[1]
+        args = ["--db", f"sqlite:///{tmp_path / 'm.db'}", "--http", f"127.0.0.1:{port}"]
+        busy = subprocess.run([*base, *args], capture_output=True, text=True, timeout=30, env=_env())
+    assert busy.returncode == 1
+    assert busy.stdout == ""
+    lines = busy.stderr.strip().splitlines()
+    assert len(lines) == 1, busy.stderr
+    assert "address already in use" in lines[0]
