@@ -19,6 +19,7 @@ payload size and counted as ``internal``.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import threading
@@ -31,10 +32,22 @@ from typing import Any, Final
 from wardmap.server.router import _first_line
 from wardmap.server.store import KeyframeStore
 from wardmap.shared.errors import ConfigError, WardmapError, WireError
-from wardmap.shared.wire import AckMsg, AckStatus, decode_keyframe, encode
+from wardmap.shared.wire import AckMsg, AckStatus, KeyframeMsg, decode_keyframe, encode
 from wardmap.shared.zenoh_config import ALL_KEYFRAMES, ack_key, client_config, robot_id_from_key
 
 log = logging.getLogger(__name__)
+
+# Rejection reasons name a top-level keyframe field, never a name taken from the payload:
+# otherwise a publisher could mint unlimited reasons (database rows, Prometheus labels).
+_KNOWN_FIELDS = frozenset({f.name for f in dataclasses.fields(KeyframeMsg)} | {"schema", "version"})
+
+
+def wire_reason(field: str) -> str:
+    """A bounded rejection reason for a WireError on ``field`` (e.g. ``keypoints.uv`` -> ``wire: keypoints``)."""
+    top = field.split(".", 1)[0].split("[", 1)[0]
+    if not top:
+        return "wire: payload"
+    return f"wire: {top}" if top in _KNOWN_FIELDS else "wire: unknown field"
 
 __all__ = ["DEFAULT_CAPACITY", "Ingest", "IngestCounters", "IngestError"]
 
@@ -228,7 +241,7 @@ class Ingest:
         try:
             msg = decode_keyframe(payload)
         except WireError as exc:
-            self._reject(f"wire: {exc.field or 'payload'}", key_robot, None, str(exc))
+            self._reject(wire_reason(exc.field), key_robot, None, str(exc))
             return
         if key_robot != msg.robot_id:
             self._reject("robot_id mismatch", key_robot, msg, f"key robot {key_robot!r} != robot_id")

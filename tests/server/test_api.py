@@ -218,3 +218,15 @@ def test_bad_store_url_fails_at_startup(tmp_path: Path) -> None:
     app = create_app("mysql://nope")
     with pytest.raises(Exception, match="unknown store URL"), TestClient(app):
         pass
+
+
+def test_wire_rejection_reasons_are_bounded() -> None:
+    """Rejection reasons come from a fixed set of top-level fields, whatever field name a
+    hostile payload carries (each reason becomes a DB row and a Prometheus label)."""
+    from wardmap.server.ingest import wire_reason
+
+    assert wire_reason("") == "wire: payload"
+    assert wire_reason("keypoints.uv") == "wire: keypoints"
+    assert wire_reason("T_odom_camera.q_xyzw") == "wire: T_odom_camera"
+    reasons = {wire_reason(f"field{i}") for i in range(1000)} | {wire_reason("intrmnsics.fx")}
+    assert reasons == {"wire: unknown field"}

@@ -1,0 +1,521 @@
+"""Failure injection across the real processes: a server SIGKILLed mid-stream, a router restarted
+under running agents, and 1000 malformed or mutated payloads on the keyframe key.
+
+Every process is a subprocess of ``wardmap`` (router, server, edge) on free loopback ports; the
+test process is a zenoh client with shared memory and multicast scouting off. The tests
+synchronise on ready lines, process exits, zenoh matching events, acks and HTTP polls with a
+deadline, never on sleeps. Agent restart (SIGTERM, resume from the outbox) is covered by
+``test_edge_agent.py``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import json
+import math
+import os
+import queue
+import signal
+import socket
+import sqlite3
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import IO, Any
+
+import cv2
+import httpx
+import msgpack
+import numpy as np
+import pytest
+
+zenoh = pytest.importorskip("zenoh")
+
+from wardmap.edge.outbox import Outbox  # noqa: E402  (after the importorskip guard)
+from wardmap.shared import wire  # noqa: E402
+from wardmap.shared.errors import WireError  # noqa: E402
+from wardmap.shared.se3 import make_transform  # noqa: E402
+from wardmap.shared.wire import (  # noqa: E402
+    Intrinsics,
+    KeyframeMsg,
+    Keypoints,
+    PackedRaster,
+    decode_heartbeat,
+)
+from wardmap.shared.zenoh_config import client_config, heartbeat_key, keyframe_key  # noqa: E402
+
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(90)]
+
+READY_TIMEOUT_S = 20.0
+EVENT_TIMEOUT_S = 20.0
+RUN_TIMEOUT_S = 60.0
+FRAMES = 60
+OUTBOX_FILE = "outbox.sqlite"
+ALL_ACKS = "wardmap/v1/robot/*/ack"
+# The agent gives up on an unacked item only after this (not reached: a safety net for slow CI).
+EDGE_CONFIG = "[agent]\nflush_timeout_s = 40.0\nresend_after_s = 1.0\n"
+
+
+# --------------------------------------------------------------------------- processes
+
+
+def _free_port() -> int:
+    """A TCP port on 127.0.0.1 that was free a moment ago (the OS picks it)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _env() -> dict[str, str]:
+    env = dict(os.environ)
+    env.pop("RUST_LOG", None)
+    return env
+
+
+def _read_line(stream: IO[str], timeout_s: float) -> str | None:
+    """The next line of ``stream``, read on a helper thread; None on timeout or EOF."""
+    lines: queue.Queue[str] = queue.Queue(maxsize=1)
+    threading.Thread(target=lambda: lines.put(stream.readline()), daemon=True).start()
+    try:
+        return lines.get(timeout=timeout_s) or None
+    except queue.Empty:
+        return None
+
+
+@dataclass
+class Proc:
+    """A subprocess whose stderr goes to a file (a full pipe must never block it)."""
+
+    popen: subprocess.Popen[str]
+    stderr_path: Path
+
+    def stderr(self) -> str:
+        return self.stderr_path.read_text(errors="replace")
+
+
+def _spawn(cmd: list[str], log_dir: Path, name: str) -> Proc:
+    err_path = log_dir / f"{name}.{time.monotonic_ns()}.stderr"
+    with err_path.open("w") as err:
+        popen = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err, text=True, env=_env())
+    return Proc(popen, err_path)
+
+
+def _start(cmd: list[str], expect: str, log_dir: Path, name: str) -> Proc:
+    """Start ``cmd``, wait for its ready line ``expect``; fail with its stderr otherwise."""
+    proc = _spawn(cmd, log_dir, name)
+    assert proc.popen.stdout is not None
+    line = _read_line(proc.popen.stdout, READY_TIMEOUT_S)
+    if line is None or line.strip() != expect:
+        _kill(proc)
+        pytest.fail(f"{name} not ready ({line!r}); stderr: {proc.stderr()[-2000:]!r}")
+    return proc
+
+
+def _kill(proc: Proc) -> None:
+    if proc.popen.poll() is None:
+        proc.popen.kill()
+        proc.popen.wait(timeout=10)
+    if proc.popen.stdout is not None:
+        proc.popen.stdout.close()
+
+
+def _stop(proc: Proc, timeout_s: float = 15.0) -> int:
+    """SIGTERM ``proc`` if it still runs (SIGKILL if it ignores it); its exit code."""
+    if proc.popen.poll() is None:
+        proc.popen.terminate()
+        try:
+            proc.popen.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            proc.popen.kill()
+            proc.popen.wait(timeout=5)
+    if proc.popen.stdout is not None:
+        proc.popen.stdout.close()
+    return int(proc.popen.returncode)
+
+
+def _start_router(endpoint: str, log_dir: Path) -> Proc:
+    return _start([sys.executable, "-m", "wardmap.cli", "router", "--listen", endpoint],
+                  f"router listening on {endpoint}", log_dir, "router")
+
+
+def _start_server(endpoint: str, db: Path, port: int, log_dir: Path) -> Proc:
+    cmd = [sys.executable, "-m", "wardmap.cli", "server", "--connect", endpoint,
+           "--db", f"sqlite:///{db}", "--http", f"127.0.0.1:{port}"]
+    return _start(cmd, f"server ready: http://127.0.0.1:{port}", log_dir, "server")
+
+
+@dataclass
+class Stack:
+    """A router and a server (sqlite in tmp) on free ports; the test may replace either."""
+
+    endpoint: str
+    port: int
+    db: Path
+    log_dir: Path
+    router: Proc
+    server: Proc
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.port}"
+
+
+@pytest.fixture
+def stack(tmp_path: Path) -> Iterator[Stack]:
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    port = _free_port()
+    db = tmp_path / "map.db"
+    router = _start_router(endpoint, tmp_path)
+    try:
+        server = _start_server(endpoint, db, port, tmp_path)
+    except BaseException:
+        _stop(router)
+        raise
+    s = Stack(endpoint, port, db, tmp_path, router, server)
+    try:
+        yield s
+    finally:
+        _stop(s.server)  # whichever instance is current
+        _stop(s.router)
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A 60-frame simulated sequence (aisle_slow_1, seed 0), generated once."""
+    from wardmap.sim.runner import generate
+
+    path = tmp_path_factory.mktemp("failures") / "aisle"
+    generate("aisle_slow_1", 0, path, frames=FRAMES)
+    return path
+
+
+# --------------------------------------------------------------------------- edge helpers
+
+
+def _start_edge(robot: str, dataset: Path, stack: Stack, tmp_path: Path) -> tuple[Proc, Path]:
+    """``wardmap edge`` at 10 Hz after its ready line; returns it and its outbox file."""
+    config = tmp_path / "edge.toml"
+    config.write_text(EDGE_CONFIG)
+    outbox_dir = tmp_path / "outbox"
+    cmd = [sys.executable, "-m", "wardmap.cli", "edge", "--robot", robot, "--source", str(dataset),
+           "--connect", stack.endpoint, "--outbox", str(outbox_dir), "--rate", "10",
+           "--config", str(config)]
+    proc = _spawn(cmd, tmp_path, "edge")
+    assert proc.popen.stdout is not None
+    ready = _read_line(proc.popen.stdout, READY_TIMEOUT_S)
+    if ready is None or " ready: session " not in ready:
+        _kill(proc)
+        pytest.fail(f"edge not ready ({ready!r}); stderr: {proc.stderr()[-2000:]!r}")
+    return proc, outbox_dir / OUTBOX_FILE
+
+
+def _edge_summary(proc: Proc) -> dict[str, Any]:
+    """Wait for the agent to finish on its own; its JSON summary line."""
+    try:
+        out, _ = proc.popen.communicate(timeout=RUN_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        _kill(proc)
+        pytest.fail(f"edge did not finish within {RUN_TIMEOUT_S} s; stderr: {proc.stderr()[-2000:]!r}")
+    assert proc.popen.returncode == 0, proc.stderr()[-2000:]
+    assert "Traceback" not in proc.stderr()
+    lines = out.strip().splitlines()
+    assert len(lines) == 1, out  # the ready line was read already; the summary remains
+    summary: dict[str, Any] = json.loads(lines[0])
+    return summary
+
+
+def _wait_stored(url: str, robot: str, at_least: int) -> int:
+    """Poll GET /v1/robots until ``robot`` has ``at_least`` keyframes (deadline EVENT_TIMEOUT_S)."""
+    deadline = time.monotonic() + EVENT_TIMEOUT_S
+    with httpx.Client(base_url=url, timeout=5) as http:
+        while time.monotonic() < deadline:
+            robots = {r["robot_id"]: r["keyframes"] for r in http.get("/v1/robots").json()["robots"]}
+            if robots.get(robot, 0) >= at_least:
+                return int(robots[robot])
+            time.sleep(0.05)  # poll period, not synchronisation: the deadline bounds the wait
+    pytest.fail(f"{robot} never reached {at_least} stored keyframes")
+
+
+def _db_counts(db: Path, robot: str) -> tuple[int, int, set[str]]:
+    """(rows, distinct (session, seq), sessions) of ``robot`` in the store, read directly."""
+    with contextlib.closing(sqlite3.connect(db)) as con:
+        rows = con.execute("SELECT COUNT(*) FROM keyframes WHERE robot_id = ?", (robot,)).fetchone()[0]
+        distinct = con.execute(
+            "SELECT COUNT(*) FROM (SELECT DISTINCT session_id, seq FROM keyframes WHERE robot_id = ?)",
+            (robot,),
+        ).fetchone()[0]
+        sessions = {r[0] for r in con.execute("SELECT DISTINCT session_id FROM keyframes WHERE robot_id = ?",
+                                              (robot,))}
+    return int(rows), int(distinct), sessions
+
+
+def _assert_delivered_exactly_once(stack: Stack, robot: str, summary: dict[str, Any], outbox: Path) -> None:
+    """Every keyframe the agent produced is stored once; its outbox ends empty."""
+    n = summary["keyframes"]
+    assert summary["frames"] == FRAMES
+    assert n >= 4, summary
+    assert summary["acked"] == n, summary
+    assert summary["pending"] == 0 and summary["flushed"] is True, summary
+    assert summary["rejected"] == {}, summary
+    with httpx.Client(base_url=stack.url, timeout=5) as http:
+        robots = {r["robot_id"]: r["keyframes"] for r in http.get("/v1/robots").json()["robots"]}
+        assert http.get("/healthz").json() == {"status": "ok"}
+    assert robots == {robot: n}
+    rows, distinct, sessions = _db_counts(stack.db, robot)
+    assert rows == distinct == n
+    assert sessions == {summary["session_id"]}
+    with Outbox.open(outbox) as box:
+        assert len(box) == 0
+        assert box.pending(10_000) == []
+
+
+# --------------------------------------------------------------------------- 1. server SIGKILL
+
+
+def test_server_sigkill_mid_stream_loses_and_duplicates_nothing(
+    dataset: Path, stack: Stack, tmp_path: Path
+) -> None:
+    """Router + server + one agent streaming 60 frames at 10 Hz. Once the server stored 3
+    keyframes it is SIGKILLed (no shutdown, no flush, possibly mid-insert or before an ack);
+    a new server opens the same sqlite file on the same HTTP port. The agent re-sends what
+    was not acked; at the end the store holds exactly the agent's keyframes, each once, and
+    the agent's outbox is empty."""
+    robot = "r-kill"
+    heartbeats: queue.Queue[bytes] = queue.Queue(maxsize=64)
+
+    def on_heartbeat(sample: Any) -> None:
+        with contextlib.suppress(queue.Full):  # drop-newest: only a recent one is needed
+            heartbeats.put_nowait(sample.payload.to_bytes())
+
+    conf = zenoh.Config.from_json5(json.dumps(client_config([stack.endpoint])))
+    with zenoh.open(conf) as watcher, watcher.declare_subscriber(heartbeat_key(robot), on_heartbeat):
+        edge, outbox = _start_edge(robot, dataset, stack, tmp_path)
+        try:
+            _wait_stored(stack.url, robot, 3)
+            stack.server.popen.send_signal(signal.SIGKILL)
+            assert stack.server.popen.wait(timeout=10) == -signal.SIGKILL
+            _kill(stack.server)
+            stored_at_kill, _, _ = _db_counts(stack.db, robot)  # nobody writes the file now
+            # Restart only once the agent produced a keyframe the dead server never stored (so
+            # never acked): it was published to nobody and must be re-sent to the new server.
+            produced = 0
+            while produced <= stored_at_kill:
+                produced = decode_heartbeat(heartbeats.get(timeout=EVENT_TIMEOUT_S)).stats["keyframes"]
+            stack.server = _start_server(stack.endpoint, stack.db, stack.port, stack.log_dir)
+            summary = _edge_summary(edge)
+        finally:
+            _kill(edge)
+    assert stored_at_kill >= 3
+    assert summary["frames"] == FRAMES  # the kill happened mid-stream, not after the last frame
+    assert summary["resent"] >= 1, summary
+    _assert_delivered_exactly_once(stack, robot, summary, outbox)
+    assert _stop(stack.server) == 0
+    assert "Traceback" not in stack.server.stderr()
+
+
+# --------------------------------------------------------------------------- 2. router restart
+
+
+def test_router_restart_agents_reconnect_and_deliver_exactly_once(
+    dataset: Path, stack: Stack, tmp_path: Path
+) -> None:
+    """Router + server + one agent streaming 60 frames at 10 Hz. Once the server stored 3
+    keyframes the router is SIGTERMed and a new one started on the same port. The server's
+    and the agent's zenoh client sessions reconnect by themselves (zenoh's default client
+    behaviour, no extra config) and re-declare their subscribers; keyframes published while
+    no router ran are re-sent from the outbox. Every keyframe is stored exactly once."""
+    robot = "r-router"
+    edge, outbox = _start_edge(robot, dataset, stack, tmp_path)
+    try:
+        stored_before = _wait_stored(stack.url, robot, 3)
+        assert _stop(stack.router) == 0
+        stack.router = _start_router(stack.endpoint, stack.log_dir)
+        summary = _edge_summary(edge)
+    finally:
+        _kill(edge)
+    assert stored_before < summary["keyframes"]  # some keyframes had to cross the new router
+    _assert_delivered_exactly_once(stack, robot, summary, outbox)
+    assert stack.server.popen.poll() is None, "the server must survive a router restart"
+    assert _stop(stack.server) == 0
+    assert "Traceback" not in stack.server.stderr()
+
+
+# --------------------------------------------------------------------------- 4. malformed payloads
+
+W, H = 64, 48
+T0 = 1_714_557_600.0
+FUZZ_ROBOT = "fz"
+N_FUZZ = 1000
+_LEAF_POOL: list[Any] = [None, True, False, -1, 0, 1, 2**63, 2**64 - 1, -(2**63), 1.5, -0.0, math.nan,
+                         math.inf, "", "x" * 300, "wardmap.keyframe", "r2", b"", b"\xff\xd8" + bytes(30), [],
+                         {}, [1, 2, 3], {"a": 1}, [0.0, 0.0, 0.0, 1.0],
+                         {"dtype": "uint8", "shape": [0], "data": b""}]
+
+
+def _base_keyframes(n: int) -> list[bytes]:
+    """``n`` small valid keyframes of robot ``fz`` (seq 0..n-1)."""
+    rng = np.random.default_rng(3)
+    ok, jpg = cv2.imencode(".jpg", rng.integers(0, 256, (H, W, 3), dtype=np.uint8))
+    assert ok
+    k = 8
+    base = KeyframeMsg(
+        robot_id=FUZZ_ROBOT, session_id="s1", seq=0, stamp=T0, T_odom_camera=np.eye(4), pose_source="rgb",
+        keypoints=Keypoints(
+            uv=(rng.random((k, 2)) * [W - 1, H - 1]).astype(np.float32),
+            octave=np.zeros(k, np.int8),
+            angle_deg=(rng.random(k) * 360).astype(np.float32),
+            depth_m=rng.uniform(0.5, 4.0, k).astype(np.float32),
+            descriptors=rng.integers(0, 256, (k, 32), dtype=np.uint8),
+        ),
+        rgb_jpeg=bytes(jpg.tobytes()),
+        depth=PackedRaster(*wire.encode_depth(rng.uniform(0.5, 4.0, (H // 2, W // 2)))),
+        intrinsics=Intrinsics(W, H, 50.0, 50.0, 31.5, 23.5, (0.0, 0.0, 0.0, 0.0, 0.0), 5000.0),
+    )
+    return [
+        wire.encode(replace(base, seq=i, stamp=T0 + i, T_odom_camera=make_transform(np.eye(3), [i, 0, 0])))
+        for i in range(n)
+    ]
+
+
+def _leaf_paths(node: Any, path: tuple[Any, ...] = ()) -> list[tuple[Any, ...]]:
+    out = [path] if path else []
+    if isinstance(node, dict):
+        for k, v in node.items():
+            out += _leaf_paths(v, (*path, k))
+    elif isinstance(node, list):
+        for i, v in enumerate(node):
+            out += _leaf_paths(v, (*path, i))
+    return out
+
+
+def _mutate(base: bytes, rng: np.random.Generator) -> bytes:
+    """One seeded mutation (as in tests/shared/test_wire.py's fuzzing, plus random bytes)."""
+    kind = int(rng.integers(0, 7))
+    buf = bytearray(base)
+    if kind == 0:  # bit flips
+        for _ in range(int(rng.integers(1, 8))):
+            i = int(rng.integers(0, len(buf)))
+            buf[i] ^= 1 << int(rng.integers(0, 8))
+        return bytes(buf)
+    if kind == 1:  # truncation (never empty: zenoh carries empty payloads, but keep it a prefix)
+        return bytes(buf[: int(rng.integers(1, len(buf)))])
+    if kind == 2:  # byte insertion
+        i = int(rng.integers(0, len(buf) + 1))
+        noise = rng.integers(0, 256, int(rng.integers(1, 16)), dtype=np.uint8).tobytes()
+        return bytes(buf[:i]) + noise + bytes(buf[i:])
+    if kind == 3:  # random bytes
+        return rng.integers(0, 256, int(rng.integers(1, 3000)), dtype=np.uint8).tobytes()
+    tree = msgpack.unpackb(base, raw=False)
+    paths = _leaf_paths(tree)
+    path = paths[int(rng.integers(0, len(paths)))]
+    parent = tree
+    for p in path[:-1]:
+        parent = parent[p]
+    if kind == 4:  # replace a value (leaf or subtree) with a random value of a random type
+        parent[path[-1]] = copy.deepcopy(_LEAF_POOL[int(rng.integers(0, len(_LEAF_POOL)))])
+    elif kind == 5:  # delete a key or list item
+        del parent[path[-1]]
+    else:  # add an unknown key next to a random one
+        target = parent if isinstance(parent, dict) else tree
+        target["extra"] = _LEAF_POOL[int(rng.integers(0, len(_LEAF_POOL)))]
+    return bytes(msgpack.packb(tree, use_bin_type=True))
+
+
+def _expected_outcome(payload: bytes) -> str:
+    """What the server must do with ``payload`` on robot fz's key: ``rejected`` or ``accepted``."""
+    try:
+        msg = wire.decode_keyframe(payload)
+    except WireError:
+        return "rejected"
+    return "accepted" if msg.robot_id == FUZZ_ROBOT else "rejected"  # else: robot_id mismatch
+
+
+def _metrics(text: str) -> dict[str, float]:
+    out = {}
+    for line in text.splitlines():
+        if line and not line.startswith("#"):
+            name, value = line.rsplit(" ", 1)
+            out[name] = float(value)
+    return out
+
+
+class AckCounter:
+    """Counts acks by status (the zenoh callback decodes and counts under a condition)."""
+
+    def __init__(self) -> None:
+        self.statuses: list[str] = []
+        self._cond = threading.Condition()
+
+    def on_ack(self, sample: Any) -> None:
+        status = wire.decode_ack(sample.payload.to_bytes()).status
+        with self._cond:
+            self.statuses.append(status)
+            self._cond.notify_all()
+
+    def wait_for(self, n: int, timeout_s: float) -> bool:
+        with self._cond:
+            return self._cond.wait_for(lambda: len(self.statuses) >= n, timeout=timeout_s)
+
+
+def test_malformed_and_mutated_payloads_are_rejected_and_counted(stack: Stack) -> None:
+    """1000 seeded payloads on robot fz's keyframe key: bit flips, truncations, insertions,
+    random bytes and structural edits (replace/delete/add a field) of valid keyframes. Each
+    one is decoded here too: the invalid ones (and valid ones whose robot_id is not fz) must
+    each be counted once in GET /metrics' rejections, the still-valid ones stored or
+    duplicate. Every sample is acked; the server stays healthy, exits 0 on SIGTERM, and the
+    sqlite file passes ``PRAGMA integrity_check``."""
+    rng = np.random.default_rng(20240501)
+    bases = _base_keyframes(4)
+    payloads = [_mutate(bases[i % len(bases)], rng) for i in range(N_FUZZ)]
+    expected = [_expected_outcome(p) for p in payloads]
+    n_rejected = expected.count("rejected")
+    assert 500 < n_rejected < N_FUZZ  # the mix exercises both outcomes
+
+    acks = AckCounter()
+    conf = zenoh.Config.from_json5(json.dumps(client_config([stack.endpoint])))
+    with (
+        zenoh.open(conf) as session,
+        session.declare_subscriber(ALL_ACKS, acks.on_ack),
+        session.declare_publisher(
+            keyframe_key(FUZZ_ROBOT),
+            reliability=zenoh.Reliability.RELIABLE,
+            congestion_control=zenoh.CongestionControl.BLOCK,
+        ) as pub,
+        httpx.Client(base_url=stack.url, timeout=10) as http,
+    ):
+        matched = threading.Event()
+        with pub.declare_matching_listener(lambda s: matched.set() if s.matching else None):
+            if pub.matching_status.matching:
+                matched.set()
+            assert matched.wait(EVENT_TIMEOUT_S), "the server's subscriber never matched"
+        for p in payloads:
+            pub.put(p)
+        assert acks.wait_for(N_FUZZ, EVENT_TIMEOUT_S), f"only {len(acks.statuses)} of {N_FUZZ} acks"
+
+        assert stack.server.popen.poll() is None
+        assert http.get("/healthz").json() == {"status": "ok"}
+        metrics = _metrics(http.get("/metrics").text)
+        reasons = {k: v for k, v in metrics.items() if k.startswith("wardmap_rejections_total")}
+        assert sum(reasons.values()) == n_rejected, reasons
+        assert 'wardmap_rejections_total{reason="internal"}' not in reasons, reasons
+        assert metrics["wardmap_keyframes_received_total"] == N_FUZZ
+        assert metrics["wardmap_keyframes_stored_total"] + metrics["wardmap_keyframes_duplicates_total"] == (
+            N_FUZZ - n_rejected
+        )
+        assert acks.statuses.count("rejected") == n_rejected
+        robots = {r["robot_id"]: r["keyframes"] for r in http.get("/v1/robots").json()["robots"]}
+        assert set(robots) <= {FUZZ_ROBOT}
+        assert robots.get(FUZZ_ROBOT, 0) == metrics["wardmap_keyframes_stored_total"]
+
+    assert _stop(stack.server) == 0
+    assert "Traceback" not in stack.server.stderr()
+    with contextlib.closing(sqlite3.connect(stack.db)) as con:
+        assert con.execute("PRAGMA integrity_check").fetchall() == [("ok",)]
+        rows, distinct, _ = _db_counts(stack.db, FUZZ_ROBOT)
+    assert rows == distinct
+
