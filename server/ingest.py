@@ -43,7 +43,7 @@ _KNOWN_FIELDS = frozenset({f.name for f in dataclasses.fields(KeyframeMsg)} | {"
 
 
 def wire_reason(field: str) -> str:
-    """A bounded rejection reason for a WireError on ``field`` (e.g. ``keypoints.uv`` -> ``wire: keypoints``)."""
+    """A bounded rejection reason for a WireError on ``field``: ``keypoints.uv`` -> ``wire: keypoints``."""
     top = field.split(".", 1)[0].split("[", 1)[0]
     if not top:
         return "wire: payload"
