@@ -12,7 +12,7 @@ import sys
 from collections.abc import Sequence
 from importlib.metadata import PackageNotFoundError, version
 
-from wardmap.cli import dataset_cmd, edge_cmd, eval_cmd, router_cmd, server_cmd, sim_cmd, track_cmd
+from wardmap.cli import dataset_cmd, demo_cmd, edge_cmd, eval_cmd, router_cmd, server_cmd, sim_cmd, track_cmd
 from wardmap.shared.errors import WardmapError
 from wardmap.shared.logsetup import configure_logging
 
@@ -44,6 +44,7 @@ def build_parser() -> argparse.ArgumentParser:
     router_cmd.register(sub)
     server_cmd.register(sub)
     edge_cmd.register(sub)
+    demo_cmd.register(sub)
     return parser
 
 

@@ -1,0 +1,597 @@
+"""``wardmap demo``: the whole system on loopback, for a newcomer's first command.
+
+Simulates N robots' data sets, then starts ``wardmap router``, ``wardmap server`` and N
+``wardmap edge`` processes as subprocesses (the same Python: ``sys.executable -m wardmap.cli``),
+waits for each one's ready line, shows progress while the edges run, prints a summary table
+(keyframes produced vs delivered, ATE of the server's trajectory, bytes per keyframe) and keeps
+router + server running until Ctrl-C (or stops at once with ``exit_after``).
+
+Why this lives in ``cli/`` and not in ``server/`` or ``edge/``: the demo orchestrates processes
+of both sides (edge agents, map server, router) and reads the simulator's and the data set's
+outputs; only ``wardmap.cli`` may import every other part of the package, so the library code
+is here, next to the thin entry point :mod:`wardmap.cli.demo_cmd`.
+
+Every child runs in its own session (``start_new_session``) so that a Ctrl-C in the terminal
+reaches only the demo, which then stops the children in order (edges, server, router):
+SIGTERM, wait, SIGKILL as the last resort. Children are always stopped in a ``finally`` block.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import math
+import os
+import queue
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Iterator
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import FrameType
+from typing import IO, Any
+
+from wardmap.shared.errors import WardmapError
+
+log = logging.getLogger(__name__)
+
+__all__ = ["DemoError", "DemoOptions", "RobotPlan", "RobotResult", "plan_robots", "run_demo"]
+
+CAMERA_RATE_HZ = 10.0
+"""The simulator's camera rate; frames = duration * this."""
+MAX_ROBOTS = 4
+SIM_WORKERS = 2
+READY_TIMEOUT_S = 30.0
+STOP_TIMEOUT_S = 10.0
+PROGRESS_PERIOD_S = 2.0
+TAIL_LINES = 15
+EXTRA_SCENARIOS = ("hospital_loop", "aisle_slow_2")
+"""Scenarios for robots 2, 3, ... (alternating), with their own seeds."""
+
+
+class DemoError(WardmapError):
+    """The demo failed; the message is the one line shown to the user."""
+
+
+@dataclass(frozen=True)
+class DemoOptions:
+    robots: int = 2
+    duration_s: float = 30.0
+    seed: int = 0
+    exit_after: bool = False
+    http: str = "127.0.0.1:8080"
+    keep: Path | None = None
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.robots <= MAX_ROBOTS:
+            raise DemoError(f"--robots must be 1..{MAX_ROBOTS}, got {self.robots}")
+        if not (math.isfinite(self.duration_s) and self.duration_s > 0):
+            raise DemoError(f"--duration must be a positive number of seconds, got {self.duration_s}")
+        if self.frames < 3:
+            raise DemoError(f"--duration {self.duration_s} gives fewer than 3 camera frames")
+
+    @property
+    def frames(self) -> int:
+        return round(self.duration_s * CAMERA_RATE_HZ)
+
+
+@dataclass(frozen=True)
+class RobotPlan:
+    """One robot of the demo: its id and where its data set comes from."""
+
+    robot_id: str
+    scenario: str
+    seed: int
+    sim_robot: str | None
+    """The robot's name inside a multi-robot scenario (``two_robots``), else None."""
+
+    @property
+    def label(self) -> str:
+        return f"{self.scenario}/{self.sim_robot}" if self.sim_robot else f"{self.scenario}"
+
+
+@dataclass
+class RobotResult:
+    robot_id: str
+    dataset: str
+    frames: int
+    produced: int
+    delivered: int
+    ate_rmse_m: float | None
+    ate_note: str
+    bytes_per_keyframe: float | None
+    edge_summary: dict[str, Any] = field(default_factory=dict)
+
+
+def plan_robots(n: int, seed: int) -> list[RobotPlan]:
+    """Robots 0 and 1 from ``two_robots`` (one world, overlapping paths); 2.. from other scenarios."""
+    plans = []
+    for i in range(n):
+        if i < 2:
+            plans.append(RobotPlan(f"robot_{i}", "two_robots", seed, f"robot_{i}"))
+        else:
+            scenario = EXTRA_SCENARIOS[(i - 2) % len(EXTRA_SCENARIOS)]
+            plans.append(RobotPlan(f"robot_{i}", scenario, seed + i, None))
+    return plans
+
+
+# --------------------------------------------------------------------------- simulation
+
+
+def _say(msg: str) -> None:
+    """One progress line on stderr."""
+    print(msg, file=sys.stderr, flush=True)
+
+
+def _sim_job(scenario: str, seed: int, out: str, frames: int) -> dict[str, str]:
+    """Worker process: render one scenario; returns ``{sim robot name: data-set folder}``."""
+    from wardmap.sim.runner import generate
+
+    step = max(1, frames // 4)
+
+    def progress(robot: str, i: int, n: int) -> None:
+        if i == n or i % step == 0:
+            _say(f"demo: sim {scenario} seed {seed} {robot}: {i}/{n} frames")
+
+    summaries = generate(scenario, seed, out, frames=frames, progress=progress)
+    return {s.name: str(s.path) for s in summaries}
+
+
+def simulate(plans: list[RobotPlan], data_dir: Path, frames: int) -> dict[str, Path]:
+    """Generate every robot's data set, ``SIM_WORKERS`` scenarios in parallel; robot id -> folder."""
+    import multiprocessing
+
+    jobs: dict[tuple[str, int], Path] = {}
+    for p in plans:
+        key = (p.scenario, p.seed)
+        if key not in jobs:
+            name = p.scenario if p.sim_robot else p.robot_id
+            jobs[key] = data_dir / f"{name}_seed{p.seed}"
+    _say(f"demo: simulating {len(plans)} robots ({frames} frames each, {len(jobs)} scenario runs, "
+          f"{SIM_WORKERS} processes)")
+    started = time.monotonic()
+    ctx = multiprocessing.get_context("spawn")  # no fork of a process that may hold threads
+    with ProcessPoolExecutor(max_workers=min(SIM_WORKERS, len(jobs)), mp_context=ctx) as pool:
+        futures = {key: pool.submit(_sim_job, key[0], key[1], str(out), frames) for key, out in jobs.items()}
+        results = {}
+        for key, fut in futures.items():
+            try:
+                results[key] = fut.result()
+            except Exception as exc:  # any worker failure becomes one line
+                raise DemoError(f"simulating {key[0]} (seed {key[1]}) failed: {exc}") from exc
+    paths = {}
+    for p in plans:
+        per_robot = results[(p.scenario, p.seed)]
+        if p.sim_robot is not None:
+            if p.sim_robot not in per_robot:
+                raise DemoError(f"scenario {p.scenario} has no robot {p.sim_robot} (has {sorted(per_robot)})")
+            paths[p.robot_id] = Path(per_robot[p.sim_robot])
+        else:
+            paths[p.robot_id] = Path(next(iter(per_robot.values())))
+    _say(f"demo: simulated in {time.monotonic() - started:.1f} s")
+    return paths
+
+
+# --------------------------------------------------------------------------- child processes
+
+
+def _child_env() -> dict[str, str]:
+    env = dict(os.environ)
+    env.pop("RUST_LOG", None)  # zenoh's Rust logging would flood the pipes
+    return env
+
+
+class Child:
+    """A ``wardmap`` subprocess with its stdout lines in a queue and the tail of its stderr.
+
+    Two daemon threads drain the pipes (so a chatty child never blocks on a full pipe) and
+    copy everything to ``log_dir/NAME.log``.
+    """
+
+    def __init__(self, name: str, args: list[str], log_dir: Path) -> None:
+        self.name = name
+        self.cmd = [sys.executable, "-m", "wardmap.cli", *args]
+        self.lines: queue.Queue[str | None] = queue.Queue()
+        self.stdout: list[str] = []
+        self.tail: deque[str] = deque(maxlen=TAIL_LINES)
+        self.summary_printed = False
+        """Set on the first child (the router) once the demo printed its summary."""
+        self._log = open(log_dir / f"{name}.log", "w", encoding="utf-8")  # noqa: SIM115 (closed in stop)
+        self._log_lock = threading.Lock()
+        self.proc = subprocess.Popen(
+            self.cmd,
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=_child_env(),
+            start_new_session=True,
+        )
+        assert self.proc.stdout is not None and self.proc.stderr is not None
+        self._threads = [
+            threading.Thread(target=self._drain, args=(self.proc.stdout, True), daemon=True),
+            threading.Thread(target=self._drain, args=(self.proc.stderr, False), daemon=True),
+        ]
+        for t in self._threads:
+            t.start()
+
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+    def _drain(self, stream: IO[str], is_stdout: bool) -> None:
+        try:
+            for line in stream:
+                line = line.rstrip("\n")
+                with self._log_lock:
+                    if not self._log.closed:
+                        self._log.write(("" if is_stdout else "[stderr] ") + line + "\n")
+                        self._log.flush()
+                if is_stdout:
+                    self.stdout.append(line)
+                    self.lines.put(line)
+                else:
+                    self.tail.append(line)
+        except ValueError:  # the stream was closed under us during stop()
+            pass
+        finally:
+            if is_stdout:
+                self.lines.put(None)
+
+    def stderr_tail(self) -> str:
+        return "\n".join(f"  {self.name}: {line}" for line in self.tail) or f"  {self.name}: (no stderr)"
+
+    def died(self, what: str) -> DemoError:
+        """Print the stderr tail and build the one-line error for a child that died or hung."""
+        for t in self._threads[1:]:
+            t.join(timeout=2)  # let the stderr drain catch up with the exit
+        _say(f"demo: last stderr lines of {self.name}:\n{self.stderr_tail()}")
+        return DemoError(f"{self.name} {what} (log above; command: {' '.join(self.cmd[1:])})")
+
+    def wait_line(self, accept: Callable[[str], bool], timeout_s: float) -> str:
+        """The first stdout line ``accept`` takes; DemoError if the child exits or times out first."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise self.died(f"printed no ready line within {timeout_s:.0f} s")
+            try:
+                line = self.lines.get(timeout=min(left, 0.5))
+            except queue.Empty:
+                continue
+            if line is None:
+                try:
+                    rc = self.proc.wait(timeout=5)
+                except subprocess.TimeoutExpired:
+                    rc = None
+                raise self.died(f"exited (code {rc}) before it was ready")
+            if accept(line):
+                return line
+
+    def stop(self, timeout_s: float = STOP_TIMEOUT_S) -> None:
+        """SIGTERM, wait, SIGKILL as the last resort; then close pipes and the log."""
+        if self.proc.poll() is None:
+            try:
+                self.proc.terminate()
+                self.proc.wait(timeout=timeout_s)
+            except subprocess.TimeoutExpired:
+                _say(f"demo: {self.name} ignored SIGTERM for {timeout_s:.0f} s; killing it")
+                self.proc.kill()
+                self.proc.wait(timeout=5)
+        for t in self._threads:
+            t.join(timeout=2)
+        for stream in (self.proc.stdout, self.proc.stderr):
+            if stream is not None:
+                with contextlib.suppress(OSError, ValueError):
+                    stream.close()
+        with self._log_lock:
+            self._log.close()
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _free_port(host: str = "127.0.0.1") -> int:
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return int(s.getsockname()[1])
+
+
+def _port_free(host: str, port: int) -> bool:
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind((host, port))
+        except OSError:
+            return False
+    return True
+
+
+def choose_http(text: str) -> tuple[str, int, bool]:
+    """``(host, port, moved)``: the ``--http`` address, or a free port on its host when it is busy."""
+    from wardmap.cli.server_cmd import parse_http
+
+    host, port = parse_http(text)
+    if port != 0 and _port_free(host, port):
+        return host, port, False
+    try:
+        return host, _free_port(host), port != 0
+    except OSError as exc:
+        raise DemoError(f"cannot listen on {host} for HTTP: {exc}") from exc
+
+
+def _url(host: str, port: int) -> str:
+    return f"http://[{host}]:{port}" if ":" in host else f"http://{host}:{port}"
+
+
+@contextlib.contextmanager
+def _sigterm_as_interrupt() -> Iterator[None]:
+    """Inside: SIGTERM raises KeyboardInterrupt (so the finally blocks stop the children)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum: int, frame: FrameType | None) -> None:
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _robot_counts(http: Any) -> dict[str, int]:
+    r = http.get("/v1/robots")
+    r.raise_for_status()
+    return {row["robot_id"]: int(row["keyframes"]) for row in r.json()["robots"]}
+
+
+def _payload_bytes(http: Any, robot_id: str) -> list[int]:
+    sizes: list[int] = []
+    cursor: str | None = None
+    while True:
+        params: dict[str, Any] = {"robot": robot_id, "limit": 1000}
+        if cursor is not None:
+            params["cursor"] = cursor
+        r = http.get("/v1/keyframes", params=params)
+        r.raise_for_status()
+        body = r.json()
+        sizes.extend(int(k["payload_bytes"]) for k in body["keyframes"])
+        cursor = body["next_cursor"]
+        if cursor is None:
+            return sizes
+
+
+def _ate(http: Any, robot_id: str, dataset: Path) -> tuple[float | None, str]:
+    """RMSE ATE (SE3-aligned) of the server's trajectory against the data set's ground truth."""
+    import numpy as np
+
+    from wardmap.shared.dataset import DatasetReader
+    from wardmap.shared.metrics import ate
+    from wardmap.shared.se3 import transform_from_tum
+
+    r = http.get(f"/v1/robots/{robot_id}/trajectory", params={"format": "json"})
+    if r.status_code == 404:
+        return None, "no trajectory on the server"
+    r.raise_for_status()
+    poses = r.json()["poses"]
+    gt = DatasetReader(dataset).groundtruth()
+    if gt is None:
+        return None, "data set has no ground truth"
+    stamps = np.array([p["stamp"] for p in poses], np.float64)
+    rows = [transform_from_tum([*p["t"], *p["q_xyzw"]]) for p in poses]
+    T = np.stack(rows) if rows else np.zeros((0, 4, 4))
+    try:
+        # the server's poses are T_odom_camera of the robot's session; SE3 alignment maps odom to world
+        res = ate(stamps, T, gt[0], gt[1], align="se3")
+    except WardmapError as exc:
+        return None, str(exc)
+    return res.rmse, f"{res.n} poses"
+
+
+# --------------------------------------------------------------------------- summary
+
+
+def format_summary(results: list[RobotResult], opts: DemoOptions) -> str:
+    head = ("robot", "data set", "frames", "produced", "delivered", "ATE rmse [m]", "bytes/keyframe")
+    rows = [head]
+    for r in results:
+        rows.append((
+            r.robot_id,
+            r.dataset,
+            str(r.frames),
+            str(r.produced),
+            str(r.delivered),
+            f"{r.ate_rmse_m:.4f}" if r.ate_rmse_m is not None else "n/a",
+            f"{r.bytes_per_keyframe:,.0f}" if r.bytes_per_keyframe is not None else "n/a",
+        ))
+    widths = [max(len(row[i]) for row in rows) for i in range(len(head))]
+    lines = [f"SUMMARY: {len(results)} robots, {opts.duration_s:g} s of camera at {CAMERA_RATE_HZ:g} Hz, "
+             f"seed {opts.seed}"]
+    for k, row in enumerate(rows):
+        lines.append("  ".join(c.ljust(w) if i < 2 else c.rjust(w) for i, (c, w) in enumerate(zip(row, widths,
+                                                                                                  strict=True))))
+        if k == 0:
+            lines.append("  ".join("-" * w for w in widths))
+    for r in results:
+        if r.ate_rmse_m is None:
+            lines.append(f"{r.robot_id}: no ATE: {r.ate_note}")
+    lines.append("produced: keyframes the edge made (its summary); delivered: keyframes the server stored; "
+                 "ATE: server trajectory vs ground truth, SE3-aligned")
+    lines.append("end-to-end latency: not available (keyframes carry the data set's capture stamp, "
+                 "not a send time; the server records only its receive time)")
+    return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------- the demo
+
+
+def run_demo(opts: DemoOptions, *, wait: Callable[[], None] | None = None) -> int:
+    """Run the demo; 0 on success. Raises DemoError (one line) on failure.
+
+    Args:
+        wait: called after the summary instead of waiting for Ctrl-C (tests); ignored with
+            ``opts.exit_after``.
+    """
+    if opts.keep is not None:
+        work = opts.keep.resolve()
+        if work.exists() and any(work.iterdir()):
+            raise DemoError(f"--keep {work}: folder exists and is not empty")
+        work.mkdir(parents=True, exist_ok=True)
+    else:
+        work = Path(tempfile.mkdtemp(prefix="wardmap-demo-"))
+    note = "kept" if opts.keep is not None else "deleted on exit; --keep DIR keeps it"
+    _say(f"demo: work folder {work} ({note})")
+    children: list[Child] = []
+    try:
+        with _sigterm_as_interrupt():
+            try:
+                return _run(opts, work, children, wait)
+            except KeyboardInterrupt:
+                if not _summary_printed(children):
+                    raise  # interrupted before the summary: main() reports it (exit 130)
+                _say("demo: stopping")
+                return 0
+    finally:
+        for child in reversed(children):  # edges first, then server, then router
+            child.stop()
+        if opts.keep is None:
+            shutil.rmtree(work, ignore_errors=True)
+
+
+def _summary_printed(children: list[Child]) -> bool:
+    return bool(children) and children[0].summary_printed
+
+
+def _run(opts: DemoOptions, work: Path, children: list[Child], wait: Callable[[], None] | None) -> int:
+    import httpx
+
+    plans = plan_robots(opts.robots, opts.seed)
+    host, port, moved = choose_http(opts.http)
+    if moved:
+        _say(f"demo: HTTP address {opts.http} is busy; using {host}:{port} instead")
+    logs = work / "logs"
+    logs.mkdir()
+    datasets = simulate(plans, work / "data", opts.frames)
+
+    def start(name: str, args: list[str], accept: Callable[[str], bool]) -> Child:
+        child = Child(name, args, logs)
+        children.append(child)
+        line = child.wait_line(accept, READY_TIMEOUT_S)
+        _say(f"demo: {name} (pid {child.pid}): {line}")
+        return child
+
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    router = start("router", ["router", "--listen", endpoint], lambda s: s.startswith("router listening on"))
+    url = _url(host, port)
+    server = start(
+        "server",
+        ["server", "--connect", endpoint, "--db", f"sqlite:///{work / 'map.db'}", "--http", f"{host}:{port}"],
+        lambda s: s.startswith("server ready:"),
+    )
+    edges: dict[str, Child] = {}
+    for p in plans:
+        args = ["edge", "--robot", p.robot_id, "--source", str(datasets[p.robot_id]), "--connect", endpoint,
+                "--outbox", str(work / "outbox" / p.robot_id), "--rate", f"{CAMERA_RATE_HZ:g}"]
+        edges[p.robot_id] = start(f"edge {p.robot_id}", args, lambda s: " ready: session " in s)
+
+    with httpx.Client(base_url=url, timeout=10.0) as http:
+        _watch(opts, router, server, edges, http)
+        results = _collect(plans, datasets, edges, http)
+        print(format_summary(results, opts), flush=True)
+        router.summary_printed = True
+        short = [r.robot_id for r in results if r.delivered != r.produced or r.produced == 0]
+        if short:
+            raise DemoError(f"keyframes not all delivered (or none produced) for {', '.join(short)}")
+        print(f"map server: {url}  (try {url}/v1/robots, {url}/metrics)", flush=True)
+        if opts.exit_after:
+            return 0
+        if wait is not None:
+            wait()
+            return 0
+        _say("demo: router and map server keep running; press Ctrl-C to stop them")
+        while True:  # until Ctrl-C / SIGTERM (KeyboardInterrupt, handled in run_demo)
+            for child in (router, server):
+                if child.proc.poll() is not None:
+                    raise child.died(f"exited (code {child.proc.returncode}) while serving")
+            time.sleep(0.5)
+
+
+def _watch(opts: DemoOptions, router: Child, server: Child, edges: dict[str, Child], http: Any) -> None:
+    """Every ~2 s one progress line (keyframes on the server per robot) until every edge exited."""
+    started = time.monotonic()
+    deadline = started + 120.0 + 5.0 * opts.duration_s  # generous: the tracker may be slower than 10 Hz
+    next_report = started + PROGRESS_PERIOD_S
+    while any(e.proc.poll() is None for e in edges.values()):
+        for child in (router, server):
+            if child.proc.poll() is not None:
+                raise child.died(f"exited (code {child.proc.returncode}) while the edges were running")
+        now = time.monotonic()
+        if now > deadline:
+            running = [name for name, e in edges.items() if e.proc.poll() is None]
+            raise edges[running[0]].died(f"still running after {now - started:.0f} s")
+        if now >= next_report:
+            next_report = now + PROGRESS_PERIOD_S
+            try:
+                counts = _robot_counts(http)
+                state = ", ".join(
+                    f"{rid} {counts.get(rid, 0)}{'' if e.proc.poll() is None else ' (done)'}"
+                    for rid, e in edges.items()
+                )
+            except httpx_errors() as exc:
+                state = f"server not answering ({exc})"
+            _say(f"demo: {now - started:5.1f} s: keyframes on the server: {state}")
+        time.sleep(0.1)
+
+
+def httpx_errors() -> tuple[type[Exception], ...]:
+    import httpx
+
+    return (httpx.HTTPError,)
+
+
+def _collect(
+    plans: list[RobotPlan], datasets: dict[str, Path], edges: dict[str, Child], http: Any
+) -> list[RobotResult]:
+    counts = _robot_counts(http)
+    results = []
+    for p in plans:
+        edge = edges[p.robot_id]
+        rc = edge.proc.wait()
+        for t in edge._threads:
+            t.join(timeout=5)
+        if rc != 0:
+            raise edge.died(f"exited with code {rc}")
+        summary: dict[str, Any] | None = None
+        for line in reversed(edge.stdout):
+            with contextlib.suppress(ValueError):
+                value = json.loads(line)
+                if isinstance(value, dict):
+                    summary = value
+                    break
+        if summary is None:
+            raise edge.died("printed no JSON summary")
+        sizes = _payload_bytes(http, p.robot_id)
+        rmse, note = _ate(http, p.robot_id, datasets[p.robot_id])
+        results.append(RobotResult(
+            robot_id=p.robot_id,
+            dataset=p.label if p.sim_robot else f"{p.label} seed {p.seed}",
+            frames=int(summary.get("frames", 0)),
+            produced=int(summary.get("keyframes", 0)),
+            delivered=counts.get(p.robot_id, 0),
+            ate_rmse_m=rmse,
+            ate_note=note,
+            bytes_per_keyframe=sum(sizes) / len(sizes) if sizes else None,
+            edge_summary=summary,
+        ))
+    return results

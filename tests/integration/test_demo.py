@@ -1,0 +1,79 @@
+"""``wardmap demo --exit`` end to end: simulation, router, server and two edge agents as real
+subprocesses; the summary on stdout and no child process left behind afterwards."""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("zenoh")
+
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(180)]
+
+RUN_TIMEOUT_S = 150.0
+ROW = re.compile(r"^(robot_\d+)\s+\S+\s+(\d+)\s+(\d+)\s+(\d+)\s+(\S+)\s+(\S+)$")
+
+
+def _free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _cmdline(pid: int) -> str | None:
+    """The command line of ``pid``, or None when no such process exists."""
+    try:
+        raw = (Path("/proc") / str(pid) / "cmdline").read_bytes()
+    except (FileNotFoundError, ProcessLookupError, PermissionError):
+        return None
+    return raw.replace(b"\0", b" ").decode(errors="replace")
+
+
+def _processes_mentioning(text: str) -> list[str]:
+    found = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit() and int(entry.name) != os.getpid():
+            cmd = _cmdline(int(entry.name))
+            if cmd is not None and text in cmd:
+                found.append(f"{entry.name}: {cmd}")
+    return found
+
+
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="needs /proc to look for left-over processes")
+def test_demo_two_robots_exits_cleanly() -> None:
+    env = dict(os.environ)
+    env.pop("RUST_LOG", None)
+    cmd = [sys.executable, "-m", "wardmap.cli", "demo", "--robots", "2", "--duration", "4", "--exit",
+           "--http", f"127.0.0.1:{_free_port()}"]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=RUN_TIMEOUT_S, env=env)
+    assert done.returncode == 0, done.stderr[-4000:]
+    assert "Traceback" not in done.stderr
+
+    assert "SUMMARY" in done.stdout
+    rows = {m.group(1): m for line in done.stdout.splitlines() if (m := ROW.match(line.strip()))}
+    assert set(rows) == {"robot_0", "robot_1"}, done.stdout
+    for robot, m in rows.items():
+        frames, produced, delivered = int(m.group(2)), int(m.group(3)), int(m.group(4))
+        assert frames == 40, (robot, done.stdout)
+        assert delivered == produced > 0, (robot, done.stdout)
+        ate = float(m.group(5))  # "n/a" would raise here
+        assert math.isfinite(ate) and ate >= 0.0, (robot, done.stdout)
+    assert "map server: http://127.0.0.1:" in done.stdout
+
+    # every child the demo started is gone, and its temporary work folder with it
+    pids = [int(p) for p in re.findall(r"^demo: .*\(pid (\d+)\):", done.stderr, re.MULTILINE)]
+    assert len(pids) == 4, done.stderr  # router, server, two edges
+    for pid in pids:
+        cmd_left = _cmdline(pid)
+        assert cmd_left is None or "wardmap" not in cmd_left, f"child {pid} still runs: {cmd_left}"
+    work = re.search(r"^demo: work folder (\S+) ", done.stderr, re.MULTILINE)
+    assert work is not None, done.stderr
+    assert _processes_mentioning(work.group(1)) == []
+    assert not Path(work.group(1)).exists()
