@@ -6,12 +6,12 @@ from __future__ import annotations
 import math
 import os
 import re
-import socket
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+from procs import free_port as _free_port
 
 pytest.importorskip("zenoh")
 
@@ -19,12 +19,6 @@ pytestmark = [pytest.mark.integration, pytest.mark.timeout(180)]
 
 RUN_TIMEOUT_S = 150.0
 ROW = re.compile(r"^(robot_\d+)\s+\S+\s+(\d+)\s+(\d+)\s+(\d+)\s+(\S+)\s+(\S+)$")
-
-
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def _cmdline(pid: int) -> str | None:
@@ -50,8 +44,19 @@ def _processes_mentioning(text: str) -> list[str]:
 def test_demo_two_robots_exits_cleanly() -> None:
     env = dict(os.environ)
     env.pop("RUST_LOG", None)
-    cmd = [sys.executable, "-m", "wardmap.cli", "demo", "--robots", "2", "--duration", "4", "--exit",
-           "--http", f"127.0.0.1:{_free_port()}"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "wardmap.cli",
+        "demo",
+        "--robots",
+        "2",
+        "--duration",
+        "4",
+        "--exit",
+        "--http",
+        f"127.0.0.1:{_free_port()}",
+    ]
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=RUN_TIMEOUT_S, env=env)
     assert done.returncode == 0, done.stderr[-4000:]
     assert "Traceback" not in done.stderr

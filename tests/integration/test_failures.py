@@ -14,10 +14,8 @@ import contextlib
 import copy
 import json
 import math
-import os
 import queue
 import signal
-import socket
 import sqlite3
 import subprocess
 import sys
@@ -26,15 +24,19 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
 import cv2
 import httpx
 import msgpack
 import numpy as np
 import pytest
+from procs import child_env as _env
+from procs import free_port as _free_port
+from procs import read_line as _read_line
 
 zenoh = pytest.importorskip("zenoh")
+
 
 from wardmap.edge.outbox import Outbox  # noqa: E402  (after the importorskip guard)
 from wardmap.shared import wire  # noqa: E402
@@ -62,29 +64,6 @@ EDGE_CONFIG = "[agent]\nflush_timeout_s = 40.0\nresend_after_s = 1.0\n"
 
 
 # --------------------------------------------------------------------------- processes
-
-
-def _free_port() -> int:
-    """A TCP port on 127.0.0.1 that was free a moment ago (the OS picks it)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def _env() -> dict[str, str]:
-    env = dict(os.environ)
-    env.pop("RUST_LOG", None)
-    return env
-
-
-def _read_line(stream: IO[str], timeout_s: float) -> str | None:
-    """The next line of ``stream``, read on a helper thread; None on timeout or EOF."""
-    lines: queue.Queue[str] = queue.Queue(maxsize=1)
-    threading.Thread(target=lambda: lines.put(stream.readline()), daemon=True).start()
-    try:
-        return lines.get(timeout=timeout_s) or None
-    except queue.Empty:
-        return None
 
 
 @dataclass
@@ -139,13 +118,27 @@ def _stop(proc: Proc, timeout_s: float = 15.0) -> int:
 
 
 def _start_router(endpoint: str, log_dir: Path) -> Proc:
-    return _start([sys.executable, "-m", "wardmap.cli", "router", "--listen", endpoint],
-                  f"router listening on {endpoint}", log_dir, "router")
+    return _start(
+        [sys.executable, "-m", "wardmap.cli", "router", "--listen", endpoint],
+        f"router listening on {endpoint}",
+        log_dir,
+        "router",
+    )
 
 
 def _start_server(endpoint: str, db: Path, port: int, log_dir: Path) -> Proc:
-    cmd = [sys.executable, "-m", "wardmap.cli", "server", "--connect", endpoint,
-           "--db", f"sqlite:///{db}", "--http", f"127.0.0.1:{port}"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "wardmap.cli",
+        "server",
+        "--connect",
+        endpoint,
+        "--db",
+        f"sqlite:///{db}",
+        "--http",
+        f"127.0.0.1:{port}",
+    ]
     return _start(cmd, f"server ready: http://127.0.0.1:{port}", log_dir, "server")
 
 
@@ -202,9 +195,24 @@ def _start_edge(robot: str, dataset: Path, stack: Stack, tmp_path: Path) -> tupl
     config = tmp_path / "edge.toml"
     config.write_text(EDGE_CONFIG)
     outbox_dir = tmp_path / "outbox"
-    cmd = [sys.executable, "-m", "wardmap.cli", "edge", "--robot", robot, "--source", str(dataset),
-           "--connect", stack.endpoint, "--outbox", str(outbox_dir), "--rate", "10",
-           "--config", str(config)]
+    cmd = [
+        sys.executable,
+        "-m",
+        "wardmap.cli",
+        "edge",
+        "--robot",
+        robot,
+        "--source",
+        str(dataset),
+        "--connect",
+        stack.endpoint,
+        "--outbox",
+        str(outbox_dir),
+        "--rate",
+        "10",
+        "--config",
+        str(config),
+    ]
     proc = _spawn(cmd, tmp_path, "edge")
     assert proc.popen.stdout is not None
     ready = _read_line(proc.popen.stdout, READY_TIMEOUT_S)
@@ -249,8 +257,10 @@ def _db_counts(db: Path, robot: str) -> tuple[int, int, set[str]]:
             "SELECT COUNT(*) FROM (SELECT DISTINCT session_id, seq FROM keyframes WHERE robot_id = ?)",
             (robot,),
         ).fetchone()[0]
-        sessions = {r[0] for r in con.execute("SELECT DISTINCT session_id FROM keyframes WHERE robot_id = ?",
-                                              (robot,))}
+        sessions = {
+            r[0]
+            for r in con.execute("SELECT DISTINCT session_id FROM keyframes WHERE robot_id = ?", (robot,))
+        }
     return int(rows), int(distinct), sessions
 
 
@@ -351,10 +361,33 @@ W, H = 64, 48
 T0 = 1_714_557_600.0
 FUZZ_ROBOT = "fz"
 N_FUZZ = 1000
-_LEAF_POOL: list[Any] = [None, True, False, -1, 0, 1, 2**63, 2**64 - 1, -(2**63), 1.5, -0.0, math.nan,
-                         math.inf, "", "x" * 300, "wardmap.keyframe", "r2", b"", b"\xff\xd8" + bytes(30), [],
-                         {}, [1, 2, 3], {"a": 1}, [0.0, 0.0, 0.0, 1.0],
-                         {"dtype": "uint8", "shape": [0], "data": b""}]
+_LEAF_POOL: list[Any] = [
+    None,
+    True,
+    False,
+    -1,
+    0,
+    1,
+    2**63,
+    2**64 - 1,
+    -(2**63),
+    1.5,
+    -0.0,
+    math.nan,
+    math.inf,
+    "",
+    "x" * 300,
+    "wardmap.keyframe",
+    "r2",
+    b"",
+    b"\xff\xd8" + bytes(30),
+    [],
+    {},
+    [1, 2, 3],
+    {"a": 1},
+    [0.0, 0.0, 0.0, 1.0],
+    {"dtype": "uint8", "shape": [0], "data": b""},
+]
 
 
 def _base_keyframes(n: int) -> list[bytes]:
@@ -364,7 +397,12 @@ def _base_keyframes(n: int) -> list[bytes]:
     assert ok
     k = 8
     base = KeyframeMsg(
-        robot_id=FUZZ_ROBOT, session_id="s1", seq=0, stamp=T0, T_odom_camera=np.eye(4), pose_source="rgb",
+        robot_id=FUZZ_ROBOT,
+        session_id="s1",
+        seq=0,
+        stamp=T0,
+        T_odom_camera=np.eye(4),
+        pose_source="rgb",
         keypoints=Keypoints(
             uv=(rng.random((k, 2)) * [W - 1, H - 1]).astype(np.float32),
             octave=np.zeros(k, np.int8),
@@ -518,4 +556,3 @@ def test_malformed_and_mutated_payloads_are_rejected_and_counted(stack: Stack) -
         assert con.execute("PRAGMA integrity_check").fetchall() == [("ok",)]
         rows, distinct, _ = _db_counts(stack.db, FUZZ_ROBOT)
     assert rows == distinct
-

@@ -8,7 +8,6 @@ test synchronises on ready lines, zenoh matching events and the ack queue, never
 from __future__ import annotations
 
 import json
-import os
 import queue
 import signal
 import socket
@@ -19,14 +18,19 @@ from collections import Counter
 from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
 import cv2
 import httpx
 import numpy as np
 import pytest
+from procs import child_env as _env
+from procs import free_port as _free_port
+from procs import read_line as _read_line
+from procs import stop as _stop
 
 zenoh = pytest.importorskip("zenoh")
+
 
 from wardmap.shared import wire  # noqa: E402  (after the importorskip guard)
 from wardmap.shared.se3 import make_transform  # noqa: E402
@@ -40,40 +44,6 @@ EVENT_TIMEOUT_S = 10.0
 ALL_ACKS = "wardmap/v1/robot/*/ack"
 W, H = 64, 48
 T0 = 1_714_557_600.0
-
-
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def _env() -> dict[str, str]:
-    env = dict(os.environ)
-    env.pop("RUST_LOG", None)
-    return env
-
-
-def _read_line(stream: IO[str], timeout_s: float) -> str | None:
-    lines: queue.Queue[str] = queue.Queue(maxsize=1)
-    threading.Thread(target=lambda: lines.put(stream.readline()), daemon=True).start()
-    try:
-        return lines.get(timeout=timeout_s) or None
-    except queue.Empty:
-        return None
-
-
-def _stop(proc: subprocess.Popen[str]) -> None:
-    if proc.poll() is None:
-        proc.terminate()
-        try:
-            proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(timeout=5)
-    for stream in (proc.stdout, proc.stderr):
-        if stream is not None:
-            stream.close()
 
 
 def _start(cmd: list[str], expect: str) -> subprocess.Popen[str]:
@@ -91,8 +61,10 @@ def _start(cmd: list[str], expect: str) -> subprocess.Popen[str]:
 @pytest.fixture
 def router() -> Iterator[str]:
     endpoint = f"tcp/127.0.0.1:{_free_port()}"
-    proc = _start([sys.executable, "-m", "wardmap.cli", "router", "--listen", endpoint],
-                  f"router listening on {endpoint}")
+    proc = _start(
+        [sys.executable, "-m", "wardmap.cli", "router", "--listen", endpoint],
+        f"router listening on {endpoint}",
+    )
     try:
         yield endpoint
     finally:
@@ -103,8 +75,18 @@ def router() -> Iterator[str]:
 def server(router: str, tmp_path: Path) -> Iterator[tuple[subprocess.Popen[str], str]]:
     port = _free_port()
     url = f"http://127.0.0.1:{port}"
-    cmd = [sys.executable, "-m", "wardmap.cli", "server", "--connect", router,
-           "--db", f"sqlite:///{tmp_path / 'map.db'}", "--http", f"127.0.0.1:{port}"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "wardmap.cli",
+        "server",
+        "--connect",
+        router,
+        "--db",
+        f"sqlite:///{tmp_path / 'map.db'}",
+        "--http",
+        f"127.0.0.1:{port}",
+    ]
     proc = _start(cmd, f"server ready: {url}")
     try:
         yield proc, url
@@ -118,7 +100,12 @@ def _keyframes(robot: str, n: int) -> list[bytes]:
     assert ok
     k = 4
     base = KeyframeMsg(
-        robot_id=robot, session_id="s1", seq=0, stamp=T0, T_odom_camera=np.eye(4), pose_source="rgb",
+        robot_id=robot,
+        session_id="s1",
+        seq=0,
+        stamp=T0,
+        T_odom_camera=np.eye(4),
+        pose_source="rgb",
         keypoints=Keypoints(
             uv=(rng.random((k, 2)) * [W - 1, H - 1]).astype(np.float32),
             octave=np.zeros(k, np.int8),
@@ -250,8 +237,13 @@ def test_ingest_stores_acks_dedups_and_rejects(
 def test_server_bad_db_and_port_in_use_exit_1(router: str, tmp_path: Path) -> None:
     """A bad store URL and an HTTP port already taken each give exit 1 and one stderr line."""
     base = [sys.executable, "-m", "wardmap.cli", "server", "--connect", router]
-    bad_db = subprocess.run([*base, "--db", "mysql://x", "--http", f"127.0.0.1:{_free_port()}"],
-                            capture_output=True, text=True, timeout=30, env=_env())
+    bad_db = subprocess.run(
+        [*base, "--db", "mysql://x", "--http", f"127.0.0.1:{_free_port()}"],
+        capture_output=True,
+        text=True,
+        timeout=30,
+        env=_env(),
+    )
     assert bad_db.returncode == 1
     assert bad_db.stderr.strip().splitlines() == [bad_db.stderr.strip()]
     assert "unknown store URL" in bad_db.stderr

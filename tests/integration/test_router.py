@@ -8,7 +8,6 @@ zenoh matching/liveliness events and threading events, never on sleeps.
 from __future__ import annotations
 
 import json
-import os
 import queue
 import signal
 import socket
@@ -16,9 +15,13 @@ import subprocess
 import sys
 import threading
 from collections.abc import Iterator
-from typing import IO, Any
+from typing import Any
 
 import pytest
+from procs import child_env as _env
+from procs import free_port as _free_port
+from procs import read_line as _read_line
+from procs import stop as _stop
 
 zenoh = pytest.importorskip("zenoh")
 
@@ -36,45 +39,8 @@ READY_TIMEOUT_S = 15.0
 EVENT_TIMEOUT_S = 10.0
 
 
-def _free_port() -> int:
-    """A TCP port on 127.0.0.1 that was free a moment ago (the OS picks it)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 def _router_cmd(endpoint: str) -> list[str]:
     return [sys.executable, "-m", "wardmap.cli", "router", "--listen", endpoint]
-
-
-def _env() -> dict[str, str]:
-    env = dict(os.environ)
-    env.pop("RUST_LOG", None)  # the router's stderr must carry wardmap's lines only
-    return env
-
-
-def _read_line(stream: IO[str], timeout_s: float) -> str | None:
-    """The next line of ``stream``, read on a helper thread; None on timeout or EOF."""
-    lines: queue.Queue[str] = queue.Queue(maxsize=1)
-    threading.Thread(target=lambda: lines.put(stream.readline()), daemon=True).start()
-    try:
-        return lines.get(timeout=timeout_s) or None
-    except queue.Empty:
-        return None
-
-
-def _stop(proc: subprocess.Popen[str]) -> None:
-    """Terminate the router if it still runs; kill it if it ignores SIGTERM."""
-    if proc.poll() is None:
-        proc.terminate()
-        try:
-            proc.wait(timeout=5)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(timeout=5)
-    for stream in (proc.stdout, proc.stderr):
-        if stream is not None:
-            stream.close()
 
 
 @pytest.fixture
