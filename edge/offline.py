@@ -127,6 +127,7 @@ def summarize(results: list[TrackResult], label_ms: list[float]) -> dict[str, An
         "frames": len(results),
         "keyframes": sum(r.keyframe for r in results),
         "lost_frames": len(lost),
+        "dynamic_points": sum(r.n_dynamic for r in results),
         "lost_reasons": reasons,
         "sources": sources,
         "ms_per_frame": {k: stats(v) for k, v in sorted(stages.items())},

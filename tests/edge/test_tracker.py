@@ -53,6 +53,9 @@ def test_oracle_labels_remove_points(tmp_path: Path) -> None:
     summary = track_dataset(data, tmp_path / "t.txt", labels="oracle", max_frames=70)
     assert summary["lost_frames"] == 0
     assert summary["labels_ms"] is not None
+    assert summary["dynamic_points"] > 0
+    plain = track_dataset(data, tmp_path / "n.txt", labels="none", max_frames=70)
+    assert plain["dynamic_points"] == 0
 
 
 def _frames(reader: DatasetReader, n: int) -> list[TrackInput]:
