@@ -1,0 +1,1 @@
+"""Server perception: segmentation / detection -> instances -> 3D object measurements."""
