@@ -15,19 +15,25 @@ OUTBOX_FILE = "outbox.sqlite"
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "edge",
-        help="run one robot: track a data set and send keyframes to the map server",
-        description="Track a data-set folder with the edge frontend and send every keyframe over "
+        help="run one robot: track a data set or a simulated robot and send keyframes to the map server",
+        description="Track a data-set folder (or a robot the simulator renders live) with the edge "
+        "frontend and send every keyframe over "
         "Zenoh through a durable outbox (re-sent until the server acks it). Prints one ready line, "
         "then a JSON summary line at the end. SIGTERM/Ctrl-C stop tracking and flush.",
     )
     p.add_argument("--robot", required=True, metavar="ID", help="robot id, 1-64 of [A-Za-z0-9_.-]")
-    p.add_argument("--source", required=True, metavar="DATASET", help="data-set folder (sim: sources later)")
+    p.add_argument(
+        "--source", required=True, metavar="DATASET|sim:SCENARIO[:SEED[:ROBOT]]",
+        help="data-set folder, or a simulated robot rendered live "
+        "(e.g. sim:aisle_slow_1, sim:two_robots:0:robot_1)",
+    )
     p.add_argument(
         "--connect", action="append", required=True, metavar="tcp/HOST:PORT", help="router endpoint (repeat)"
     )
     p.add_argument("--outbox", required=True, type=Path, metavar="DIR", help=f"outbox folder ({OUTBOX_FILE})")
     p.add_argument("--rate", type=float, metavar="HZ", help="frames per second (0 = as fast as possible)")
     p.add_argument("--max-frames", type=int, metavar="K", help="stop after K frames")
+    p.add_argument("--labels", metavar="none|oracle|onnx:PATH", help="label source for dynamic-point removal")
     p.add_argument("--config", metavar="FILE", help="TOML file with [tracker] and [agent] tables")
     p.set_defaults(func=run)
 
@@ -36,11 +42,14 @@ def run(args: argparse.Namespace) -> int:
     from wardmap.edge.agent import AgentConfig, EdgeAgent, run_agent
     from wardmap.edge.tracker import TrackerConfig
     from wardmap.shared.config import load_config
-    from wardmap.shared.errors import ConfigError
+    from wardmap.shared.dataset import FrameSource
 
+    source: str | FrameSource = args.source
     if args.source.startswith("sim:"):
-        raise ConfigError(f"source {args.source!r}: sim:SCENARIO[:SEED] sources are not supported yet; "
-                          "give a data-set folder (make one with 'wardmap sim')")
+        from wardmap.sim.live import LiveRun, SimSource
+
+        spec = SimSource.parse(args.source)
+        source = LiveRun(spec.scenario, spec.seed, spec.robot)
     tracker_cfg = load_config(TrackerConfig, args.config, section="tracker")
     agent_cfg = load_config(AgentConfig, args.config, section="agent")
     overrides: dict[str, Any] = {}  # field name -> value; dataclasses.replace re-validates
@@ -48,10 +57,12 @@ def run(args: argparse.Namespace) -> int:
         overrides["rate_hz"] = args.rate
     if args.max_frames is not None:
         overrides["max_frames"] = args.max_frames
+    if args.labels is not None:
+        overrides["labels"] = args.labels
     agent_cfg = dataclasses.replace(agent_cfg, **overrides)  # re-validated by __post_init__
     agent = EdgeAgent(
         args.robot,
-        args.source,
+        source,
         args.connect,
         args.outbox / OUTBOX_FILE,
         config=agent_cfg,

@@ -20,15 +20,25 @@ removes it (the server validated it and will never accept that payload, so resen
 is pointless) and counts the reason in ``rejected`` of the summary; it is logged as a
 warning.
 
-Keypoints: the tracker does not expose the features of its keyframes with the octave
-and orientation the wire needs, so the agent extracts ORB on the keyframe's grey image
-with the tracker's own extractor (same :class:`~wardmap.edge.features.OrbConfig`). They
-are therefore *before* dynamic-point removal.
+Sources: a data-set folder (:class:`~wardmap.shared.dataset.DatasetReader`) or any
+:class:`~wardmap.shared.dataset.FrameSource` object, e.g. the simulator's live run that
+``wardmap edge --source sim:SCENARIO`` builds. Label source: ``none``, ``oracle`` or
+``onnx:PATH`` (:mod:`wardmap.edge.labels`), exactly as ``wardmap track`` runs it.
 
-Depth is sent at stride :attr:`AgentConfig.depth_stride` (default 2: 1/2 resolution,
-~160 KB per keyframe instead of ~420 KB with full-resolution depth and thermal, see
-docs/wire.md, "Budget"); the stride falls back to 1 when the image size is not
-divisible by it.
+Keypoints: the tracker's own features of the keyframe, after dynamic-point removal (what
+its map was built from), the strongest :attr:`AgentConfig.max_keypoints` of them. A
+keyframe the tracker made without RGB features (rare) gets ORB extracted here.
+
+Size budget (docs/wire.md, "Budget"; goal: mean <= 100 KB): JPEG quality
+:attr:`AgentConfig.jpeg_quality`, depth at 1/:attr:`AgentConfig.depth_stride`
+resolution (falls back to 1 when the image size is not divisible by it), thermal at
+1/:attr:`AgentConfig.thermal_stride` resolution, quantised to
+:attr:`AgentConfig.thermal_unit_k`, on every :attr:`AgentConfig.thermal_every`-th keyframe
+and on every keyframe whose pose came from thermal tracking.
+
+Latency: the sender notes when it first published each item; when its ack arrives the
+difference (publish -> server commit -> ack back, an upper bound of publish -> commit)
+goes into the summary's ``latency_ms`` percentiles.
 
 Stopping: :meth:`EdgeAgent.stop` (SIGTERM/SIGINT while :func:`run_agent` runs) ends
 tracking, then the agent waits up to ``flush_timeout_s`` for the outbox to empty and
@@ -56,9 +66,10 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from wardmap.edge.labels import LabelSource, make_label_source
 from wardmap.edge.outbox import Outbox, OutboxFull, OutboxItem, SessionIds
 from wardmap.edge.tracker import Tracker, TrackerConfig, TrackInput, TrackResult
-from wardmap.shared.dataset import DatasetReader, Frame, pose_at
+from wardmap.shared.dataset import DatasetReader, Frame, FrameSource, pose_at
 from wardmap.shared.errors import ConfigError, DatasetError, WardmapError, WireError
 from wardmap.shared.knowledge import KnowledgeGraph
 from wardmap.shared.wire import (
@@ -91,6 +102,7 @@ outbox, it is re-sent after ``resend_after_s`` and the server answers ``duplicat
 dropped wake-up only delays the next send by at most ``poll_s``."""
 
 _KICK: Final = b""  # inbox entry that only wakes the sender
+MAX_LATENCY_SAMPLES: Final = 1_000_000
 
 
 @dataclass(frozen=True)
@@ -105,6 +117,12 @@ class AgentConfig:
         heartbeat_period_s: period of the heartbeat message.
         depth_stride: depth sent at 1/stride resolution (1, 2 or 4).
         jpeg_quality: JPEG quality of the colour image (1-100).
+        max_keypoints: keypoints sent per keyframe at most (strongest first).
+        thermal_every: send thermal on every n-th keyframe (0: only on thermal-tracked ones).
+        thermal_stride: thermal sent at 1/stride resolution (1, 2 or 4).
+        thermal_unit_k: thermal quantum in kelvin (the sensor's NETD is ~0.05 K).
+        labels: label source spec for dynamic-point removal (``none``, ``oracle``, ``onnx:PATH``).
+        label_threads: CPU threads of the label network.
         send_batch: outbox items read per send round.
         inbox_size: capacity of the sender's inbox (policy :data:`INBOX_POLICY`).
         poll_s: longest the sender sleeps without a wake-up (resend and heartbeat checks).
@@ -116,8 +134,14 @@ class AgentConfig:
     resend_after_s: float = 2.0
     flush_timeout_s: float = 10.0
     heartbeat_period_s: float = 1.0
-    depth_stride: int = 2
-    jpeg_quality: int = 85
+    depth_stride: int = 4
+    jpeg_quality: int = 80
+    max_keypoints: int = 700
+    thermal_every: int = 4
+    thermal_stride: int = 2
+    thermal_unit_k: float = 0.05
+    labels: str = "none"
+    label_threads: int = 1
     send_batch: int = 16
     inbox_size: int = 1024
     poll_s: float = 0.1
@@ -138,6 +162,14 @@ class AgentConfig:
             raise ConfigError(f"agent.depth_stride must be 1, 2 or 4, got {self.depth_stride}")
         if not 1 <= self.jpeg_quality <= 100:
             raise ConfigError(f"agent.jpeg_quality must be in 1..100, got {self.jpeg_quality}")
+        if self.thermal_stride not in (1, 2, 4):
+            raise ConfigError(f"agent.thermal_stride must be 1, 2 or 4, got {self.thermal_stride}")
+        if self.thermal_every < 0 or self.max_keypoints < 0:
+            raise ConfigError("agent.thermal_every and agent.max_keypoints must be >= 0")
+        if not (np.isfinite(self.thermal_unit_k) and 0 < self.thermal_unit_k <= 1):
+            raise ConfigError(f"agent.thermal_unit_k must be in (0, 1] K, got {self.thermal_unit_k}")
+        if self.label_threads < 1:
+            raise ConfigError(f"agent.label_threads must be >= 1, got {self.label_threads}")
         for name in ("send_batch", "inbox_size", "outbox_max_items", "outbox_max_bytes"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"agent.{name} must be >= 1, got {getattr(self, name)}")
@@ -154,6 +186,8 @@ class _SenderStats:
     rejected: Counter[str] = field(default_factory=Counter)
     bad_acks: int = 0
     heartbeats: int = 0
+    first_sent: dict[tuple[str, str, int], float] = field(default_factory=dict)
+    latencies_ms: list[float] = field(default_factory=list)
 
 
 @dataclass
@@ -164,10 +198,12 @@ class _TrackStats:
     keyframes: int = 0
     lost: int = 0
     outbox_full_waits: int = 0
+    payload_bytes: int = 0
+    thermal_sent: int = 0
 
 
 class EdgeAgent:
-    """One robot: tracker over a data-set folder, outbox, Zenoh sender.
+    """One robot: tracker over a frame source, outbox, Zenoh sender.
 
     Construct, then call :meth:`run` (blocks; returns a summary); :meth:`stop` may be
     called from any thread or a signal handler.
@@ -176,7 +212,7 @@ class EdgeAgent:
     def __init__(
         self,
         robot_id: str,
-        dataset: str | Path,
+        source: str | Path | FrameSource,
         connect: Sequence[str],
         outbox_path: str | Path,
         *,
@@ -187,9 +223,12 @@ class EdgeAgent:
         self.connect = [validate_endpoint(e) for e in connect]
         if not self.connect:
             raise ConfigError("the edge agent needs at least one --connect endpoint")
-        self.dataset = Path(dataset)
-        if not self.dataset.is_dir():
-            raise DatasetError(f"data set {str(self.dataset)!r} is not a folder")
+        if isinstance(source, (str, Path)):
+            if not Path(source).is_dir():
+                raise DatasetError(f"data set {str(source)!r} is not a folder")
+            self.source: FrameSource = DatasetReader(source)
+        else:
+            self.source = source
         self.outbox_path = Path(outbox_path)
         self.cfg = config or AgentConfig()
         self.tracker_cfg = tracker_config or TrackerConfig()
@@ -228,8 +267,9 @@ class EdgeAgent:
         """
         import zenoh  # the only zenoh user on the edge; imported here, not at module import
 
-        reader = DatasetReader(self.dataset)
+        reader = self.source
         kg = KnowledgeGraph.load()
+        labels = make_label_source(self.cfg.labels, dataset=reader, kg=kg, threads=self.cfg.label_threads)
         tracker = Tracker(reader.calibration, self.tracker_cfg, kg.mobility_lut())
         n_frames = len(reader) if self.cfg.max_frames is None else min(self.cfg.max_frames, len(reader))
         zcfg = zenoh.Config.from_json5(json.dumps(client_config(self.connect)))
@@ -255,7 +295,7 @@ class EdgeAgent:
                 try:
                     if on_ready is not None:
                         on_ready(ids.session_id, len(outbox))
-                    self._track_loop(reader, tracker, outbox, ids, n_frames, track)
+                    self._track_loop(reader, labels, tracker, outbox, ids, n_frames, track)
                     flushed = self._flush(outbox)
                 finally:
                     self._stop.set()
@@ -266,6 +306,7 @@ class EdgeAgent:
         if self._sender_error is not None:
             raise WardmapError(f"edge sender failed: {self._sender_error}") from self._sender_error
         s = self._sender_stats
+        lat = np.asarray(s.latencies_ms, np.float64)
         return {
             "robot_id": self.robot_id,
             "session_id": ids.session_id,
@@ -282,6 +323,9 @@ class EdgeAgent:
             "outbox_full_waits": track.outbox_full_waits,
             "pending": pending,
             "flushed": flushed,
+            "bytes_per_keyframe": round(track.payload_bytes / track.keyframes) if track.keyframes else 0,
+            "thermal_keyframes": track.thermal_sent,
+            "latency_ms": _percentiles(lat),
             "seconds": round(time.monotonic() - t_start, 3),
         }
 
@@ -289,7 +333,8 @@ class EdgeAgent:
 
     def _track_loop(
         self,
-        reader: DatasetReader,
+        reader: FrameSource,
+        labels: LabelSource,
         tracker: Tracker,
         outbox: Outbox,
         ids: SessionIds,
@@ -320,12 +365,16 @@ class EdgeAgent:
             if frame is None:
                 inp = TrackInput(stamp, None, None, T_odom_base=T_odom_base, problem="cannot read frame")
             else:
-                inp = TrackInput(stamp, frame.rgb, frame.depth_m, frame.thermal_k, T_odom_base)
+                lab = labels.labels(frame)
+                inp = TrackInput(
+                    stamp, frame.rgb, frame.depth_m, frame.thermal_k, T_odom_base,
+                    class_image=None if lab is None else lab.class_image,
+                )
             res = tracker.track(inp)
             track.frames += 1
             track.lost += int(res.lost)
             if res.keyframe and frame is not None:
-                msg = self._keyframe_msg(tracker, frame, res, T_odom_base, intrinsics, ids)
+                msg = self._keyframe_msg(tracker, frame, res, T_odom_base, intrinsics, ids, track)
                 if not self._put_with_backpressure(ids, msg, track):
                     break
                 track.keyframes += 1
@@ -340,11 +389,16 @@ class EdgeAgent:
         T_odom_base: NDArray[np.float64] | None,
         intrinsics: Intrinsics,
         ids: SessionIds,
+        track: _TrackStats,
     ) -> KeyframeMsg:
         """The wire message of a keyframe; its seq is the session's next one (put right after)."""
-        gray = np.asarray(cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2GRAY), np.uint8)
         depth = np.nan_to_num(frame.depth_m, nan=0.0, posinf=0.0, neginf=0.0)
-        feats = tracker.orb.extract(gray)
+        feats = res.features
+        if feats is None:
+            feats = tracker.orb.extract(np.asarray(cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2GRAY), np.uint8))
+        if len(feats.uv) > self.cfg.max_keypoints:
+            strongest = np.argsort(-feats.response, kind="stable")[: self.cfg.max_keypoints]
+            feats = feats.select(np.sort(strongest))
         h, w = depth.shape
         col = np.clip(np.rint(feats.uv[:, 0]).astype(np.int64), 0, w - 1)
         row = np.clip(np.rint(feats.uv[:, 1]).astype(np.int64), 0, h - 1)
@@ -362,8 +416,15 @@ class EdgeAgent:
             raise WardmapError(f"cannot JPEG-encode the colour image of frame {frame.index}")
         s = self.cfg.depth_stride if h % self.cfg.depth_stride == 0 and w % self.cfg.depth_stride == 0 else 1
         thermal = None
-        if frame.thermal_k is not None:
-            thermal = PackedRaster(*encode_thermal(np.nan_to_num(frame.thermal_k, nan=0.0)))
+        every = self.cfg.thermal_every
+        due = res.source == "thermal" or (every > 0 and track.keyframes % every == 0)
+        if frame.thermal_k is not None and due:
+            th = np.nan_to_num(frame.thermal_k, nan=0.0, posinf=0.0, neginf=0.0)
+            ts = self.cfg.thermal_stride
+            if th.shape[0] % ts or th.shape[1] % ts:
+                ts = 1
+            thermal = PackedRaster(*encode_thermal(th[::ts, ::ts], unit_k=self.cfg.thermal_unit_k))
+            track.thermal_sent += 1
         return KeyframeMsg(
             robot_id=self.robot_id,
             session_id=ids.session_id,
@@ -385,6 +446,7 @@ class EdgeAgent:
         Only a stop request ends the wait; that keyframe is then not stored (logged, False).
         """
         payload = encode(msg)
+        track.payload_bytes += len(payload)
         while True:
             self._space.clear()
             try:
@@ -508,6 +570,9 @@ class EdgeAgent:
         elif outbox.ack(ack.robot_id, ack.session_id, ack.seq):
             stats.acked += 1
             stats.duplicates += int(ack.status == "duplicate")
+            first = stats.first_sent.pop((ack.robot_id, ack.session_id, ack.seq), None)
+            if first is not None and len(stats.latencies_ms) < MAX_LATENCY_SAMPLES:
+                stats.latencies_ms.append((time.monotonic() - first) * 1e3)
         self._space.set()
         if not len(outbox):
             self._drained.set()
@@ -516,6 +581,8 @@ class EdgeAgent:
         self, publisher: Callable[[str], Any], outbox: Outbox, items: list[OutboxItem], stats: _SenderStats
     ) -> None:
         for item in items:
+            if item.attempts == 0:
+                stats.first_sent[item.key] = time.monotonic()
             publisher(item.robot_id).put(item.payload)
             stats.sent += 1
             stats.resent += int(item.attempts > 0)
@@ -543,6 +610,15 @@ class EdgeAgent:
         )
         pub.put(encode(msg))
         stats.heartbeats += 1
+
+
+def _percentiles(values: NDArray[np.float64]) -> dict[str, float] | None:
+    """p50/p95/p99/max of ``values`` (milliseconds), rounded to 0.1; None when empty."""
+    if not len(values):
+        return None
+    p50, p95, p99 = np.percentile(values, [50, 95, 99])
+    return {"n": len(values), "p50": round(float(p50), 1), "p95": round(float(p95), 1),
+            "p99": round(float(p99), 1), "max": round(float(values.max()), 1)}
 
 
 def _odom_at(odo: tuple[NDArray[np.float64], NDArray[np.float64]] | None, stamp: float) -> Any:

@@ -93,6 +93,18 @@ class Features:
     def __len__(self) -> int:
         return int(self.uv.shape[0])
 
+    def select(self, which: NDArray[np.bool_] | NDArray[np.intp]) -> Features:
+        """The features picked by a boolean mask (N,) or an index array, in that order."""
+        return Features(
+            self.uv[which],
+            self.angle_deg[which],
+            self.response[which],
+            self.octave[which],
+            self.size[which],
+            self.descriptors[which],
+            self.kind,
+        )
+
     @staticmethod
     def empty(kind: FeatureKind) -> Features:
         """No features (e.g. a blank frame)."""

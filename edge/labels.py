@@ -34,7 +34,7 @@ from typing import Any, Final, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from wardmap.shared.dataset import DatasetReader, Frame
+from wardmap.shared.dataset import Frame, FrameSource
 from wardmap.shared.detection import (
     CocoMap,
     Detections,
@@ -109,7 +109,7 @@ class LabelSourceContext:
         threads: CPU threads a network may use (onnxruntime ``intra_op_num_threads``).
     """
 
-    dataset: DatasetReader | None
+    dataset: FrameSource | None
     kg: KnowledgeGraph
     threads: int = 1
 
@@ -143,7 +143,7 @@ class OracleLabels:
     are background. Frames without a label image give None.
     """
 
-    def __init__(self, dataset: DatasetReader, kg: KnowledgeGraph) -> None:
+    def __init__(self, dataset: FrameSource, kg: KnowledgeGraph) -> None:
         """Build the id -> class table.
 
         Raises:
@@ -345,7 +345,7 @@ def _usage() -> str:
 def make_label_source(
     spec: str,
     *,
-    dataset: DatasetReader | None,
+    dataset: FrameSource | None,
     kg: KnowledgeGraph,
     threads: int = 1,
 ) -> LabelSource:

@@ -155,6 +155,9 @@ class TrackResult:
     n_inliers: int
     keyframe: bool
     timings_ms: dict[str, float]
+    features: Features | None = None
+    """On RGB keyframes: the frame's ORB features after dynamic-point removal (what the map
+    was built from; for the wire). None otherwise."""
 
 
 class Tracker:
@@ -233,7 +236,7 @@ class Tracker:
             )
             keep = ~res.dynamic
             n_dyn = int(res.dynamic.sum())
-            feats = _select(feats, keep)
+            feats = feats.select(keep)
             sem = res.descriptors[keep]
             timings["dynamic"] = _ms(t0)
 
@@ -494,7 +497,7 @@ class Tracker:
             return
         pts_th = th.unproject(feats.uv[ok].astype(np.float64), z[ok])
         pts_world = transform_points(T_world_cam @ T_rgb_th, pts_th)
-        self._thermal_ref = (_select(feats, ok), pts_world)
+        self._thermal_ref = (feats.select(ok), pts_world)
         self._thermal_ref_T = T_world_cam.copy()
 
     # ------------------------------------------------------------------ map upkeep
@@ -652,7 +655,8 @@ class Tracker:
         timings["total"] = _ms(t_start)
         n = n_feat if n_feat is not None else (0 if feats is None else len(feats.uv))
         return TrackResult(
-            inp.stamp, T.copy(), source, lost, reason, n, n_dyn, n_matches, n_inliers, keyframe, timings
+            inp.stamp, T.copy(), source, lost, reason, n, n_dyn, n_matches, n_inliers, keyframe, timings,
+            features=feats if keyframe and feats is not None and feats.kind == "orb" else None,
         )
 
 
@@ -691,18 +695,6 @@ def _depth_at(depth: NDArray[np.float32], uv: NDArray[np.float32]) -> NDArray[np
     u = np.clip(np.rint(uv[:, 0]).astype(np.intp), 0, w - 1)
     v = np.clip(np.rint(uv[:, 1]).astype(np.intp), 0, h - 1)
     return depth[v, u].astype(np.float64)
-
-
-def _select(f: Features, mask: NDArray[np.bool_]) -> Features:
-    return Features(
-        f.uv[mask],
-        f.angle_deg[mask],
-        f.response[mask],
-        f.octave[mask],
-        f.size[mask],
-        f.descriptors[mask],
-        f.kind,
-    )
 
 
 def depth_in_other_camera(

@@ -29,7 +29,7 @@ from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from types import MappingProxyType, TracebackType
-from typing import Any, Final, NamedTuple
+from typing import Any, Final, NamedTuple, Protocol
 
 import cv2
 import numpy as np
@@ -723,6 +723,41 @@ class Frame:
     T_world_camera: F64 | None
     depth_stamp: float | None = None
     thermal_stamp: float | None = None
+
+
+class FrameSource(Protocol):
+    """What consumers of frames need: :class:`DatasetReader` and the simulator's live runs.
+
+    Attributes:
+        root: the folder, or a display name for sources without one.
+        calibration: the sensor calibration.
+        stamps: (N,) colour stamps in seconds.
+    """
+
+    root: Path
+    calibration: Calibration
+    stamps: F64
+
+    def __len__(self) -> int: ...
+
+    def frame(self, i: int) -> Frame:
+        """Frame ``i``; raises IndexError out of range, DatasetError on unreadable data."""
+        ...
+
+    def odometry(self) -> tuple[F64, F64] | None:
+        """Wheel odometry ``(stamps (M,), T_odom_base (M, 4, 4))``, or None."""
+        ...
+
+    def groundtruth(self) -> tuple[F64, F64] | None:
+        """Ground-truth ``(stamps (K,), T_world_camera (K, 4, 4))``, or None."""
+        ...
+
+    def objects(self) -> dict[str, Any] | None:
+        """The ``objects.json`` document, or None."""
+        ...
+
+    @property
+    def has_labels(self) -> bool: ...
 
 
 class DatasetReader:

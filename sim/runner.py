@@ -18,23 +18,28 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from wardmap.shared.dataset import Calibration, DatasetWriter
+from wardmap.shared.dataset import DatasetWriter
 from wardmap.shared.errors import SimulationError
 from wardmap.shared.knowledge import KnowledgeGraph
-from wardmap.shared.se3 import make_transform, so3_exp, yaw_transform
-from wardmap.sim.geometry import TriangleSoup
-from wardmap.sim.odometry import BaseGeometry, OdometryNoise, simulate_odometry
-from wardmap.sim.scenarios import RobotRun, Scene, build_scene
+from wardmap.sim.live import (
+    CAMERA_RATE_HZ,
+    ODOMETRY_RATE_HZ,
+    SIM_EPOCH_S,
+    LiveRun,
+    base_pose,
+    calibration_of,
+)
+from wardmap.sim.scenarios import Scene, build_scene
 from wardmap.sim.sensors import SensorRig, SensorSimulator
-from wardmap.sim.world import soup_of
 
 log = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
-CAMERA_RATE_HZ = 10.0
-ODOMETRY_RATE_HZ = 50.0
-SIM_EPOCH_S = 1_700_000_000.0
 FORMAT_VERSION = 1
+__all__ = [
+    "CAMERA_RATE_HZ", "ODOMETRY_RATE_HZ", "SIM_EPOCH_S", "RobotSummary", "base_pose", "calibration_of",
+    "generate", "objects_document",
+]
 
 
 @dataclass(frozen=True)
@@ -46,38 +51,6 @@ class RobotSummary:
     frames: int
     duration_s: float
     length_m: float
-
-
-def base_pose(run: RobotRun, t: F64) -> F64:
-    """Ground-truth base poses ``T_world_base`` (N, 4, 4) at times ``t`` (N,) seconds.
-
-    Planar motion plus a small deterministic rocking (floor joints, tyre compliance):
-    pitch and roll of a few tenths of a degree as functions of the distance travelled.
-    """
-    x, y, yaw, s = run.track.at(t)
-    out = np.empty((len(t), 4, 4))
-    for i in range(len(t)):
-        pitch = np.radians(0.25) * np.sin(2 * np.pi * s[i] / 0.61) + np.radians(0.1) * np.sin(
-            2 * np.pi * s[i] / 0.23
-        )
-        roll = np.radians(0.2) * np.sin(2 * np.pi * s[i] / 0.83 + 1.0)
-        rock = make_transform(so3_exp([roll, pitch, 0.0]), [0.0, 0.0, 0.0])
-        out[i] = yaw_transform(float(x[i]), float(y[i]), float(yaw[i])) @ rock
-    return out
-
-
-def calibration_of(rig: SensorRig, geometry: BaseGeometry) -> Calibration:
-    return Calibration(
-        rgb=rig.rgb,
-        depth_scale=5000.0,
-        thermal=rig.thermal,
-        T_rgb_thermal=rig.T_rgb_thermal,
-        thermal_scale=100.0,
-        T_base_rgb=rig.T_base_rgb,
-        wheel_radius_m=geometry.wheel_radius_m,
-        wheel_base_m=geometry.wheel_base_m,
-        ticks_per_mm=geometry.ticks_per_mm,
-    )
 
 
 def objects_document(scene: Scene, stamps: F64, kg: KnowledgeGraph) -> dict[str, object]:
@@ -154,48 +127,30 @@ def generate(
         raise SimulationError(f"--frames must be positive, got {frames}")
     scene = build_scene(scenario, seed)
     rig = rig or SensorRig()
-    geometry = BaseGeometry()
     kg = KnowledgeGraph.load()
     sensors = SensorSimulator(scene.world.static, scene.world.bank.stack(), rig)
     out = Path(out)
     multi = len(scene.robots) > 1
     summaries = []
-    for r_index, run in enumerate(scene.robots):
+    for run in scene.robots:
         root = out / run.name if multi else out
-        n_total = int(np.floor(run.track.duration * CAMERA_RATE_HZ)) + 1
-        n = min(n_total, frames) if frames is not None else n_total
-        t_cam = run.track.t[0] + np.arange(n) / CAMERA_RATE_HZ
-        stamps = np.round(SIM_EPOCH_S + t_cam, 6)
-        T_world_base = base_pose(run, t_cam)
-        rng = np.random.default_rng([seed, r_index, 1])
+        live = LiveRun(scenario, seed, run.name, frames=frames, rig=rig, scene=scene, sensors=sensors)
+        n = len(live)
         started = time.perf_counter()
-        with DatasetWriter(root, calibration_of(rig, geometry), overwrite=overwrite) as writer:
+        with DatasetWriter(root, live.calibration, overwrite=overwrite) as writer:
             for i in range(n):
-                t = float(t_cam[i])
-                dyn = TriangleSoup.concat([soup_of(*a.at(t), a.id, scene.world.bank) for a in scene.actors])
-                T_world_rgb = T_world_base[i] @ rig.T_base_rgb
-                f = sensors.capture(T_world_rgb, dyn, scene.light(t), rng)
+                f = live.frame(i)
                 writer.write_frame(
-                    float(stamps[i]),
-                    f.rgb,
-                    f.depth_m,
-                    thermal_k=f.thermal_k,
-                    labels=f.labels,
-                    T_world_camera=T_world_rgb,
+                    f.stamp, f.rgb, f.depth_m, thermal_k=f.thermal_k, labels=f.labels,
+                    T_world_camera=f.T_world_camera,
                 )
                 if progress is not None:
                     progress(run.name, i + 1, n)
-            t_odo = np.arange(run.track.t[0], t_cam[-1] + 1e-9, 1.0 / ODOMETRY_RATE_HZ)
-            odo = simulate_odometry(
-                np.round(SIM_EPOCH_S + t_odo, 6),
-                base_pose(run, t_odo),
-                geometry,
-                OdometryNoise(),
-                np.random.default_rng([seed, r_index, 2]),
-            )
-            writer.write_odometry(odo.stamps, odo.T_odom_base)
-            writer.write_encoders(odo.encoders)
-            writer.write_objects(objects_document(scene, stamps, kg))
+            odo_stamps, T_odom_base, encoders = live.odometry_run()
+            writer.write_odometry(odo_stamps, T_odom_base)
+            writer.write_encoders(encoders)
+            writer.write_objects(objects_document(scene, live.stamps, kg))
+        t_cam = live.t_cam
         (root / "sim.json").write_text(
             json.dumps(
                 {

@@ -171,6 +171,30 @@ def test_edge_sends_every_keyframe_and_outbox_ends_empty(dataset: Path, router: 
     assert summary["rejected"] == {}
     assert {k for k in acker.keys() if k[0] == session} == expected  # noqa: SIM118 (a method, not a dict)
     assert _outbox_keys(outbox_dir / OUTBOX_FILE) == []
+    # Every keyframe was sent once and acked: one latency sample each, publish -> ack.
+    latency = summary["latency_ms"]
+    assert latency["n"] == summary["keyframes"]
+    assert 0 < latency["p50"] <= latency["p99"] <= latency["max"] < RUN_TIMEOUT_S * 1e3
+    assert 0 < summary["bytes_per_keyframe"] <= 100_000  # the default size budget (docs/wire.md)
+
+
+def test_edge_sim_source_renders_live_and_delivers(router: str, tmp_path: Path) -> None:
+    """``--source sim:SCENARIO:SEED`` renders frames in the agent; keyframes carry the
+    tracker's keypoints (at most max_keypoints) and arrive like a data set's."""
+    outbox_dir = tmp_path / "outbox"
+    with Acker(router) as acker:
+        args = ("--robot", "r5", "--source", "sim:aisle_slow_1:0", "--connect", router,
+                "--outbox", str(outbox_dir), "--max-frames", "12", "--labels", "oracle")
+        done = subprocess.run(
+            _edge_cmd(*args), capture_output=True, text=True, timeout=RUN_TIMEOUT_S, env=_env()
+        )
+        assert done.returncode == 0, done.stderr
+        summary = _summary(done.stdout)
+        expected = {(summary["session_id"], seq) for seq in range(summary["keyframes"])}
+        assert acker.wait_for(expected, EVENT_TIMEOUT_S)
+    assert summary["frames"] == 12 and summary["keyframes"] >= 2
+    assert summary["acked"] == summary["keyframes"] and summary["pending"] == 0
+    assert summary["thermal_keyframes"] >= 1  # the first keyframe always carries thermal
 
 
 def test_edge_resumes_unacked_keyframes_after_sigterm(dataset: Path, router: str, tmp_path: Path) -> None:
@@ -235,7 +259,9 @@ def test_edge_resumes_unacked_keyframes_after_sigterm(dataset: Path, router: str
         ("r1", "{missing}", "tcp/127.0.0.1:7447", "is not a folder"),
         ("r1", "{dataset}", "tcp/nohost", "bad endpoint"),
         ("bad id!", "{dataset}", "tcp/127.0.0.1:7447", "bad robot id"),
-        ("r1", "sim:aisle_slow_1:0", "tcp/127.0.0.1:7447", "not supported yet"),
+        ("r1", "sim:no_such_scene", "tcp/127.0.0.1:7447", "unknown scenario"),
+        ("r1", "sim:two_robots:0:robot_9", "tcp/127.0.0.1:7447", "has no robot"),
+        ("r1", "sim:aisle_slow_1:x", "tcp/127.0.0.1:7447", "bad simulated source"),
     ],
 )
 def test_edge_bad_inputs_exit_1_with_one_line(
