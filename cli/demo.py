@@ -1,10 +1,12 @@
 """``wardmap demo``: the whole system on loopback, for a newcomer's first command.
 
-Simulates N robots' data sets, then starts ``wardmap router``, ``wardmap server`` and N
-``wardmap edge`` processes as subprocesses (the same Python: ``sys.executable -m wardmap.cli``),
-waits for each one's ready line, shows progress while the edges run, prints a summary table
-(keyframes produced vs delivered, ATE of the server's trajectory, bytes per keyframe) and keeps
-router + server running until Ctrl-C (or stops at once with ``exit_after``).
+Starts ``wardmap router``, ``wardmap server`` and N ``wardmap edge`` processes as subprocesses
+(the same Python: ``sys.executable -m wardmap.cli``); each edge renders its simulated robot live
+(``--source sim:SCENARIO:SEED:ROBOT``) at the camera rate, so the robots run in parallel like
+real ones. The demo waits for each child's ready line, shows progress while the edges run,
+prints a summary table (keyframes produced vs delivered, ATE of the server's trajectory against
+the simulator's ground truth, bytes per keyframe, publish -> ack latency) and keeps router +
+server running until Ctrl-C (or stops at once with ``exit_after``).
 
 Why this lives in ``cli/`` and not in ``server/`` or ``edge/``: the demo orchestrates processes
 of both sides (edge agents, map server, router) and reads the simulator's and the data set's
@@ -34,7 +36,6 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterator
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType
@@ -49,7 +50,6 @@ __all__ = ["DemoError", "DemoOptions", "RobotPlan", "RobotResult", "plan_robots"
 CAMERA_RATE_HZ = 10.0
 """The simulator's camera rate; frames = duration * this."""
 MAX_ROBOTS = 4
-SIM_WORKERS = 2
 READY_TIMEOUT_S = 30.0
 STOP_TIMEOUT_S = 10.0
 PROGRESS_PERIOD_S = 2.0
@@ -98,6 +98,12 @@ class RobotPlan:
     def label(self) -> str:
         return f"{self.scenario}/{self.sim_robot}" if self.sim_robot else f"{self.scenario}"
 
+    @property
+    def source(self) -> str:
+        """The edge's ``--source``: ``sim:SCENARIO:SEED[:ROBOT]``."""
+        robot = f":{self.sim_robot}" if self.sim_robot else ""
+        return f"sim:{self.scenario}:{self.seed}{robot}"
+
 
 @dataclass
 class RobotResult:
@@ -109,6 +115,7 @@ class RobotResult:
     ate_rmse_m: float | None
     ate_note: str
     bytes_per_keyframe: float | None
+    latency_ms: dict[str, float] | None = None
     edge_summary: dict[str, Any] = field(default_factory=dict)
 
 
@@ -124,61 +131,9 @@ def plan_robots(n: int, seed: int) -> list[RobotPlan]:
     return plans
 
 
-# --------------------------------------------------------------------------- simulation
-
-
 def _say(msg: str) -> None:
     """One progress line on stderr."""
     print(msg, file=sys.stderr, flush=True)
-
-
-def _sim_job(scenario: str, seed: int, out: str, frames: int) -> dict[str, str]:
-    """Worker process: render one scenario; returns ``{sim robot name: data-set folder}``."""
-    from wardmap.sim.runner import generate
-
-    step = max(1, frames // 4)
-
-    def progress(robot: str, i: int, n: int) -> None:
-        if i == n or i % step == 0:
-            _say(f"demo: sim {scenario} seed {seed} {robot}: {i}/{n} frames")
-
-    summaries = generate(scenario, seed, out, frames=frames, progress=progress)
-    return {s.name: str(s.path) for s in summaries}
-
-
-def simulate(plans: list[RobotPlan], data_dir: Path, frames: int) -> dict[str, Path]:
-    """Generate every robot's data set, ``SIM_WORKERS`` scenarios in parallel; robot id -> folder."""
-    import multiprocessing
-
-    jobs: dict[tuple[str, int], Path] = {}
-    for p in plans:
-        key = (p.scenario, p.seed)
-        if key not in jobs:
-            name = p.scenario if p.sim_robot else p.robot_id
-            jobs[key] = data_dir / f"{name}_seed{p.seed}"
-    _say(f"demo: simulating {len(plans)} robots ({frames} frames each, {len(jobs)} scenario runs, "
-          f"{SIM_WORKERS} processes)")
-    started = time.monotonic()
-    ctx = multiprocessing.get_context("spawn")  # no fork of a process that may hold threads
-    with ProcessPoolExecutor(max_workers=min(SIM_WORKERS, len(jobs)), mp_context=ctx) as pool:
-        futures = {key: pool.submit(_sim_job, key[0], key[1], str(out), frames) for key, out in jobs.items()}
-        results = {}
-        for key, fut in futures.items():
-            try:
-                results[key] = fut.result()
-            except Exception as exc:  # any worker failure becomes one line
-                raise DemoError(f"simulating {key[0]} (seed {key[1]}) failed: {exc}") from exc
-    paths = {}
-    for p in plans:
-        per_robot = results[(p.scenario, p.seed)]
-        if p.sim_robot is not None:
-            if p.sim_robot not in per_robot:
-                raise DemoError(f"scenario {p.scenario} has no robot {p.sim_robot} (has {sorted(per_robot)})")
-            paths[p.robot_id] = Path(per_robot[p.sim_robot])
-        else:
-            paths[p.robot_id] = Path(next(iter(per_robot.values())))
-    _say(f"demo: simulated in {time.monotonic() - started:.1f} s")
-    return paths
 
 
 # --------------------------------------------------------------------------- child processes
@@ -372,11 +327,10 @@ def _payload_bytes(http: Any, robot_id: str) -> list[int]:
             return sizes
 
 
-def _ate(http: Any, robot_id: str, dataset: Path) -> tuple[float | None, str]:
-    """RMSE ATE (SE3-aligned) of the server's trajectory against the data set's ground truth."""
+def _ate(http: Any, robot_id: str, plan: RobotPlan) -> tuple[float | None, str]:
+    """RMSE ATE (SE3-aligned) of the server's trajectory against the simulator's ground truth."""
     import numpy as np
 
-    from wardmap.shared.dataset import DatasetReader
     from wardmap.shared.metrics import ate
     from wardmap.shared.se3 import transform_from_tum
 
@@ -385,9 +339,9 @@ def _ate(http: Any, robot_id: str, dataset: Path) -> tuple[float | None, str]:
         return None, "no trajectory on the server"
     r.raise_for_status()
     poses = r.json()["poses"]
-    gt = DatasetReader(dataset).groundtruth()
-    if gt is None:
-        return None, "data set has no ground truth"
+    from wardmap.sim.live import LiveRun
+
+    gt = LiveRun(plan.scenario, plan.seed, plan.sim_robot).groundtruth()
     stamps = np.array([p["stamp"] for p in poses], np.float64)
     rows = [transform_from_tum([*p["t"], *p["q_xyzw"]]) for p in poses]
     T = np.stack(rows) if rows else np.zeros((0, 4, 4))
@@ -403,7 +357,8 @@ def _ate(http: Any, robot_id: str, dataset: Path) -> tuple[float | None, str]:
 
 
 def format_summary(results: list[RobotResult], opts: DemoOptions) -> str:
-    head = ("robot", "data set", "frames", "produced", "delivered", "ATE rmse [m]", "bytes/keyframe")
+    head = ("robot", "source", "frames", "produced", "delivered", "ATE rmse [m]", "bytes/keyframe",
+            "latency p50/p99 [ms]")
     rows = [head]
     for r in results:
         rows.append((
@@ -414,6 +369,7 @@ def format_summary(results: list[RobotResult], opts: DemoOptions) -> str:
             str(r.delivered),
             f"{r.ate_rmse_m:.4f}" if r.ate_rmse_m is not None else "n/a",
             f"{r.bytes_per_keyframe:,.0f}" if r.bytes_per_keyframe is not None else "n/a",
+            f"{r.latency_ms['p50']:.0f}/{r.latency_ms['p99']:.0f}" if r.latency_ms else "n/a",
         ))
     widths = [max(len(row[i]) for row in rows) for i in range(len(head))]
     lines = [f"SUMMARY: {len(results)} robots, {opts.duration_s:g} s of camera at {CAMERA_RATE_HZ:g} Hz, "
@@ -428,8 +384,8 @@ def format_summary(results: list[RobotResult], opts: DemoOptions) -> str:
             lines.append(f"{r.robot_id}: no ATE: {r.ate_note}")
     lines.append("produced: keyframes the edge made (its summary); delivered: keyframes the server stored; "
                  "ATE: server trajectory vs ground truth, SE3-aligned")
-    lines.append("end-to-end latency: not available (keyframes carry the data set's capture stamp, "
-                 "not a send time; the server records only its receive time)")
+    lines.append("latency: from the edge's first publish of a keyframe to its ack (the server acks "
+                 "after the database commit)")
     return "\n".join(lines)
 
 
@@ -482,7 +438,6 @@ def _run(opts: DemoOptions, work: Path, children: list[Child], wait: Callable[[]
         _say(f"demo: HTTP address {opts.http} is busy; using {host}:{port} instead")
     logs = work / "logs"
     logs.mkdir()
-    datasets = simulate(plans, work / "data", opts.frames)
 
     def start(name: str, args: list[str], accept: Callable[[str], bool]) -> Child:
         child = Child(name, args, logs)
@@ -501,13 +456,14 @@ def _run(opts: DemoOptions, work: Path, children: list[Child], wait: Callable[[]
     )
     edges: dict[str, Child] = {}
     for p in plans:
-        args = ["edge", "--robot", p.robot_id, "--source", str(datasets[p.robot_id]), "--connect", endpoint,
-                "--outbox", str(work / "outbox" / p.robot_id), "--rate", f"{CAMERA_RATE_HZ:g}"]
+        args = ["edge", "--robot", p.robot_id, "--source", p.source, "--connect", endpoint,
+                "--outbox", str(work / "outbox" / p.robot_id), "--rate", f"{CAMERA_RATE_HZ:g}",
+                "--max-frames", str(opts.frames)]
         edges[p.robot_id] = start(f"edge {p.robot_id}", args, lambda s: " ready: session " in s)
 
     with httpx.Client(base_url=url, timeout=10.0) as http:
         _watch(opts, router, server, edges, http)
-        results = _collect(plans, datasets, edges, http)
+        results = _collect(plans, edges, http)
         print(format_summary(results, opts), flush=True)
         router.summary_printed = True
         short = [r.robot_id for r in results if r.delivered != r.produced or r.produced == 0]
@@ -560,9 +516,7 @@ def httpx_errors() -> tuple[type[Exception], ...]:
     return (httpx.HTTPError,)
 
 
-def _collect(
-    plans: list[RobotPlan], datasets: dict[str, Path], edges: dict[str, Child], http: Any
-) -> list[RobotResult]:
+def _collect(plans: list[RobotPlan], edges: dict[str, Child], http: Any) -> list[RobotResult]:
     counts = _robot_counts(http)
     results = []
     for p in plans:
@@ -582,7 +536,7 @@ def _collect(
         if summary is None:
             raise edge.died("printed no JSON summary")
         sizes = _payload_bytes(http, p.robot_id)
-        rmse, note = _ate(http, p.robot_id, datasets[p.robot_id])
+        rmse, note = _ate(http, p.robot_id, p)
         results.append(RobotResult(
             robot_id=p.robot_id,
             dataset=p.label if p.sim_robot else f"{p.label} seed {p.seed}",
@@ -592,6 +546,7 @@ def _collect(
             ate_rmse_m=rmse,
             ate_note=note,
             bytes_per_keyframe=sum(sizes) / len(sizes) if sizes else None,
+            latency_ms=summary.get("latency_ms"),
             edge_summary=summary,
         ))
     return results

@@ -18,7 +18,7 @@ pytest.importorskip("zenoh")
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(180)]
 
 RUN_TIMEOUT_S = 150.0
-ROW = re.compile(r"^(robot_\d+)\s+\S+\s+(\d+)\s+(\d+)\s+(\d+)\s+(\S+)\s+(\S+)$")
+ROW = re.compile(r"^(robot_\d+)\s+\S+\s+(\d+)\s+(\d+)\s+(\d+)\s+(\S+)\s+([\d,]+)\s+(\d+)/(\d+)$")
 
 
 def _cmdline(pid: int) -> str | None:
@@ -70,6 +70,8 @@ def test_demo_two_robots_exits_cleanly() -> None:
         assert delivered == produced > 0, (robot, done.stdout)
         ate = float(m.group(5))  # "n/a" would raise here
         assert math.isfinite(ate) and ate >= 0.0, (robot, done.stdout)
+        assert 0 < int(m.group(6).replace(",", "")) <= 100_000, (robot, done.stdout)  # bytes/keyframe
+        assert 0 < int(m.group(7)) <= int(m.group(8)), (robot, done.stdout)  # latency p50 <= p99, ms
     assert "map server: http://127.0.0.1:" in done.stdout
 
     # every child the demo started is gone, and its temporary work folder with it
