@@ -190,10 +190,11 @@ def _walking_staff(seed: int) -> Scene:
         hair: str,
         role: str,
         speed: float = 1.1,
+        accel: float = 1.0,
         **kw: object,
     ) -> Walker:
         tr = hold(
-            plan_path(way, speed=speed, turn_radius=0.4, max_yaw_rate=2.0, accel=1.0, t0=t0), T_total + 1
+            plan_path(way, speed=speed, turn_radius=0.4, max_yaw_rate=2.0, accel=accel, t0=t0), T_total + 1
         )
         if tr.t[0] > 0:
             tr = Track(
@@ -207,15 +208,18 @@ def _walking_staff(seed: int) -> Scene:
 
     # Staff walking towards the robot, passing on its left.
     p1 = walker([[20.0, 2.3], [2.0, 2.3]], 4.0, "scrubs_blue", "face_a", "hair_a", "staff")
-    # A nurse pushing a cart ahead of the robot, in the same direction.
+    # A nurse pushing a cart ahead of the robot, in the same direction and at the robot's pace:
+    # cart and nurse keep their place in the image, so their points look static to a tracker
+    # that does not know what people are (the case dynamic-point removal exists for).
     p2 = walker(
-        [[3.2, 1.2], [21.0, 1.2]],
+        [[3.4, 1.45], [21.0, 1.45]],
         0.0,
         "scrubs_green",
         "face_b",
         "hair_b",
         "staff",
-        speed=0.45,
+        speed=0.25,
+        accel=0.4,
         arms_forward=True,
     )
     cart_front = b.texture("cart_front", lambda g: textures.panelled(g, (200, 215, 230), 4, 1))

@@ -159,25 +159,25 @@ def test_onnx_detector_on_a_real_tum_frame(kg: KnowledgeGraph) -> None:
 
 @pytest.fixture(scope="module")
 def walking_staff(tmp_path_factory: pytest.TempPathFactory) -> DatasetReader:
-    """The simulated 'walking_staff' scenario, seed 0, first 70 frames (7 s at 10 Hz)."""
+    """The simulated 'walking_staff' scenario, seed 0, first 171 frames (17 s at 10 Hz)."""
     from wardmap.sim.runner import generate
 
     out = tmp_path_factory.mktemp("walking_staff")
-    generate("walking_staff", 0, out, frames=70)
+    generate("walking_staff", 0, out, frames=171)
     return DatasetReader(out)
 
 
 @needs_model
 @pytest.mark.slow
 def test_onnx_detector_finds_a_simulated_person(walking_staff: DatasetReader, kg: KnowledgeGraph) -> None:
-    """Scenario: frame 60 (t = 6 s) of the simulated walking-staff corridor, where staff
-    walk in view: the detector finds at least one person whose box holds ground-truth
-    person pixels, and the person pixels of its label image overlap the ground truth."""
+    """Scenario: frame 170 (t = 17 s) of the simulated walking-staff corridor, where a visitor
+    crosses close in front of the robot: the detector finds at least one person whose box holds
+    ground-truth person pixels, and the person pixels of its label image overlap the ground truth."""
     from wardmap.edge.labels import OnnxDetectorLabels
 
     source = make_label_source(f"onnx:{MODEL}", dataset=walking_staff, kg=kg, threads=1)
     assert isinstance(source, OnnxDetectorLabels)
-    frame = walking_staff.frame(60)
+    frame = walking_staff.frame(170)
     assert frame.labels is not None
     document = walking_staff.objects()
     assert document is not None
