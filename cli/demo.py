@@ -327,6 +327,18 @@ def _payload_bytes(http: Any, robot_id: str) -> list[int]:
             return sizes
 
 
+def map_pose(plan: RobotPlan) -> str:
+    """``X,Y,YAW_DEG`` of the robot's start on the map: the simulated world is the map, and the
+    robot starts at a known pose (as a real one starts at its dock)."""
+    import numpy as np
+
+    from wardmap.sim.live import LiveRun
+
+    T = LiveRun(plan.scenario, plan.seed, plan.sim_robot, frames=1).T_world_odom()
+    yaw = float(np.degrees(np.arctan2(T[1, 0], T[0, 0])))
+    return f"{T[0, 3]:.4f},{T[1, 3]:.4f},{yaw:.3f}"
+
+
 def _ate(http: Any, robot_id: str, plan: RobotPlan) -> tuple[float | None, str]:
     """RMSE ATE (SE3-aligned) of the server's trajectory against the simulator's ground truth."""
     import numpy as np
@@ -458,7 +470,7 @@ def _run(opts: DemoOptions, work: Path, children: list[Child], wait: Callable[[]
     for p in plans:
         args = ["edge", "--robot", p.robot_id, "--source", p.source, "--connect", endpoint,
                 "--outbox", str(work / "outbox" / p.robot_id), "--rate", f"{CAMERA_RATE_HZ:g}",
-                "--max-frames", str(opts.frames)]
+                "--max-frames", str(opts.frames), "--map-pose", map_pose(p)]
         edges[p.robot_id] = start(f"edge {p.robot_id}", args, lambda s: " ready: session " in s)
 
     with httpx.Client(base_url=url, timeout=10.0) as http:

@@ -34,8 +34,30 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--rate", type=float, metavar="HZ", help="frames per second (0 = as fast as possible)")
     p.add_argument("--max-frames", type=int, metavar="K", help="stop after K frames")
     p.add_argument("--labels", metavar="none|oracle|onnx:PATH", help="label source for dynamic-point removal")
+    p.add_argument(
+        "--map-pose", metavar="X,Y,YAW_DEG",
+        help="the robot's start pose on the shared map (metres, degrees), e.g. its dock; "
+        "lets the server put this session's objects on the map",
+    )
     p.add_argument("--config", metavar="FILE", help="TOML file with [tracker] and [agent] tables")
     p.set_defaults(func=run)
+
+
+def parse_map_pose(text: str) -> Any:
+    """``X,Y,YAW_DEG`` -> (4, 4) planar pose; ConfigError naming the flag otherwise."""
+    import math
+
+    from wardmap.shared.errors import ConfigError
+    from wardmap.shared.se3 import yaw_transform
+
+    parts = text.split(",")
+    try:
+        x, y, yaw_deg = (float(v) for v in parts)
+    except ValueError:
+        raise ConfigError(f"bad --map-pose {text!r}: expected X,Y,YAW_DEG, e.g. 2.5,1.0,90") from None
+    if not all(math.isfinite(v) for v in (x, y, yaw_deg)):
+        raise ConfigError(f"bad --map-pose {text!r}: values must be finite")
+    return yaw_transform(x, y, math.radians(yaw_deg))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -60,6 +82,7 @@ def run(args: argparse.Namespace) -> int:
     if args.labels is not None:
         overrides["labels"] = args.labels
     agent_cfg = dataclasses.replace(agent_cfg, **overrides)  # re-validated by __post_init__
+    T_map_odom = None if args.map_pose is None else parse_map_pose(args.map_pose)
     agent = EdgeAgent(
         args.robot,
         source,
@@ -67,6 +90,7 @@ def run(args: argparse.Namespace) -> int:
         args.outbox / OUTBOX_FILE,
         config=agent_cfg,
         tracker_config=tracker_cfg,
+        T_map_odom=T_map_odom,
     )
 
     def ready(session_id: str, pending: int) -> None:

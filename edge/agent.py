@@ -218,8 +218,14 @@ class EdgeAgent:
         *,
         config: AgentConfig | None = None,
         tracker_config: TrackerConfig | None = None,
+        T_map_odom: NDArray[np.float64] | None = None,
     ) -> None:
+        """Args:
+            T_map_odom: (4, 4) this session's odom frame (the base at start) in the shared map,
+                when the robot starts at a known map pose; sent with every keyframe.
+        """
         self.robot_id = validate_robot_id(robot_id)
+        self.T_map_odom = None if T_map_odom is None else np.array(T_map_odom, np.float64)
         self.connect = [validate_endpoint(e) for e in connect]
         if not self.connect:
             raise ConfigError("the edge agent needs at least one --connect endpoint")
@@ -438,6 +444,7 @@ class EdgeAgent:
             intrinsics=intrinsics,
             T_odom_base=T_odom_base,
             thermal=thermal,
+            T_map_odom=self.T_map_odom,
         )
 
     def _put_with_backpressure(self, ids: SessionIds, msg: KeyframeMsg, track: _TrackStats) -> bool:

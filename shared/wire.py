@@ -494,6 +494,10 @@ class KeyframeMsg:
             ``calibration.toml``), 1-128 characters ``[A-Za-z0-9_.:-]``, or None.
         T_odom_base: (4, 4) wheel-odometry pose of the robot base at ``stamp``, or None.
         thermal: thermal image in kelvin (:func:`encode_thermal`), own size, or None.
+        T_map_odom: (4, 4) the session's odom frame in the shared map frame, when the robot
+            was started at a known map pose (e.g. its docking station; ``wardmap edge
+            --map-pose``); None when unknown (the server then keeps the session in its own
+            frame until loop closure aligns it).
     """
 
     robot_id: str
@@ -509,11 +513,14 @@ class KeyframeMsg:
     calib_ref: str | None = None
     T_odom_base: F64 | None = None
     thermal: PackedRaster | None = None
+    T_map_odom: F64 | None = None
 
     def __post_init__(self) -> None:
         _check_id(self.robot_id, "robot_id")
         _check_id(self.session_id, "session_id")
         _check_int(self.seq, "seq", 0, _UINT63)
+        if self.T_map_odom is not None:
+            object.__setattr__(self, "T_map_odom", _check_pose(self.T_map_odom, "T_map_odom"))
         object.__setattr__(self, "stamp", _check_float(self.stamp, "stamp", positive=True))
         object.__setattr__(self, "T_odom_camera", _check_pose(self.T_odom_camera, "T_odom_camera"))
         if self.T_odom_base is not None:
@@ -666,6 +673,8 @@ def _to_wire(msg: Message) -> dict[str, Any]:
             d["T_odom_base"] = _pose_to_wire(msg.T_odom_base)
         if msg.thermal is not None:
             d["thermal"] = _raster_to_wire(msg.thermal)
+        if msg.T_map_odom is not None:
+            d["T_map_odom"] = _pose_to_wire(msg.T_map_odom)
         return d
     if isinstance(msg, AckMsg):
         return {"schema": SCHEMA_ACK, "version": SCHEMA_VERSION, "robot_id": msg.robot_id,
@@ -828,11 +837,14 @@ def _keyframe_from_wire(f: _Fields) -> KeyframeMsg:
     depth = _raster_from_wire(f.get("depth"), "depth")
     raw_th = f.optional("thermal")
     thermal = None if raw_th is None else _raster_from_wire(raw_th, "thermal")
+    raw_map = f.optional("T_map_odom")
+    T_map_odom = None if raw_map is None else _pose_from_wire(raw_map, "T_map_odom")
     f.done()
     return KeyframeMsg(
         robot_id=robot_id, session_id=session_id, seq=seq, stamp=stamp, T_odom_camera=T_odom_camera,
         pose_source=source, keypoints=keypoints, rgb_jpeg=rgb_jpeg, depth=depth,  # type: ignore[arg-type]
         intrinsics=intrinsics, calib_ref=calib_ref, T_odom_base=T_odom_base, thermal=thermal,
+        T_map_odom=T_map_odom,
     )
 
 

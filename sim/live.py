@@ -246,6 +246,15 @@ class LiveRun:
         stamps, T, enc = self._odometry
         return stamps, T, enc
 
+    def T_world_odom(self) -> F64:
+        """(4, 4) the odometry frame in the world: the base at the first stamp, planar (z = 0, no tilt).
+
+        What an operator knows when the robot starts at a known map pose (its dock); give it to
+        ``wardmap edge --map-pose X,Y,YAW_DEG``.
+        """
+        x, y, yaw, _ = self.run.track.at(self.run.track.t[:1])
+        return yaw_transform(float(x[0]), float(y[0]), float(yaw[0]))
+
     def groundtruth(self) -> tuple[F64, F64]:
         """Ground-truth ``(stamps (N,), T_world_camera (N, 4, 4))`` of the colour camera."""
         return self.stamps, self.T_world_base @ self.rig.T_base_rgb

@@ -141,3 +141,22 @@ def test_eval_ate_bad_input(tmp_path: Path) -> None:
     bad = tmp_path / "bad.txt"
     bad.write_text("1.0 0 0 0 0 0 0\n")  # 7 columns: missing qw
     _one_line_error(wardmap("eval", "ate", str(bad), "--reference", str(bad)), "wardmap eval: error:")
+
+
+@pytest.mark.parametrize("pose", ["1,2", "a,b,c", "1,2,nan"])
+def test_edge_bad_map_pose(tmp_path: Path, pose: str) -> None:
+    """A malformed --map-pose fails before anything connects or an outbox is made."""
+    p = wardmap("edge", "--robot", "r1", "--source", "sim:aisle_slow_1", "--connect", "tcp/127.0.0.1:7447",
+                "--outbox", str(tmp_path / "ob"), "--map-pose", pose)
+    _one_line_error(p, "--map-pose")
+    assert not (tmp_path / "ob").exists()
+
+
+def test_map_pose_is_a_planar_pose() -> None:
+    import numpy as np
+
+    from wardmap.cli.edge_cmd import parse_map_pose
+
+    T = parse_map_pose("2.5,-1,90")
+    np.testing.assert_allclose(T[:3, 3], [2.5, -1.0, 0.0])
+    np.testing.assert_allclose(T[:3, :3] @ [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], atol=1e-12)

@@ -84,6 +84,7 @@ def make_keyframe(rng: np.random.Generator, *, thermal: bool = True, intrinsics:
         calib_ref=None if intrinsics else "sha256:" + "ab" * 32,
         T_odom_base=random_pose(rng) if base else None,
         thermal=PackedRaster(*wire.encode_thermal(random_thermal(rng))) if thermal else None,
+        T_map_odom=random_pose(rng) if base else None,
     )
 
 
@@ -104,6 +105,11 @@ def assert_keyframes_equal(a: KeyframeMsg, b: KeyframeMsg) -> None:
     else:
         assert b.T_odom_base is not None
         np.testing.assert_allclose(a.T_odom_base, b.T_odom_base, atol=1e-12)
+    if a.T_map_odom is None:
+        assert b.T_map_odom is None
+    else:
+        assert b.T_map_odom is not None
+        np.testing.assert_allclose(a.T_map_odom, b.T_map_odom, atol=1e-12)
     for name in ("uv", "octave", "angle_deg", "depth_m", "descriptors"):
         x, y = getattr(a.keypoints, name), getattr(b.keypoints, name)
         assert x.dtype == y.dtype and np.array_equal(x, y), name
@@ -357,6 +363,8 @@ KEYFRAME_CASES: list[tuple[str, Mutation, str]] = [
     ("pose missing quaternion", _delete("T_odom_camera.q_xyzw"), "T_odom_camera.q_xyzw"),
     ("pose extra key", _set("T_odom_camera.R", [1]), "T_odom_camera.R"),
     ("base non-unit quaternion", _set("T_odom_base.q_xyzw", [0.5, 0.0, 0.0, 0.5]), "T_odom_base.q_xyzw"),
+    ("map pose NaN", _set("T_map_odom.t", [0.0, math.nan, 0.0]), "T_map_odom.t[1]"),
+    ("map pose wrong type", _set("T_map_odom", "dock"), "T_map_odom"),
     ("pose_source unknown", _set("pose_source", "teleport"), "pose_source"),
     ("pose_source wrong type", _set("pose_source", 3), "pose_source"),
     ("keypoints missing", _delete("keypoints"), "keypoints"),
