@@ -10,12 +10,15 @@ spec              source
 ================  ==========================================================================
 ``none``          no labels: every frame gives None (geometry-only tracking)
 ``oracle``        the simulator's ground truth: ``labels/`` instance ids + ``objects.json``
-``onnx:PATH``     a YOLOX-format ONNX detector run with onnxruntime on the CPU, boxes turned
-                  into instance masks with the depth image (:mod:`wardmap.shared.detection`)
+``onnx:PATH``     an ONNX model run with onnxruntime on the CPU, either a wardmap segmentation
+                  network (``wardmap train-seg``, e.g. the packaged
+                  ``server/models/hospital_seg.onnx``; recognised by its ``wardmap.classes``
+                  metadata, :mod:`wardmap.shared.segmentation`) whose class map is the label
+                  image, or a YOLOX-format detector whose boxes are turned into instance
+                  masks with the depth image (:mod:`wardmap.shared.detection`)
 ================  ==========================================================================
 
-:data:`LABEL_SOURCES` maps each spec prefix to its factory; the trained segmentation
-network will plug in as another prefix (``seg:PATH``). Heavy imports (onnxruntime)
+:data:`LABEL_SOURCES` maps each spec prefix to its factory. Heavy imports (onnxruntime)
 happen inside the factories, so importing this module loads nothing, and a missing
 dependency or model file fails when the source is made, with a
 :class:`~wardmap.shared.errors.ConfigError` saying what to do.
@@ -45,6 +48,7 @@ from wardmap.shared.detection import (
 )
 from wardmap.shared.errors import ConfigError, DatasetError, KnowledgeGraphError
 from wardmap.shared.knowledge import KnowledgeGraph
+from wardmap.shared.segmentation import INPUT_NAME, OUTPUT_NAME, SegContract, is_segmentation_model
 
 __all__ = [
     "LABEL_SOURCES",
@@ -54,6 +58,7 @@ __all__ = [
     "LabelSourceEntry",
     "NoLabels",
     "OnnxDetectorLabels",
+    "OnnxSegmentationLabels",
     "OracleLabels",
     "make_label_source",
 ]
@@ -64,11 +69,12 @@ U8 = NDArray[np.uint8]
 U16 = NDArray[np.uint16]
 
 WEIGHTS_HINT: Final = (
-    "wardmap ships no model weights; download a YOLOX ONNX export (for example "
-    "yolox_nano.onnx from the releases of github.com/Megvii-BaseDetection/YOLOX, see its "
-    "demo/ONNXRuntime page) and pass its path as onnx:PATH"
+    "give either a wardmap segmentation network (the package ships one, trained by "
+    "wardmap train-seg: wardmap/server/models/hospital_seg.onnx) or a YOLOX ONNX export "
+    "(wardmap ships no detector weights; for example yolox_nano.onnx from the releases of "
+    "github.com/Megvii-BaseDetection/YOLOX, see its demo/ONNXRuntime page) as onnx:PATH"
 )
-"""Where to get detector weights, appended to errors about a missing or bad model."""
+"""Which models fit and where to get them, appended to errors about a missing or bad model."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -275,6 +281,40 @@ class OnnxDetectorLabels:
         return LabelResult(class_image=class_image, instance_image=instance_image, inference_ms=elapsed_ms)
 
 
+class OnnxSegmentationLabels:
+    """The ``onnx:PATH`` source with a wardmap segmentation network (:mod:`wardmap.shared.segmentation`).
+
+    Each frame: rgb -> the network's input size -> per-pixel argmax, resized back (nearest).
+    The network's class indices are the knowledge graph's (checked at start-up), so its class
+    map is the label image; it has no instances.
+    """
+
+    def __init__(self, session: Any, kg: KnowledgeGraph, *, name: str) -> None:
+        """Wrap an ``onnxruntime.InferenceSession`` of a segmentation network.
+
+        Raises:
+            ConfigError: the model breaks the contract (names, shapes, metadata, classes).
+        """
+        self.name = name
+        self._session = session
+        meta = dict(session.get_modelmeta().custom_metadata_map)
+        self._contract = SegContract.check(
+            meta,
+            [(i.name, i.shape) for i in session.get_inputs()],
+            [(o.name, o.shape) for o in session.get_outputs()],
+            kg,
+            name,
+        )
+
+    def labels(self, frame: Frame) -> LabelResult:
+        started = time.perf_counter()
+        bgr = np.ascontiguousarray(frame.rgb[..., ::-1])
+        (logits,) = self._session.run([OUTPUT_NAME], {INPUT_NAME: self._contract.preprocess(bgr)})
+        classes, _ = self._contract.postprocess(logits, bgr.shape[:2], self.name)
+        elapsed_ms = (time.perf_counter() - started) * 1e3
+        return LabelResult(class_image=classes, instance_image=None, inference_ms=elapsed_ms)
+
+
 # ---------------------------------------------------------------------------- registry
 
 
@@ -309,6 +349,8 @@ def _make_onnx(argument: str, context: LabelSourceContext) -> LabelSource:
         raise ConfigError(f"label source 'onnx:{argument}': cannot load {path} as an ONNX model: "
                           f"{exc}; {WEIGHTS_HINT}") from exc
     log.info("onnx label source: %s on %d CPU thread(s)", path, context.threads)
+    if is_segmentation_model(dict(session.get_modelmeta().custom_metadata_map)):
+        return OnnxSegmentationLabels(session, context.kg, name=f"onnx:{path.name}")
     return OnnxDetectorLabels(session, context.kg, name=f"onnx:{path.name}")
 
 
@@ -334,8 +376,7 @@ LABEL_SOURCES: Final[Mapping[str, LabelSourceEntry]] = MappingProxyType({
     "oracle": LabelSourceEntry(_make_oracle),
     "onnx": LabelSourceEntry(_make_onnx, "PATH"),
 })
-"""Spec prefix -> factory; a new source (the trained segmentation network, ``seg:PATH``)
-is one more entry here."""
+"""Spec prefix -> factory; a new kind of source is one more entry here."""
 
 
 def _usage() -> str:

@@ -198,3 +198,27 @@ def test_onnx_detector_finds_a_simulated_person(walking_staff: DatasetReader, kg
     assert result.inference_ms > 0.0
     labelled_person = result.class_image == kg.index_of("person")
     assert np.count_nonzero(labelled_person & truth) > 0
+
+
+SEG_MODEL = Path(__file__).resolve().parents[2] / "server" / "models" / "hospital_seg.onnx"
+
+
+@pytest.mark.skipif(not SEG_MODEL.is_file(), reason="the packaged segmentation network is not built")
+def test_onnx_source_runs_a_segmentation_network(walking_staff: DatasetReader, kg: KnowledgeGraph) -> None:
+    """onnx:PATH recognises a wardmap segmentation network by its metadata; its class map is the
+    label image: on frame 60 (the nurse pushing a cart ahead) its person pixels overlap the truth."""
+    from wardmap.edge.labels import OnnxSegmentationLabels
+
+    source = make_label_source(f"onnx:{SEG_MODEL}", dataset=walking_staff, kg=kg, threads=1)
+    assert isinstance(source, OnnxSegmentationLabels)
+    frame = walking_staff.frame(60)
+    assert frame.labels is not None
+    document = walking_staff.objects()
+    assert document is not None
+    person_ids = [o["id"] for o in document["objects"] if o["class"] == "person"]
+    truth = np.isin(frame.labels, person_ids)
+    result = source.labels(frame)
+    assert result.class_image.shape == truth.shape and result.instance_image is None
+    person = result.class_image == kg.index_of("person")
+    iou = np.count_nonzero(person & truth) / max(1, np.count_nonzero(person | truth))
+    assert iou > 0.5, iou

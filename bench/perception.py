@@ -1,0 +1,369 @@
+"""Server perception benchmark (issue 5): measurement accuracy, segmentation quality, speed.
+
+1. Oracle instances (the simulator's instance labels) -> 3D measurements on simulated
+   worlds never used in training (seeds >= 1000), scored against ``objects.json``:
+   median centroid error and median yaw error of static objects (goal <= 10 cm, 10 deg).
+2. The trained network (``server/models/hospital_seg.onnx`` or ``--model PATH``), when
+   present: mIoU over all classes and per class against the simulator labels, person
+   IoU, inference ms per keyframe on one thread, and measurement accuracy with the
+   network's own instances.
+3. The real TUM sequence ``../shared/data/tum_fr1_rpy_s3_first100`` with the YOLOX adapter:
+   world-frame centroids (ground-truth camera poses) of the monitor measured from keyframes
+   every 10 frames; spread = largest distance to their median (goal <= 10 cm).
+
+Yaw of a measured box is only defined modulo 180 deg (and x is its longer horizontal
+side, docs/perception.md), so the yaw error compares the measured x axis with the ground
+truth's longer horizontal axis modulo 180 deg, and modulo 90 deg for near-square
+footprints (sides within 10 %), where "longer" is arbitrary.
+
+    python bench/perception.py [--data out/bench_data] [--seed 1001] [--frames 300]
+        [--every 10] [--model PATH] [--yolox PATH] [--write BENCHMARKS.md]
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import argparse
+import math
+import sys
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _report import git_rev, machine, write_section
+
+from wardmap.server.perception.instances import attach_gt_instances, id_to_class, oracle_instances
+from wardmap.server.perception.measure import MeasureConfig, measure_instances
+from wardmap.server.perception.models import OnnxSegmenter, make_segmenter, packaged_model_path
+from wardmap.server.perception.types import Instance, ObjectMeasurement
+from wardmap.shared.dataset import DatasetReader, Frame
+from wardmap.shared.knowledge import KnowledgeGraph
+from wardmap.sim.runner import generate
+
+ROOT = Path(__file__).resolve().parents[1]
+TUM = ROOT.parent / "shared" / "data" / "tum_fr1_rpy_s3_first100"
+YOLOX = ROOT.parent / "shared" / "models" / "yolox_nano.onnx"
+SCENES = ("aisle_slow_1", "ward_chairs", "hospital_loop", "walking_staff")
+CLUSTER_M = 0.5
+"""TUM: monitor measurements closer than this belong to one physical monitor."""
+SQUARE_RATIO = 0.9
+"""A footprint whose shorter side is at least this fraction of the longer is near-square."""
+
+
+# ---------------------------------------------------------------------------- ground truth
+
+
+@dataclass
+class Truth:
+    """Ground truth of one simulated data set."""
+
+    classes: dict[int, str]
+    mobility: dict[int, str]
+    size: dict[int, np.ndarray]
+    pose: dict[int, np.ndarray]
+    trajectory: dict[int, dict[float, np.ndarray]] = field(default_factory=dict)
+    moved: set[int] = field(default_factory=set)
+
+    @staticmethod
+    def load(reader: DatasetReader) -> Truth:
+        doc = reader.objects()
+        if doc is None:
+            raise SystemExit(f"{reader.root}: no objects.json")
+        t = Truth(id_to_class(doc), {}, {}, {})
+        for o in doc["objects"]:
+            k = int(o["id"])
+            t.mobility[k] = str(o["mobility"])
+            t.size[k] = np.asarray(o["size"], float)
+            t.pose[k] = np.asarray(o["T_world_object"], float)
+            if o.get("trajectory"):
+                t.trajectory[k] = {round(float(p["stamp"]), 6): np.asarray(p["T_world_object"], float)
+                                   for p in o["trajectory"]}
+                first = next(iter(t.trajectory[k].values()))
+                if any(np.linalg.norm(T[:3, 3] - first[:3, 3]) > 0.01 for T in t.trajectory[k].values()):
+                    t.moved.add(k)
+        return t
+
+    def pose_at(self, k: int, stamp: float) -> np.ndarray:
+        traj = self.trajectory.get(k)
+        if traj is None:
+            return self.pose[k]
+        return traj.get(round(stamp, 6), self.pose[k])
+
+
+def yaw_error_deg(m: ObjectMeasurement, T_gt: np.ndarray, size_gt: np.ndarray) -> float:
+    """Angle between the measured x axis and the ground truth's longer horizontal axis (module doc)."""
+    axis = 0 if size_gt[0] >= size_gt[1] else 1
+    gt = T_gt[:3, axis]
+    meas = m.T_world_object[:3, 0]
+    period = math.pi / 2 if min(size_gt[:2]) >= SQUARE_RATIO * max(size_gt[:2]) else math.pi
+    d = (math.atan2(meas[1], meas[0]) - math.atan2(gt[1], gt[0])) % period
+    return math.degrees(min(d, period - d))
+
+
+@dataclass
+class Scores:
+    """Errors of measurements against ground truth, by group."""
+
+    centroid_m: dict[str, list[float]] = field(default_factory=lambda: defaultdict(list))
+    yaw_deg: dict[str, list[float]] = field(default_factory=lambda: defaultdict(list))
+    unmatched: int = 0
+    skipped: int = 0
+
+    def add(self, m: ObjectMeasurement, truth: Truth, width: int, height: int) -> None:
+        k = m.gt_instance
+        if k is None or k not in truth.classes:
+            self.unmatched += 1
+            return
+        if truth.mobility[k] == "static":
+            group = "static"
+        elif truth.mobility[k] == "movable" and k not in truth.moved:
+            group = "movable (not moved)"
+        else:
+            return
+        T_gt = truth.pose_at(k, m.stamp)
+        err = float(np.linalg.norm(m.T_world_object[:3, 3] - T_gt[:3, 3]))
+        yaw = yaw_error_deg(m, T_gt, truth.size[k])
+        x1, y1, x2, y2 = m.box_xyxy
+        inside = x1 > 0 and y1 > 0 and x2 < width and y2 < height
+        for g in (group, f"{group}, not cut by the image border" if inside else None,
+                  f"class {truth.classes[k]}"):
+            if g is not None:
+                self.centroid_m[g].append(err)
+                self.yaw_deg[g].append(yaw)
+
+    def rows(self, source: str) -> list[str]:
+        out = []
+        for g in sorted(self.centroid_m, key=lambda s: (s.startswith("class"), s)):
+            c, y = np.asarray(self.centroid_m[g]), np.asarray(self.yaw_deg[g])
+            goal = "<= 10 cm, <= 10 deg" if g == "static" else ""
+            out.append(f"| {source} | {g} | {c.size} | {100 * np.median(c):.1f} "
+                       f"| {100 * np.percentile(c, 90):.1f} "
+                       f"| {np.median(y):.1f} | {np.percentile(y, 90):.1f} | {goal} |")
+        return out
+
+
+# ---------------------------------------------------------------------------- simulated data
+
+
+def dataset(data: Path, scene: str, seed: int, frames: int) -> DatasetReader:
+    out = data / f"{scene}_s{seed}_f{frames}"
+    if not (out / "sim.json").exists() and not (out / "robot_0" / "sim.json").exists():
+        print(f"generating {scene} seed {seed} ({frames} frames) ...", file=sys.stderr)
+        generate(scene, seed, out, frames=frames, overwrite=True)
+    return DatasetReader(out if (out / "sim.json").exists() else out / "robot_0")
+
+
+def bgr_of(frame: Frame) -> np.ndarray:
+    return np.ascontiguousarray(frame.rgb[..., ::-1])
+
+
+def measure(reader: DatasetReader, frame: Frame, instances: list[Instance]
+            ) -> tuple[list[ObjectMeasurement], int]:
+    keep = [i for i in instances if i.category != "person"]
+    assert frame.T_world_camera is not None
+    ms = measure_instances(keep, bgr=bgr_of(frame), depth_m=frame.depth_m, camera=reader.calibration.rgb,
+                           T_world_camera=frame.T_world_camera,
+                           keyframe=f"{reader.root.name}/{frame.stamp:.6f}",
+                           stamp=frame.stamp)
+    return ms, len(keep) - len(ms)
+
+
+def class_image(labels: np.ndarray, truth: Truth, names: tuple[str, ...]) -> np.ndarray:
+    """Knowledge-graph class index per pixel from the instance-id label image."""
+    lut = np.zeros(int(labels.max()) + 1, np.uint8)
+    for k, c in truth.classes.items():
+        if k < lut.size:
+            lut[k] = names.index(c)
+    return lut[labels]
+
+
+# ---------------------------------------------------------------------------- TUM
+
+
+def tum_monitor(yolox: Path) -> list[str]:
+    """Markdown lines: the monitor's world centroids from TUM keyframes, for each measure config."""
+    reader = DatasetReader(TUM)
+    seg = make_segmenter(f"yolox:{yolox}", threads=1)
+    seen, times = [], []
+    for i in range(0, len(reader), 10):
+        frame = reader.frame(i)
+        if frame.T_world_camera is None:
+            continue
+        out = seg.segment(bgr_of(frame), frame.depth_m)
+        times.append(out.inference_ms)
+        seen.append((i, frame, [m for m in out.instances if m.category == "wall_monitor"]))
+    lines = [
+        "### Real data: TUM fr1/rpy excerpt, YOLOX-Nano adapter, the monitor\n",
+        f"Keyframes every 10 frames of `tum_fr1_rpy_s3_first100` ({len(seen)} keyframes), world frame = "
+        f"ground-truth poses; YOLOX + masks median {np.median(times):.0f} ms per keyframe, one thread. "
+        f"Measurements within {CLUSTER_M} m of each other are one physical monitor; the spread (largest "
+        "distance to the median centroid) is given for the monitor measured most often. The screen "
+        "itself returns no depth (Kinect on a black screen): \"depth %\" is the share of mask pixels "
+        "with depth.\n",
+    ]
+    for label, cfg in (("default measurement (`cluster_gap_m = 0`)", MeasureConfig()),
+                       ("detector setting `cluster_gap_m = 0.05` (largest 3D piece)",
+                        MeasureConfig(cluster_gap_m=0.05))):
+        centroids = []
+        for i, frame, monitors in seen:
+            for m in measure_instances(monitors, bgr=bgr_of(frame), depth_m=frame.depth_m,
+                                       camera=reader.calibration.rgb, T_world_camera=frame.T_world_camera,
+                                       keyframe=f"tum/{i}", stamp=frame.stamp, config=cfg):
+                valid = float(np.mean(frame.depth_m[m.mask] > 0))
+                centroids.append((i, m.confidence, m.T_world_object[:3, 3], m.size, valid))
+        if not centroids:
+            lines.append(f"{label}: no monitor measured.\n")
+            continue
+        pts = np.array([c[2] for c in centroids])
+        cluster = np.arange(len(pts))  # single linkage within CLUSTER_M
+        for a in range(len(pts)):
+            for b in range(len(pts)):
+                if np.linalg.norm(pts[a] - pts[b]) < CLUSTER_M:
+                    cluster[cluster == cluster[b]] = cluster[a]
+        main = cluster == int(np.bincount(cluster).argmax())
+        dist = np.linalg.norm(pts - np.median(pts[main], axis=0), axis=1)
+        lines += [
+            f"**{label}**: {len(centroids)} monitor measurements, {int(main.sum())} on the main monitor; "
+            f"spread **{100 * dist[main].max():.1f} cm**, median distance "
+            f"{100 * np.median(dist[main]):.1f} cm (goal <= 10 cm).\n",
+            "| frame | score | depth % | centroid world m | size m | object | distance to main median cm |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        for (i, conf, p, size, valid), d, own in zip(centroids, dist, main, strict=True):
+            lines.append(f"| {i} | {conf:.2f} | {100 * valid:.0f} | {p[0]:.3f} {p[1]:.3f} {p[2]:.3f} "
+                         f"| {size[0]:.2f} {size[1]:.2f} {size[2]:.2f} | {'main' if own else 'other'} "
+                         f"| {100 * d:.1f} |")
+        lines.append("")
+    return lines
+
+
+# ---------------------------------------------------------------------------- main
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", type=Path, default=ROOT / "out" / "bench_data")
+    ap.add_argument("--seed", type=int, default=1001, help="world seed (>= 1000: never used in training)")
+    ap.add_argument("--frames", type=int, default=300, help="frames generated per scenario")
+    ap.add_argument("--every", type=int, default=10, help="keyframe every N frames")
+    ap.add_argument("--scenes", nargs="*", default=list(SCENES))
+    ap.add_argument("--model", type=Path, help="segmentation network (default: the packaged one)")
+    ap.add_argument("--yolox", type=Path, default=YOLOX)
+    ap.add_argument("--write", type=Path, help="update this markdown file's perception section")
+    args = ap.parse_args()
+    if args.seed < 1000:
+        print("warning: seeds < 1000 are training worlds", file=sys.stderr)
+    cv2.setNumThreads(1)
+    kg = KnowledgeGraph.load()
+    names = ("background", *kg.names)
+    model_path = args.model or packaged_model_path()
+    model: OnnxSegmenter | None = None
+    if model_path.is_file():
+        seg = make_segmenter(f"model:{model_path}", threads=1)
+        assert isinstance(seg, OnnxSegmenter)
+        model = seg
+    oracle, learned = Scores(), Scores()
+    confusion = np.zeros((len(names), len(names)), np.int64)
+    net_ms: list[float] = []
+    seg_ms: list[float] = []
+    measure_ms: list[float] = []
+    keyframes = 0
+    for scene in args.scenes:
+        reader = dataset(args.data, scene, args.seed, args.frames)
+        truth = Truth.load(reader)
+        cam = reader.calibration.rgb
+        for i in range(0, len(reader), args.every):
+            frame = reader.frame(i)
+            if frame.labels is None or frame.T_world_camera is None:
+                continue
+            keyframes += 1
+            started = time.perf_counter()
+            ms, skipped = measure(reader, frame, oracle_instances(frame.labels, truth.classes))
+            measure_ms.append((time.perf_counter() - started) * 1e3)
+            oracle.skipped += skipped
+            for m in ms:
+                oracle.add(m, truth, cam.width, cam.height)
+            if model is None:
+                continue
+            started = time.perf_counter()
+            classes, _ = model.classify(bgr_of(frame))
+            net_ms.append((time.perf_counter() - started) * 1e3)
+            out = model.segment(bgr_of(frame), frame.depth_m)
+            seg_ms.append(out.inference_ms)
+            gt = class_image(frame.labels, truth, names)
+            confusion += np.bincount(gt.ravel().astype(np.int64) * len(names) + classes.ravel(),
+                                     minlength=len(names) ** 2).reshape(len(names), len(names))
+            ms, skipped = measure(reader, frame, attach_gt_instances(out.instances, frame.labels))
+            learned.skipped += skipped
+            for m in ms:
+                learned.add(m, truth, cam.width, cam.height)
+        print(f"{scene}: done", file=sys.stderr)
+
+    header = ("| instances | objects | measurements | centroid median cm | centroid p90 cm | yaw median deg "
+              "| yaw p90 deg | goal |\n|---|---|---|---|---|---|---|---|")
+    parts = [
+        "## Server perception (issue 5)\n",
+        f"Command: `python bench/perception.py --seed {args.seed} --frames {args.frames} --every {args.every}"
+        f"{' --model ' + str(args.model) if args.model else ''} --write BENCHMARKS.md`  \n"
+        f"Machine: {machine()}; one thread; commit {git_rev()}.  \n"
+        f"Simulated data: {', '.join(args.scenes)}, seed {args.seed} (never used in training), first "
+        f"{args.frames} frames, a keyframe every {args.every} frames: {keyframes} keyframes. People are "
+        "not measured (moving). Yaw error modulo 180 deg (90 deg for near-square footprints), see the "
+        "script's docstring.\n",
+        "### 3D measurements against objects.json\n",
+        header,
+        *oracle.rows("oracle"),
+        f"\nOracle: {oracle.skipped} instance(s) of >= 200 pixels skipped for too few depth points (the "
+        "simulated sensor returns no depth beyond its range, so far objects have none); measurement "
+        "time median "
+        f"{np.median(measure_ms):.0f} ms per keyframe (all instances of the keyframe).\n",
+    ]
+    if model is None:
+        parts.append(f"### Trained network\n\nNo segmentation model at {model_path}: mIoU, person IoU, "
+                     "inference time and model-instance accuracy not measured.\n")
+    else:
+        inter = np.diag(confusion).astype(float)
+        union = confusion.sum(0) + confusion.sum(1) - np.diag(confusion)
+        present = union > 0
+        iou = np.where(present, inter / np.maximum(union, 1), np.nan)
+        miou = float(np.nanmean(iou))
+        person = iou[names.index("person")]
+        per_class = " | ".join(f"{names[c]} {100 * iou[c]:.1f}" for c in range(len(names)) if present[c])
+        w, h = model.input_size
+        parts += [
+            f"### Trained network ({model_path.name}, input {w}x{h})\n",
+            f"mIoU over the {int(present.sum())} classes present (background included): "
+            f"**{100 * miou:.1f}%** "
+            f"(goal >= 75%); person IoU **{100 * person:.1f}%** (goal >= 85%).  \n"
+            f"Per class IoU %: {per_class}.  \n"
+            f"Network time per keyframe (resize, onnxruntime, argmax, softmax; one thread): median "
+            f"**{np.median(net_ms):.1f} ms**, p95 {np.percentile(net_ms, 95):.1f} ms (goal <= 40 ms); with "
+            f"instance extraction: median {np.median(seg_ms):.1f} ms, "
+            f"p95 {np.percentile(seg_ms, 95):.1f} ms.\n",
+            header,
+            *learned.rows("network"),
+            f"\nNetwork instances: {learned.unmatched} measurement(s) on no ground-truth object (< 50% of "
+            f"the mask), {learned.skipped} skipped.\n",
+        ]
+    if TUM.is_dir() and args.yolox.is_file():
+        parts += tum_monitor(args.yolox)
+    else:
+        parts.append(f"TUM part skipped: {TUM} or {args.yolox} absent.\n")
+    body = "\n".join(parts)
+    print(body)
+    if args.write:
+        write_section(args.write, "perception", body)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

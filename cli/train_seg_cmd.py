@@ -1,0 +1,65 @@
+"""``wardmap train-seg``: train the hospital segmentation network and export it to ONNX."""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import shlex
+import sys
+import time
+
+
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    p = sub.add_parser(
+        "train-seg",
+        help="train the segmentation network on simulated frames, export ONNX + model card",
+        description="Render training frames with the simulator (cached), train the BAFF segmentation "
+        "network (paper 003) on CPU, export MODEL.onnx and write MODEL.md (model card) beside it. "
+        "Needs the 'train' extra: pip install -e '.[train]'. The last line on stdout is a JSON summary.",
+    )
+    p.add_argument("--out", required=True, metavar="MODEL.onnx", help="ONNX file to write")
+    p.add_argument(
+        "--config", metavar="FILE", help="TOML file with a [train_seg] table (deploy/train_seg.toml)"
+    )
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from wardmap.server.perception.segdata import TrainingError, TrainSegConfig
+    from wardmap.shared.config import load_config
+
+    config = load_config(TrainSegConfig, args.config, section="train_seg")
+    missing = [m for m in ("torch", "onnx") if importlib.util.find_spec(m) is None]
+    if missing:
+        raise TrainingError(
+            f"{' and '.join(missing)} not installed; train-seg needs the train extra: "
+            "pip install -e '.[train]'"
+        )
+    from wardmap.server.perception.training import train_and_export
+
+    last = [0.0]
+
+    def progress(stage: str, i: int, n: int, note: str) -> None:
+        now = time.monotonic()
+        if i == n or now - last[0] > 5.0:
+            last[0] = now
+            print(f"{stage}: {i}/{n} {note}", file=sys.stderr, flush=True)
+
+    command = "wardmap " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    result = train_and_export(config, args.out, command=command, progress=progress)
+    m = result.metrics
+    print(
+        json.dumps(
+            {
+                "onnx": str(result.onnx_path),
+                "card": str(result.card_path),
+                "val_miou": round(m["miou"], 2),
+                "val_person_iou": m["per_class_iou"].get("person"),
+                "val_frames": m["frames"],
+                "ms_per_frame_1_thread": round(m["ms_per_frame"], 2),
+                "wall_time_s": result.summary["wall_time_s"],
+            }
+        )
+    )
+    return 0

@@ -1,0 +1,271 @@
+"""Instances from label images: simulator ground truth and per-pixel class maps.
+
+- :func:`oracle_instances`: one instance per simulator instance id (``labels/<stamp>.png``,
+  ``docs/dataset.md``), confidence 1, class from ``objects.json``.
+- :func:`instances_from_classes`: per-class connected components of a segmentation
+  network's class map, split where the depth jumps (issue 5 "Inference"): two chairs of
+  the same class that overlap in the image but stand at different depths become two
+  instances.
+- :func:`attach_gt_instances`: the simulator id most of each mask covers, for scoring
+  model or detector instances against ground truth.
+
+Pixel boxes follow ``shared/detection.py``: ``(x1, y1, x2, y2)`` with the top-left image
+corner at (0, 0), so a mask reaching the last column has ``x2 = W``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from wardmap.server.perception.types import Instance
+from wardmap.shared.errors import DatasetError, GeometryError
+
+__all__ = [
+    "attach_gt_instances",
+    "box_of_mask",
+    "gt_instance_of",
+    "id_to_class",
+    "instances_from_classes",
+    "oracle_instances",
+]
+
+log = logging.getLogger(__name__)
+
+Mask = NDArray[np.bool_]
+
+
+def box_of_mask(mask: Mask) -> NDArray[np.float64]:
+    """Pixel box (4,) float64 ``x1, y1, x2, y2`` enclosing a non-empty (H, W) bool mask."""
+    rows = np.flatnonzero(mask.any(axis=1))
+    cols = np.flatnonzero(mask.any(axis=0))
+    if rows.size == 0:
+        raise GeometryError("box_of_mask: the mask is empty")
+    return np.array([cols[0], rows[0], cols[-1] + 1, rows[-1] + 1], dtype=np.float64)
+
+
+def id_to_class(objects_document: Mapping[str, Any]) -> dict[int, str]:
+    """Instance id -> class name from a parsed ``objects.json`` (``DatasetReader.objects()``).
+
+    Raises:
+        DatasetError: the document has no ``objects`` list or an object lacks ``id``/``class``.
+    """
+    objects = objects_document.get("objects")
+    if not isinstance(objects, list):
+        raise DatasetError("objects.json: 'objects' must be a list")
+    out: dict[int, str] = {}
+    for i, obj in enumerate(objects):
+        try:
+            out[int(obj["id"])] = str(obj["class"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise DatasetError(f"objects.json: objects[{i}] needs an integer 'id' and a 'class'") from exc
+    return out
+
+
+def _check_image(name: str, image: ArrayLike, dtypes: tuple[type, ...]) -> NDArray[Any]:
+    a = np.asarray(image)
+    if a.ndim != 2 or 0 in a.shape or a.dtype.type not in dtypes:
+        want = "/".join(np.dtype(d).name for d in dtypes)
+        raise GeometryError(f"{name}: expected a non-empty {want} (H, W) image, got {a.dtype} {a.shape}")
+    return a
+
+
+def oracle_instances(
+    instance_ids: NDArray[np.uint16],
+    id_to_class: Mapping[int, str],
+    *,
+    min_pixels: int = 200,
+) -> list[Instance]:
+    """Ground-truth instances of one simulator label image.
+
+    Args:
+        instance_ids: uint16 (H, W) simulator instance ids, 0 = no object.
+        id_to_class: instance id -> knowledge-graph class (:func:`id_to_class`).
+        min_pixels: instances covering fewer pixels are left out (logged at debug).
+
+    Returns:
+        One :class:`Instance` per id with at least ``min_pixels`` pixels, in increasing id
+        order, every class included (callers filter ``person`` etc.); confidence 1 and
+        ``gt_instance`` = the id.
+
+    Raises:
+        GeometryError: ``instance_ids`` is not a 2-D integer image.
+        DatasetError: an id in the image has no class in ``id_to_class``.
+    """
+    ids = _check_image("oracle_instances", instance_ids, (np.uint16, np.uint8, np.int32, np.int64))
+    values, counts = np.unique(ids, return_counts=True)
+    out: list[Instance] = []
+    small = 0
+    for value, count in zip(values.tolist(), counts.tolist(), strict=True):
+        if value == 0:
+            continue
+        category = id_to_class.get(int(value))
+        if category is None:
+            raise DatasetError(f"label image: instance id {value} has no object in objects.json")
+        if count < min_pixels:
+            small += 1
+            continue
+        mask = ids == value
+        out.append(Instance(category, 1.0, mask, box_of_mask(mask), gt_instance=int(value)))
+    if small:
+        log.debug("oracle_instances: %d instance(s) below %d pixels left out", small, min_pixels)
+    return out
+
+
+_NEIGHBOURS = (
+    # (p, q) slices pairing every pixel p with its left, right, upper and lower neighbour q.
+    (np.s_[:, 1:], np.s_[:, :-1]),
+    (np.s_[:, :-1], np.s_[:, 1:]),
+    (np.s_[1:, :], np.s_[:-1, :]),
+    (np.s_[:-1, :], np.s_[1:, :]),
+)
+
+
+def _far_side_of_jump(classes: NDArray[np.uint8], depth_m: NDArray[np.float32],
+                      jump: NDArray[np.float32]) -> Mask:
+    """Pixels that have a 4-neighbour of the same (non-background) class nearer by more than their jump."""
+    cut = np.zeros(depth_m.shape, dtype=bool)
+    valid = (depth_m > 0) & (classes > 0)
+    for p, q in _NEIGHBOURS:
+        ok = valid[p] & valid[q] & (classes[p] == classes[q])
+        cut[p] |= ok & (depth_m[p] - depth_m[q] > jump[p])
+    return cut
+
+
+def _grow_into(labels: NDArray[np.int32], classes: NDArray[np.uint8], depth_m: NDArray[np.float32],
+               todo: Mask, jump: NDArray[np.float32]) -> None:
+    """Give each ``todo`` pixel the label of a same-class labelled 4-neighbour within its jump (in place)."""
+    for _ in range(2):
+        if not todo.any():
+            return
+        for p, q in _NEIGHBOURS:
+            take = todo[p] & (labels[q] > 0) & (classes[p] == classes[q])
+            take &= np.abs(depth_m[p] - depth_m[q]) <= jump[p]
+            labels[p][take] = labels[q][take]
+            todo[p] &= ~take
+
+
+def instances_from_classes(
+    class_map: NDArray[np.uint8],
+    depth_m: NDArray[np.float32],
+    class_names: Sequence[str],
+    confidences: NDArray[np.float32] | None = None,
+    *,
+    depth_jump_m: float = 0.15,
+    depth_jump_relative: float = 0.05,
+    min_pixels: int = 200,
+) -> list[Instance]:
+    """Instances of a per-pixel class map: per-class connected components split at depth jumps.
+
+    A pixel is cut from its class region when a 4-neighbour of the same class is nearer
+    by more than ``max(depth_jump_m, depth_jump_relative * depth)`` (the far side of a
+    discontinuity; the relative term follows the depth noise of structured-light
+    sensors). The remaining pixels form 4-connected components; cut pixels then join a
+    neighbouring component of similar depth. Pixels without depth (0) never cut.
+
+    Args:
+        class_map: uint8 (H, W) class index per pixel, 0 = background.
+        depth_m: float32 (H, W) depth along the camera z axis in metres, 0 = no data.
+        class_names: index -> class name; ``class_names[0]`` is the background.
+        confidences: float32 (H, W) per-pixel score in 0..1 (e.g. softmax max), or None
+            for confidence 1. An instance's confidence is the mean over its mask.
+        depth_jump_m: smallest depth step (metres) that separates instances.
+        depth_jump_relative: the step threshold as a fraction of depth, when larger.
+        min_pixels: components with fewer pixels are left out (logged at debug).
+
+    Returns:
+        Instances ordered by class index, then by component size (largest first).
+
+    Raises:
+        GeometryError: shapes or dtypes do not match, or a class index has no name.
+    """
+    classes = _check_image("instances_from_classes: class_map", class_map, (np.uint8,))
+    depth = np.asarray(depth_m, dtype=np.float32)
+    if depth.shape != classes.shape:
+        raise GeometryError(f"instances_from_classes: depth {depth.shape} != class map {classes.shape}")
+    conf = None
+    if confidences is not None:
+        conf = np.asarray(confidences, dtype=np.float32)
+        if conf.shape != classes.shape:
+            raise GeometryError(
+                f"instances_from_classes: confidences {conf.shape} != class map {classes.shape}"
+            )
+    if not (depth_jump_m > 0 and depth_jump_relative >= 0):
+        raise GeometryError("instances_from_classes: depth_jump_m must be > 0, depth_jump_relative >= 0")
+    depth = np.where(np.isfinite(depth) & (depth > 0), depth, np.float32(0.0)).astype(np.float32)
+    jump = np.maximum(np.float32(depth_jump_m), np.float32(depth_jump_relative) * depth)
+    present = np.unique(classes)
+    if present.size and int(present[-1]) >= len(class_names):
+        raise GeometryError(
+            f"instances_from_classes: class index {int(present[-1])} but only {len(class_names)} class names"
+        )
+    cut = _far_side_of_jump(classes, depth, jump)
+    labels = np.zeros(classes.shape, np.int32)
+    class_of: list[int] = [0]  # class index of each label
+    for index in present.tolist():
+        if index == 0:
+            continue
+        region = classes == index
+        rows = np.flatnonzero(region.any(axis=1))
+        cols = np.flatnonzero(region.any(axis=0))
+        window = np.s_[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1]
+        inside = (region[window] & ~cut[window]).astype(np.uint8)
+        count, comp = cv2.connectedComponents(inside, connectivity=4)
+        comp = comp.astype(np.int32)
+        comp[comp > 0] += len(class_of) - 1
+        labels[window] = np.where(comp > 0, comp, labels[window])
+        class_of.extend([index] * (count - 1))
+    _grow_into(labels, classes, depth, cut & (labels == 0), jump)
+    sizes = np.bincount(labels.ravel(), minlength=len(class_of))
+    out: list[Instance] = []
+    small = 0
+    for index in present.tolist():
+        if index == 0:
+            continue
+        ks = [k for k in range(1, len(class_of)) if class_of[k] == index]
+        for k in sorted(ks, key=lambda k: -sizes[k]):
+            if sizes[k] < min_pixels:
+                small += 1 if sizes[k] > 0 else 0
+                continue
+            mask = labels == k
+            score = float(conf[mask].mean()) if conf is not None else 1.0
+            out.append(Instance(class_names[index], score, mask, box_of_mask(mask)))
+    if small:
+        log.debug("instances_from_classes: %d component(s) below %d pixels left out", small, min_pixels)
+    return out
+
+
+def gt_instance_of(mask: Mask, instance_ids: NDArray[np.uint16], min_fraction: float = 0.5) -> int | None:
+    """The most frequent non-zero simulator id under ``mask`` if it covers ``min_fraction`` of it, else None.
+
+    Pixels with id 0 ("no object") count in the denominator, so a mask mostly on the wall gives None.
+    """
+    if mask.shape != instance_ids.shape:
+        raise GeometryError(f"gt_instance_of: mask {mask.shape} != labels {instance_ids.shape}")
+    under = instance_ids[mask]
+    if under.size == 0:
+        return None
+    values, counts = np.unique(under[under != 0], return_counts=True)
+    if values.size == 0:
+        return None
+    best = int(np.argmax(counts))
+    if counts[best] < min_fraction * under.size:
+        return None
+    return int(values[best])
+
+
+def attach_gt_instances(
+    instances: Sequence[Instance], instance_ids: NDArray[np.uint16], min_fraction: float = 0.5
+) -> list[Instance]:
+    """Copies of ``instances`` with ``gt_instance`` set by :func:`gt_instance_of` (model or detector)."""
+    ids = _check_image("attach_gt_instances", instance_ids, (np.uint16, np.uint8, np.int32, np.int64))
+    return [
+        dataclasses.replace(inst, gt_instance=gt_instance_of(inst.mask, ids, min_fraction))
+        for inst in instances
+    ]

@@ -1,0 +1,456 @@
+"""Segmenters of the server: the trained hospital network and a YOLOX detector adapter.
+
+Both sit behind the :class:`Segmenter` protocol and are chosen by a spec string
+(:func:`make_segmenter`, ``[perception] segmenter`` in ``deploy/perception.toml``):
+
+=================  ========================================================================
+spec               segmenter
+=================  ========================================================================
+``model``          the packaged network ``wardmap/server/models/hospital_seg.onnx``
+``model:PATH``     a segmentation network in the ONNX contract below (:class:`OnnxSegmenter`)
+``yolox:PATH``     a YOLOX-format COCO detector + depth masks for real cameras
+                   (:class:`YoloxDetector`, ``wardmap.shared.detection``)
+``PATH``           any other text is a path: the same as ``model:PATH``
+=================  ========================================================================
+
+ONNX contract of a segmentation network (what ``wardmap train-seg`` exports; checked and
+pre/post-processed by :mod:`wardmap.shared.segmentation`, which the edge's label source shares):
+
+- one input ``image``: float32 ``[1, 3, H, W]``, RGB, values 0..1 (any normalisation is
+  inside the model);
+- one output ``logits``: float32 ``[1, C, H, W]``, C = 1 + the knowledge graph's classes
+  (index 0 background, index i = the i-th ``[[classes]]`` of
+  ``shared/data/knowledge_graph.toml``);
+- metadata ``wardmap.classes``: JSON list of the C class names in index order (first
+  ``"background"``), and ``wardmap.input_size``: ``"WxH"`` (e.g. ``"320x240"``).
+
+Everything is checked when the segmenter is made; a missing, unreadable or mismatching
+model raises :class:`~wardmap.shared.errors.ConfigError` naming the file. onnxruntime is
+imported inside the constructors, so importing this module loads nothing.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any, Final, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from wardmap.server.perception.instances import box_of_mask, instances_from_classes
+from wardmap.server.perception.measure import MeasureConfig
+from wardmap.server.perception.types import Instance
+from wardmap.shared.config import load_config
+from wardmap.shared.detection import CocoMap, MaskConfig, decode_yolox, labels_from_detections, letterbox
+from wardmap.shared.errors import ConfigError, GeometryError
+from wardmap.shared.knowledge import BACKGROUND, KnowledgeGraph
+from wardmap.shared.segmentation import INPUT_NAME, OUTPUT_NAME, SegContract
+
+__all__ = [
+    "DEFAULT_MODEL",
+    "OnnxSegmenter",
+    "PerceptionConfig",
+    "Segmentation",
+    "Segmenter",
+    "YoloxDetector",
+    "load_perception_config",
+    "make_segmenter",
+    "packaged_model_path",
+]
+
+log = logging.getLogger(__name__)
+
+U8 = NDArray[np.uint8]
+F32 = NDArray[np.float32]
+
+DEFAULT_MODEL: Final = "hospital_seg.onnx"
+"""File name of the packaged segmentation network in ``wardmap.server/models``."""
+
+
+# ---------------------------------------------------------------------------- config
+
+
+@dataclass(frozen=True)
+class PerceptionConfig:
+    """Server perception parameters (``[perception]`` table, ``deploy/perception.toml``)."""
+
+    segmenter: str = "model"
+    """Segmenter spec: ``model``, ``model:PATH``, ``yolox:PATH`` or a path (module docstring)."""
+    threads: int = 1
+    """CPU threads of the network (onnxruntime ``intra_op_num_threads``)."""
+    min_pixels: int = 200
+    """Instances with fewer pixels are left out."""
+    depth_jump_m: float = 0.15
+    """Depth step that splits one class region into two instances (segmentation network)."""
+    depth_jump_relative: float = 0.05
+    """... as a fraction of depth, when larger."""
+    score_threshold: float = 0.3
+    """YOLOX: smallest detection score used."""
+    nms_iou: float = 0.45
+    """YOLOX: per-class non-maximum suppression IoU."""
+    measure: MeasureConfig = field(default_factory=MeasureConfig)
+    """3D measurement parameters (``[perception.measure]``)."""
+    masks: MaskConfig = field(default_factory=MaskConfig)
+    """YOLOX: depth-based instance masks inside boxes (``[perception.masks]``)."""
+
+    def __post_init__(self) -> None:
+        if self.threads < 1:
+            raise ConfigError(f"PerceptionConfig: threads must be >= 1, got {self.threads}")
+        if self.min_pixels < 1:
+            raise ConfigError(f"PerceptionConfig: min_pixels must be >= 1, got {self.min_pixels}")
+        if self.depth_jump_m <= 0 or self.depth_jump_relative < 0:
+            raise ConfigError("PerceptionConfig: need depth_jump_m > 0 and depth_jump_relative >= 0")
+        for name in ("score_threshold", "nms_iou"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ConfigError(f"PerceptionConfig: {name} must lie in 0..1, got {getattr(self, name)!r}")
+
+
+def load_perception_config(path: str | Path | None) -> PerceptionConfig:
+    """The ``[perception]`` table of a TOML file (defaults when ``path`` is None).
+
+    Raises:
+        ConfigError: missing file, malformed TOML, unknown key or bad value (named).
+    """
+    return load_config(PerceptionConfig, path, section="perception")
+
+
+# ---------------------------------------------------------------------------- protocol
+
+
+@dataclass(frozen=True, eq=False)
+class Segmentation:
+    """What a segmenter found in one image.
+
+    Attributes:
+        class_map: uint8 (H, W) knowledge-graph class index per pixel (0 = background).
+        confidence: float32 (H, W) score of each pixel's class in 0..1.
+        instances: the instances, each with a mask in the image.
+        inference_ms: wall time of pre-processing, network and post-processing.
+    """
+
+    class_map: U8
+    confidence: F32
+    instances: list[Instance]
+    inference_ms: float
+
+
+class Segmenter(Protocol):
+    """Anything that finds knowledge-graph instances in a colour + depth image."""
+
+    @property
+    def class_names(self) -> tuple[str, ...]:
+        """Class index -> name; index 0 is ``"background"``, then the knowledge graph's classes."""
+        ...
+
+    def segment(self, bgr: U8, depth_m: F32 | None) -> Segmentation:
+        """Classes and instances of a uint8 (H, W, 3) BGR image with float32 (H, W) depth in metres."""
+        ...
+
+    def __call__(self, bgr: U8, depth_m: F32 | None) -> list[Instance]:
+        """The instances of :meth:`segment`."""
+        ...
+
+
+def _check_bgr(bgr: Any) -> U8:
+    image = np.asarray(bgr)
+    if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3 or 0 in image.shape:
+        raise GeometryError(f"segment: expected a uint8 (H, W, 3) BGR image, got {image.dtype} {image.shape}")
+    return image
+
+
+def _check_depth(depth_m: Any, shape: tuple[int, int]) -> F32:
+    """Depth as float32 (H, W); zeros (no data) when None."""
+    if depth_m is None:
+        return np.zeros(shape, np.float32)
+    depth = np.asarray(depth_m, dtype=np.float32)
+    if depth.shape != shape:
+        raise GeometryError(f"segment: depth {depth.shape} does not match the image {shape}")
+    return depth
+
+
+def _session(path: Path, threads: int, what: str) -> Any:
+    """An onnxruntime CPU session of ``path``; ConfigError naming the file if it cannot be made."""
+    if not path.is_file():
+        raise ConfigError(f"{what}: model file not found: {path}")
+    try:
+        import onnxruntime as ort
+    except ImportError as exc:  # a dependency of wardmap; only a broken install lacks it
+        raise ConfigError(f"{what} needs the onnxruntime package (pip install onnxruntime): {exc}") from exc
+    if threads < 1:
+        raise ConfigError(f"{what}: threads must be >= 1, got {threads}")
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    options.inter_op_num_threads = 1
+    options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    options.log_severity_level = 3  # errors only: onnxruntime logs to stderr on its own
+    try:
+        return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+    except Exception as exc:  # onnxruntime raises its own untyped errors for unreadable models
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise ConfigError(f"{what}: {path} is not a readable ONNX model: {first}") from exc
+
+
+# ---------------------------------------------------------------------------- trained network
+
+
+class OnnxSegmenter:
+    """A segmentation network in the wardmap ONNX contract (module docstring), on the CPU.
+
+    Per image: BGR -> RGB, resized to the model's input size, 0..1 -> network ->
+    per-pixel argmax of the logits and softmax maximum as confidence -> both resized
+    back to the image (nearest) -> :func:`instances_from_classes` (per-class connected
+    components split at depth jumps).
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        threads: int = 1,
+        *,
+        kg: KnowledgeGraph | None = None,
+        min_pixels: int = 200,
+        depth_jump_m: float = 0.15,
+        depth_jump_relative: float = 0.05,
+    ) -> None:
+        """Open and check the model.
+
+        Raises:
+            ConfigError: missing file, not ONNX, wrong input/output names or shapes,
+                missing or malformed metadata, or classes that differ from the knowledge
+                graph's (each message names the file).
+        """
+        self.path = Path(path).expanduser()
+        what = f"segmentation model {self.path}"
+        self._what = what
+        self._session = _session(self.path, threads, "segmentation model")
+        kg = kg or KnowledgeGraph.load()
+        meta = dict(self._session.get_modelmeta().custom_metadata_map)
+        self._contract = SegContract.check(
+            meta,
+            [(i.name, i.shape) for i in self._session.get_inputs()],
+            [(o.name, o.shape) for o in self._session.get_outputs()],
+            kg,
+            what,
+        )
+        self._class_names = self._contract.class_names
+        self._input_wh = self._contract.input_wh
+        self._min_pixels = min_pixels
+        self._depth_jump_m = depth_jump_m
+        self._depth_jump_relative = depth_jump_relative
+        w, h = self._input_wh
+        log.info("segmentation model %s: %d classes, input %dx%d, %d thread(s)",
+                 self.path, len(self._class_names), w, h, threads)
+
+    @property
+    def class_names(self) -> tuple[str, ...]:
+        return self._class_names
+
+    @property
+    def input_size(self) -> tuple[int, int]:
+        """``(width, height)`` the network runs at."""
+        return self._input_wh
+
+    def classify(self, bgr: U8) -> tuple[U8, F32]:
+        """Per-pixel classes uint8 (H, W) and softmax confidence float32 (H, W) of a BGR image."""
+        image = _check_bgr(bgr)
+        (logits,) = self._session.run([OUTPUT_NAME], {INPUT_NAME: self._contract.preprocess(image)})
+        return self._contract.postprocess(logits, image.shape[:2], self._what)
+
+    def segment(self, bgr: U8, depth_m: F32 | None) -> Segmentation:
+        started = time.perf_counter()
+        classes, confidence = self.classify(bgr)
+        depth = _check_depth(depth_m, classes.shape)
+        instances = instances_from_classes(
+            classes,
+            depth,
+            self._class_names,
+            confidence,
+            depth_jump_m=self._depth_jump_m,
+            depth_jump_relative=self._depth_jump_relative,
+            min_pixels=self._min_pixels,
+        )
+        return Segmentation(classes, confidence, instances, (time.perf_counter() - started) * 1e3)
+
+    def __call__(self, bgr: U8, depth_m: F32 | None) -> list[Instance]:
+        return self.segment(bgr, depth_m).instances
+
+
+# ---------------------------------------------------------------------------- YOLOX adapter
+
+
+class YoloxDetector:
+    """A YOLOX-format COCO detector for real cameras (``wardmap.shared.detection``).
+
+    Per image: letterbox -> network -> :func:`decode_yolox` -> COCO classes mapped to
+    knowledge-graph classes (:class:`CocoMap`, ``shared/data/coco_to_kg.toml``) -> one mask
+    per box by depth-based foreground segmentation (:func:`labels_from_detections`, nearer
+    instances win where masks overlap). An instance's confidence is its detection score.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        threads: int = 1,
+        *,
+        coco_map: CocoMap | None = None,
+        kg: KnowledgeGraph | None = None,
+        score_threshold: float = 0.3,
+        nms_iou: float = 0.45,
+        mask_config: MaskConfig | None = None,
+        min_pixels: int = 200,
+    ) -> None:
+        """Open and check the detector.
+
+        Raises:
+            ConfigError: missing or unreadable file, an input that is not ``[1, 3, S, S]``,
+                or an output that is not ``[1, A, 5 + classes of the COCO map]``.
+        """
+        self.path = Path(path).expanduser()
+        what = f"YOLOX detector {self.path}"
+        self._session = _session(self.path, threads, "YOLOX detector")
+        self._kg = kg or KnowledgeGraph.load()
+        self._coco_map = coco_map or CocoMap.load()
+        self._coco_map.kg_lut(self._kg)  # an unknown mapped class fails now, not on the first image
+        self._class_names = (BACKGROUND, *self._kg.names)
+        self._score_threshold = score_threshold
+        self._nms_iou = nms_iou
+        self._mask_config = mask_config or MaskConfig()
+        self._min_pixels = min_pixels
+        inputs, outputs = self._session.get_inputs(), self._session.get_outputs()
+        if len(inputs) != 1 or len(outputs) < 1:
+            raise ConfigError(
+                f"{what}: expected one input and an output, got {len(inputs)} input(s) and "
+                f"{len(outputs)} output(s)"
+            )
+        self._input_name = inputs[0].name
+        in_shape, out_shape = list(inputs[0].shape), list(outputs[0].shape)
+        side = in_shape[2] if len(in_shape) == 4 else None
+        if len(in_shape) != 4 or in_shape[1] != 3 or in_shape[2] != in_shape[3] or not isinstance(side, int):
+            raise ConfigError(
+                f"{what}: input {self._input_name!r} has shape {in_shape}, expected a YOLOX "
+                f"input [1, 3, S, S]"
+            )
+        self._input_size = side
+        n = len(self._coco_map.names)
+        if len(out_shape) != 3 or (isinstance(out_shape[2], int) and out_shape[2] != 5 + n):
+            raise ConfigError(
+                f"{what}: output has shape {out_shape}, expected a YOLOX output "
+                f"[1, A, {5 + n}] for the {n} classes of {self._coco_map.source}"
+            )
+        log.info("YOLOX detector %s: input %d, %d thread(s)", self.path, side, threads)
+
+    @property
+    def class_names(self) -> tuple[str, ...]:
+        return self._class_names
+
+    def segment(self, bgr: U8, depth_m: F32 | None) -> Segmentation:
+        started = time.perf_counter()
+        image = _check_bgr(bgr)
+        height, width = image.shape[:2]
+        depth = None if depth_m is None else _check_depth(depth_m, (height, width))
+        blob, ratio = letterbox(image, self._input_size)
+        output = self._session.run(None, {self._input_name: blob})[0]
+        detections = decode_yolox(
+            output, ratio, (width, height), score_threshold=self._score_threshold, nms_iou=self._nms_iou
+        )
+        class_map, instance_map = labels_from_detections(
+            detections,
+            self._coco_map,
+            self._kg,
+            depth,
+            min_score=self._score_threshold,
+            config=self._mask_config,
+        )
+        # labels_from_detections numbers instances 1..K over the mapped detections at or above
+        # min_score, highest score first (detections are already sorted by score).
+        lut = self._coco_map.kg_lut(self._kg)
+        cls = detections.coco_class
+        mapped = np.where((cls >= 0) & (cls < lut.shape[0]), lut[np.clip(cls, 0, lut.shape[0] - 1)], -1)
+        used = np.flatnonzero((mapped > 0) & (detections.scores >= self._score_threshold))
+        used = used[np.argsort(-detections.scores[used], kind="stable")]
+        confidence = np.zeros((height, width), np.float32)
+        instances: list[Instance] = []
+        ids, counts = np.unique(instance_map, return_counts=True)
+        for instance_id, count in zip(ids.tolist(), counts.tolist(), strict=True):
+            if instance_id == 0:
+                continue
+            k = int(used[instance_id - 1])
+            score = float(detections.scores[k])
+            mask = instance_map == instance_id
+            confidence[mask] = score
+            if count < self._min_pixels:
+                continue
+            name = self._class_names[int(mapped[k])]
+            instances.append(Instance(name, score, mask, box_of_mask(mask)))
+        instances.sort(key=lambda inst: -inst.confidence)
+        return Segmentation(class_map, confidence, instances, (time.perf_counter() - started) * 1e3)
+
+    def __call__(self, bgr: U8, depth_m: F32 | None) -> list[Instance]:
+        return self.segment(bgr, depth_m).instances
+
+
+# ---------------------------------------------------------------------------- factory
+
+
+def packaged_model_path() -> Path:
+    """Path of the packaged ``hospital_seg.onnx`` (it may not exist yet)."""
+    return Path(str(resources.files("wardmap.server").joinpath("models", DEFAULT_MODEL)))
+
+
+def make_segmenter(
+    spec: str,
+    config: PerceptionConfig | None = None,
+    *,
+    threads: int | None = None,
+    kg: KnowledgeGraph | None = None,
+) -> Segmenter:
+    """Build the segmenter named by ``spec`` (module docstring table).
+
+    Args:
+        spec: ``model``, ``model:PATH``, ``yolox:PATH`` or a bare path (= ``model:PATH``).
+        config: instance and YOLOX parameters (defaults when None); ``config.segmenter`` is
+            not read, ``spec`` is.
+        threads: CPU threads, overriding ``config.threads``.
+        kg: the knowledge graph (the packaged one when None).
+
+    Raises:
+        ConfigError: an empty spec, the packaged model not installed, or any model problem.
+    """
+    cfg = config or PerceptionConfig()
+    n = cfg.threads if threads is None else threads
+    text = spec.strip()
+    if not text:
+        raise ConfigError("segmenter spec is empty; use 'model', 'model:PATH' or 'yolox:PATH'")
+    if text.startswith("yolox:"):
+        return YoloxDetector(
+            text[len("yolox:") :],
+            n,
+            kg=kg,
+            score_threshold=cfg.score_threshold,
+            nms_iou=cfg.nms_iou,
+            mask_config=cfg.masks,
+            min_pixels=cfg.min_pixels,
+        )
+    if text == "model":
+        path = packaged_model_path()
+        if not path.is_file():
+            raise ConfigError(
+                f"the packaged segmentation model is not installed ({path}); train one with "
+                "'wardmap train-seg --out MODEL.onnx' and pass model:MODEL.onnx"
+            )
+    elif text.startswith("model:"):
+        path = Path(text[len("model:") :])
+    else:
+        path = Path(text)
+    return OnnxSegmenter(
+        path,
+        n,
+        kg=kg,
+        min_pixels=cfg.min_pixels,
+        depth_jump_m=cfg.depth_jump_m,
+        depth_jump_relative=cfg.depth_jump_relative,
+    )

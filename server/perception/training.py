@@ -1,0 +1,621 @@
+"""Train the hospital segmentation network (paper 003 Sec. IV-B) and export it to ONNX.
+
+The only module of wardmap that imports torch (extra ``train``); nothing imports it at
+import time. The server runs the exported file with onnxruntime.
+
+Network (:class:`BaffSkipNet`): input ``[N, 3, H, W]`` RGB in 0..1, normalised inside the
+model; a MobileNetV2-style encoder of inverted residual blocks (expansion, depthwise 3x3,
+linear projection, residual when the shape allows) at a small width; a skip decoder that
+climbs from stride 32 to stride 2, fusing each upsampled deep level with the encoder skip of
+the same stride through block-adaptive feature fusion (:class:`Baff`, Eq. 2); logits
+``[N, C, H, W]`` at full input resolution (bilinear from stride 2).
+
+ONNX contract (the inference side depends on it): input ``image`` float32 ``[1, 3, 240, 320]``
+RGB 0..1; output ``logits`` float32 ``[1, C, 240, 320]``, C = 1 + knowledge-graph classes;
+metadata ``wardmap.classes`` (JSON list of names, ``background`` first) and
+``wardmap.input_size`` (``"320x240"``). One self-contained file.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import platform
+import time
+import warnings
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F  # noqa: N812 - torch's conventional alias
+from numpy.typing import NDArray
+from torch import Tensor, nn
+
+from wardmap.server.perception.segdata import (
+    IGNORE_INDEX,
+    SegSamples,
+    TrainingError,
+    TrainSegConfig,
+    augment,
+    build_samples,
+    class_names,
+    config_hash,
+    confusion,
+    iou_from_confusion,
+)
+from wardmap.shared.config import to_mapping
+from wardmap.shared.knowledge import KnowledgeGraph
+
+log = logging.getLogger(__name__)
+
+ONNX_OPSET = 17
+# ImageNet statistics: the model normalises its 0..1 RGB input itself.
+_MEAN = (0.485, 0.456, 0.406)
+_STD = (0.229, 0.224, 0.225)
+
+Progress = Callable[[str, int, int, str], None]
+
+
+# ---- network -----------------------------------------------------------------------------
+
+
+def _conv_bn(
+    cin: int, cout: int, k: int = 3, stride: int = 1, groups: int = 1, act: bool = True
+) -> nn.Sequential:
+    layers: list[nn.Module] = [
+        nn.Conv2d(cin, cout, k, stride, k // 2, groups=groups, bias=False),
+        nn.BatchNorm2d(cout),
+    ]
+    if act:
+        layers.append(nn.ReLU6(inplace=True))
+    return nn.Sequential(*layers)
+
+
+class InvertedResidual(nn.Module):
+    """MobileNetV2 block: 1x1 expand (ReLU6), 3x3 depthwise (ReLU6), 1x1 linear projection."""
+
+    def __init__(self, cin: int, cout: int, stride: int, expansion: int) -> None:
+        super().__init__()
+        hidden = cin * expansion
+        layers: list[nn.Module] = []
+        if expansion != 1:
+            layers.append(_conv_bn(cin, hidden, 1))
+        layers += [_conv_bn(hidden, hidden, 3, stride, groups=hidden), _conv_bn(hidden, cout, 1, act=False)]
+        self.block = nn.Sequential(*layers)
+        self.residual = stride == 1 and cin == cout
+
+    def forward(self, x: Tensor) -> Tensor:
+        y = self.block(x)
+        return x + y if self.residual else y
+
+
+class Baff(nn.Module):
+    """Block-adaptive feature fusion of two feature maps, paper 003 Eq. 2.
+
+    Both inputs have ``l`` channels and the same ``K x L`` size. The map is divided into
+    ``block x block`` blocks; per channel ``j`` (depthwise, as Eq. 2 indexes every weight
+    by the feature map ``j``)::
+
+        h1 = z_a^j * w1^j + b1^j          (kernel = stride = block: one value per block)
+        h2 = z_b^j * w2^j + b2^j
+        h3 = mu(h1 + h2)
+        h4 = mu(h3 * w4^j + b4^j)         (3x3 over the block grid: the block weight matrix)
+        h5 = up(h4)                       (bilinear, back to K x L)
+        sigma^j = h5 o z_a^j + (1 - h5) o z_b^j
+
+    ``mu`` is the logistic sigmoid, so ``h5`` is a convex weight in (0, 1). Eq. 2 as printed
+    computes ``h2`` from ``z_a`` too, which would make ``h1 + h2`` a single convolution of
+    ``z_a`` and leave the weights blind to ``z_b``; we read it as ``z_b``, the second layer
+    the text introduces. Sizes that are not multiples of ``block`` are padded (replicate)
+    for the block convolutions only.
+
+    Args (forward):
+        z_a: (N, l, K, L) shallow feature map (the encoder skip).
+        z_b: (N, l, K, L) deep feature map (upsampled decoder level).
+
+    Returns:
+        sigma: (N, l, K, L).
+    """
+
+    def __init__(self, channels: int, block: int) -> None:
+        super().__init__()
+        self.block = block
+        self.w1 = nn.Conv2d(channels, channels, block, block, groups=channels)
+        self.w2 = nn.Conv2d(channels, channels, block, block, groups=channels)
+        self.w4 = nn.Conv2d(channels, channels, 3, 1, 1, groups=channels)
+
+    def weights(self, z_a: Tensor, z_b: Tensor) -> Tensor:
+        """``h5``: the per-pixel, per-channel fusion weight of ``z_a`` (N, l, K, L) in (0, 1)."""
+        k, l_ = z_a.shape[-2:]
+        pad_h, pad_w = (-k) % self.block, (-l_) % self.block
+        if pad_h or pad_w:
+            z_a_p = F.pad(z_a, (0, pad_w, 0, pad_h), mode="replicate")
+            z_b_p = F.pad(z_b, (0, pad_w, 0, pad_h), mode="replicate")
+        else:
+            z_a_p, z_b_p = z_a, z_b
+        h3 = torch.sigmoid(self.w1(z_a_p) + self.w2(z_b_p))
+        h4 = torch.sigmoid(self.w4(h3))
+        if h4.shape[-2:] == (k, l_):
+            return h4
+        return F.interpolate(h4, size=(int(k), int(l_)), mode="bilinear", align_corners=False)
+
+    def forward(self, z_a: Tensor, z_b: Tensor) -> Tensor:
+        if z_a.shape != z_b.shape:
+            raise ValueError(f"BAFF inputs must match, got {tuple(z_a.shape)} and {tuple(z_b.shape)}")
+        h5 = self.weights(z_a, z_b)
+        return h5 * z_a + (1.0 - h5) * z_b
+
+
+class _DecoderLevel(nn.Module):
+    """Upsample the deeper level, project both to ``channels``, fuse by BAFF, refine."""
+
+    def __init__(self, deep: int, skip: int, channels: int, block: int) -> None:
+        super().__init__()
+        self.proj_deep = _conv_bn(deep, channels, 1)
+        self.proj_skip = _conv_bn(skip, channels, 1)
+        self.baff = Baff(channels, block)
+        self.refine = nn.Sequential(
+            _conv_bn(channels, channels, 3, groups=channels), _conv_bn(channels, channels, 1)
+        )
+
+    def forward(self, deep: Tensor, skip: Tensor) -> Tensor:
+        up = F.interpolate(self.proj_deep(deep), size=skip.shape[-2:], mode="bilinear", align_corners=False)
+        return self.refine(self.baff(self.proj_skip(skip), up))
+
+
+class BaffSkipNet(nn.Module):
+    """MobileNetV2-style encoder + BAFF skip decoder (paper 003 Fig. 5), see the module docstring.
+
+    Input (N, 3, H, W) RGB 0..1; output logits (N, num_classes, H, W).
+    """
+
+    mean: Tensor
+    std: Tensor
+
+    def __init__(self, cfg: TrainSegConfig, num_classes: int) -> None:
+        super().__init__()
+        self.register_buffer("mean", torch.tensor(_MEAN).view(1, 3, 1, 1))
+        self.register_buffer("std", torch.tensor(_STD).view(1, 3, 1, 1))
+        self.stem = _conv_bn(3, cfg.stem_channels, 3, 2)
+        stages: list[nn.Module] = []
+        cin = cfg.stem_channels
+        strides, stride = [], 2
+        channels = []
+        for t, c, n, s in cfg.encoder:
+            blocks = [InvertedResidual(cin if i == 0 else c, c, s if i == 0 else 1, t) for i in range(n)]
+            stages.append(nn.Sequential(*blocks))
+            cin = c
+            stride *= s
+            strides.append(stride)
+            channels.append(c)
+        self.stages = nn.ModuleList(stages)
+        self.skip_stages = tuple(cfg.skip_stages)
+        skips = list(self.skip_stages)
+        levels: list[nn.Module] = []
+        deep = channels[skips[-1]]
+        for out_c, si in zip(cfg.decoder_channels, reversed(skips[:-1]), strict=True):
+            block = max(1, cfg.baff_block_px // strides[si])
+            levels.append(_DecoderLevel(deep, channels[si], out_c, block))
+            deep = out_c
+        self.levels = nn.ModuleList(levels)
+        self.head = nn.Conv2d(deep, num_classes, 1)
+
+    def forward(self, image: Tensor) -> Tensor:
+        x = self.stem((image - self.mean) / self.std)
+        feats: list[Tensor] = []
+        for stage in self.stages:
+            x = stage(x)
+            feats.append(x)
+        skips = [feats[i] for i in self.skip_stages]
+        y = skips[-1]
+        for level, skip in zip(self.levels, reversed(skips[:-1]), strict=True):
+            y = level(y, skip)
+        return F.interpolate(self.head(y), size=image.shape[-2:], mode="bilinear", align_corners=False)
+
+
+# ---- training ----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class TrainResult:
+    """What :func:`train_and_export` produced.
+
+    Attributes:
+        onnx_path: the exported model.
+        card_path: the model card (Markdown) beside it.
+        metrics: validation metrics (``miou``, ``per_class_iou``, ...).
+        summary: everything the model card states, JSON-ready.
+    """
+
+    onnx_path: Path
+    card_path: Path
+    metrics: dict[str, Any]
+    summary: dict[str, Any]
+
+
+def class_weights(
+    classes: NDArray[np.uint8], num_classes: int, power: float, max_weight: float
+) -> NDArray[np.float32]:
+    """Cross-entropy weights (C,): ``(median_freq / freq_c) ** power``, clipped to [1/max, max].
+
+    Classes absent from the data get ``max_weight``.
+    """
+    counts = np.bincount(classes.reshape(-1), minlength=256)[:num_classes].astype(np.float64)
+    freq = counts / max(counts.sum(), 1.0)
+    med = float(np.median(freq[freq > 0])) if np.any(freq > 0) else 1.0
+    w = np.where(freq > 0, (med / np.maximum(freq, 1e-12)) ** power, max_weight)
+    return np.clip(w, 1.0 / max_weight, max_weight).astype(np.float32)
+
+
+def _batches(n: int, batch: int, rng: np.random.Generator) -> list[NDArray[np.int64]]:
+    order = rng.permutation(n)
+    return [order[i : i + batch] for i in range(0, n - batch + 1, batch)]
+
+
+def train_model(
+    cfg: TrainSegConfig,
+    samples: SegSamples,
+    progress: Progress | None = None,
+) -> tuple[BaffSkipNet, list[float]]:
+    """Train a :class:`BaffSkipNet` on ``samples``; returns it (eval mode) and the per-epoch mean loss.
+
+    Deterministic for a given config and samples (seeded torch, sample order, augmentation).
+    """
+    if len(samples) < cfg.batch_size:
+        raise TrainingError(f"{len(samples)} samples are fewer than one batch of {cfg.batch_size}")
+    torch.manual_seed(cfg.seed)
+    torch.set_num_threads(cfg.threads)
+    torch.use_deterministic_algorithms(True, warn_only=True)
+    num_classes = len(samples.names)
+    model = BaffSkipNet(cfg, num_classes)
+    weights = torch.from_numpy(
+        class_weights(samples.classes, num_classes, cfg.class_weight_power, cfg.max_class_weight)
+    )
+    loss_fn = nn.CrossEntropyLoss(weight=weights, ignore_index=IGNORE_INDEX)
+    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    steps_per_epoch = len(samples) // cfg.batch_size
+    total = cfg.epochs * steps_per_epoch
+    if cfg.max_steps:
+        total = min(total, cfg.max_steps)
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=cfg.lr, total_steps=max(total, 2), pct_start=0.1)
+    rng = np.random.default_rng([cfg.seed, 1])
+    model.train()
+    step, losses = 0, []
+    started = time.perf_counter()
+    for epoch in range(cfg.epochs):
+        epoch_loss, n_batches = 0.0, 0
+        for idx in _batches(len(samples), cfg.batch_size, rng):
+            if step >= total:
+                break
+            pairs = [augment(samples.rgb[i], samples.classes[i], rng, cfg.crop) for i in idx]
+            x = torch.from_numpy(np.stack([p[0] for p in pairs])).permute(0, 3, 1, 2).float().div_(255.0)
+            y = torch.from_numpy(np.stack([p[1] for p in pairs]).astype(np.int64))
+            loss = loss_fn(model(x), y)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            sched.step()
+            step += 1
+            epoch_loss += float(loss.detach())
+            n_batches += 1
+            if progress is not None:
+                el = time.perf_counter() - started
+                progress(
+                    "train", step, total, f"epoch {epoch + 1} loss {float(loss.detach()):.3f} {el:.0f} s"
+                )
+        if n_batches:
+            losses.append(epoch_loss / n_batches)
+            log.info(
+                "epoch %d: mean loss %.4f (%.0f s)", epoch + 1, losses[-1], time.perf_counter() - started
+            )
+        if step >= total:
+            break
+    model.eval()
+    return model, losses
+
+
+# ---- export and validation ---------------------------------------------------------------
+
+
+def export_onnx(model: BaffSkipNet, path: Path, names: Sequence[str], width: int, height: int) -> None:
+    """Write ``model`` as one self-contained ONNX file with the contract of the module docstring.
+
+    Raises:
+        TrainingError: onnx is missing or the export fails.
+    """
+    try:
+        import onnx
+    except ImportError as exc:
+        raise TrainingError("onnx is not installed; pip install -e '.[train]'") from exc
+    model = model.eval()
+    dummy = torch.rand(1, 3, height, width)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp.onnx")
+    with torch.no_grad(), warnings.catch_warnings():
+        # The tracer warns about Python-level shape checks; shapes are fixed in the contract.
+        warnings.simplefilter("ignore")
+        torch.onnx.export(
+            model,
+            (dummy,),
+            str(tmp),
+            input_names=["image"],
+            output_names=["logits"],
+            opset_version=ONNX_OPSET,
+            dynamo=False,
+            do_constant_folding=True,
+        )
+    proto = onnx.load(str(tmp))
+    for key, value in (
+        ("wardmap.classes", json.dumps(list(names))),
+        ("wardmap.input_size", f"{width}x{height}"),
+    ):
+        entry = proto.metadata_props.add()
+        entry.key, entry.value = key, value
+    onnx.checker.check_model(proto)
+    onnx.save(proto, str(path))
+    tmp.unlink()
+
+
+def onnx_logits(session: Any, rgb: NDArray[np.uint8]) -> NDArray[np.float32]:
+    """Logits (1, C, H, W) of one uint8 (H, W, 3) RGB image through an onnxruntime session."""
+    x = (rgb.astype(np.float32) / 255.0).transpose(2, 0, 1)[None]
+    out = session.run(["logits"], {"image": np.ascontiguousarray(x)})[0]
+    return np.asarray(out, np.float32)
+
+
+def evaluate_onnx(path: Path, samples: SegSamples, threads: int = 1) -> dict[str, Any]:
+    """mIoU and per-class IoU of the ONNX model on ``samples`` (numpy on onnxruntime outputs).
+
+    Returns a dict: ``miou`` (mean over classes present in the truth, %), ``per_class_iou``
+    ({name: % or None}), ``pixel_accuracy`` (%), ``frames``, ``ms_per_frame`` (mean
+    onnxruntime time per frame at ``threads``).
+    """
+    import onnxruntime as ort
+
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = threads
+    opts.inter_op_num_threads = 1
+    sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+    n = len(samples.names)
+    cm = np.zeros((n, n), np.int64)
+    times = []
+    for i in range(len(samples)):
+        t0 = time.perf_counter()
+        logits = onnx_logits(sess, samples.rgb[i])
+        times.append(time.perf_counter() - t0)
+        cm += confusion(logits[0].argmax(0), samples.classes[i], n)
+    iou = iou_from_confusion(cm)
+    present = cm.sum(1) > 0
+    return {
+        "miou": float(np.mean(iou[present]) * 100.0),
+        "per_class_iou": {
+            name: (round(float(iou[k]) * 100.0, 1) if present[k] else None)
+            for k, name in enumerate(samples.names)
+        },
+        "pixel_accuracy": float(np.trace(cm) / max(cm.sum(), 1) * 100.0),
+        "frames": len(samples),
+        "ms_per_frame": float(np.median(times) * 1000.0),
+    }
+
+
+def check_export(model: BaffSkipNet, path: Path, rgb: NDArray[np.uint8]) -> float:
+    """Max abs logit difference between torch and onnxruntime on one (H, W, 3) uint8 image."""
+    import onnxruntime as ort
+
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    with torch.no_grad():
+        ref = model(torch.from_numpy(rgb).permute(2, 0, 1)[None].float() / 255.0).numpy()
+    return float(np.abs(onnx_logits(sess, rgb) - ref).max())
+
+
+def train_and_export(
+    cfg: TrainSegConfig,
+    out: str | Path,
+    *,
+    command: str = "",
+    progress: Progress | None = None,
+    card: bool = True,
+) -> TrainResult:
+    """Generate (or load cached) samples, train, export ``out`` (ONNX), validate, write the card.
+
+    Args:
+        out: ONNX path; the model card is written beside it with the suffix ``.md``.
+        command: the command line that made the model (for the card).
+
+    Raises:
+        TrainingError: bad output path, too few samples, export failure.
+    """
+    out = Path(out)
+    if out.suffix != ".onnx":
+        raise TrainingError(f"--out must end in .onnx, got {out}")
+    if out.exists() and not out.is_file():
+        raise TrainingError(f"--out {out} exists and is not a file")
+    started = time.perf_counter()
+    kg = KnowledgeGraph.load()
+    names = class_names(kg)
+
+    def data_progress(tag: str) -> Callable[[int, int], None]:
+        return lambda i, n: progress(tag, i, n, "worlds") if progress is not None else None
+
+    train = build_samples(cfg.data, cfg.cache_dir, data_progress("data"), kg, workers=cfg.threads)
+    val = build_samples(cfg.val, cfg.cache_dir, data_progress("val data"), kg, workers=cfg.threads)
+    t_data = time.perf_counter() - started
+    model, losses = train_model(cfg, train, progress)
+    t_train = time.perf_counter() - started - t_data
+    export_onnx(model, out, names, cfg.data.width, cfg.data.height)
+    diff = check_export(model, out, val.rgb[0])
+    if not math.isfinite(diff) or diff > 1e-2:
+        raise TrainingError(f"exported model disagrees with torch: max abs logit difference {diff:.3g}")
+    metrics = evaluate_onnx(out, val, threads=1)
+    if val.on_track.any():
+        metrics["on_track"] = evaluate_onnx(out, val.subset(val.on_track), threads=1)
+    wall = time.perf_counter() - started
+    n_params = sum(p.numel() for p in model.parameters())
+    summary: dict[str, Any] = {
+        "command": command,
+        "wall_time_s": round(wall, 1),
+        "data_time_s": round(t_data, 1),
+        "data_cached": bool(train.cached and val.cached),
+        "data_generation_s": round(train.generation_s + val.generation_s, 1),
+        "train_time_s": round(t_train, 1),
+        "train_frames": len(train),
+        "val_frames": len(val),
+        "train_data_hash": config_hash(cfg.data),
+        "val_data_hash": config_hash(cfg.val),
+        "epoch_losses": [round(v, 4) for v in losses],
+        "parameters": int(n_params),
+        "onnx_bytes": out.stat().st_size,
+        "onnx_torch_max_abs_diff": diff,
+        "torch": torch.__version__,
+        "cpu": platform.processor() or platform.machine(),
+        "config": to_mapping(cfg),
+        "classes": list(names),
+        "class_pixel_share": _class_share(train, names),
+    }
+    card_path = out.with_suffix(".md")
+    if card:
+        card_path.write_text(model_card(summary, metrics))
+    # Kept beside the data cache so a card can be re-rendered without retraining.
+    record = Path(cfg.cache_dir) / f"run-{out.stem}.json"
+    record.parent.mkdir(parents=True, exist_ok=True)
+    record.write_text(json.dumps({"summary": summary, "metrics": metrics}, indent=2) + "\n")
+    log.info("validation mIoU %.1f %% on %d frames", metrics["miou"], len(val))
+    return TrainResult(out, card_path, metrics, summary)
+
+
+def _class_share(samples: SegSamples, names: Sequence[str]) -> dict[str, float]:
+    counts = np.bincount(samples.classes.reshape(-1), minlength=len(names))[: len(names)]
+    return {
+        n: round(float(c) / max(int(counts.sum()), 1) * 100.0, 3) for n, c in zip(names, counts, strict=True)
+    }
+
+
+def _track_line(metrics: dict[str, Any]) -> str:
+    t = metrics.get("on_track")
+    if not t:
+        return ""
+    person = t["per_class_iou"].get("person")
+    person_s = "-" if person is None else f"{person:.1f} %"
+    return (
+        f"- the {t['frames']} of these frames on the scenarios' own robot trajectories (the view a "
+        f"robot has): mIoU {t['miou']:.1f} %, person IoU {person_s}, pixel accuracy "
+        f"{t['pixel_accuracy']:.1f} %.\n"
+    )
+
+
+def model_card(summary: dict[str, Any], metrics: dict[str, Any]) -> str:
+    """The Markdown model card of an exported model."""
+    cfg = summary["config"]
+    d, v = cfg["data"], cfg["val"]
+    share = summary["class_pixel_share"]
+    rows = "\n".join(
+        f"| {k} | {name} | {'-' if iou is None else f'{iou:.1f}'} | {share.get(name, 0):.3f} |"
+        for k, (name, iou) in enumerate(metrics["per_class_iou"].items())
+    )
+    enc = ", ".join(f"({t}, {c}, {n}, {s})" for t, c, n, s in cfg["encoder"])
+    w, h, sc = d["width"], d["height"], d["render_scale"]
+    nc = len(summary["classes"])
+    stop = f" (stopped after {cfg['max_steps']} steps)" if cfg["max_steps"] else ""
+    blk = cfg["baff_block_px"]
+    mb = summary["onnx_bytes"] / 1e6
+    t_all, t_data, t_train = (summary[k] / 60 for k in ("wall_time_s", "data_time_s", "train_time_s"))
+    gen = summary.get("data_generation_s", float("nan")) / 60
+    cached = (
+        f" The samples were loaded from the cache of an earlier run with the same data settings;"
+        f" generating them took {'an unrecorded time' if math.isnan(gen) else f'{gen:.1f} min'}."
+        if summary.get("data_cached")
+        else ""
+    )
+    return f"""# hospital_seg: hospital semantic segmentation network
+
+Made by `wardmap train-seg` (server/perception/training.py, docs/training.md).
+
+## Interface (ONNX opset {ONNX_OPSET}, one self-contained file, {mb:.2f} MB)
+
+- input `image`: float32 `[1, 3, {h}, {w}]`, RGB in 0..1 (normalisation is inside the model).
+  Frames of another size are resized to {w}x{h} first (`cv2.INTER_AREA`, as the training data
+  was made from {w * sc}x{h * sc} renders).
+- output `logits`: float32 `[1, {nc}, {h}, {w}]`; class = argmax over axis 1.
+- metadata: `wardmap.classes` = `{json.dumps(summary["classes"])}`;
+  `wardmap.input_size` = `{w}x{h}`.
+
+## Classes
+
+Index 0 is background, then the knowledge-graph classes in `shared/data/knowledge_graph.toml`
+order (see the table below).
+
+## Architecture (paper 003 Sec. IV-B, Fig. 5)
+
+- Encoder: MobileNetV2-style; stem 3x3/2 conv with {cfg["stem_channels"]} channels, then
+  inverted residual stages (expansion, channels, repeats, stride): {enc}; ReLU6, BatchNorm.
+- Decoder: from stride 32 up to stride 2. At each level the deeper map is projected and
+  bilinearly upsampled, the encoder skip of that stride (stages {cfg["skip_stages"]}) is
+  projected to the same channels ({cfg["decoder_channels"]}, deep to shallow), and the two are
+  fused by BAFF (Eq. 2: depthwise block convolutions of both maps, sigmoid, 3x3 on the block
+  grid, sigmoid, bilinear upsampling, per-pixel convex blend), then refined by a
+  depthwise-separable conv. Blocks are {blk}x{blk} input pixels at every level. 1x1
+  classifier at stride 2, bilinear to full resolution.
+- {summary["parameters"]:,} parameters.
+
+## Training data
+
+Rendered in-process by the wardmap simulator (server/perception/segdata.py), cached by config
+hash `{summary["train_data_hash"]}`:
+
+- scenarios: {", ".join(d["scenarios"])};
+- world seeds {d["seeds"]} (all < 1000), {d["frames_per_world"]} frames per world,
+  {summary["train_frames"]} frames in total;
+- {d["track_fraction"] * 100:.0f} % of frames on the scenario's robot trajectory at a random
+  time (scenario people and lighting, including the dark corridor's lights-off phase), the
+  rest from random viewpoints in free space (0.7-1.6 m high) looking at an object, rare
+  classes favoured (inverse frequency ^ {d["rare_bias"]});
+- per world {d["props_per_world"]} free-standing wheelchairs, carts, IV poles and chairs and
+  {d["items_per_world"]} cups and temperature guns on furniture; per frame up to
+  {d["max_extra_people"]} extra people (random walk phase, height 1.5-1.95 m, heading,
+  outfit; 30 % hold a cup or a temperature gun);
+- illumination gain {d["light_range"][0]}-{d["light_range"][1]} for random viewpoints;
+  rendered at {w * sc}x{h * sc} with the simulator's sensor noise, area-downsampled;
+- augmentation: horizontal flip, rescale 0.8-1.25 and {cfg["crop"][0]}x{cfg["crop"][1]} random
+  crop, brightness 0.6-1.4, per-channel gain 0.9-1.1, contrast 0.7-1.3, gamma 0.7-1.4,
+  Gaussian blur (30 %), noise.
+
+## Training settings
+
+AdamW, one-cycle learning rate (peak {cfg["lr"]}), weight decay {cfg["weight_decay"]},
+batch {cfg["batch_size"]}, {cfg["epochs"]} epochs{stop}, cross-entropy with class weights
+(median frequency / frequency) ^ {cfg["class_weight_power"]} clipped at {cfg["max_class_weight"]};
+seed {cfg["seed"]}, {cfg["threads"]} torch threads, torch {summary["torch"]} on CPU
+({summary["cpu"]}). Mean loss per epoch: {summary["epoch_losses"]}.
+
+Command:
+
+```
+{summary["command"] or "(library call)"}
+```
+
+Wall time {t_all:.1f} min in total (data {t_data:.1f} min, training {t_train:.1f} min, the
+rest export and validation) on a 2-core machine shared with other jobs.{cached} ONNX vs torch
+max abs logit difference {summary["onnx_torch_max_abs_diff"]:.2e}.
+
+## Validation (held-out worlds, seeds >= 1000)
+
+{summary["val_frames"]} frames generated like the training data from worlds never used in
+training (scenarios {", ".join(v["scenarios"])}; seeds {v["seeds"]}; {v["frames_per_world"]}
+frames each; data hash `{summary["val_data_hash"]}`), scored with numpy on onnxruntime
+outputs at {w}x{h}:
+
+- **mIoU {metrics["miou"]:.1f} %** (mean over the classes present in the validation truth),
+  pixel accuracy {metrics["pixel_accuracy"]:.1f} %;
+- onnxruntime, 1 thread: median {metrics["ms_per_frame"]:.1f} ms per frame.
+{_track_line(metrics)}
+
+| index | class | IoU % | training pixel share % |
+|---|---|---|---|
+{rows}
+
+Training worlds use seeds < 1000 and evaluation worlds seeds >= 1000, so no world is shared.
+"""

@@ -1,0 +1,234 @@
+"""Instances and 3D measurements on synthetic scenes with known ground truth."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from wardmap.server.perception.instances import (
+    attach_gt_instances,
+    gt_instance_of,
+    id_to_class,
+    instances_from_classes,
+    oracle_instances,
+)
+from wardmap.server.perception.measure import (
+    MeasureConfig,
+    measure_instances,
+    measure_instances_report,
+)
+from wardmap.server.perception.types import Instance
+from wardmap.shared.camera import PinholeCamera
+from wardmap.shared.errors import ConfigError, DatasetError, GeometryError
+from wardmap.shared.se3 import yaw_transform
+
+CAMERA = PinholeCamera(320, 240, 262.5, 262.5, 159.5, 119.5)
+
+
+def look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """T_world_camera of a camera at ``eye`` looking at ``target`` (world z up, no roll)."""
+    z = target - eye
+    z = z / np.linalg.norm(z)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    T = np.eye(4)
+    T[:3, :3] = np.column_stack([x, y, z])
+    T[:3, 3] = eye
+    return T
+
+
+def render_box(T_world_camera: np.ndarray, T_world_box: np.ndarray, size: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Depth (H, W) float32 and hit mask of an oriented box, by exact ray/slab intersection."""
+    rays_c = CAMERA.pixel_rays().reshape(-1, 3)  # z = 1, so the ray parameter is the depth
+    T_box_cam = np.linalg.inv(T_world_box) @ T_world_camera
+    origin = T_box_cam[:3, 3]
+    dirs = rays_c @ T_box_cam[:3, :3].T
+    half = size / 2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1 = (-half - origin) / dirs
+        t2 = (half - origin) / dirs
+    t_near = np.nanmax(np.minimum(t1, t2), axis=1)
+    t_far = np.nanmin(np.maximum(t1, t2), axis=1)
+    hit = (t_near <= t_far) & (t_near > 0)
+    depth = np.where(hit, t_near, 0.0).astype(np.float32).reshape(CAMERA.height, CAMERA.width)
+    return depth, hit.reshape(CAMERA.height, CAMERA.width)
+
+
+BOX_SIZE = np.array([0.9, 0.5, 0.8])
+T_WORLD_BOX = yaw_transform(2.0, 0.3, math.radians(25.0), z=0.4)  # x is the longer side
+T_WORLD_CAM = look_at(np.array([1.0, -0.6, 1.7]), np.array([2.0, 0.3, 0.4]))
+BGR = np.random.default_rng(3).integers(0, 256, (CAMERA.height, CAMERA.width, 3), dtype=np.uint8)
+
+
+def measure_one(mask: np.ndarray, depth: np.ndarray, **kw: object) -> list:
+    inst = Instance("cabinet", 0.9, mask, np.array([0.0, 0.0, 1.0, 1.0]))
+    return measure_instances([inst], bgr=BGR, depth_m=depth, camera=CAMERA, T_world_camera=T_WORLD_CAM,
+                             keyframe="test/1", stamp=1.0, **kw)
+
+
+def yaw_error_deg(yaw_a: float, yaw_b: float) -> float:
+    """Yaw difference modulo the 180 deg symmetry of a box."""
+    d = (yaw_a - yaw_b) % math.pi
+    return math.degrees(min(d, math.pi - d))
+
+
+def check_box(m: object, tol_centre: float = 0.02, tol_yaw_deg: float = 3.0, tol_size: float = 0.05) -> None:
+    centre_err = np.linalg.norm(m.T_world_object[:3, 3] - T_WORLD_BOX[:3, 3])
+    assert centre_err < tol_centre, centre_err
+    yaw = math.atan2(m.T_world_object[1, 0], m.T_world_object[0, 0])
+    assert yaw_error_deg(yaw, math.radians(25.0)) < tol_yaw_deg
+    np.testing.assert_allclose(m.size, BOX_SIZE, atol=tol_size)
+    np.testing.assert_allclose(m.T_world_object[:3, 2], [0, 0, 1], atol=1e-9)
+
+
+def test_box_pose_and_size_from_its_visible_faces() -> None:
+    """A 0.9 x 0.5 x 0.8 m box seen from above one corner: centroid, yaw, size recovered."""
+    depth, mask = render_box(T_WORLD_CAM, T_WORLD_BOX, BOX_SIZE)
+    assert mask.sum() > 2000
+    (m,) = measure_one(mask, depth)
+    check_box(m)
+    # Camera and world frames agree, points are camera-frame inliers on the box.
+    np.testing.assert_allclose(m.T_world_camera @ m.T_camera_object, m.T_world_object, atol=1e-9)
+    points_h = np.c_[m.points_camera, np.ones(len(m.points_camera))].T
+    pts_box = (np.linalg.inv(T_WORLD_BOX) @ T_WORLD_CAM) @ points_h
+    assert np.all(np.abs(pts_box[:3].T) <= BOX_SIZE / 2 + 0.01)
+    assert m.color_hist.shape == (16 * 4 * 4,) and abs(float(m.color_hist.sum()) - 1.0) < 1e-5
+    assert m.descriptors.dtype == np.uint8 and m.descriptors.shape[1] == 32 and len(m.descriptors) > 0
+    assert m.confidence == pytest.approx(0.9) and m.category == "cabinet"
+
+
+def test_outliers_are_removed() -> None:
+    """10% of the mask's depth replaced by far background and random spikes: the box is still found."""
+    depth, mask = render_box(T_WORLD_CAM, T_WORLD_BOX, BOX_SIZE)
+    rng = np.random.default_rng(7)
+    rows, cols = np.nonzero(mask)
+    pick = rng.choice(rows.size, size=rows.size // 10, replace=False)
+    noisy = depth.copy()
+    half = pick[: pick.size // 2]
+    noisy[rows[half], cols[half]] = 6.0  # wall behind the box bleeding into the mask
+    rest = pick[pick.size // 2:]
+    noisy[rows[rest], cols[rest]] += rng.uniform(-0.6, 0.6, rest.size).astype(np.float32)
+    (m,) = measure_one(mask, noisy)
+    check_box(m, tol_centre=0.05, tol_yaw_deg=3.0, tol_size=0.08)
+    # Without outlier removal the far points would stretch the box by metres.
+    assert m.size.max() < 1.0
+
+
+def test_square_footprint_yaw_is_modulo_90_and_x_is_the_longer_side() -> None:
+    """x of the measurement follows the longer horizontal side even if it is the box's y."""
+    size = np.array([0.5, 0.9, 0.8])
+    depth, mask = render_box(T_WORLD_CAM, T_WORLD_BOX, size)
+    (m,) = measure_one(mask, depth)
+    yaw = math.atan2(m.T_world_object[1, 0], m.T_world_object[0, 0])
+    assert yaw_error_deg(yaw, math.radians(25.0 + 90.0)) < 3.0
+    assert -math.pi / 2 <= yaw < math.pi / 2
+    np.testing.assert_allclose(m.size, [0.9, 0.5, 0.8], atol=0.05)
+
+
+def test_largest_piece_when_clustering() -> None:
+    """A mask that also covers a small box 0.4 m away: clustering keeps the big box only."""
+    depth, mask = render_box(T_WORLD_CAM, T_WORLD_BOX, BOX_SIZE)
+    T_small = yaw_transform(2.0, -0.6, 0.0, z=0.15)
+    depth2, mask2 = render_box(T_WORLD_CAM, T_small, np.array([0.3, 0.3, 0.3]))
+    assert mask2.any() and not (mask & mask2).any()
+    both = np.where(mask2, depth2, depth).astype(np.float32)
+    (joined,) = measure_one(mask | mask2, both)
+    assert joined.size[0] > 1.0  # without clustering the box spans both objects
+    (m,) = measure_one(mask | mask2, both, config=MeasureConfig(cluster_gap_m=0.05))
+    check_box(m)
+
+
+def test_empty_and_depthless_masks_are_skipped_with_a_reason() -> None:
+    """An empty mask and a mask without depth are reported as skipped; the box is still measured."""
+    depth, mask = render_box(T_WORLD_CAM, T_WORLD_BOX, BOX_SIZE)
+    empty = np.zeros_like(mask)
+    no_depth = ~mask & (np.arange(CAMERA.width)[None, :] < 20)
+    insts = [Instance("cabinet", 1.0, m, np.zeros(4)) for m in (empty, mask, no_depth)]
+    report = measure_instances_report(insts, bgr=BGR, depth_m=depth, camera=CAMERA,
+                                      T_world_camera=T_WORLD_CAM, keyframe="k", stamp=0.0)
+    assert len(report.measurements) == 1
+    assert [i for i, _ in report.skipped] == [0, 2]
+    assert all("min_points" in reason for _, reason in report.skipped)
+
+
+def test_gravity_other_than_minus_z() -> None:
+    """The same scene in a world whose up axis is +y: object z follows -gravity."""
+    depth, mask = render_box(T_WORLD_CAM, T_WORLD_BOX, BOX_SIZE)
+    T_new_old = np.array([[1.0, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]])  # old z -> new y
+    inst = Instance("cabinet", 1.0, mask, np.zeros(4))
+    (m,) = measure_instances([inst], bgr=BGR, depth_m=depth, camera=CAMERA,
+                             T_world_camera=T_new_old @ T_WORLD_CAM, keyframe="k", stamp=0.0,
+                             gravity_world=(0.0, -9.81, 0.0))
+    np.testing.assert_allclose(m.T_world_object[:3, 2], [0, 1, 0], atol=1e-9)
+    np.testing.assert_allclose(m.T_world_object[:3, 3], (T_new_old @ T_WORLD_BOX)[:3, 3], atol=0.02)
+    np.testing.assert_allclose(m.size, BOX_SIZE, atol=0.05)
+
+
+def test_bad_inputs_raise() -> None:
+    depth, mask = render_box(T_WORLD_CAM, T_WORLD_BOX, BOX_SIZE)
+    with pytest.raises(GeometryError, match="depth"):
+        measure_one(mask, depth[:10])
+    with pytest.raises(GeometryError, match="mask"):
+        measure_one(mask[:10], depth)
+    with pytest.raises(ConfigError, match="min_depth_m"):
+        MeasureConfig(min_depth_m=3.0, max_depth_m=1.0)
+
+
+# ---------------------------------------------------------------------------- instances
+
+
+def test_oracle_instances_on_a_crafted_label_image() -> None:
+    """Two objects and a tiny one: every class returned, small ones dropped, boxes exact."""
+    labels = np.zeros((60, 80), np.uint16)
+    labels[10:30, 5:25] = 7  # 400 px person
+    labels[40:60, 60:80] = 3  # 400 px door reaching the image corner
+    labels[0:5, 70:75] = 9  # 25 px
+    classes = id_to_class({"objects": [{"id": 7, "class": "person"}, {"id": 3, "class": "door"},
+                                       {"id": 9, "class": "cup"}]})
+    insts = oracle_instances(labels, classes, min_pixels=100)
+    got = [(i.gt_instance, i.category, i.confidence) for i in insts]
+    assert got == [(3, "door", 1.0), (7, "person", 1.0)]
+    np.testing.assert_array_equal(insts[0].box_xyxy, [60, 40, 80, 60])
+    np.testing.assert_array_equal(insts[1].box_xyxy, [5, 10, 25, 30])
+    assert insts[1].mask.sum() == 400
+    with pytest.raises(DatasetError, match="instance id 9"):
+        oracle_instances(labels, {7: "person", 3: "door"}, min_pixels=100)
+
+
+def test_connected_components_split_at_a_depth_jump() -> None:
+    """One class region of two chairs touching in the image at 2 m and 3 m: two instances."""
+    classes = np.zeros((60, 100), np.uint8)
+    depth = np.full((60, 100), 5.0, np.float32)
+    classes[10:50, 10:90] = 2
+    depth[10:50, 10:50] = 2.0
+    depth[10:50, 50:90] = 3.0
+    classes[52:58, 0:10] = 1  # 60 px of class 1, below min_pixels
+    conf = np.full((60, 100), 0.8, np.float32)
+    insts = instances_from_classes(classes, depth, ["background", "person", "chair"], conf, min_pixels=100)
+    assert [i.category for i in insts] == ["chair", "chair"]
+    assert sorted(int(i.mask.sum()) for i in insts) == [1600, 1600]  # far-side edge pixels re-joined
+    for inst in insts:
+        assert np.ptp(depth[inst.mask]) == 0.0
+        assert inst.confidence == pytest.approx(0.8)
+    # A smooth slope (a floor-like ramp) stays one instance.
+    depth[10:50, 10:90] = np.linspace(2.0, 3.0, 80, dtype=np.float32)[None, :]
+    assert len(instances_from_classes(classes, depth, ["background", "person", "chair"], min_pixels=100)) == 1
+    with pytest.raises(GeometryError, match="class names"):
+        instances_from_classes(classes, depth, ["background", "person"])
+
+
+def test_gt_instance_attached_by_majority() -> None:
+    labels = np.zeros((20, 20), np.uint16)
+    labels[:, :12] = 5
+    mask = np.zeros((20, 20), bool)
+    mask[:, 4:16] = True  # 8/12 columns on id 5
+    assert gt_instance_of(mask, labels) == 5
+    mask[:, :] = False
+    mask[:, 8:20] = True  # 4/12 on id 5, rest on 0
+    assert gt_instance_of(mask, labels) is None
+    inst = Instance("door", 0.5, mask, np.zeros(4))
+    assert attach_gt_instances([inst], labels, min_fraction=0.3)[0].gt_instance == 5

@@ -1,0 +1,176 @@
+"""Segmenter adapters: the ONNX contract of the trained network, start-up checks, YOLOX on TUM."""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+from pathlib import Path
+from types import ModuleType
+
+import numpy as np
+import pytest
+
+from wardmap.server.perception.models import (
+    OnnxSegmenter,
+    PerceptionConfig,
+    YoloxDetector,
+    load_perception_config,
+    make_segmenter,
+    packaged_model_path,
+)
+from wardmap.shared.config import to_mapping
+from wardmap.shared.errors import ConfigError
+
+pytest.importorskip("onnx", reason="building test models needs the onnx package (dev dependency)")
+
+REPO = Path(__file__).resolve().parents[3]
+SHARED = REPO.parent / "shared"
+YOLOX = SHARED / "models" / "yolox_nano.onnx"
+TUM = SHARED / "data" / "tum_fr1_rpy_s3_first100"
+
+
+def _helper() -> ModuleType:
+    spec = importlib.util.spec_from_file_location("tiny_onnx", Path(__file__).with_name("tiny_onnx.py"))
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+tiny = _helper()
+
+
+def scene() -> tuple[np.ndarray, np.ndarray]:
+    """64 x 48 BGR image: red block (person) at 2 m, green block (door) at 3 m, grey rest."""
+    bgr = np.full((48, 64, 3), 90, np.uint8)
+    bgr[8:24, 4:20] = (0, 0, 255)  # red in BGR order
+    bgr[20:44, 36:60] = (0, 255, 0)
+    depth = np.full((48, 64), 5.0, np.float32)
+    depth[8:24, 4:20] = 2.0
+    depth[20:44, 36:60] = 3.0
+    return bgr, depth
+
+
+def test_class_mapping_of_the_onnx_contract(tmp_path: Path) -> None:
+    """Logit channel i is the i-th knowledge-graph class; RGB order, resize and softmax are right."""
+    seg = OnnxSegmenter(tiny.write_tiny_seg(tmp_path / "m.onnx"), kg=None, min_pixels=10)
+    names = seg.class_names
+    assert names == tuple(tiny.kg_classes()) and names[0] == "background"
+    bgr, depth = scene()
+    out = seg.segment(bgr, depth)
+    assert out.class_map.shape == (48, 64) and out.class_map.dtype == np.uint8
+    assert np.all(out.class_map[8:24, 4:20] == names.index("person"))
+    assert np.all(out.class_map[20:44, 36:60] == names.index("door"))
+    assert np.count_nonzero(out.class_map) == 16 * 16 + 24 * 24
+    # logits (background 0, person 5, others -100): softmax max = 1 / (1 + e^-5).
+    assert out.confidence[10, 10] == pytest.approx(1 / (1 + math.exp(-5)), rel=1e-4)
+    got = sorted((i.category, int(i.mask.sum()), tuple(i.box_xyxy)) for i in out.instances)
+    assert got == [("door", 576, (36.0, 20.0, 60.0, 44.0)), ("person", 256, (4.0, 8.0, 20.0, 24.0))]
+    assert [i.category for i in seg(bgr, depth)] == [i.category for i in out.instances]
+    # A blue image (BGR order!) is not red: all background.
+    blue = np.zeros_like(bgr)
+    blue[..., 0] = 255
+    assert not seg.segment(blue, None).class_map.any()
+
+
+def test_missing_model_fails_at_start_up(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match=r"not found: .*nope\.onnx"):
+        OnnxSegmenter(tmp_path / "nope.onnx")
+    with pytest.raises(ConfigError, match="not found"):
+        make_segmenter(f"yolox:{tmp_path / 'nope.onnx'}")
+
+
+def test_corrupt_model_fails_at_start_up(tmp_path: Path) -> None:
+    bad = tmp_path / "random.onnx"
+    bad.write_bytes(np.random.default_rng(0).integers(0, 256, 4096, dtype=np.uint8).tobytes())
+    with pytest.raises(ConfigError, match=r"random\.onnx is not a readable ONNX model"):
+        OnnxSegmenter(bad)
+    with pytest.raises(ConfigError, match="not a readable ONNX model"):
+        YoloxDetector(bad)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"input_name": "input"}, "input named 'image'"),
+        ({"output_name": "out"}, "output named 'logits'"),
+        ({"out_channels": 5}, r"output 'logits' has shape \[1, 5, 24, 32\], expected \[1, 14, 24, 32\]"),
+        ({"metadata": {"wardmap.input_size": "64x48"}}, r"input 'image' has shape"),
+        ({"metadata": {"wardmap.input_size": "big"}}, "must be 'WxH'"),
+        ({"metadata": {"wardmap.classes": None}}, "'wardmap.classes'.*missing"),
+        ({"metadata": {"wardmap.classes": "[1, 2"}}, "not JSON"),
+    ],
+)
+def test_wrong_model_fails_at_start_up(tmp_path: Path, kwargs: dict, message: str) -> None:
+    path = tiny.write_tiny_seg(tmp_path / "wrong.onnx", **kwargs)
+    with pytest.raises(ConfigError, match=message) as info:
+        OnnxSegmenter(path)
+    assert "wrong.onnx" in str(info.value)
+
+
+def test_class_list_must_match_the_knowledge_graph(tmp_path: Path) -> None:
+    classes = tiny.kg_classes()
+    swapped = [classes[0], classes[2], classes[1], *classes[3:]]
+    with pytest.raises(ConfigError, match=f"index 1 is {classes[2]!r}, expected {classes[1]!r}"):
+        OnnxSegmenter(tiny.write_tiny_seg(tmp_path / "a.onnx", classes=swapped))
+    with pytest.raises(ConfigError, match="index 14 is 'extra'"):
+        OnnxSegmenter(tiny.write_tiny_seg(tmp_path / "b.onnx", classes=[*classes, "extra"]))
+
+
+def test_wrong_yolox_model_fails_at_start_up(tmp_path: Path) -> None:
+    """A segmentation network given as a YOLOX detector is refused by its input shape."""
+    path = tiny.write_tiny_seg(tmp_path / "seg.onnx")
+    with pytest.raises(ConfigError, match=r"seg\.onnx: input 'image' has shape \[1, 3, 24, 32\]"):
+        YoloxDetector(path)
+
+
+def test_make_segmenter_specs(tmp_path: Path) -> None:
+    path = tiny.write_tiny_seg(tmp_path / "m.onnx")
+    assert isinstance(make_segmenter(str(path)), OnnxSegmenter)
+    assert isinstance(make_segmenter(f"model:{path}"), OnnxSegmenter)
+    with pytest.raises(ConfigError, match="empty"):
+        make_segmenter("  ")
+    if packaged_model_path().is_file():
+        assert isinstance(make_segmenter("model"), OnnxSegmenter)
+    else:
+        with pytest.raises(ConfigError, match="packaged segmentation model is not installed"):
+            make_segmenter("model")
+
+
+def test_perception_config_toml(tmp_path: Path) -> None:
+    """deploy/perception.toml holds the defaults; unknown keys and bad values are named."""
+    assert to_mapping(load_perception_config(REPO / "deploy" / "perception.toml")) == to_mapping(
+        PerceptionConfig()
+    )
+    bad = tmp_path / "p.toml"
+    bad.write_text("[perception.measure]\nmin_pointz = 3\n")
+    with pytest.raises(ConfigError, match="min_pointz"):
+        load_perception_config(bad)
+    bad.write_text("[perception]\nthreads = 0\n")
+    with pytest.raises(ConfigError, match="threads"):
+        load_perception_config(bad)
+    bad.write_text('[perception]\nsegmenter = "yolox:x.onnx"\n[perception.measure]\nmin_points = 80\n')
+    cfg = load_perception_config(bad)
+    assert cfg.segmenter == "yolox:x.onnx" and cfg.measure.min_points == 80
+
+
+@pytest.mark.skipif(not (YOLOX.is_file() and TUM.is_dir()), reason="needs ../shared (YOLOX, TUM excerpt)")
+def test_yolox_finds_the_monitor_on_a_real_tum_frame() -> None:
+    """Frame 90 of fr1/rpy shows the monitor: COCO 'tv' -> knowledge-graph 'wall_monitor'."""
+    import cv2
+
+    from wardmap.shared.dataset import DatasetReader
+
+    frame = DatasetReader(TUM).frame(90)
+    bgr = cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR)
+    seg = make_segmenter(f"yolox:{YOLOX}")
+    out = seg.segment(bgr, frame.depth_m)
+    monitors = [i for i in out.instances if i.category == "wall_monitor"]
+    assert len(monitors) == 1 and monitors[0].confidence > 0.5
+    x1, _, _, y2 = monitors[0].box_xyxy
+    assert x1 > 250 and y2 < 250  # the upper right of the image
+    depths = frame.depth_m[monitors[0].mask]
+    assert np.median(depths[depths > 0]) < 2.0  # the mask is on the monitor, not the far wall
+    index = seg.class_names.index("wall_monitor")
+    assert np.all(out.class_map[monitors[0].mask] == index)
+    assert np.all(out.confidence[monitors[0].mask] == pytest.approx(monitors[0].confidence))

@@ -1,0 +1,137 @@
+"""Segmentation training data: determinism, label mapping, augmentation, metrics, config (no torch)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from wardmap.server.perception import segdata
+from wardmap.server.perception.segdata import (
+    IGNORE_INDEX,
+    SegDataConfig,
+    TrainSegConfig,
+    augment,
+    build_samples,
+    class_names,
+    confusion,
+    instance_to_class,
+    iou_from_confusion,
+    look_at,
+    render_world,
+)
+from wardmap.shared.config import from_mapping
+from wardmap.shared.errors import ConfigError
+from wardmap.shared.knowledge import KnowledgeGraph
+
+TINY = SegDataConfig(scenarios=("walking_staff",), seeds=(3,), frames_per_world=3, track_fraction=0.34)
+
+
+def test_same_seed_same_samples_other_seed_differs() -> None:
+    """Rendering one world twice gives identical frames; another seed gives other frames."""
+    rgb_a, cls_a = render_world("walking_staff", 3, TINY)
+    rgb_b, cls_b = render_world("walking_staff", 3, TINY)
+    assert rgb_a.shape == (3, 240, 320, 3) and rgb_a.dtype == np.uint8
+    assert cls_a.shape == (3, 240, 320) and cls_a.dtype == np.uint8
+    np.testing.assert_array_equal(rgb_a, rgb_b)
+    np.testing.assert_array_equal(cls_a, cls_b)
+    rgb_c, _ = render_world("walking_staff", 4, TINY)
+    assert not np.array_equal(rgb_a, rgb_c)
+
+
+def test_labels_are_knowledge_graph_classes() -> None:
+    """Every label is background or a KG class index, and the frames show some objects."""
+    kg = KnowledgeGraph.load()
+    _, cls = render_world("ward_chairs", 5, TINY, kg, frames=4)
+    assert int(cls.max()) <= kg.num_classes
+    assert np.count_nonzero(cls) > 0.02 * cls.size
+    assert class_names(kg)[0] == "background" and class_names(kg)[1:] == kg.names
+
+
+def test_instance_to_class_lut() -> None:
+    """Instance ids map through the lookup; unknown ids (walls, decor) are background."""
+    inst = np.array([[0, 5, 7], [9, 5, 0]], np.uint16)
+    out = instance_to_class(inst, {5: 3, 7: 1})
+    np.testing.assert_array_equal(out, [[0, 3, 1], [0, 3, 0]])
+
+
+def test_look_at_points_camera_z_at_target() -> None:
+    """The camera z axis points at the target, x stays horizontal, y points down, det = +1."""
+    eye, target = np.array([1.0, 2.0, 1.2]), np.array([4.0, -1.0, 0.5])
+    T = look_at(eye, target)
+    z = (target - eye) / np.linalg.norm(target - eye)
+    np.testing.assert_allclose(T[:3, 2], z, atol=1e-12)
+    assert abs(T[2, 0]) < 1e-12 and T[2, 1] < 0
+    assert np.linalg.det(T[:3, :3]) == pytest.approx(1.0)
+    np.testing.assert_allclose(T[:3, 3], eye)
+
+
+def test_augment_keeps_image_and_labels_aligned() -> None:
+    """A bright left half labelled 1 and a dark right half labelled 2 stay aligned under flip,
+    rescale and crop: labelled-1 pixels stay brighter than labelled-2 pixels."""
+    rgb = np.zeros((120, 160, 3), np.uint8)
+    rgb[:, :80] = 220
+    rgb[:, 80:] = 30
+    cls = np.full((120, 160), 2, np.uint8)
+    cls[:, :80] = 1
+    flips = 0
+    for seed in range(12):
+        img, lab = augment(rgb, cls, np.random.default_rng(seed), crop=(96, 128))
+        assert img.shape == (96, 128, 3) and lab.shape == (96, 128)
+        assert set(np.unique(lab)) <= {1, 2, IGNORE_INDEX}
+        gray = img.mean(axis=2)
+        assert gray[lab == 1].mean() > gray[lab == 2].mean() + 40
+        flips += int(lab[:, 0].mean() > 1.5)
+    assert 0 < flips < 12  # both orientations occur
+    assert rgb[0, 0, 0] == 220 and cls[0, 0] == 1  # inputs untouched
+
+
+def test_confusion_and_iou() -> None:
+    """IoU from a hand-computed confusion; a class absent from truth and prediction is NaN."""
+    truth = np.array([0, 0, 1, 1, 1, IGNORE_INDEX])
+    pred = np.array([0, 1, 1, 1, 0, 2])
+    cm = confusion(pred, truth, 3)
+    np.testing.assert_array_equal(cm, [[1, 1, 0], [1, 2, 0], [0, 0, 0]])
+    iou = iou_from_confusion(cm)
+    assert iou[0] == pytest.approx(1 / 3) and iou[1] == pytest.approx(2 / 4) and np.isnan(iou[2])
+
+
+def test_cache_is_reused(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A second build with the same config loads the cache instead of rendering."""
+    cfg = SegDataConfig(scenarios=("aisle_slow_1",), seeds=(2,), frames_per_world=2, track_fraction=0.5)
+    first = build_samples(cfg, tmp_path)
+    assert len(first) == 2 and first.on_track.tolist() == [True, False]
+
+    def fail(*args: object, **kw: object) -> None:
+        raise AssertionError("rendered again despite the cache")
+
+    monkeypatch.setattr(segdata, "render_world", fail)
+    second = build_samples(cfg, tmp_path)
+    np.testing.assert_array_equal(first.rgb, second.rgb)
+    np.testing.assert_array_equal(first.classes, second.classes)
+    assert second.names == first.names
+    assert not first.cached and second.cached
+    assert second.generation_s == pytest.approx(first.generation_s) and first.generation_s > 0
+
+
+def test_seed_split_is_enforced() -> None:
+    """Training worlds must use seeds < 1000 and validation worlds seeds >= 1000."""
+    with pytest.raises(ConfigError, match="training seeds"):
+        from_mapping(TrainSegConfig, {"data": {"seeds": [3, 1000]}})
+    with pytest.raises(ConfigError, match="validation seeds"):
+        from_mapping(TrainSegConfig, {"val": {"seeds": [7]}})
+    with pytest.raises(ConfigError, match="unknown scenario"):
+        from_mapping(TrainSegConfig, {"data": {"scenarios": ["nowhere"]}})
+    with pytest.raises(ConfigError, match="unknown key"):
+        from_mapping(TrainSegConfig, {"epoch": 3})
+
+
+def test_deploy_config_loads() -> None:
+    """deploy/train_seg.toml is a valid [train_seg] table with the contract's input size."""
+    from wardmap.shared.config import load_config
+
+    path = Path(__file__).resolve().parents[3] / "deploy" / "train_seg.toml"
+    cfg = load_config(TrainSegConfig, path, section="train_seg")
+    assert (cfg.data.width, cfg.data.height) == (320, 240)
+    assert max(cfg.data.seeds) < 1000 <= min(cfg.val.seeds)

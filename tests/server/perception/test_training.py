@@ -1,0 +1,122 @@
+"""Segmentation training: BAFF (paper 003 Eq. 2), the network, and a 2-step train + ONNX export smoke run."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+onnx = pytest.importorskip("onnx")
+
+from wardmap.server.perception.segdata import SegDataConfig, TrainSegConfig  # noqa: E402
+from wardmap.server.perception.training import (  # noqa: E402
+    Baff,
+    BaffSkipNet,
+    class_weights,
+    train_and_export,
+)
+from wardmap.shared.knowledge import KnowledgeGraph  # noqa: E402
+
+
+@pytest.mark.parametrize("size", [(30, 40), (15, 20), (17, 23)])
+def test_baff_shapes_and_convex_blend(size: tuple[int, int]) -> None:
+    """BAFF keeps (N, l, K, L), including sizes that are not multiples of the block; its
+    weights lie in (0, 1); fusing a map with itself returns it (convex blend, Eq. 2 last line);
+    the output lies between the two inputs element-wise."""
+    torch.manual_seed(0)
+    baff = Baff(8, 4)
+    z_a = torch.randn(2, 8, *size)
+    z_b = torch.randn(2, 8, *size)
+    with torch.no_grad():
+        out = baff(z_a, z_b)
+        h5 = baff.weights(z_a, z_b)
+    assert out.shape == z_a.shape
+    assert h5.shape == z_a.shape and float(h5.min()) > 0 and float(h5.max()) < 1
+    with torch.no_grad():
+        torch.testing.assert_close(baff(z_a, z_a), z_a)
+    lo, hi = torch.minimum(z_a, z_b), torch.maximum(z_a, z_b)
+    assert bool(((out >= lo - 1e-6) & (out <= hi + 1e-6)).all())
+
+
+def test_baff_weights_are_blockwise() -> None:
+    """Inside one block the weight varies only by bilinear interpolation between block centres:
+    with the 3x3 conv zeroed and a 1-block map, every pixel gets the same weight per channel."""
+    baff = Baff(3, 4)
+    with torch.no_grad():
+        baff.w4.weight.zero_()
+        baff.w4.bias.fill_(0.7)
+    h5 = baff.weights(torch.randn(1, 3, 4, 4), torch.randn(1, 3, 4, 4))
+    torch.testing.assert_close(h5, torch.full_like(h5, float(torch.sigmoid(torch.tensor(0.7)))))
+
+
+def test_baff_rejects_mismatched_inputs() -> None:
+    with pytest.raises(ValueError, match="BAFF inputs must match"):
+        Baff(4, 2)(torch.zeros(1, 4, 8, 8), torch.zeros(1, 4, 8, 6))
+
+
+def test_network_logits_at_input_resolution() -> None:
+    """The network returns (N, C, H, W) logits at the input size, also for training crops."""
+    net = BaffSkipNet(TrainSegConfig(), 14).eval()
+    with torch.no_grad():
+        assert net(torch.rand(1, 3, 240, 320)).shape == (1, 14, 240, 320)
+        assert net(torch.rand(2, 3, 192, 256)).shape == (2, 14, 192, 256)
+
+
+def test_class_weights_favour_rare_classes() -> None:
+    """Rarer classes weigh more; absent classes get the maximum; weights are clipped."""
+    cls = np.zeros(1000, np.uint8)
+    cls[:10] = 1
+    cls[10:300] = 2
+    w = class_weights(cls, 4, 0.5, 10.0)
+    assert w[1] > w[2] > w[0]
+    assert w[3] == 10.0 and w.max() <= 10.0 and w.min() >= 0.1
+
+
+def test_two_step_training_exports_contract_onnx(tmp_path: Path) -> None:
+    """Two optimiser steps on a few tiny samples export one ONNX file that meets the contract
+    (names, shapes, metadata, self-contained) and matches torch; the model card is written."""
+    import onnxruntime as ort
+
+    cfg = TrainSegConfig(
+        threads=1,
+        cache_dir=str(tmp_path / "cache"),
+        data=SegDataConfig(scenarios=("walking_staff",), seeds=(1,), frames_per_world=2),
+        val=SegDataConfig(scenarios=("ward_chairs",), seeds=(1001,), frames_per_world=1),
+        epochs=1,
+        batch_size=2,
+        crop=(96, 128),
+        max_steps=2,
+    )
+    out = tmp_path / "model" / "seg.onnx"
+    result = train_and_export(cfg, out, command="pytest smoke")
+    names = ["background", *KnowledgeGraph.load().names]
+
+    assert sorted(p.name for p in out.parent.iterdir()) == ["seg.md", "seg.onnx"]  # no external data
+    model = onnx.load(str(out))
+    onnx.checker.check_model(model)
+    meta = {p.key: p.value for p in model.metadata_props}
+    assert json.loads(meta["wardmap.classes"]) == names
+    assert meta["wardmap.input_size"] == "320x240"
+
+    sess = ort.InferenceSession(str(out), providers=["CPUExecutionProvider"])
+    (inp,), (outp,) = sess.get_inputs(), sess.get_outputs()
+    assert (inp.name, inp.shape, inp.type) == ("image", [1, 3, 240, 320], "tensor(float)")
+    assert (outp.name, outp.shape, outp.type) == ("logits", [1, len(names), 240, 320], "tensor(float)")
+    logits = sess.run(["logits"], {"image": np.random.default_rng(0).random((1, 3, 240, 320), np.float32)})[0]
+    assert logits.shape == (1, 14, 240, 320) and np.isfinite(logits).all()
+
+    assert result.summary["onnx_torch_max_abs_diff"] < 1e-3
+    assert result.summary["train_frames"] == 2 and result.summary["val_frames"] == 1
+    assert set(result.metrics["per_class_iou"]) == set(names)
+    card = out.with_suffix(".md").read_text()
+    assert "pytest smoke" in card and "mIoU" in card and "seeds >= 1000" in card
+
+
+def test_bad_output_path_is_a_clear_error(tmp_path: Path) -> None:
+    from wardmap.server.perception.segdata import TrainingError
+
+    with pytest.raises(TrainingError, match=r"must end in \.onnx"):
+        train_and_export(TrainSegConfig(), tmp_path / "model.pt")
