@@ -1,0 +1,63 @@
+"""``wardmap map``: run perception + object association offline on data sets, write landmarks.json."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+
+
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    p = sub.add_parser(
+        "map",
+        help="associate object measurements of data sets into landmarks (paper 000), write landmarks.json",
+        description="Select keyframes of each data set, measure its objects (oracle labels or the "
+        "segmentation model), associate them into object landmarks and write DIR/landmarks.json "
+        "(docs/association.md). The last line on stdout is a JSON summary.",
+    )
+    p.add_argument("datasets", nargs="+", metavar="DATASET", help="data-set folder(s), one map in this order")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder for landmarks.json")
+    p.add_argument(
+        "--association",
+        choices=("hierarchical", "per_keyframe_hdp", "nearest"),
+        help="association method (default: the config's, hierarchical)",
+    )
+    p.add_argument(
+        "--measurements",
+        choices=("model", "oracle"),
+        default="oracle",
+        help="instances from the simulator's labels (oracle, default) or the segmentation model",
+    )
+    p.add_argument(
+        "--poses",
+        action="append",
+        metavar="TRAJ.txt",
+        help="TUM trajectory T_world_camera instead of groundtruth.txt; once per data set, in order",
+    )
+    p.add_argument("--config", metavar="FILE", help="TOML with [association], [map], [measure] tables")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from wardmap.server.association.offline import run_map
+
+    last = [time.monotonic()]
+
+    def progress(name: str, i: int, n: int) -> None:
+        now = time.monotonic()
+        if i == n or now - last[0] > 2.0:
+            last[0] = now
+            print(f"\r{name}: keyframe {i}/{n}", end="\n" if i == n else "", file=sys.stderr, flush=True)
+
+    summary = run_map(
+        args.datasets,
+        args.out,
+        method=args.association,
+        measurements=args.measurements,
+        poses=args.poses,
+        config_path=args.config,
+        progress=progress,
+    )
+    print(json.dumps(summary))
+    return 0

@@ -1,0 +1,389 @@
+"""The associator: object measurements of arriving keyframes -> object landmarks.
+
+Methods (``AssociationConfig.method``):
+
+- ``hierarchical`` (paper 000): keyframes form groups of M with j shared by neighbours
+  (Sec. III-A, Fig. 3); inside a group the measurements are tracked into group
+  landmarks (:mod:`.mot`); when a group is complete its landmarks are associated to the
+  global landmarks by HDP Gibbs sampling with the Eq. 2-3 GMM likelihood (:mod:`.hdp`);
+  each changed landmark's pose is refined by Eq. 4-6 (:mod:`.refine`).
+- ``per_keyframe_hdp`` (HDP-SLAM): every keyframe is a group of single measurements; the
+  landmark pose is its first measurement's.
+- ``nearest``: greedy nearest neighbour by class and distance.
+
+The live server calls :meth:`Associator.add_keyframe` as keyframes arrive, naming the
+robot session they come from (``stream``): keyframe groups are formed per stream, so
+interleaved robots never share a group, while all streams share the landmarks. It calls
+:meth:`Associator.flush` at the end of a session; with ``hierarchical`` the landmarks
+change when a group completes (every M - j keyframes of that stream). The associator owns all
+of its state; callers get frozen :class:`Landmark` snapshots. Callers filter classes
+that do not belong in the map (``moving`` ones such as people) before adding.
+
+Every measurement given ends in exactly one landmark. A measurement of a keyframe shared
+by two groups stays in the landmark the earlier group put it in.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from wardmap.server.association.baselines import NearestConfig, nearest_assign, per_keyframe_items
+from wardmap.server.association.geometry import is_truncated, project_box, world_extents
+from wardmap.server.association.groups import KeyframeGrouper
+from wardmap.server.association.hdp import HdpConfig, HdpItem, HdpTopic, gibbs_associate
+from wardmap.server.association.mot import KeyframeView, MotConfig, track_group
+from wardmap.server.association.refine import RefineConfig, refine_index
+from wardmap.server.association.spatial import SpatialGrid
+from wardmap.server.association.types import Landmark, LandmarkChange
+from wardmap.server.perception.types import ObjectMeasurement
+from wardmap.shared.camera import PinholeCamera
+from wardmap.shared.errors import GeometryError
+from wardmap.shared.se3 import check_transform, inverse
+
+__all__ = ["METHODS", "AssociationConfig", "Associator", "Method"]
+
+log = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+Method = Literal["hierarchical", "per_keyframe_hdp", "nearest"]
+METHODS: tuple[Method, ...] = ("hierarchical", "per_keyframe_hdp", "nearest")
+
+
+@dataclass(frozen=True)
+class AssociationConfig:
+    """Association parameters (TOML table ``[association]``, example ``deploy/association.toml``)."""
+
+    method: Method = "hierarchical"
+    """``hierarchical`` (paper 000), ``per_keyframe_hdp`` (HDP-SLAM) or ``nearest``."""
+    group_size: int = 6
+    """M: keyframes per group (paper: usually fewer than 10)."""
+    group_overlap: int = 2
+    """j: keyframes shared by neighbouring groups."""
+    seed: int = 0
+    """Seed of the Gibbs sampler (group n draws from ``default_rng([seed, n])``)."""
+    mot: MotConfig = field(default_factory=MotConfig)
+    """In-group tracker (``[association.mot]``)."""
+    hdp: HdpConfig = field(default_factory=HdpConfig)
+    """Across-group HDP (``[association.hdp]``)."""
+    refine: RefineConfig = field(default_factory=RefineConfig)
+    """Eq. 4-6 pose refinement (``[association.refine]``)."""
+    nearest: NearestConfig = field(default_factory=NearestConfig)
+    """The ``nearest`` baseline (``[association.nearest]``)."""
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise ValueError(f"method must be one of {', '.join(METHODS)}, got {self.method!r}")
+        if self.group_size < 1 or not 0 <= self.group_overlap < self.group_size:
+            raise ValueError(f"need group_size M >= 1 and 0 <= group_overlap j < M, got M = "
+                             f"{self.group_size}, j = {self.group_overlap}")
+
+
+@dataclass(eq=False)
+class _LandmarkState:
+    id: int
+    category: str
+    measurements: list[ObjectMeasurement] = field(default_factory=list)
+    mids: list[int] = field(default_factory=list)
+    keyframe_mids: dict[int, set[int]] = field(default_factory=dict)
+    tables: int = 0
+    T_world_object: F64 = field(default_factory=lambda: np.eye(4))
+    size: F64 = field(default_factory=lambda: np.zeros(3))
+    centre: F64 = field(default_factory=lambda: np.zeros(3))  # grid position
+
+    def add(self, mid: int, m: ObjectMeasurement, keyframe: int) -> None:
+        self.measurements.append(m)
+        self.mids.append(mid)
+        self.keyframe_mids.setdefault(keyframe, set()).add(mid)
+
+    def poses(self) -> F64:
+        return np.stack([m.T_world_object for m in self.measurements])
+
+    def snapshot(self) -> Landmark:
+        conf = float(np.mean([m.confidence for m in self.measurements]))
+        return Landmark(self.id, self.category, self.T_world_object.copy(), self.size.copy(), conf,
+                        tuple(self.measurements))
+
+
+def _check_measurements(measurements: Sequence[ObjectMeasurement]) -> None:
+    for k, m in enumerate(measurements):
+        if not isinstance(m, ObjectMeasurement):
+            raise GeometryError(f"add_keyframe: measurement {k} is a {type(m).__name__}, not an "
+                                "ObjectMeasurement")
+        check_transform(m.T_world_object, f"measurement {k} T_world_object")
+        if np.shape(m.size) != (3,) or np.shape(m.box_xyxy) != (4,):
+            raise GeometryError(f"add_keyframe: measurement {k}: size must be (3,) and box_xyxy (4,), "
+                                f"got {np.shape(m.size)} and {np.shape(m.box_xyxy)}")
+
+
+@dataclass(eq=False)
+class _Stream:
+    """Keyframe grouping state of one robot session (local keyframe numbers 0, 1, ...)."""
+
+    grouper: KeyframeGrouper
+    views: dict[int, KeyframeView] = field(default_factory=dict)  # local number -> view
+    next_local: int = 0
+
+
+class Associator:
+    """Incremental object association over keyframes (see the module docstring).
+
+    Args:
+        config: method and parameters.
+    """
+
+    def __init__(self, config: AssociationConfig | None = None) -> None:
+        self.config = config or AssociationConfig()
+        cfg = self.config
+        self._group_shape = (cfg.group_size, cfg.group_overlap) if cfg.method == "hierarchical" else (1, 0)
+        self._streams: dict[str, _Stream] = {}
+        self._next_keyframe = 0
+        self._next_mid = 0
+        self._next_id = 1
+        self._groups_done = 0
+        self._landmarks: dict[int, _LandmarkState] = {}
+        self._owner: dict[int, int] = {}  # measurement id -> landmark id
+        self._sigma: dict[int, float] = {}  # measurement id -> HDP position sigma (metres)
+        self._extent: dict[int, F64] = {}  # measurement id -> world-axis extents (metres)
+        radius = cfg.nearest.max_distance_m if cfg.method == "nearest" else cfg.hdp.candidate_radius_m
+        self._grid = SpatialGrid(radius)
+        self._poses_cache: dict[int, F64] = {}
+
+    # ------------------------------------------------------------------ public API
+
+    def add_keyframe(
+        self,
+        measurements: Sequence[ObjectMeasurement],
+        T_world_camera: ArrayLike,
+        camera: PinholeCamera,
+        *,
+        stream: str = "",
+    ) -> list[LandmarkChange]:
+        """Add one keyframe's measurements; returns the landmarks this created or changed.
+
+        Args:
+            measurements: the keyframe's object measurements (may be empty).
+            T_world_camera: (4, 4) the keyframe's camera pose in ``world``.
+            camera: colour-camera intrinsics of the measurements' pixel boxes.
+            stream: the keyframe sequence it belongs to (``"<robot>/<session>"`` on the
+                server); keyframe groups never mix streams.
+
+        Returns:
+            Changes in landmark-id order; empty while a ``hierarchical`` group is still
+            filling up.
+
+        Raises:
+            GeometryError: a pose is not a rigid transform or a measurement is malformed.
+        """
+        T = check_transform(T_world_camera, "T_world_camera")
+        if not isinstance(camera, PinholeCamera):
+            raise GeometryError(f"add_keyframe: camera must be a PinholeCamera, got {type(camera).__name__}")
+        _check_measurements(measurements)
+        index = self._next_keyframe
+        self._next_keyframe += 1
+        mids = tuple(range(self._next_mid, self._next_mid + len(measurements)))
+        self._next_mid += len(measurements)
+        view = KeyframeView(index, T, camera, tuple(measurements), mids)
+        hdp = self.config.hdp
+        for mid, m in zip(mids, measurements, strict=True):
+            partial = is_truncated(m.box_xyxy, camera, hdp.border_px)
+            self._sigma[mid] = hdp.sigma_position_partial_m if partial else hdp.sigma_position_m
+            self._extent[mid] = world_extents(np.asarray(m.T_world_object), np.asarray(m.size))
+        st = self._streams.get(stream)
+        if st is None:
+            st = self._streams[stream] = _Stream(KeyframeGrouper(*self._group_shape))
+        local = st.next_local
+        st.next_local += 1
+        st.views[local] = view
+        changed: dict[int, str] = {}
+        if self.config.method == "nearest":
+            self._nearest(view, changed)
+        else:
+            for group in st.grouper.push(local):
+                self._hdp_group([st.views[k] for k in group], changed)
+        for k in [k for k in st.views if k <= local - self.config.group_size]:
+            del st.views[k]
+        return self._changes(changed)
+
+    def flush(self, stream: str | None = None) -> list[LandmarkChange]:
+        """Associate the incomplete last group of ``stream`` (None: of every stream).
+
+        Call it at the end of a run or robot session; the stream's next keyframe starts a
+        new run of groups (no group spans a flush).
+        """
+        changed: dict[int, str] = {}
+        names = sorted(self._streams) if stream is None else [stream] if stream in self._streams else []
+        for name in names:
+            st = self._streams[name]
+            for group in st.grouper.flush():
+                self._hdp_group([st.views[k] for k in group], changed)
+            st.views.clear()
+        return self._changes(changed)
+
+    def landmarks(self) -> list[Landmark]:
+        """Snapshots of all landmarks, by id."""
+        return [self._landmarks[k].snapshot() for k in sorted(self._landmarks)]
+
+    @property
+    def pending_keyframes(self) -> int:
+        """Keyframes added whose measurements are not yet in a landmark (wait for a group)."""
+        return sum(1 for st in self._streams.values() for v in st.views.values()
+                   if any(mid not in self._owner for mid in v.mids))
+
+    # ------------------------------------------------------------------ internals
+
+    def _changes(self, changed: dict[int, str]) -> list[LandmarkChange]:
+        out = []
+        for lid in sorted(changed):
+            snap = self._landmarks[lid].snapshot()
+            out.append(LandmarkChange("created", snap) if changed[lid] == "created"
+                       else LandmarkChange("updated", snap))
+        return out
+
+    def _new_landmark(self, category: str, changed: dict[int, str]) -> _LandmarkState:
+        lm = _LandmarkState(self._next_id, category)
+        self._landmarks[lm.id] = lm
+        self._next_id += 1
+        changed[lm.id] = "created"
+        return lm
+
+    def _mark(self, lid: int, changed: dict[int, str]) -> None:
+        changed.setdefault(lid, "updated")
+
+    def _update_pose(self, lm: _LandmarkState) -> None:
+        method = self.config.method
+        poses = self._poses_of(lm)
+        if method == "per_keyframe_hdp":
+            k = 0  # HDP-SLAM: the first measurement
+            lm.size = np.asarray(lm.measurements[0].size, dtype=np.float64).copy()
+            lm.centre = poses[0, :3, 3].copy()
+        elif method == "nearest":
+            lm.centre = poses[:, :3, 3].mean(axis=0)
+            k = int(np.argmin(np.linalg.norm(poses[:, :3, 3] - lm.centre, axis=1)))
+            lm.size = np.median(np.stack([m.size for m in lm.measurements]), axis=0)
+        else:
+            k = refine_index(poses, self.config.refine)  # Eq. 4-6
+            lm.size = np.median(np.stack([m.size for m in lm.measurements]), axis=0)
+            lm.centre = poses[k, :3, 3].copy()
+        lm.T_world_object = poses[k].copy()
+        self._grid.put(lm.id, lm.centre)
+
+    def _poses_of(self, lm: _LandmarkState) -> F64:
+        cached = self._poses_cache.get(lm.id)
+        if cached is None or cached.shape[0] != len(lm.measurements):
+            cached = lm.poses()
+            self._poses_cache[lm.id] = cached
+        return cached
+
+    def _nearest(self, view: KeyframeView, changed: dict[int, str]) -> None:
+        ms = view.measurements
+        if not ms:
+            return
+        positions = np.stack([m.T_world_object[:3, 3] for m in ms])
+        radius = self.config.nearest.max_distance_m
+        near: dict[int, tuple[int, str, F64]] = {}
+        for p in positions:
+            for lid in self._grid.query(p, radius):
+                lm = self._landmarks[lid]
+                near[lid] = (lid, lm.category, lm.centre)
+        assignment = nearest_assign([m.category for m in ms], positions, list(near.values()),
+                                    self.config.nearest)
+        touched = []
+        for m, mid, target in zip(ms, view.mids, assignment, strict=True):
+            lm = self._new_landmark(m.category, changed) if target is None else self._landmarks[target]
+            lm.add(mid, m, view.index)
+            lm.tables += 1
+            self._owner[mid] = lm.id
+            self._mark(lm.id, changed)
+            touched.append(lm)
+        for lm in touched:
+            self._update_pose(lm)
+
+    def _covisible(self, lm: _LandmarkState, views: Sequence[KeyframeView]) -> bool:
+        """True when the landmark's box is (partly) in the image, grown by a margin, of one of the views."""
+        cfg = self.config.hdp
+        for v in views:
+            T_cw = inverse(v.T_world_camera)
+            centre = T_cw[:3, :3] @ lm.centre + T_cw[:3, 3]
+            if np.linalg.norm(centre) > cfg.covisibility_max_depth_m:
+                continue
+            box = project_box(lm.T_world_object, lm.size, v.T_world_camera, v.camera,
+                              margin_px=cfg.covisibility_margin_px)
+            if box is not None:
+                return True
+        return False
+
+    def _topic(self, lm: _LandmarkState) -> HdpTopic:
+        poses = self._poses_of(lm)
+        if self.config.method == "per_keyframe_hdp":
+            poses = poses[:1]
+        kf = {k: frozenset(v) for k, v in lm.keyframe_mids.items()}
+        sigmas = np.array([self._sigma[mid] for mid in lm.mids[: len(poses)]])
+        extents = np.stack([self._extent[mid] for mid in lm.mids[: len(poses)]])
+        return HdpTopic(lm.id, lm.category, poses, lm.tables, kf, sigmas, extents)
+
+    def _hdp_group(self, views: list[KeyframeView], changed: dict[int, str]) -> None:
+        cfg = self.config
+        if cfg.method == "hierarchical":
+            group_landmarks = track_group(views, cfg.mot)
+            items = [HdpItem(g.category, g.poses, tuple(g.keyframes), tuple(g.mids),
+                             np.array([self._sigma[mid] for mid in g.mids]),
+                             np.stack([self._extent[mid] for mid in g.mids])) for g in group_landmarks]
+            measurements = [list(g.measurements) for g in group_landmarks]
+            likelihood: Literal["gmm", "first_pose"] = "gmm"
+        else:
+            items = [dataclasses.replace(it, sigmas=np.array([self._sigma[it.mids[0]]]),
+                                         extents=self._extent[it.mids[0]][None])
+                     for v in views for it in per_keyframe_items(v)]
+            measurements = [[m] for v in views for m in v.measurements]
+            likelihood = "first_pose"
+        group_no = self._groups_done
+        self._groups_done += 1
+        if not items:
+            return
+        topic_cache: dict[int, HdpTopic] = {}
+        candidates: list[list[HdpTopic]] = []
+        for it in items:
+            centre = it.poses[refine_index(it.poses, cfg.refine), :3, 3]
+            cands = []
+            for lid in self._grid.query(centre, cfg.hdp.candidate_radius_m):
+                lm = self._landmarks[lid]
+                if lm.category != it.category or not self._covisible(lm, views):
+                    continue
+                if lid not in topic_cache:
+                    topic_cache[lid] = self._topic(lm)
+                cands.append(topic_cache[lid])
+            candidates.append(cands)
+        rng = np.random.default_rng([cfg.seed, group_no])
+        assignment = gibbs_associate(items, candidates, cfg.hdp, rng=rng, likelihood=likelihood)
+        new_ids: dict[int, _LandmarkState] = {}
+        touched: dict[int, _LandmarkState] = {}
+        for it, ms, target in zip(items, measurements, assignment, strict=True):
+            fresh = [(mid, m, k) for mid, m, k in zip(it.mids, ms, it.keyframes, strict=True)
+                     if mid not in self._owner]
+            if target > 0:
+                lm = self._landmarks[target]
+            elif target in new_ids:
+                lm = new_ids[target]
+            elif fresh:
+                lm = self._new_landmark(it.category, changed)
+                new_ids[target] = lm
+            else:
+                continue  # only measurements already in landmarks: nothing to create
+            lm.tables += 1
+            for mid, m, k in fresh:
+                lm.add(mid, m, k)
+                self._owner[mid] = lm.id
+            if fresh:
+                self._mark(lm.id, changed)
+                touched[lm.id] = lm
+        for lm in touched.values():
+            self._update_pose(lm)
+        log.debug("group %d: %d group landmarks -> %d landmarks touched (%d new)", group_no, len(items),
+                  len(touched), len(new_ids))

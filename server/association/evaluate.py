@@ -1,0 +1,67 @@
+"""Association scores against simulator ground truth (paper 000 Table II).
+
+- Association accuracy: each landmark takes the ground-truth object most of its
+  measurements belong to; accuracy = share of all measurements whose landmark's object is
+  their own object. Measurements on no object (``gt_instance`` None) count as errors.
+- Object count: the number of landmarks, against the ground-truth count = the number of
+  distinct non-moving objects with at least one measurement.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Collection, Mapping, Sequence
+from dataclasses import dataclass
+
+from wardmap.server.association.types import Landmark
+
+__all__ = ["AssociationScore", "score_landmarks"]
+
+
+@dataclass(frozen=True)
+class AssociationScore:
+    """Scores of one association run.
+
+    Attributes:
+        accuracy: share of measurements whose landmark's majority object is their own, in [0, 1].
+        measurements: number of measurements scored.
+        correct: number of correctly associated measurements.
+        landmarks: number of landmarks.
+        gt_objects: distinct non-moving ground-truth objects with at least one measurement.
+    """
+
+    accuracy: float
+    measurements: int
+    correct: int
+    landmarks: int
+    gt_objects: int
+
+
+def score_landmarks(
+    landmarks: Sequence[Landmark],
+    gt_classes: Mapping[int, str] | None = None,
+    moving_classes: Collection[str] = (),
+) -> AssociationScore:
+    """Score landmarks whose measurements carry ``gt_instance``.
+
+    Args:
+        landmarks: the associator's landmarks.
+        gt_classes: ground-truth id -> class, to leave objects of ``moving_classes`` out of
+            the ground-truth count (None: every measured id counts).
+        moving_classes: classes that are not map objects (people).
+    """
+    total = correct = 0
+    measured: set[int] = set()
+    for lm in landmarks:
+        ids = lm.gt_instances
+        votes = Counter(i for i in ids if i is not None)
+        major = votes.most_common(1)[0][0] if votes else None
+        for i in ids:
+            total += 1
+            if i is not None:
+                measured.add(i)
+                if i == major:
+                    correct += 1
+    if gt_classes is not None:
+        measured = {i for i in measured if gt_classes.get(i) not in moving_classes}
+    return AssociationScore(correct / total if total else 0.0, total, correct, len(landmarks), len(measured))

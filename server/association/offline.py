@@ -1,0 +1,384 @@
+"""Offline runner of ``wardmap map``: perception + association over data-set folders.
+
+For each data set: choose keyframes from the camera poses (ground truth, or a TUM
+trajectory given with ``--poses``), find object instances (``oracle``: the simulator's
+label images and ``objects.json``; ``model``: the trained segmenter, ground-truth
+instance ids attached from the labels when present), measure them in 3D
+(``server/perception/measure.py``), leave out ``moving`` classes (people), then feed the
+keyframes to an :class:`~wardmap.server.association.associator.Associator` (the same
+code the live server runs) and write ``landmarks.json`` (format in docs/association.md).
+
+Several data sets are associated into one map in the order given; their poses must be
+in one world frame (true for the simulator's robots of one world). No group spans two
+data sets. To keep memory bounded, each measurement's (H, W) mask is dropped after
+measuring and its camera points are subsampled to ``MapConfig.keep_points``; the pixel
+box, pose, size and appearance (what association uses) are kept.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from wardmap.server.association.associator import METHODS, AssociationConfig, Associator, Method
+from wardmap.server.association.types import Landmark
+from wardmap.server.perception.instances import attach_gt_instances, id_to_class, oracle_instances
+from wardmap.server.perception.measure import MeasureConfig, measure_instances
+from wardmap.server.perception.types import Instance, ObjectMeasurement
+from wardmap.shared.camera import PinholeCamera
+from wardmap.shared.config import load_config, to_mapping
+from wardmap.shared.dataset import DatasetReader, pose_at, read_tum_trajectory
+from wardmap.shared.errors import ConfigError, DatasetError, WardmapError
+from wardmap.shared.knowledge import KnowledgeGraph
+from wardmap.shared.se3 import rotation_angle
+
+__all__ = [
+    "DatasetMeasurements",
+    "KeyframeMeasurements",
+    "MapConfig",
+    "MeasurementSource",
+    "associate",
+    "landmarks_document",
+    "measure_dataset",
+    "run_map",
+    "select_keyframes",
+]
+
+log = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+MeasurementSource = Literal["oracle", "model"]
+Progress = Callable[[str, int, int], None]
+FORMAT_VERSION = 1
+
+
+@dataclass(frozen=True)
+class MapConfig:
+    """Offline runner parameters (TOML table ``[map]``)."""
+
+    keyframe_min_translation_m: float = 0.1
+    """A frame is a keyframe when the camera moved this far since the last keyframe (metres) ..."""
+    keyframe_min_rotation_deg: float = 10.0
+    """... or turned this much (degrees). The first frame with a pose is always a keyframe."""
+    min_pixels: int = 200
+    """Oracle instances smaller than this many pixels are left out."""
+    keep_points: int = 256
+    """Camera points kept per measurement after measuring (fixed stride); 0 keeps none."""
+
+    def __post_init__(self) -> None:
+        if self.keyframe_min_translation_m < 0 or self.keyframe_min_rotation_deg < 0:
+            raise ValueError("keyframe thresholds must be >= 0")
+        if self.min_pixels < 1 or self.keep_points < 0:
+            raise ValueError("need min_pixels >= 1 and keep_points >= 0")
+
+
+@dataclass(frozen=True, eq=False)
+class KeyframeMeasurements:
+    """One keyframe: its key (``<dataset>/<stamp>``), stamp (s), camera pose (4, 4), measurements."""
+
+    key: str
+    stamp: float
+    T_world_camera: F64
+    measurements: tuple[ObjectMeasurement, ...]
+
+
+@dataclass(frozen=True, eq=False)
+class DatasetMeasurements:
+    """Everything association needs from one data set.
+
+    Attributes:
+        name: the folder name.
+        camera: colour camera of the data set.
+        keyframes: the keyframes in time order.
+        frames: number of frames in the data set.
+        frames_without_pose: frames left out because the trajectory does not cover them.
+        moving_left_out: measurements of ``moving`` classes left out.
+        gt_classes: ground-truth instance id -> class (``objects.json``), or None.
+    """
+
+    name: str
+    camera: PinholeCamera
+    keyframes: list[KeyframeMeasurements]
+    frames: int
+    frames_without_pose: int
+    moving_left_out: int
+    gt_classes: dict[int, str] | None
+
+
+def select_keyframes(
+    T_world_camera: Sequence[F64 | None], min_translation_m: float, min_rotation_deg: float
+) -> list[int]:
+    """Indices of keyframes: the first posed frame, then every frame whose camera moved at least
+    ``min_translation_m`` metres or turned ``min_rotation_deg`` degrees since the last keyframe.
+
+    Args:
+        T_world_camera: (4, 4) camera pose per frame, None where unknown (never a keyframe).
+    """
+    out: list[int] = []
+    last: F64 | None = None
+    min_rot = math.radians(min_rotation_deg)
+    for i, T in enumerate(T_world_camera):
+        if T is None:
+            continue
+        if last is None:
+            out.append(i)
+            last = T
+            continue
+        moved = float(np.linalg.norm(T[:3, 3] - last[:3, 3]))
+        turned = rotation_angle(last[:3, :3].T @ T[:3, :3])
+        if moved >= min_translation_m or turned >= min_rot:
+            out.append(i)
+            last = T
+    return out
+
+
+def _frame_poses(reader: DatasetReader, poses: Path | None) -> list[F64 | None]:
+    if poses is None:
+        gt = reader.groundtruth()
+        if gt is None:
+            raise DatasetError(f"{reader.root}: no groundtruth.txt; give camera poses with --poses TRAJ.txt")
+        stamps, T = gt
+    else:
+        if not poses.is_file():
+            raise DatasetError(f"poses file not found: {poses}")
+        stamps, T = read_tum_trajectory(poses)
+        if len(stamps) == 0:
+            raise DatasetError(f"{poses}: no poses in the file")
+    return [pose_at(stamps, T, float(t)) for t in reader.stamps]
+
+
+Segmenter = Callable[[NDArray[np.uint8], NDArray[np.float32]], list[Instance]]
+
+
+def _segmenter(source: MeasurementSource) -> Segmenter:
+    try:
+        from wardmap.server.perception.models import make_segmenter
+    except ImportError as exc:
+        raise WardmapError(f"--measurements model: the segmentation model adapter is not available ({exc})") \
+            from exc
+    seg: Segmenter = make_segmenter(source)
+    return seg
+
+
+def _slim(m: ObjectMeasurement, keep_points: int) -> ObjectMeasurement:
+    pts = m.points_camera
+    if keep_points == 0:
+        pts = pts[:0]
+    elif len(pts) > keep_points:
+        pts = pts[:: math.ceil(len(pts) / keep_points)]
+    return dataclasses.replace(m, mask=np.zeros((0, 0), dtype=bool), points_camera=np.ascontiguousarray(pts))
+
+
+def measure_dataset(
+    path: str | Path,
+    *,
+    measurements: MeasurementSource = "oracle",
+    poses: str | Path | None = None,
+    config: MapConfig | None = None,
+    measure_config: MeasureConfig | None = None,
+    knowledge: KnowledgeGraph | None = None,
+    progress: Progress | None = None,
+) -> DatasetMeasurements:
+    """Select keyframes of one data set and measure their objects.
+
+    Args:
+        path: data-set folder (docs/dataset.md).
+        measurements: ``oracle`` (needs ``labels/`` and ``objects.json``) or ``model``.
+        poses: TUM trajectory of the camera (``T_world_camera``); None uses groundtruth.txt.
+            Poses are interpolated at each frame stamp (``shared.dataset.pose_at``).
+        config: keyframe selection and measurement slimming.
+        measure_config: the 3D measurement parameters.
+        knowledge: the knowledge graph (which classes are ``moving``); default the packaged one.
+        progress: called as ``progress(dataset name, keyframes done, keyframes)``.
+
+    Raises:
+        DatasetError: missing folder, files, labels, poses or objects.json.
+        WardmapError: ``measurements`` is unknown or the model is not available.
+    """
+    cfg = config or MapConfig()
+    if measurements not in ("oracle", "model"):
+        raise WardmapError(f"unknown measurement source {measurements!r}; use oracle or model")
+    reader = DatasetReader(path)
+    name = Path(path).resolve().name
+    kg = knowledge or KnowledgeGraph.load()
+    objects = reader.objects()
+    gt_classes = id_to_class(objects) if objects is not None else None
+    if measurements == "oracle" and (gt_classes is None or not reader.has_labels):
+        raise DatasetError(f"{reader.root}: --measurements oracle needs labels.txt + labels/ and "
+                           "objects.json (a simulated data set)")
+    segment = _segmenter(measurements) if measurements == "model" else None
+    frame_poses = _frame_poses(reader, Path(poses) if poses is not None else None)
+    without_pose = sum(1 for T in frame_poses if T is None)
+    if without_pose == len(frame_poses):
+        raise DatasetError(f"{reader.root}: the trajectory covers none of the {len(frame_poses)} "
+                           "frame stamps")
+    if without_pose:
+        log.warning("%s: %d of %d frames have no pose and are left out", name, without_pose, len(frame_poses))
+    chosen = select_keyframes(frame_poses, cfg.keyframe_min_translation_m, cfg.keyframe_min_rotation_deg)
+    camera = reader.calibration.rgb
+    mcfg = measure_config or MeasureConfig()
+    keyframes: list[KeyframeMeasurements] = []
+    moving = 0
+    for done, i in enumerate(chosen):
+        frame = reader.frame(i)
+        T = frame_poses[i]
+        if T is None:  # select_keyframes never picks these
+            raise DatasetError(f"{reader.root}: frame {i} has no pose")
+        bgr: NDArray[np.uint8] = np.ascontiguousarray(cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR),
+                                                      dtype=np.uint8)
+        if segment is None:
+            if frame.labels is None or gt_classes is None:
+                raise DatasetError(f"{reader.root}: frame {frame.stamp:.6f} has no label image")
+            instances = oracle_instances(frame.labels, gt_classes, min_pixels=cfg.min_pixels)
+        else:
+            instances = segment(bgr, frame.depth_m)
+            if frame.labels is not None:
+                instances = attach_gt_instances(instances, frame.labels)
+        kept = [inst for inst in instances if not kg.is_moving(inst.category)]
+        moving += len(instances) - len(kept)
+        key = f"{name}/{frame.stamp:.6f}"
+        ms = measure_instances(kept, bgr=bgr, depth_m=frame.depth_m, camera=camera, T_world_camera=T,
+                               keyframe=key, stamp=frame.stamp, config=mcfg)
+        keyframes.append(KeyframeMeasurements(key, frame.stamp, T, tuple(_slim(m, cfg.keep_points)
+                                                                          for m in ms)))
+        if progress is not None:
+            progress(name, done + 1, len(chosen))
+    log.info("%s: %d frames, %d keyframes, %d measurements (%d moving left out)", name, len(reader),
+             len(keyframes), sum(len(k.measurements) for k in keyframes), moving)
+    return DatasetMeasurements(name, camera, keyframes, len(reader), without_pose, moving, gt_classes)
+
+
+def associate(
+    datasets: Sequence[DatasetMeasurements], config: AssociationConfig | None = None
+) -> list[Landmark]:
+    """Run one :class:`Associator` over the keyframes of the data sets, in order; returns the landmarks."""
+    assoc = Associator(config)
+    for ds in datasets:
+        for kf in ds.keyframes:
+            assoc.add_keyframe(kf.measurements, kf.T_world_camera, ds.camera, stream=ds.name)
+        assoc.flush(ds.name)
+    return assoc.landmarks()
+
+
+def _measurement_json(m: ObjectMeasurement, dataset: str) -> dict[str, Any]:
+    return {
+        "dataset": dataset,
+        "keyframe": m.keyframe,
+        "stamp": round(m.stamp, 6),
+        "category": m.category,
+        "confidence": m.confidence,
+        "box_xyxy": [float(v) for v in m.box_xyxy],
+        "T_world_object": np.round(m.T_world_object, 6).tolist(),
+        "size": [round(float(v), 6) for v in m.size],
+        "gt_instance": m.gt_instance,
+    }
+
+
+def landmarks_document(
+    landmarks: Sequence[Landmark],
+    *,
+    method: Method,
+    measurements: MeasurementSource,
+    datasets: Sequence[DatasetMeasurements],
+    config: AssociationConfig,
+) -> dict[str, Any]:
+    """The ``landmarks.json`` document (docs/association.md)."""
+    dataset_of = {kf.key: ds.name for ds in datasets for kf in ds.keyframes}
+    return {
+        "format_version": FORMAT_VERSION,
+        "method": method,
+        "measurements": measurements,
+        "datasets": [
+            {"name": ds.name, "frames": ds.frames, "keyframes": len(ds.keyframes),
+             "frames_without_pose": ds.frames_without_pose, "moving_left_out": ds.moving_left_out}
+            for ds in datasets
+        ],
+        "config": to_mapping(config),
+        "landmarks": [
+            {
+                "id": lm.id,
+                "class": lm.category,
+                "confidence": round(lm.confidence, 6),
+                "T_world_object": np.round(lm.T_world_object, 6).tolist(),
+                "size": [round(float(v), 6) for v in lm.size],
+                "measurements": [_measurement_json(m, dataset_of.get(m.keyframe, ""))
+                                 for m in lm.measurements],
+            }
+            for lm in landmarks
+        ],
+    }
+
+
+def run_map(
+    datasets: Sequence[str | Path],
+    out: str | Path,
+    *,
+    method: Method | None = None,
+    measurements: MeasurementSource = "oracle",
+    poses: Sequence[str | Path] | None = None,
+    config_path: str | Path | None = None,
+    progress: Progress | None = None,
+) -> dict[str, Any]:
+    """``wardmap map``: measure and associate the data sets, write ``out/landmarks.json``.
+
+    Args:
+        datasets: data-set folders, associated into one map in this order.
+        out: output folder (created if needed).
+        method: overrides ``[association] method`` of the config file.
+        measurements: ``oracle`` or ``model``.
+        poses: one TUM trajectory per data set, or None for their ground truth.
+        config_path: TOML file with optional ``[association]``, ``[map]`` and ``[measure]`` tables.
+
+    Returns:
+        A summary (counts per data set, number of landmarks, output path).
+
+    Raises:
+        ConfigError, DatasetError, WardmapError: bad arguments, config or data.
+    """
+    if not datasets:
+        raise WardmapError("give at least one data set")
+    if method is not None and method not in METHODS:
+        raise ConfigError(f"unknown association method {method!r}; use one of {', '.join(METHODS)}")
+    if poses is not None and len(poses) != len(datasets):
+        raise WardmapError(f"--poses given {len(poses)} time(s) for {len(datasets)} data set(s); give one "
+                           "trajectory per data set, in the same order")
+    assoc_cfg = load_config(AssociationConfig, config_path, section="association")
+    if method is not None:
+        assoc_cfg = dataclasses.replace(assoc_cfg, method=method)
+    map_cfg = load_config(MapConfig, config_path, section="map")
+    measure_cfg = load_config(MeasureConfig, config_path, section="measure")
+    out_dir = Path(out)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise WardmapError(f"--out {out_dir} exists and is not a folder")
+    kg = KnowledgeGraph.load()
+    measured = [
+        measure_dataset(ds, measurements=measurements, poses=None if poses is None else poses[k],
+                        config=map_cfg, measure_config=measure_cfg, knowledge=kg, progress=progress)
+        for k, ds in enumerate(datasets)
+    ]
+    landmarks = associate(measured, assoc_cfg)
+    doc = landmarks_document(landmarks, method=assoc_cfg.method, measurements=measurements,
+                             datasets=measured, config=assoc_cfg)
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        path = out_dir / "landmarks.json"
+        path.write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
+    except OSError as exc:
+        raise WardmapError(f"cannot write {out_dir / 'landmarks.json'}: {exc.strerror or exc}") from exc
+    return {
+        "landmarks": len(landmarks),
+        "measurements": sum(len(lm.measurements) for lm in landmarks),
+        "keyframes": sum(len(ds.keyframes) for ds in measured),
+        "method": assoc_cfg.method,
+        "out": str(path),
+    }

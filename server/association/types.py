@@ -1,0 +1,68 @@
+"""Landmark types handed out by the associator (paper 000 Sec. III).
+
+Frames follow docs/ARCHITECTURE.md: ``T_world_object`` maps object-frame points to
+``world`` (the frame of the keyframe poses: a robot session's odom frame on the live
+server, the data set's ground-truth frame offline). Object frame: origin at the box
+centre, z up, as :class:`~wardmap.server.perception.types.ObjectMeasurement`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from wardmap.server.perception.types import ObjectMeasurement
+
+__all__ = ["Landmark", "LandmarkChange"]
+
+
+@dataclass(frozen=True, eq=False)
+class Landmark:
+    """One object of the map: the measurements associated with it and its refined pose.
+
+    Attributes:
+        id: landmark id, unique within one :class:`~wardmap.server.association.associator.Associator`
+            (ids start at 1 and are never reused).
+        category: knowledge-graph class name, the class of all its measurements.
+        T_world_object: (4, 4) float64 pose; for ``hierarchical`` the measurement pose
+            chosen by paper 000 Eq. 4-6, for ``per_keyframe_hdp`` the first measurement's
+            pose (HDP-SLAM), for ``nearest`` the pose of the measurement nearest the mean.
+        size: (3,) float64 extent along the object's x, y, z in metres (element-wise
+            median of the measurements' sizes; first measurement's for ``per_keyframe_hdp``).
+        confidence: mean confidence of its measurements, in [0, 1].
+        measurements: its measurements in the order they were associated (keyframe order).
+    """
+
+    id: int
+    category: str
+    T_world_object: NDArray[np.float64]
+    size: NDArray[np.float64]
+    confidence: float
+    measurements: tuple[ObjectMeasurement, ...]
+
+    @property
+    def position(self) -> NDArray[np.float64]:
+        """(3,) position of the object centre in ``world``, metres."""
+        return np.asarray(self.T_world_object[:3, 3], dtype=np.float64)
+
+    @property
+    def gt_instances(self) -> list[int | None]:
+        """Ground-truth instance id of each measurement (None where unknown)."""
+        return [m.gt_instance for m in self.measurements]
+
+
+@dataclass(frozen=True, eq=False)
+class LandmarkChange:
+    """What one :meth:`Associator.add_keyframe` call did to one landmark.
+
+    Attributes:
+        kind: ``"created"`` (a new landmark) or ``"updated"`` (new measurements, maybe a
+            new pose).
+        landmark: a snapshot of the landmark after the change.
+    """
+
+    kind: Literal["created", "updated"]
+    landmark: Landmark

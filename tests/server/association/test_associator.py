@@ -1,0 +1,153 @@
+"""The associator's incremental API and its three methods on a synthetic scene with known truth."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from wardmap.server.association.associator import AssociationConfig, Associator
+from wardmap.server.association.evaluate import score_landmarks
+from wardmap.server.association.types import LandmarkChange
+from wardmap.shared.config import from_mapping
+from wardmap.shared.errors import ConfigError, GeometryError
+
+from .conftest import CAMERA, MeasurementFactory, camera_looking_along_y, object_pose
+
+DOOR = np.array([0.06, 1.16, 2.18])
+
+
+def _scene(make: MeasurementFactory, n_keyframes: int = 14, seed: int = 0) -> list[tuple[list, np.ndarray]]:
+    """A camera sliding along x past four identical chairs 0.55 m apart and a door pair
+    (1.24 m apart), 4 cm measurement noise. Returns (measurements, T_world_camera) per keyframe."""
+    rng = np.random.default_rng(seed)
+    objects = [(k + 1, "chair", object_pose(0.55 * k, 3.0), None) for k in range(4)]
+    door_yaw = np.pi / 2
+    objects += [(10, "door", object_pose(-1.5, 4.0, 1.09, door_yaw), DOOR),
+                (11, "door", object_pose(-0.26, 4.0, 1.09, door_yaw), DOOR)]
+    out = []
+    for i in range(n_keyframes):
+        T = camera_looking_along_y(-1.0 + 0.15 * i)
+        ms = []
+        for gid, cat, T_wo, size in objects:
+            kwargs = {"size": size} if size is not None else {}
+            try:
+                ms.append(make(T_wo, T, category=cat, gt=gid, keyframe=f"kf{i}", stamp=float(i),
+                               offset=tuple(rng.normal(0, 0.04, 3)), **kwargs))
+            except ValueError:
+                continue
+        out.append((ms, T))
+    return out
+
+
+def _run(cfg: AssociationConfig, scene: list) -> tuple[Associator, list[list[LandmarkChange]]]:
+    assoc = Associator(cfg)
+    changes = [assoc.add_keyframe(ms, T, CAMERA) for ms, T in scene]
+    changes.append(assoc.flush())
+    return assoc, changes
+
+
+@pytest.mark.parametrize("method", ["hierarchical", "per_keyframe_hdp", "nearest"])
+def test_every_measurement_in_exactly_one_landmark(make_measurement: MeasurementFactory, method: str) -> None:
+    """Whatever the method, each measurement given ends in one landmark and nothing is lost."""
+    scene = _scene(make_measurement)
+    assoc, _ = _run(AssociationConfig(method=method), scene)  # type: ignore[arg-type]
+    given = [id(m) for ms, _ in scene for m in ms]
+    held = [id(m) for lm in assoc.landmarks() for m in lm.measurements]
+    assert sorted(given) == sorted(held)
+    for lm in assoc.landmarks():
+        assert len({m.keyframe for m in lm.measurements}) == len(lm.measurements)  # one per keyframe
+        assert {m.category for m in lm.measurements} == {lm.category}
+
+
+def test_hierarchical_gets_identical_neighbours_right(make_measurement: MeasurementFactory) -> None:
+    """Four identical chairs in a row and two identical doors: six landmarks, all measurements right."""
+    assoc, _ = _run(AssociationConfig(), _scene(make_measurement))
+    score = score_landmarks(assoc.landmarks())
+    assert score.accuracy == 1.0
+    assert score.landmarks == score.gt_objects == 6
+
+
+def test_changes_arrive_when_a_group_completes(make_measurement: MeasurementFactory) -> None:
+    """M = 4, j = 1: nothing before keyframe 3, then every 3 keyframes; flush handles the rest."""
+    cfg = from_mapping(AssociationConfig, {"group_size": 4, "group_overlap": 1})
+    scene = _scene(make_measurement, n_keyframes=9)
+    assoc, changes = _run(cfg, scene)
+    nonempty = [i for i, c in enumerate(changes[:-1]) if c]
+    assert nonempty == [3, 6]
+    assert all(c.kind == "created" for c in changes[3])
+    assert changes[-1]  # keyframes 7, 8 come with the flush
+    assert assoc.pending_keyframes == 0
+
+
+def test_per_keyframe_hdp_pose_is_the_first_measurement(make_measurement: MeasurementFactory) -> None:
+    """HDP-SLAM baseline: the landmark pose is its first measurement's pose."""
+    assoc, _ = _run(AssociationConfig(method="per_keyframe_hdp"), _scene(make_measurement))
+    for lm in assoc.landmarks():
+        np.testing.assert_array_equal(lm.T_world_object, lm.measurements[0].T_world_object)
+
+
+def test_nearest_joins_within_the_gate(make_measurement: MeasurementFactory) -> None:
+    """The nearest baseline: the same chair seen twice (2 cm apart) is one landmark; 1 m apart, two."""
+    T = camera_looking_along_y(0.0)
+    assoc = Associator(AssociationConfig(method="nearest"))
+    assoc.add_keyframe([make_measurement(object_pose(0, 3), T)], T, CAMERA)
+    ch = assoc.add_keyframe([make_measurement(object_pose(0.02, 3), T)], T, CAMERA)
+    assert [c.kind for c in ch] == ["updated"]
+    ch = assoc.add_keyframe([make_measurement(object_pose(1.0, 3), T)], T, CAMERA)
+    assert [c.kind for c in ch] == ["created"]
+    assert len(assoc.landmarks()) == 2
+
+
+def test_hierarchical_is_deterministic(make_measurement: MeasurementFactory) -> None:
+    """Same input, same seed: identical landmarks."""
+    scene = _scene(make_measurement, seed=5)
+    a, _ = _run(AssociationConfig(seed=3), scene)
+    b, _ = _run(AssociationConfig(seed=3), scene)
+    assert [[id(m) for m in lm.measurements] for lm in a.landmarks()] == \
+        [[id(m) for m in lm.measurements] for lm in b.landmarks()]
+
+
+def test_bad_input_and_config(make_measurement: MeasurementFactory) -> None:
+    assoc = Associator()
+    with pytest.raises(GeometryError, match="T_world_camera"):
+        assoc.add_keyframe([], np.eye(3), CAMERA)
+    with pytest.raises(GeometryError, match="ObjectMeasurement"):
+        assoc.add_keyframe(["chair"], np.eye(4), CAMERA)  # type: ignore[list-item]
+    with pytest.raises(ConfigError, match="group_overlap"):
+        from_mapping(AssociationConfig, {"group_size": 3, "group_overlap": 3})
+    with pytest.raises(ConfigError, match="method"):
+        from_mapping(AssociationConfig, {"method": "magic"})
+    with pytest.raises(ConfigError, match="unknown key"):
+        from_mapping(AssociationConfig, {"hdp": {"sigma": 1.0}})
+
+
+def test_example_config_is_the_defaults() -> None:
+    """deploy/association.toml loads and equals the dataclass defaults (documented values are true)."""
+    from pathlib import Path
+
+    from wardmap.server.association.offline import MapConfig
+    from wardmap.shared.config import load_config
+
+    path = Path(__file__).resolve().parents[3] / "deploy" / "association.toml"
+    assert load_config(AssociationConfig, path, section="association") == AssociationConfig()
+    assert load_config(MapConfig, path, section="map") == MapConfig()
+
+
+def test_interleaved_streams_share_landmarks(make_measurement: MeasurementFactory) -> None:
+    """Two robots' keyframes arrive interleaved: groups form per stream (M = 3, j = 1: the
+    first group of each completes at its third keyframe), and both robots' views of the
+    same objects end in the same six landmarks."""
+    cfg = from_mapping(AssociationConfig, {"group_size": 3, "group_overlap": 1})
+    a, b = _scene(make_measurement, seed=1), _scene(make_measurement, seed=2)
+    assoc = Associator(cfg)
+    first_changes = []
+    for k in range(len(a)):
+        for name, scene in (("robot_a/1", a), ("robot_b/1", b)):
+            ch = assoc.add_keyframe(scene[k][0], scene[k][1], CAMERA, stream=name)
+            if ch and not first_changes:
+                first_changes.append((k, name))
+    assoc.flush()
+    assert first_changes == [(2, "robot_a/1")]
+    score = score_landmarks(assoc.landmarks())
+    assert score.accuracy == 1.0 and score.landmarks == 6
+    assert score.measurements == sum(len(ms) for ms, _ in a + b)

@@ -1,0 +1,97 @@
+"""The offline runner on a small simulated data set (a few frames of ward_chairs)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from wardmap.server.association.associator import AssociationConfig
+from wardmap.server.association.evaluate import score_landmarks
+from wardmap.server.association.offline import (
+    MapConfig,
+    associate,
+    measure_dataset,
+    run_map,
+    select_keyframes,
+)
+from wardmap.shared.errors import DatasetError, WardmapError
+from wardmap.shared.se3 import yaw_transform
+from wardmap.sim.runner import generate
+
+FRAMES = 10
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """ward_chairs, seed 0, the first 10 frames (identical chairs and doors in view)."""
+    out = tmp_path_factory.mktemp("sim") / "ward_chairs_s0"
+    generate("ward_chairs", 0, out, frames=FRAMES)
+    return out
+
+
+@pytest.fixture(scope="module")
+def config_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Every frame a keyframe (the robot barely moves in 10 frames), groups of 4 sharing 1."""
+    p = tmp_path_factory.mktemp("cfg") / "assoc.toml"
+    p.write_text("[map]\nkeyframe_min_translation_m = 0.0\nkeyframe_min_rotation_deg = 0.0\n\n"
+                 "[association]\ngroup_size = 4\ngroup_overlap = 1\n")
+    return p
+
+
+def test_keyframe_selection() -> None:
+    """Keyframes: the first posed frame, then each 0.1 m or 10 deg of motion since the last one."""
+    poses = [yaw_transform(0.04 * i, 0, 0) for i in range(10)] + [None, yaw_transform(0.4, 0, 0.2)]
+    assert select_keyframes(poses, 0.1, 10.0) == [0, 3, 6, 9, 11]
+    assert select_keyframes([None, yaw_transform(0, 0, 0)], 0.1, 10.0) == [1]
+
+
+def test_oracle_map_of_a_small_sequence(small: Path, config_file: Path, tmp_path: Path) -> None:
+    """landmarks.json holds every measurement once, with boxes, stamps and ground-truth ids;
+    with oracle measurements every landmark is one object and the count matches ground truth."""
+    summary = run_map([small], tmp_path / "out", config_path=config_file)
+    doc = json.loads((tmp_path / "out" / "landmarks.json").read_text())
+    assert doc["method"] == "hierarchical" and doc["measurements"] == "oracle"
+    assert doc["datasets"][0]["keyframes"] == FRAMES
+    assert summary["landmarks"] == len(doc["landmarks"]) > 0
+    keys = set()
+    gt_ids = set()
+    for lm in doc["landmarks"]:
+        T = np.array(lm["T_world_object"])
+        assert T.shape == (4, 4) and len(lm["size"]) == 3
+        ids = {m["gt_instance"] for m in lm["measurements"]}
+        assert len(ids) == 1  # oracle: one object per landmark
+        gt_ids |= ids
+        for m in lm["measurements"]:
+            assert m["category"] == lm["class"] and len(m["box_xyxy"]) == 4
+            key = (m["keyframe"], m["gt_instance"])
+            assert key not in keys
+            keys.add(key)
+    assert len(gt_ids) == len(doc["landmarks"])
+    assert summary["measurements"] == len(keys)
+
+
+def test_methods_share_the_measurements(small: Path) -> None:
+    """Measure once, associate three ways: same measurements scored; nothing is lost."""
+    every_frame = MapConfig(keyframe_min_translation_m=0.0, keyframe_min_rotation_deg=0.0)
+    ds = measure_dataset(small, config=every_frame)
+    total = sum(len(k.measurements) for k in ds.keyframes)
+    assert total > 0
+    for method in ("hierarchical", "per_keyframe_hdp", "nearest"):
+        score = score_landmarks(associate([ds], AssociationConfig(method=method)), ds.gt_classes, ("person",))
+        assert score.measurements == total
+        assert 0.0 <= score.accuracy <= 1.0
+
+
+def test_errors(small: Path, tmp_path: Path) -> None:
+    """Missing data set, a poses file that covers no frame, --poses count mismatch."""
+    with pytest.raises(DatasetError, match="not found"):
+        run_map([tmp_path / "nope"], tmp_path / "o")
+    traj = tmp_path / "far.txt"
+    traj.write_text("1.0 0 0 0 0 0 0 1\n2.0 0 0 0 0 0 0 1\n")
+    with pytest.raises(DatasetError, match="covers none"):
+        run_map([small], tmp_path / "o", poses=[traj])
+    with pytest.raises(WardmapError, match="one trajectory per data set"):
+        run_map([small, small], tmp_path / "o", poses=[traj])
