@@ -23,6 +23,10 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "--http", default="127.0.0.1:8080", metavar="HOST:PORT",
         help="REST API address (default: %(default)s)",
     )
+    p.add_argument(
+        "--config", metavar="FILE",
+        help="TOML file with [pipeline], [perception] and [association] tables (deploy/server.toml)",
+    )
     p.set_defaults(func=run)
 
 
@@ -43,5 +47,5 @@ def run(args: argparse.Namespace) -> int:
     def ready(url: str) -> None:
         print(f"server ready: {url}", flush=True)
 
-    run_server(args.connect, args.db, host, port, on_ready=ready)
+    run_server(args.connect, args.db, host, port, on_ready=ready, config_path=args.config)
     return 0

@@ -1,7 +1,8 @@
 """The map server's REST API (FastAPI).
 
-:func:`create_app` builds the app; its lifespan opens the keyframe store (and starts an
-optional :class:`~wardmap.server.ingest.Ingest`) and closes them on shutdown, so importing
+:func:`create_app` builds the app; its lifespan opens the keyframe store, builds the
+:class:`~wardmap.server.objectmap.ObjectMap` on it (and starts an optional
+:class:`~wardmap.server.ingest.Ingest` and zenoh map service) and closes them on shutdown, so importing
 this module or calling :func:`create_app` opens nothing. Routes get their collaborators via
 ``Annotated[..., Depends(...)]``; response bodies are the pydantic models below, separate
 from the store's dataclasses. :class:`~wardmap.shared.errors.WardmapError` maps to HTTP in
@@ -16,22 +17,45 @@ import json
 import logging
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, Protocol
 
 from fastapi import Depends, FastAPI, HTTPException, Query, Request
 from fastapi.responses import JSONResponse, PlainTextResponse
 from pydantic import BaseModel
 
 from wardmap.server.ingest import Ingest, IngestCounters
+from wardmap.server.objectmap import (
+    DEFAULT_LIMIT,
+    MAX_LIMIT,
+    MAX_OBSERVATIONS,
+    MAX_OFFSET,
+    ObjectMap,
+    ObjectMapError,
+    ObjectQuery,
+    ObjectRecord,
+    parse_near,
+)
+from wardmap.server.pipeline import MapPipeline, PipelineCounters, PipelineFactory
 from wardmap.server.store import MAX_PAGE, KeyframeStore, StoreError, open_store
-from wardmap.shared.errors import WardmapError
-from wardmap.shared.se3 import transform_to_tum
+from wardmap.shared.errors import KnowledgeGraphError, WardmapError
+from wardmap.shared.se3 import rotation_to_quat, transform_to_tum
 
 log = logging.getLogger(__name__)
 
 __all__ = ["create_app"]
 
 IngestFactory = Callable[[KeyframeStore], Ingest]
+
+
+class Service(Protocol):
+    """A component the lifespan starts after the store opened and stops before it closes."""
+
+    def start(self) -> None: ...
+
+    def stop(self) -> None: ...
+
+
+MapServeFactory = Callable[[ObjectMap], Service]
 
 
 # --------------------------------------------------------------------------- wire schemas
@@ -85,6 +109,100 @@ class ErrorOut(BaseModel):
     detail: str
 
 
+class ObjectOut(BaseModel):
+    """One object of the map; positions in the world frame, metres."""
+
+    object_id: int
+    category: str
+    confidence: float
+    position: list[float]
+    """Centre of the object's box ``[x, y, z]``, metres."""
+    q_xyzw: list[float]
+    """Orientation of the object frame (x forward, z up) in the world frame."""
+    yaw: float
+    """Heading of the object's x axis about world z, radians."""
+    size: list[float]
+    """Extent along the object's x, y, z, metres."""
+    bounds_min: list[float]
+    bounds_max: list[float]
+    color_rgb: list[float] | None
+    n_observations: int
+    first_seen_s: float
+    last_seen_s: float
+    robots: list[str]
+    distance_m: float | None = None
+    """Distance of the centre from ``near`` (only when ``near`` was given)."""
+
+
+class ObjectList(BaseModel):
+    objects: list[ObjectOut]
+    limit: int
+    offset: int
+    next_offset: int | None
+    """Pass as ``offset`` for the next page; None on the last page."""
+
+
+class ObservationOut(BaseModel):
+    observation_id: int
+    robot_id: str
+    session_id: str
+    seq: int
+    stamp: float
+    added_s: float
+    category: str
+    confidence: float
+    box_xyxy: list[float]
+    position: list[float]
+    q_xyzw: list[float]
+    size: list[float]
+
+
+class KeyframeRefOut(BaseModel):
+    robot_id: str
+    session_id: str
+    seq: int
+    stamp: float
+    stored: bool
+    """Whether the keyframe store holds this keyframe."""
+
+
+class ObjectDetailOut(BaseModel):
+    object: ObjectOut
+    observations: list[ObservationOut]
+    """The latest observations, newest first (at most ``observations`` of the request)."""
+    keyframes: list[KeyframeRefOut]
+
+
+class CategoryOut(BaseModel):
+    name: str
+    mobility: str | None
+    """``moving``, ``movable`` or ``static`` (knowledge graph); None for a class it no longer has."""
+    count: int
+
+
+class CategoryList(BaseModel):
+    categories: list[CategoryOut]
+    total: int
+
+
+def _vec(values: Any) -> list[float]:
+    return [float(v) for v in values]
+
+
+def object_json(record: ObjectRecord, distance_m: float | None = None) -> dict[str, Any]:
+    """An :class:`ObjectRecord` as the JSON form of :class:`ObjectOut` (plain dict, built without
+    pydantic because the list route is latency-critical; tests validate it against the model)."""
+    return {
+        "object_id": record.object_id, "category": record.category, "confidence": record.confidence,
+        "position": list(record.position), "q_xyzw": list(record.q_xyzw), "yaw": record.yaw,
+        "size": list(record.size), "bounds_min": list(record.bounds_min),
+        "bounds_max": list(record.bounds_max),
+        "color_rgb": None if record.color_rgb is None else list(record.color_rgb),
+        "n_observations": record.n_observations, "first_seen_s": record.first_seen_s,
+        "last_seen_s": record.last_seen_s, "robots": list(record.robots), "distance_m": distance_m,
+    }
+
+
 # --------------------------------------------------------------------------- cursors
 
 
@@ -121,14 +239,26 @@ def get_ingest(request: Request) -> Ingest | None:
     return ingest
 
 
+def get_objectmap(request: Request) -> ObjectMap:
+    objects: ObjectMap = request.app.state.objectmap
+    return objects
+
+
 StoreDep = Annotated[KeyframeStore, Depends(get_store)]
+ObjectMapDep = Annotated[ObjectMap, Depends(get_objectmap)]
 IngestDep = Annotated[Ingest | None, Depends(get_ingest)]
 
 
 # --------------------------------------------------------------------------- app
 
 
-def create_app(store_url: str, *, ingest_factory: IngestFactory | None = None) -> FastAPI:
+def create_app(
+    store_url: str,
+    *,
+    ingest_factory: IngestFactory | None = None,
+    mapserve_factory: MapServeFactory | None = None,
+    pipeline_factory: PipelineFactory | None = None,
+) -> FastAPI:
     """The FastAPI app serving the keyframe store at ``store_url``.
 
     Args:
@@ -136,20 +266,40 @@ def create_app(store_url: str, *, ingest_factory: IngestFactory | None = None) -
             in the lifespan, not here.
         ingest_factory: builds the :class:`Ingest` from the open store; it is started after
             the store opened and stopped before the store closes. None: API only.
+        mapserve_factory: builds the zenoh map service (``server/mapserve.py``) from the
+            :class:`ObjectMap`; started after the ingest, stopped before it. None: REST only.
+        pipeline_factory: builds the mapping stage (``server/pipeline.py``: perception,
+            association, object map) from the store and the object map; started last,
+            stopped first. None: keyframes are stored but not mapped.
     """
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         store = open_store(store_url)
         ingest: Ingest | None = None
+        mapserve: Service | None = None
+        pipeline: MapPipeline | None = None
         try:
+            objectmap = ObjectMap(store)
             if ingest_factory is not None:
                 ingest = ingest_factory(store)
                 ingest.start()
+            if mapserve_factory is not None:
+                mapserve = mapserve_factory(objectmap)
+                mapserve.start()
+            if pipeline_factory is not None:
+                pipeline = pipeline_factory(store, objectmap)
+                pipeline.start()
             app.state.store = store
+            app.state.pipeline = pipeline
             app.state.ingest = ingest
+            app.state.objectmap = objectmap
             yield
         finally:
+            if pipeline is not None:
+                pipeline.stop()
+            if mapserve is not None:
+                mapserve.stop()
             if ingest is not None:
                 ingest.stop()
             store.close()
@@ -218,10 +368,96 @@ def create_app(store_url: str, *, ingest_factory: IngestFactory | None = None) -
                                  q_xyzw=[float(v) for v in row[3:]]))
         return TrajectoryOut(robot_id=robot_id, poses=poses)
 
+    @app.get(
+        "/v1/objects",
+        response_model=None,
+        responses={
+            200: {"model": ObjectList},
+            422: {"model": ErrorOut, "description": "a bad filter (message in detail)"},
+        },
+    )
+    # async: the work is short and mostly GIL-bound Python, so a worker-thread hop only adds latency.
+    async def objects(
+        objects: ObjectMapDep,
+        category: Annotated[str | None, Query(max_length=64, description="knowledge-graph class")] = None,
+        near: Annotated[
+            str | None,
+            Query(max_length=200, description="world point `x,y,z` in metres: nearest first, with distance"),
+        ] = None,
+        radius: Annotated[
+            float | None, Query(description="metres (>= 0) around `near`; needs `near`")
+        ] = None,
+        min_confidence: Annotated[float | None, Query(description="in [0, 1]")] = None,
+        robot: Annotated[str | None, Query(max_length=64, description="seen by this robot")] = None,
+        limit: Annotated[int, Query(ge=1, le=MAX_LIMIT)] = DEFAULT_LIMIT,
+        offset: Annotated[int, Query(ge=0, le=MAX_OFFSET)] = 0,
+    ) -> JSONResponse:
+        """Objects matching every filter; nearest centre first when `near` is given, else by id."""
+        try:
+            centre = None if near is None else parse_near(near)
+            page = objects.find(ObjectQuery(category, centre, radius, min_confidence, robot, limit, offset))
+        except ObjectMapError as exc:
+            raise HTTPException(422, str(exc)) from exc
+        return JSONResponse({
+            "objects": [object_json(hit.record, hit.distance_m) for hit in page.hits],
+            "limit": limit, "offset": offset, "next_offset": page.next_offset,
+        })
+
+    @app.get(
+        "/v1/objects/{object_id}",
+        response_model=ObjectDetailOut,
+        responses={404: {"model": ErrorOut}, 422: {"model": ErrorOut}},
+    )
+    def object_detail(
+        objects: ObjectMapDep,
+        object_id: int,
+        observations: Annotated[int, Query(ge=0, le=MAX_OBSERVATIONS)] = 100,
+    ) -> ObjectDetailOut:
+        """One object with its latest observations and the keyframes they came from."""
+        try:
+            detail = objects.get(object_id, max_observations=observations)
+        except ObjectMapError as exc:
+            raise HTTPException(422, str(exc)) from exc
+        if detail is None:
+            raise HTTPException(404, f"unknown object {object_id}")
+        return ObjectDetailOut(
+            object=ObjectOut.model_validate(object_json(detail.record)),
+            observations=[
+                ObservationOut(
+                    observation_id=o.observation_id, robot_id=o.robot_id, session_id=o.session_id,
+                    seq=o.seq, stamp=o.stamp, added_s=o.added_s, category=o.category,
+                    confidence=o.confidence, box_xyxy=_vec(o.box_xyxy),
+                    position=_vec(o.T_world_object[:3, 3]),
+                    q_xyzw=_vec(rotation_to_quat(o.T_world_object[:3, :3])), size=_vec(o.size),
+                )
+                for o in detail.observations
+            ],
+            keyframes=[
+                KeyframeRefOut(robot_id=k.robot_id, session_id=k.session_id, seq=k.seq, stamp=k.stamp,
+                               stored=k.stored)
+                for k in detail.keyframes
+            ],
+        )
+
+    @app.get("/v1/categories", response_model=CategoryList)
+    def categories(objects: ObjectMapDep) -> CategoryList:
+        """Every knowledge-graph class with its number of objects in the map."""
+        counts = objects.categories()
+        out = []
+        for name, n in counts.items():
+            try:
+                mobility: str | None = str(objects.knowledge.mobility(name))
+            except KnowledgeGraphError:
+                mobility = None
+            out.append(CategoryOut(name=name, mobility=mobility, count=n))
+        return CategoryList(categories=out, total=sum(counts.values()))
+
     @app.get("/metrics", response_class=PlainTextResponse)
-    def metrics(store: StoreDep, ingest: IngestDep) -> str:
+    def metrics(store: StoreDep, ingest: IngestDep, request: Request) -> str:
         counters = ingest.counters() if ingest is not None else None
-        return _prometheus(counters, store.rejections(), store.stats().robots)
+        pipeline: MapPipeline | None = getattr(request.app.state, "pipeline", None)
+        text = _prometheus(counters, store.rejections(), store.stats().robots)
+        return text + (_pipeline_metrics(pipeline.counters()) if pipeline is not None else "")
 
     return app
 
@@ -236,6 +472,31 @@ async def _wardmap_error(request: Request, exc: Exception) -> JSONResponse:
 
 def _label(value: str) -> str:
     return value.replace("\\", "\\\\").replace("\n", "\\n").replace('"', '\\"')
+
+
+def _pipeline_metrics(c: PipelineCounters) -> str:
+    """The mapping stage's counters, Prometheus text format."""
+    rows = [
+        ("wardmap_mapping_backlog", "gauge", "Stored keyframes the mapping stage has not processed yet.",
+         [("", c.backlog)]),
+        ("wardmap_mapping_keyframes_total", "counter", "Keyframes run through perception by this process.",
+         [("", c.processed)]),
+        ("wardmap_mapping_measurements_total", "counter", "Object measurements stored by this process.",
+         [("", c.measurements)]),
+        ("wardmap_mapping_associated_total", "counter", "Keyframes fed to association (sessions on the map).",
+         [("", c.mapped)]),
+        ("wardmap_mapping_unanchored_total", "counter",
+         "Keyframes of sessions without T_map_odom: measured, not mapped.", [("", c.unanchored)]),
+        ("wardmap_mapping_failures_total", "counter", "Keyframes perception skipped, by error type.",
+         [(f'{{reason="{_label(r)}"}}', n) for r, n in sorted(c.failures.items())]),
+        ("wardmap_mapping_landmarks", "gauge", "Landmarks the associator holds.", [("", c.landmarks)]),
+    ]
+    out = []
+    for name, kind, help_text, samples in rows:
+        out.append(f"# HELP {name} {help_text}")
+        out.append(f"# TYPE {name} {kind}")
+        out.extend(f"{name}{labels} {value}" for labels, value in samples)
+    return "\n".join(out) + "\n"
 
 
 def _prometheus(counters: IngestCounters | None, rejections: dict[str, int], robots: int) -> str:

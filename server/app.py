@@ -18,6 +18,8 @@ from contextlib import contextmanager
 from typing import Any
 
 from wardmap.server.ingest import Ingest
+from wardmap.server.mapserve import MapServe
+from wardmap.server.objectmap import ObjectMap
 from wardmap.server.router import _stop_on_signals
 from wardmap.server.store import KeyframeStore, open_store
 from wardmap.shared.errors import WardmapError
@@ -90,6 +92,7 @@ def run_server(
     *,
     stop: threading.Event | None = None,
     on_ready: Callable[[str], None] | None = None,
+    config_path: str | None = None,
 ) -> None:
     """Serve until ``stop`` is set or SIGTERM/SIGINT (in the main thread).
 
@@ -100,6 +103,8 @@ def run_server(
         stop: event that ends the server when set.
         on_ready: called once with the API's base URL ``http://HOST:PORT`` after the store
             is open, the ingest is subscribed and the HTTP socket accepts requests.
+        config_path: TOML file with ``[pipeline]``, ``[perception]`` and ``[association]``
+            tables (defaults when None; ``deploy/server.toml``).
 
     Raises:
         ConfigError: a bad zenoh endpoint.
@@ -109,8 +114,17 @@ def run_server(
     import uvicorn
 
     from wardmap.server.api import create_app
+    from wardmap.server.association.associator import AssociationConfig
+    from wardmap.server.perception.models import PerceptionConfig, make_segmenter
+    from wardmap.server.pipeline import MapPipeline, PipelineConfig
+    from wardmap.shared.config import load_config
 
     client_config(connect)  # validate the endpoints before anything starts
+    pipeline_cfg = load_config(PipelineConfig, config_path, section="pipeline")
+    perception_cfg = load_config(PerceptionConfig, config_path, section="perception")
+    association_cfg = load_config(AssociationConfig, config_path, section="association")
+    # Build the segmenter now: a missing or bad model is one clear error before anything starts.
+    segmenter = make_segmenter(perception_cfg.segmenter, perception_cfg) if pipeline_cfg.enabled else None
     open_store(db_url).close()  # validate URL and file here, so the error is one clear line
     stop = stop if stop is not None else threading.Event()
     started = threading.Event()
@@ -119,6 +133,9 @@ def run_server(
     def make_ingest(store: KeyframeStore) -> Ingest:
         return Ingest(connect, store)
 
+    def make_mapserve(objects: ObjectMap) -> MapServe:
+        return MapServe(connect, objects)
+
     class _Server(uvicorn.Server):
         async def startup(self, sockets: list[socket.socket] | None = None) -> None:
             await super().startup(sockets)
@@ -126,7 +143,12 @@ def run_server(
                 started.set()
                 done.set()
 
-    app = create_app(db_url, ingest_factory=make_ingest)
+    def make_pipeline(store: Any, objects: ObjectMap) -> MapPipeline:
+        return MapPipeline(store, objects, config=pipeline_cfg, perception=perception_cfg,
+                           association=association_cfg, segmenter=segmenter)
+
+    app = create_app(db_url, ingest_factory=make_ingest, mapserve_factory=make_mapserve,
+                     pipeline_factory=make_pipeline if pipeline_cfg.enabled else None)
     config = uvicorn.Config(
         app, log_config=None, access_log=False, lifespan="on", timeout_graceful_shutdown=5
     )

@@ -96,6 +96,61 @@ MIGRATIONS: Final[tuple[sqlitedb.Migration, ...]] = (
         "CREATE INDEX keyframes_robot_stamp ON keyframes (robot_id, stamp, session_id, seq)",
         "CREATE TABLE rejections (reason TEXT PRIMARY KEY, count INTEGER NOT NULL)",
     ),
+    # v2: the object map (server/objectmap.py). Poses are 16 little-endian float64, row-major.
+    (
+        """CREATE TABLE objects (
+            object_id INTEGER PRIMARY KEY,
+            category TEXT NOT NULL,
+            confidence REAL NOT NULL CHECK (confidence >= 0 AND confidence <= 1),
+            T_world_object BLOB NOT NULL CHECK (length(T_world_object) = 128),
+            x REAL NOT NULL, y REAL NOT NULL, z REAL NOT NULL, yaw REAL NOT NULL,
+            qx REAL NOT NULL, qy REAL NOT NULL, qz REAL NOT NULL, qw REAL NOT NULL,
+            size_x REAL NOT NULL, size_y REAL NOT NULL, size_z REAL NOT NULL,
+            min_x REAL NOT NULL, min_y REAL NOT NULL, min_z REAL NOT NULL,
+            max_x REAL NOT NULL, max_y REAL NOT NULL, max_z REAL NOT NULL,
+            color_r REAL, color_g REAL, color_b REAL,
+            n_observations INTEGER NOT NULL,
+            first_seen_s REAL NOT NULL,
+            last_seen_s REAL NOT NULL)""",
+        # Rows of one category come out in object_id (rowid) order, the default result order.
+        "CREATE INDEX objects_category ON objects (category)",
+        """CREATE TABLE object_robots (
+            object_id INTEGER NOT NULL,
+            robot_id TEXT NOT NULL,
+            PRIMARY KEY (object_id, robot_id)) WITHOUT ROWID""",
+        "CREATE INDEX object_robots_robot ON object_robots (robot_id, object_id)",
+        # One row per measurement of an object in a keyframe, keyed by keyframe and box.
+        """CREATE TABLE observations (
+            observation_id INTEGER PRIMARY KEY,
+            object_id INTEGER NOT NULL,
+            robot_id TEXT NOT NULL,
+            session_id TEXT NOT NULL,
+            seq INTEGER NOT NULL,
+            stamp REAL NOT NULL,
+            added_s REAL NOT NULL,
+            category TEXT NOT NULL,
+            confidence REAL NOT NULL,
+            box_x1 REAL NOT NULL, box_y1 REAL NOT NULL, box_x2 REAL NOT NULL, box_y2 REAL NOT NULL,
+            T_world_object BLOB NOT NULL CHECK (length(T_world_object) = 128),
+            size_x REAL NOT NULL, size_y REAL NOT NULL, size_z REAL NOT NULL,
+            UNIQUE (robot_id, session_id, seq, box_x1, box_y1, box_x2, box_y2))""",
+        "CREATE INDEX observations_object ON observations (object_id, added_s)",
+        # Axis-aligned world bounds of each object (float32, rounded outwards by SQLite).
+        "CREATE VIRTUAL TABLE objects_rtree USING rtree(object_id, min_x, max_x, min_y, max_y, min_z, max_z)",
+    ),
+    # v3: the mapping stage (server/pipeline.py): object measurements per keyframe and how far
+    # the stage got (the keyframes' rowid, i.e. insertion order).
+    (
+        """CREATE TABLE measurements (
+            measurement_id INTEGER PRIMARY KEY,
+            robot_id TEXT NOT NULL,
+            session_id TEXT NOT NULL,
+            seq INTEGER NOT NULL,
+            anchored INTEGER NOT NULL,
+            payload BLOB NOT NULL)""",
+        "CREATE INDEX measurements_keyframe ON measurements (robot_id, session_id, seq)",
+        "CREATE TABLE pipeline_cursor (name TEXT PRIMARY KEY, last_rowid INTEGER NOT NULL)",
+    ),
 )
 
 InsertResult: TypeAlias = Literal["stored", "duplicate"]
@@ -529,6 +584,22 @@ class SqliteKeyframeStore:
         return StoreStats(
             int(robots), int(sessions), int(keyframes), int(nbytes), int(rejected), int(version)
         )
+
+    # ------------------------------------------------------------------ shared access
+
+    @contextmanager
+    def reading(self, what: str) -> Iterator[sqlite3.Connection]:
+        """This thread's connection for reads by another component on the same file
+        (the object map); SQLite errors become :class:`StoreError` naming ``what``."""
+        with self._read(what) as conn:
+            yield conn
+
+    @contextmanager
+    def writing(self, what: str) -> Iterator[sqlite3.Connection]:
+        """One ``BEGIN IMMEDIATE`` .. ``COMMIT`` transaction on this thread's connection, for
+        another component on the same file; rolled back on any exception."""
+        with self._write(what) as conn:
+            yield conn
 
     # ------------------------------------------------------------------ internals
 

@@ -1,0 +1,339 @@
+"""The object map over Zenoh: a queryable for robots and a stream of map updates.
+
+:class:`MapServe` owns one zenoh client session connected to the router(s) with
+
+- a queryable on :data:`OBJECTS_KEY` (``wardmap/v1/map/objects``) that answers the filters
+  of ``GET /v1/objects`` given as selector parameters, e.g.
+  ``wardmap/v1/map/objects?category=door;near=1,2,0;radius=3`` (keys ``category``,
+  ``near``, ``radius``, ``min_confidence``, ``robot``, ``limit``, ``offset``; zenoh's own
+  ``_``-prefixed parameters are ignored). One reply of schema ``wardmap.map.objects``;
+  bad parameters get a reply error of schema ``wardmap.map.error`` naming the parameter.
+- a publisher on :data:`UPDATES_KEY` (``wardmap/v1/map/updates``), reliable with congestion
+  control ``BLOCK``, that sends one ``wardmap.map.update`` for every
+  :class:`~wardmap.server.objectmap.ObjectChange`, in commit order.
+
+Queue policy: queries reach the worker thread through a bounded zenoh FIFO channel
+(``FifoChannel(capacity)``): **FIFO, block when full** (zenoh applies backpressure, nothing
+is dropped). Updates are published from the object map's listener on the writer's thread
+after each commit, so a slow subscriber slows the map writer instead of losing updates; a
+failed put is logged and counted (``update_failures``).
+
+Payloads are msgpack maps with ``schema`` and ``version`` (docs/map_api.md has the fields).
+Poses use the wire convention of ``shared/wire.py``: ``{"t": [x, y, z], "q_xyzw": [...]}``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, Final
+
+import msgpack
+
+from wardmap.server.objectmap import (
+    ObjectChange,
+    ObjectMap,
+    ObjectMapError,
+    ObjectPage,
+    ObjectQuery,
+    ObjectRecord,
+)
+from wardmap.server.router import _first_line
+from wardmap.shared.errors import ConfigError, WardmapError, WireError
+from wardmap.shared.zenoh_config import KEY_PREFIX, client_config
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "OBJECTS_KEY",
+    "UPDATES_KEY",
+    "MapServe",
+    "MapServeCounters",
+    "MapServeError",
+    "decode_map_message",
+    "encode_error",
+    "encode_objects",
+    "encode_update",
+]
+
+OBJECTS_KEY: Final = f"{KEY_PREFIX}/map/objects"
+UPDATES_KEY: Final = f"{KEY_PREFIX}/map/updates"
+SCHEMA_OBJECTS: Final = "wardmap.map.objects"
+SCHEMA_UPDATE: Final = "wardmap.map.update"
+SCHEMA_ERROR: Final = "wardmap.map.error"
+VERSION: Final = 1
+ENCODING: Final = "application/msgpack"
+DEFAULT_CAPACITY: Final = 64
+"""Queries the zenoh FIFO channel holds before zenoh applies backpressure."""
+MAX_MESSAGE_BYTES: Final = 16 * 2**20
+
+
+class MapServeError(WardmapError):
+    """The map service cannot start (bad endpoint, zenoh cannot open the session)."""
+
+
+# --------------------------------------------------------------------------- wire form
+
+
+def _object(record: ObjectRecord, distance_m: float | None = None) -> dict[str, Any]:
+    T = record.T_world_object
+    out: dict[str, Any] = {
+        "object_id": record.object_id,
+        "category": record.category,
+        "confidence": record.confidence,
+        "T_world_object": {
+            "t": [float(v) for v in T[:3, 3]],
+            "q_xyzw": list(record.q_xyzw),
+        },
+        "yaw": record.yaw,
+        "size": list(record.size),
+        "bounds_min": list(record.bounds_min),
+        "bounds_max": list(record.bounds_max),
+        "n_observations": record.n_observations,
+        "first_seen_s": record.first_seen_s,
+        "last_seen_s": record.last_seen_s,
+        "robots": list(record.robots),
+    }
+    if record.color_rgb is not None:
+        out["color_rgb"] = list(record.color_rgb)
+    if distance_m is not None:
+        out["distance_m"] = distance_m
+    return out
+
+
+def _pack(message: dict[str, Any]) -> bytes:
+    payload: bytes = msgpack.packb(message, use_bin_type=True)
+    return payload
+
+
+def encode_objects(page: ObjectPage) -> bytes:
+    """The queryable's reply: ``{schema: wardmap.map.objects, version, objects, next_offset}``."""
+    return _pack({
+        "schema": SCHEMA_OBJECTS, "version": VERSION,
+        "objects": [_object(hit.record, hit.distance_m) for hit in page.hits],
+        "next_offset": page.next_offset,
+    })
+
+
+def encode_update(change: ObjectChange) -> bytes:
+    """One map update: ``{schema: wardmap.map.update, version, kind, object[, merged_into]}``."""
+    message: dict[str, Any] = {
+        "schema": SCHEMA_UPDATE, "version": VERSION, "kind": change.kind, "object": _object(change.record),
+    }
+    if change.merged_into is not None:
+        message["merged_into"] = change.merged_into
+    return _pack(message)
+
+
+def encode_error(detail: str) -> bytes:
+    """A reply error: ``{schema: wardmap.map.error, version, detail}``."""
+    return _pack({"schema": SCHEMA_ERROR, "version": VERSION, "detail": str(detail)})
+
+
+def decode_map_message(payload: bytes, *, max_bytes: int = MAX_MESSAGE_BYTES) -> dict[str, Any]:
+    """Unpack a map message (objects reply, update or error) and check ``schema`` and ``version``.
+
+    Returns the message as a dict (fields as in docs/map_api.md).
+
+    Raises:
+        WireError: oversize, not msgpack, not a map, unknown schema or version.
+    """
+    if len(payload) > max_bytes:
+        raise WireError("", f"map message of {len(payload)} bytes exceeds {max_bytes}")
+    try:
+        message = msgpack.unpackb(bytes(payload), raw=False, strict_map_key=True)
+    except (ValueError, msgpack.UnpackException) as exc:
+        raise WireError("", f"not a msgpack map message: {exc}") from exc
+    if not isinstance(message, dict):
+        raise WireError("", f"expected a map, got {type(message).__name__}")
+    schema = message.get("schema")
+    if schema not in (SCHEMA_OBJECTS, SCHEMA_UPDATE, SCHEMA_ERROR):
+        raise WireError("schema", f"unknown map schema {str(schema)[:60]!r}")
+    if message.get("version") != VERSION:
+        raise WireError("version", f"unsupported version {message.get('version')!r:.20} of {schema}")
+    return message
+
+
+# --------------------------------------------------------------------------- the service
+
+
+@dataclass(frozen=True, slots=True)
+class MapServeCounters:
+    """Counts since :meth:`MapServe.start`.
+
+    Attributes:
+        queries: queries answered with objects.
+        query_errors: queries answered with a reply error (bad parameters, store failure).
+        updates: updates published.
+        update_failures: updates that could not be published (logged).
+    """
+
+    queries: int
+    query_errors: int
+    updates: int
+    update_failures: int
+
+
+class MapServe:
+    """Serve the object map over zenoh; see the module docstring.
+
+    Use ``start()`` / ``stop()`` or a ``with`` block. :meth:`counters` may be called from
+    any thread.
+    """
+
+    def __init__(
+        self, connect: Sequence[str], objects: ObjectMap, *, capacity: int = DEFAULT_CAPACITY
+    ) -> None:
+        """
+        Args:
+            connect: router endpoints ``tcp/HOST:PORT``.
+            objects: the map; it must outlive this object's ``stop()``.
+            capacity: size of the queryable's FIFO channel (>= 1).
+        """
+        if isinstance(capacity, bool) or not isinstance(capacity, int) or capacity < 1:
+            raise ConfigError(f"map service capacity must be an int >= 1, got {capacity!r}")
+        self._config = client_config(connect)  # validates the endpoints now
+        self._connect = list(connect)
+        self._objects = objects
+        self._capacity = capacity
+        self._lock = threading.Lock()
+        self._counts = {"queries": 0, "query_errors": 0, "updates": 0, "update_failures": 0}
+        self._session: Any = None
+        self._queryable: Any = None
+        self._publisher: Any = None
+        self._remove_listener: Any = None
+        self._thread: threading.Thread | None = None
+
+    # ------------------------------------------------------------------ life cycle
+
+    def start(self) -> None:
+        """Open the session, declare the queryable and the publisher, start the worker.
+
+        Raises:
+            MapServeError: already started, or zenoh cannot open the session.
+        """
+        import zenoh
+
+        if self._thread is not None:
+            raise MapServeError("map service already started")
+        try:
+            session = zenoh.open(zenoh.Config.from_json5(json.dumps(self._config)))
+        except zenoh.ZError as exc:
+            raise MapServeError(f"cannot connect to {', '.join(self._connect)}: {_first_line(exc)}") from exc
+        try:
+            self._queryable = session.declare_queryable(
+                OBJECTS_KEY, zenoh.handlers.FifoChannel(self._capacity), complete=True
+            )
+            self._publisher = session.declare_publisher(
+                UPDATES_KEY,
+                encoding=ENCODING,
+                reliability=zenoh.Reliability.RELIABLE,
+                congestion_control=zenoh.CongestionControl.BLOCK,
+            )
+        except BaseException:
+            session.close()
+            raise
+        self._session = session
+        self._remove_listener = self._objects.add_listener(self._publish)
+        self._thread = threading.Thread(target=self._run, name="wardmap-mapserve", daemon=True)
+        self._thread.start()
+        log.info("map service: queryable %s, updates on %s via %s", OBJECTS_KEY, UPDATES_KEY,
+                 ", ".join(self._connect))
+
+    def stop(self, timeout_s: float = 10.0) -> None:
+        """Stop publishing, close the session (which ends the channel), join the worker (idempotent)."""
+        remove, self._remove_listener = self._remove_listener, None
+        if remove is not None:
+            remove()
+        with self._lock:
+            session, self._session = self._session, None
+            self._publisher = None
+        if session is not None:
+            session.close()  # undeclares the queryable and the publisher
+        thread, self._thread = self._thread, None
+        if thread is not None:
+            thread.join(timeout_s)
+            if thread.is_alive():
+                log.warning("map service worker did not stop within %.1f s", timeout_s)
+        self._queryable = None
+
+    def __enter__(self) -> MapServe:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def counters(self) -> MapServeCounters:
+        """The counters now (consistent snapshot)."""
+        with self._lock:
+            c = dict(self._counts)
+        return MapServeCounters(c["queries"], c["query_errors"], c["updates"], c["update_failures"])
+
+    # ------------------------------------------------------------------ work
+
+    def _count(self, name: str) -> None:
+        with self._lock:
+            self._counts[name] += 1
+
+    def _run(self) -> None:
+        import zenoh
+
+        queryable = self._queryable
+        while True:
+            try:
+                query = queryable.recv()  # raises ZError once the session closed and the channel is empty
+            except zenoh.ZError:
+                break
+            with query:  # the final reply is sent when the query is dropped
+                try:
+                    self._answer(query)
+                except Exception:
+                    log.exception("map query %s failed", str(query.selector)[:200])
+                    self._reply_error(query, "internal error of the map server")
+        log.debug("map service worker ends")
+
+    def _answer(self, query: Any) -> None:
+        params = [(str(k), str(v)) for k, v in query.parameters if not str(k).startswith("_")]
+        try:
+            page = self._objects.find(ObjectQuery.from_params(params))
+        except ObjectMapError as exc:
+            self._reply_error(query, str(exc))
+            return
+        except WardmapError as exc:
+            log.error("map query %s: %s", str(query.selector)[:200], exc)
+            self._reply_error(query, "the map server could not read the object map")
+            return
+        query.reply(OBJECTS_KEY, encode_objects(page), encoding=ENCODING)
+        self._count("queries")
+
+    def _reply_error(self, query: Any, detail: str) -> None:
+        import zenoh
+
+        self._count("query_errors")
+        try:
+            query.reply_err(encode_error(detail), encoding=ENCODING)
+        except zenoh.ZError as exc:
+            log.warning("cannot answer map query %s: %s", str(query.selector)[:200], exc)
+
+    def _publish(self, change: ObjectChange) -> None:
+        """Object map listener: publish one update (on the writer's thread, after the commit)."""
+        import zenoh
+
+        with self._lock:
+            publisher = self._publisher
+        if publisher is None:
+            self._count("update_failures")
+            log.warning("map update of object %d not published: the map service is stopped",
+                        change.record.object_id)
+            return
+        try:
+            publisher.put(encode_update(change))
+        except zenoh.ZError as exc:
+            self._count("update_failures")
+            log.warning("cannot publish map update of object %d: %s", change.record.object_id, exc)
+            return
+        self._count("updates")

@@ -1,0 +1,965 @@
+"""The persistent object map: object landmarks, their observations and spatial queries.
+
+Association (paper 000 Sec. III) turns object measurements into landmarks; this module
+keeps them in the server's database (the keyframe store's SQLite file, schema v2 of
+:data:`wardmap.server.store.MIGRATIONS`) and answers "which objects, where". Tables:
+
+- ``objects``: one row per landmark: category, confidence, ``T_world_object`` (16 float64),
+  its position, yaw, size, world-axis bounds, mean colour, and values derived from its
+  observations (count, first/last seen, robots);
+- ``observations``: one row per measurement of an object in a keyframe, keyed by
+  ``(robot_id, session_id, seq, box)``, so sending the same measurement again moves or
+  refreshes it instead of adding a copy;
+- ``object_robots``: which robots observed which object (the ``robot`` filter);
+- ``objects_rtree``: an SQLite R*Tree over the bounds. A radius query takes the objects whose
+  bounds meet the cube around the centre from the R*Tree, then keeps those whose centre lies
+  within the exact (float64) distance.
+
+Frames and units: ``world`` is the frame association works in (a robot session's odom
+frame until multi-robot alignment gives ``T_map_odom``). The object frame has x forward and
+z up, origin at the centre of its box (``server/perception/types.py``). Metres, radians;
+``*_s`` values are the server's wall-clock seconds (``time.time()``), ``stamp`` is the
+robot's capture time.
+
+Threads: :class:`ObjectMap` is thread safe like the store (one SQLite connection per
+thread through :meth:`SqliteKeyframeStore.reading` / :meth:`~SqliteKeyframeStore.writing`).
+Writes are serialised by a lock so that listeners receive :class:`ObjectChange` events in
+commit order; listeners run on the writer's thread after the commit.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import sqlite3
+import threading
+import time
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, Final, Literal, Protocol, TypeAlias
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from wardmap.server.store import SqliteKeyframeStore
+from wardmap.shared.errors import ConfigError, GeometryError, WardmapError
+from wardmap.shared.knowledge import KnowledgeGraph
+from wardmap.shared.se3 import check_transform, rotation_to_quat
+from wardmap.shared.zenoh_config import validate_robot_id
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "DEFAULT_LIMIT",
+    "MAX_LIMIT",
+    "KeyframeRef",
+    "ObjectChange",
+    "ObjectDetail",
+    "ObjectHit",
+    "ObjectMap",
+    "ObjectMapError",
+    "ObjectPage",
+    "ObjectQuery",
+    "ObjectRecord",
+    "ObjectState",
+    "Observation",
+    "ObservationRecord",
+    "from_landmark",
+    "parse_near",
+]
+
+DEFAULT_LIMIT: Final = 100
+MAX_LIMIT: Final = 1000
+"""Largest page of :meth:`ObjectMap.find`."""
+MAX_OFFSET: Final = 1_000_000
+MAX_OBSERVATIONS: Final = 1000
+"""Most observations :meth:`ObjectMap.get` returns for one object."""
+_POSE_DTYPE: Final = np.dtype("<f8")
+
+ChangeKind: TypeAlias = Literal["created", "updated", "deleted"]
+Vec3: TypeAlias = tuple[float, float, float]
+Vec4: TypeAlias = tuple[float, float, float, float]
+
+
+class ObjectMapError(WardmapError):
+    """A bad argument to the object map (bad object, observation or query) or an unknown object."""
+
+
+# --------------------------------------------------------------------------- records
+
+
+@dataclass(frozen=True, eq=False)
+class ObjectState:
+    """What association knows about one landmark: the input of :meth:`ObjectMap.upsert`.
+
+    Attributes:
+        object_id: landmark id, an int in [1, 2**63).
+        category: knowledge-graph class name.
+        confidence: in [0, 1].
+        T_world_object: (4, 4) float64 object pose in ``world`` (x forward, z up, origin at
+            the box centre).
+        size: (3,) float64 box extent along the object's x, y, z, metres (>= 0).
+        color_rgb: mean colour, 0..255 per channel, or None when unknown.
+    """
+
+    object_id: int
+    category: str
+    confidence: float
+    T_world_object: NDArray[np.float64]
+    size: NDArray[np.float64]
+    color_rgb: Vec3 | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class Observation:
+    """One measurement of an object in a keyframe (paper 000 Eq. 1: class, pose, size).
+
+    Attributes:
+        object_id: the object it belongs to (in the same upsert or already stored).
+        robot_id, session_id, seq: the keyframe.
+        stamp: keyframe capture time, robot clock, seconds.
+        category: measured class (may differ from the object's).
+        confidence: detector score in [0, 1].
+        box_xyxy: (4,) float64 ``x1, y1, x2, y2`` pixel box in the keyframe's colour image;
+            with the keyframe it identifies the measurement.
+        T_world_object: (4, 4) float64 measured object pose in ``world``.
+        size: (3,) float64 measured extent, metres.
+    """
+
+    object_id: int
+    robot_id: str
+    session_id: str
+    seq: int
+    stamp: float
+    category: str
+    confidence: float
+    box_xyxy: NDArray[np.float64]
+    T_world_object: NDArray[np.float64]
+    size: NDArray[np.float64]
+
+
+@dataclass(frozen=True, eq=False)
+class ObservationRecord:
+    """A stored :class:`Observation` with its row id and the server time it was first added."""
+
+    observation_id: int
+    added_s: float
+    object_id: int
+    robot_id: str
+    session_id: str
+    seq: int
+    stamp: float
+    category: str
+    confidence: float
+    box_xyxy: NDArray[np.float64]
+    T_world_object: NDArray[np.float64]
+    size: NDArray[np.float64]
+
+
+@dataclass(frozen=True, eq=False)
+class ObjectRecord:
+    """One stored object.
+
+    Attributes:
+        object_id, category, confidence, T_world_object, color_rgb: as in :class:`ObjectState`.
+        position: ``T_world_object[:3, 3]``, metres.
+        q_xyzw: the rotation of ``T_world_object`` as a unit quaternion (x, y, z, w).
+        yaw: heading of the object's x axis about world z, radians in (-pi, pi].
+        size: (x, y, z) extent, metres.
+        bounds_min, bounds_max: world-axis-aligned bounds of the oriented box, metres.
+        n_observations: stored observations.
+        first_seen_s, last_seen_s: server seconds when the object was created or first
+            observed (the earlier) and when it was last observed (its creation if never).
+        robots: robots with an observation of it, sorted.
+    """
+
+    object_id: int
+    category: str
+    confidence: float
+    T_world_object: NDArray[np.float64]
+    position: Vec3
+    q_xyzw: Vec4
+    yaw: float
+    size: Vec3
+    bounds_min: Vec3
+    bounds_max: Vec3
+    color_rgb: Vec3 | None
+    n_observations: int
+    first_seen_s: float
+    last_seen_s: float
+    robots: tuple[str, ...]
+
+
+@dataclass(frozen=True, eq=False)
+class ObjectHit:
+    """A query result: the object and, when the query has ``near``, its centre's distance (m)."""
+
+    record: ObjectRecord
+    distance_m: float | None
+
+
+@dataclass(frozen=True, eq=False)
+class ObjectPage:
+    """One page of :meth:`ObjectMap.find`; ``next_offset`` is None on the last page."""
+
+    hits: list[ObjectHit]
+    next_offset: int | None
+
+
+@dataclass(frozen=True, slots=True)
+class KeyframeRef:
+    """A keyframe an object was observed in; ``stored`` says whether the store holds it."""
+
+    robot_id: str
+    session_id: str
+    seq: int
+    stamp: float
+    stored: bool
+
+
+@dataclass(frozen=True, eq=False)
+class ObjectDetail:
+    """:meth:`ObjectMap.get`: the object, its latest observations (newest first) and their keyframes."""
+
+    record: ObjectRecord
+    observations: list[ObservationRecord]
+    keyframes: list[KeyframeRef]
+
+
+@dataclass(frozen=True, eq=False)
+class ObjectChange:
+    """An event produced by a committed write.
+
+    Attributes:
+        kind: ``created``, ``updated`` or ``deleted``.
+        record: the object after the change (before it, for ``deleted``).
+        merged_into: for ``deleted``: the object that took over its observations, if any.
+    """
+
+    kind: ChangeKind
+    record: ObjectRecord
+    merged_into: int | None = None
+
+
+# --------------------------------------------------------------------------- queries
+
+
+def parse_near(text: str) -> Vec3:
+    """``"x,y,z"`` (metres, world frame) as a float triple; ObjectMapError otherwise."""
+    parts = text.split(",") if isinstance(text, str) else []
+    try:
+        values = tuple(float(p) for p in parts)
+    except ValueError:
+        values = ()
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise ObjectMapError(f"near must be three finite numbers 'x,y,z' in metres, got {str(text)[:80]!r}")
+    return values[0], values[1], values[2]
+
+
+@dataclass(frozen=True, slots=True)
+class ObjectQuery:
+    """Filters of :meth:`ObjectMap.find`; validated on construction (ObjectMapError).
+
+    Attributes:
+        category: only this class (checked against the knowledge graph by the map).
+        near: world point (x, y, z) in metres: results are ordered nearest first by the
+            distance of their centre, and carry that distance.
+        radius_m: with ``near``: only objects whose centre is within this distance (>= 0).
+        min_confidence: only objects with confidence >= this, in [0, 1].
+        robot: only objects some observation of this robot supports.
+        limit: page size, 1..:data:`MAX_LIMIT`.
+        offset: results to skip, 0..:data:`MAX_OFFSET`.
+    """
+
+    category: str | None = None
+    near: Vec3 | None = None
+    radius_m: float | None = None
+    min_confidence: float | None = None
+    robot: str | None = None
+    limit: int = DEFAULT_LIMIT
+    offset: int = 0
+
+    def __post_init__(self) -> None:
+        if self.category is not None and (not isinstance(self.category, str) or not self.category):
+            raise ObjectMapError(f"category must be a non-empty str, got {self.category!r:.80}")
+        if self.near is not None and (len(self.near) != 3 or not all(_is_finite(v) for v in self.near)):
+            raise ObjectMapError(f"near must be three finite numbers, got {self.near!r:.80}")
+        if self.radius_m is not None:
+            if self.near is None:
+                raise ObjectMapError("radius needs near=x,y,z (the centre of the search)")
+            if not _is_finite(self.radius_m) or self.radius_m < 0:
+                raise ObjectMapError(f"radius must be a finite number >= 0 metres, got {self.radius_m!r:.80}")
+        if self.min_confidence is not None and (
+            not _is_finite(self.min_confidence) or not 0 <= self.min_confidence <= 1
+        ):
+            raise ObjectMapError(f"min_confidence must be in [0, 1], got {self.min_confidence!r:.80}")
+        if self.robot is not None:
+            try:
+                validate_robot_id(self.robot)
+            except ConfigError as exc:
+                raise ObjectMapError(str(exc)) from exc
+        if not _is_int(self.limit) or not 1 <= self.limit <= MAX_LIMIT:
+            raise ObjectMapError(f"limit must be an int in [1, {MAX_LIMIT}], got {self.limit!r:.80}")
+        if not _is_int(self.offset) or not 0 <= self.offset <= MAX_OFFSET:
+            raise ObjectMapError(f"offset must be an int in [0, {MAX_OFFSET}], got {self.offset!r:.80}")
+
+    @classmethod
+    def from_params(cls, params: Iterable[tuple[str, str]]) -> ObjectQuery:
+        """Parse text parameters (a URL query or a zenoh selector's parameters).
+
+        Keys: ``category``, ``near`` (``x,y,z``), ``radius``, ``min_confidence``, ``robot``,
+        ``limit``, ``offset``; each at most once. Raises ObjectMapError naming the first
+        bad, unknown or repeated key.
+        """
+        seen: dict[str, str] = {}
+        for key, value in params:
+            if key not in _PARAM_KEYS:
+                raise ObjectMapError(f"unknown parameter {key[:40]!r}; expected {', '.join(_PARAM_KEYS)}")
+            if key in seen:
+                raise ObjectMapError(f"parameter {key!r} given twice")
+            seen[key] = value
+        near = parse_near(seen["near"]) if "near" in seen else None
+        return cls(
+            category=seen.get("category"),
+            near=near,
+            radius_m=_parse_float(seen, "radius"),
+            min_confidence=_parse_float(seen, "min_confidence"),
+            robot=seen.get("robot"),
+            limit=_parse_int(seen, "limit", DEFAULT_LIMIT),
+            offset=_parse_int(seen, "offset", 0),
+        )
+
+
+_PARAM_KEYS: Final = ("category", "near", "radius", "min_confidence", "robot", "limit", "offset")
+
+
+def _parse_float(params: Mapping[str, str], key: str) -> float | None:
+    if key not in params:
+        return None
+    try:
+        value = float(params[key])
+    except ValueError:
+        raise ObjectMapError(f"{key} must be a number, got {params[key][:80]!r}") from None
+    return value
+
+
+def _parse_int(params: Mapping[str, str], key: str, default: int) -> int:
+    if key not in params:
+        return default
+    try:
+        return int(params[key])
+    except ValueError:
+        raise ObjectMapError(f"{key} must be an integer, got {params[key][:80]!r}") from None
+
+
+# --------------------------------------------------------------------------- landmark adapter
+
+
+class MeasurementLike(Protocol):
+    """The attributes :func:`from_landmark` reads from a measurement (``ObjectMeasurement``)."""
+
+    @property
+    def keyframe(self) -> str: ...
+    @property
+    def stamp(self) -> float: ...
+    @property
+    def category(self) -> str: ...
+    @property
+    def confidence(self) -> float: ...
+    @property
+    def box_xyxy(self) -> NDArray[np.float64]: ...
+    @property
+    def T_world_object(self) -> NDArray[np.float64]: ...
+    @property
+    def size(self) -> NDArray[np.float64]: ...
+
+
+def from_landmark(
+    object_id: int,
+    category: str,
+    confidence: float,
+    T_world_object: ArrayLike,
+    size: ArrayLike,
+    measurements: Iterable[MeasurementLike] = (),
+    color_rgb: Vec3 | None = None,
+) -> tuple[ObjectState, list[Observation]]:
+    """Map an association landmark (plain fields) onto the map's input types.
+
+    Each measurement's ``keyframe`` must be the server key ``"<robot>/<session>/<seq>"``
+    (``server/perception/types.py``); offline keys (``"<dataset>/<stamp>"``) have no robot
+    and raise ObjectMapError.
+
+    Returns:
+        ``(state, observations)`` for :meth:`ObjectMap.upsert`.
+    """
+    state = ObjectState(
+        object_id, category, confidence, np.asarray(T_world_object, np.float64),
+        np.asarray(size, np.float64), color_rgb,
+    )
+    observations = []
+    for m in measurements:
+        parts = str(m.keyframe).split("/")
+        if len(parts) != 3 or not parts[2].isdigit():
+            raise ObjectMapError(f"measurement keyframe {m.keyframe!r:.80} is not '<robot>/<session>/<seq>'")
+        observations.append(Observation(
+            object_id, parts[0], parts[1], int(parts[2]), float(m.stamp), m.category, float(m.confidence),
+            np.asarray(m.box_xyxy, np.float64), np.asarray(m.T_world_object, np.float64),
+            np.asarray(m.size, np.float64),
+        ))
+    return state, observations
+
+
+# --------------------------------------------------------------------------- the map
+
+_OBJECT_COLUMNS: Final = (
+    "o.object_id, o.category, o.confidence, o.T_world_object, o.x, o.y, o.z, o.yaw, "
+    "o.qx, o.qy, o.qz, o.qw, o.size_x, o.size_y, o.size_z, "
+    "o.min_x, o.min_y, o.min_z, o.max_x, o.max_y, o.max_z, "
+    "o.color_r, o.color_g, o.color_b, o.n_observations, o.first_seen_s, o.last_seen_s"
+)
+_OBS_COLUMNS: Final = (
+    "observation_id, added_s, object_id, robot_id, session_id, seq, stamp, category, confidence, "
+    "box_x1, box_y1, box_x2, box_y2, T_world_object, size_x, size_y, size_z"
+)
+_IN_IDS: Final = "(SELECT value FROM json_each(?))"
+"""A list of ids as one JSON parameter (no limit on the number of SQL variables)."""
+
+
+class ObjectMap:
+    """The object map on the keyframe store's file; see the module docstring.
+
+    Args:
+        store: the open store; it must outlive this object (closing the store ends it).
+        knowledge: classes allowed as categories (default: the packaged knowledge graph).
+        clock: server wall-clock seconds (``time.time``).
+    """
+
+    def __init__(
+        self,
+        store: SqliteKeyframeStore,
+        *,
+        knowledge: KnowledgeGraph | None = None,
+        clock: Callable[[], float] = time.time,
+    ) -> None:
+        self._store = store
+        self._kg = knowledge if knowledge is not None else KnowledgeGraph.load()
+        self._classes = frozenset(self._kg.names)
+        self._clock = clock
+        self._write_lock = threading.Lock()
+        self._listeners: list[Callable[[ObjectChange], None]] = []
+
+    @property
+    def categories_known(self) -> tuple[str, ...]:
+        """The knowledge-graph classes, in index order."""
+        return self._kg.names
+
+    @property
+    def knowledge(self) -> KnowledgeGraph:
+        """The knowledge graph whose classes are the allowed categories."""
+        return self._kg
+
+    # ------------------------------------------------------------------ listeners
+
+    def add_listener(self, callback: Callable[[ObjectChange], None]) -> Callable[[], None]:
+        """Call ``callback(change)`` for every change after its commit, in commit order, on
+        the writer's thread (it should be quick). Returns a function that removes it."""
+        with self._write_lock:
+            self._listeners.append(callback)
+
+        def remove() -> None:
+            with self._write_lock:
+                if callback in self._listeners:
+                    self._listeners.remove(callback)
+
+        return remove
+
+    def _notify(self, changes: list[ObjectChange]) -> None:
+        for callback in list(self._listeners):
+            for change in changes:
+                try:
+                    callback(change)
+                except Exception:
+                    log.exception("object map listener %r failed on %s of object %d",
+                                  callback, change.kind, change.record.object_id)
+
+    # ------------------------------------------------------------------ writes
+
+    def upsert(
+        self, objects: Sequence[ObjectState], observations: Sequence[Observation] = ()
+    ) -> list[ObjectChange]:
+        """Create or replace ``objects`` and add (or move) ``observations``, in one transaction.
+
+        An observation already stored under the same keyframe and box is moved to its new
+        ``object_id`` and refreshed (association re-assigning a measurement). Derived values
+        (count, first/last seen, robots) are recomputed for every object touched.
+
+        Returns:
+            One change per touched object: ``created`` for objects new in this call,
+            ``updated`` for the others (also objects that lost an observation), objects of
+            ``objects`` first in their order.
+
+        Raises:
+            ObjectMapError: a bad object or observation (nothing is written), two objects
+                with one id, or an observation of an object that is neither given nor stored.
+            StoreError: a database failure (nothing is written).
+        """
+        obj_rows = [self._object_row(o, i) for i, o in enumerate(objects)]
+        obs_rows = [self._observation_row(o, i) for i, o in enumerate(observations)]
+        ids = [int(r["object_id"]) for r in obj_rows]
+        if len(set(ids)) != len(ids):
+            raise ObjectMapError("objects: the same object_id is given more than once")
+        if not obj_rows and not obs_rows:
+            return []
+        with self._write_lock:
+            now = self._now()
+            with self._store.writing("object map upsert") as conn:
+                existing = self._existing(conn, ids)
+                for row in obj_rows:
+                    row["now"] = now
+                conn.executemany(
+                    "INSERT INTO objects (object_id, category, confidence, T_world_object, x, y, z, yaw, "
+                    "qx, qy, qz, qw, size_x, size_y, size_z, min_x, min_y, min_z, max_x, max_y, max_z, "
+                    "color_r, color_g, color_b, n_observations, first_seen_s, last_seen_s) VALUES "
+                    "(:object_id, :category, :confidence, :T, :x, :y, :z, :yaw, :qx, :qy, :qz, :qw, "
+                    ":size_x, :size_y, :size_z, "
+                    ":min_x, :min_y, :min_z, :max_x, :max_y, :max_z, :color_r, :color_g, :color_b, "
+                    "0, :now, :now) "
+                    "ON CONFLICT (object_id) DO UPDATE SET category = excluded.category, "
+                    "confidence = excluded.confidence, T_world_object = excluded.T_world_object, "
+                    "x = excluded.x, y = excluded.y, z = excluded.z, yaw = excluded.yaw, "
+                    "qx = excluded.qx, qy = excluded.qy, qz = excluded.qz, qw = excluded.qw, "
+                    "size_x = excluded.size_x, size_y = excluded.size_y, size_z = excluded.size_z, "
+                    "min_x = excluded.min_x, min_y = excluded.min_y, min_z = excluded.min_z, "
+                    "max_x = excluded.max_x, max_y = excluded.max_y, max_z = excluded.max_z, "
+                    "color_r = excluded.color_r, color_g = excluded.color_g, color_b = excluded.color_b",
+                    obj_rows,
+                )
+                conn.executemany(
+                    "INSERT OR REPLACE INTO objects_rtree "
+                    "(object_id, min_x, max_x, min_y, max_y, min_z, max_z) "
+                    "VALUES (:object_id, :min_x, :max_x, :min_y, :max_y, :min_z, :max_z)",
+                    obj_rows,
+                )
+                touched: dict[int, None] = dict.fromkeys(ids)
+                if obs_rows:
+                    missing = {int(r["object_id"]) for r in obs_rows} - set(ids)
+                    missing -= self._existing(conn, sorted(missing))
+                    if missing:
+                        raise ObjectMapError(
+                            "observations name objects that are neither given nor stored: "
+                            f"{sorted(missing)[:10]}"
+                        )
+                    for row in obs_rows:
+                        row["now"] = now
+                        old = conn.execute(
+                            "SELECT object_id FROM observations WHERE robot_id = :robot_id AND "
+                            "session_id = :session_id AND seq = :seq AND box_x1 = :box_x1 AND "
+                            "box_y1 = :box_y1 AND box_x2 = :box_x2 AND box_y2 = :box_y2",
+                            row,
+                        ).fetchone()
+                        if old is not None:
+                            touched.setdefault(int(old[0]))
+                        touched.setdefault(int(row["object_id"]))
+                    conn.executemany(
+                        "INSERT INTO observations (object_id, robot_id, session_id, seq, stamp, added_s, "
+                        "category, confidence, box_x1, box_y1, box_x2, box_y2, T_world_object, "
+                        "size_x, size_y, size_z) VALUES (:object_id, :robot_id, :session_id, :seq, :stamp, "
+                        ":now, :category, :confidence, :box_x1, :box_y1, :box_x2, :box_y2, :T, "
+                        ":size_x, :size_y, :size_z) "
+                        "ON CONFLICT (robot_id, session_id, seq, box_x1, box_y1, box_x2, box_y2) "
+                        "DO UPDATE SET "
+                        "object_id = excluded.object_id, stamp = excluded.stamp, "
+                        "category = excluded.category, confidence = excluded.confidence, "
+                        "T_world_object = excluded.T_world_object, size_x = excluded.size_x, "
+                        "size_y = excluded.size_y, size_z = excluded.size_z",
+                        obs_rows,
+                    )
+                order = list(touched)
+                self._refresh_derived(conn, order)
+                records = self._records(conn, order)
+            changes = [
+                ObjectChange("updated" if oid in existing or oid not in ids else "created", records[oid])
+                for oid in order
+            ]
+            self._notify(changes)
+        return changes
+
+    def add_observations(self, observations: Sequence[Observation]) -> list[ObjectChange]:
+        """Add (or move) observations of stored objects; see :meth:`upsert`."""
+        return self.upsert((), observations)
+
+    def delete(self, object_id: int, *, merged_into: int | None = None) -> list[ObjectChange]:
+        """Remove an object (association merged or discarded it), in one transaction.
+
+        Args:
+            object_id: the object to remove.
+            merged_into: an object that takes over its observations (and so its robots);
+                None: its observations are removed with it.
+
+        Returns:
+            ``[deleted]``, followed by ``updated`` of ``merged_into`` when given.
+
+        Raises:
+            ObjectMapError: an unknown ``object_id`` or ``merged_into``, or both equal.
+        """
+        oid = _check_id(object_id, "object_id")
+        target = None if merged_into is None else _check_id(merged_into, "merged_into")
+        if target == oid:
+            raise ObjectMapError(f"object {oid} cannot be merged into itself")
+        with self._write_lock:
+            with self._store.writing("object map delete") as conn:
+                before = self._records(conn, [oid])
+                if oid not in before:
+                    raise ObjectMapError(f"unknown object {oid}")
+                if target is not None and not self._existing(conn, [target]):
+                    raise ObjectMapError(f"unknown object {target} (merged_into)")
+                if target is None:
+                    conn.execute("DELETE FROM observations WHERE object_id = ?", (oid,))
+                else:
+                    conn.execute("UPDATE observations SET object_id = ? WHERE object_id = ?", (target, oid))
+                conn.execute("DELETE FROM object_robots WHERE object_id = ?", (oid,))
+                conn.execute("DELETE FROM objects_rtree WHERE object_id = ?", (oid,))
+                conn.execute("DELETE FROM objects WHERE object_id = ?", (oid,))
+                changes = [ObjectChange("deleted", before[oid], target)]
+                if target is not None:
+                    self._refresh_derived(conn, [target])
+                    changes.append(ObjectChange("updated", self._records(conn, [target])[target]))
+            self._notify(changes)
+        return changes
+
+    # ------------------------------------------------------------------ reads
+
+    def query(
+        self,
+        category: str | None = None,
+        near: Vec3 | None = None,
+        radius: float | None = None,
+        min_confidence: float | None = None,
+        robot: str | None = None,
+        limit: int = DEFAULT_LIMIT,
+        offset: int = 0,
+    ) -> ObjectPage:
+        """Shorthand for ``find(ObjectQuery(...))``; ``radius`` in metres."""
+        return self.find(ObjectQuery(category, near, radius, min_confidence, robot, limit, offset))
+
+    def find(self, q: ObjectQuery) -> ObjectPage:
+        """Objects matching every filter of ``q``, ``q.limit`` per page from ``q.offset``.
+
+        Order: nearest centre first when ``q.near`` is given (ties by id), else by id.
+        With ``q.radius_m`` the R*Tree selects candidates whose bounds meet the cube of
+        half-side ``radius_m`` around ``near``; the exact centre distance then decides.
+
+        Raises:
+            ObjectMapError: a category the knowledge graph does not know.
+        """
+        if q.category is not None and q.category not in self._classes:
+            raise ObjectMapError(
+                f"unknown category {q.category[:40]!r}; known categories: {', '.join(self._kg.names)}"
+            )
+        where: list[str] = []
+        params: dict[str, Any] = {"limit": q.limit + 1, "offset": q.offset}
+        source = "objects AS o"
+        select = _OBJECT_COLUMNS
+        order = "o.object_id"
+        if q.near is not None:
+            params.update(px=q.near[0], py=q.near[1], pz=q.near[2])
+            d2 = "((o.x - :px) * (o.x - :px) + (o.y - :py) * (o.y - :py) + (o.z - :pz) * (o.z - :pz))"
+            select += f", {d2} AS d2"
+            order = "d2, o.object_id"
+            if q.radius_m is not None:
+                r = float(q.radius_m)
+                # CROSS JOIN: the R*Tree drives the loop (SQLite keeps the left table outermost).
+                source = "objects_rtree AS r CROSS JOIN objects AS o ON o.object_id = r.object_id"
+                where += [
+                    "r.max_x >= :lo_x", "r.min_x <= :hi_x", "r.max_y >= :lo_y", "r.min_y <= :hi_y",
+                    "r.max_z >= :lo_z", "r.min_z <= :hi_z", f"{d2} <= :r2",
+                ]
+                params.update(
+                    lo_x=q.near[0] - r, hi_x=q.near[0] + r, lo_y=q.near[1] - r, hi_y=q.near[1] + r,
+                    lo_z=q.near[2] - r, hi_z=q.near[2] + r, r2=r * r,
+                )
+        if q.category is not None:
+            where.append("o.category = :category")
+            params["category"] = q.category
+        if q.min_confidence is not None:
+            where.append("o.confidence >= :min_confidence")
+            params["min_confidence"] = float(q.min_confidence)
+        if q.robot is not None:
+            where.append(
+                "EXISTS (SELECT 1 FROM object_robots AS ro WHERE ro.object_id = o.object_id "
+                "AND ro.robot_id = :robot)"
+            )
+            params["robot"] = q.robot
+        sql = f"SELECT {select} FROM {source}"
+        if where:
+            sql += " WHERE " + " AND ".join(where)
+        sql += f" ORDER BY {order} LIMIT :limit OFFSET :offset"
+        with self._store.reading("object map query") as conn:
+            rows = conn.execute(sql, params).fetchall()
+            page = rows[: q.limit]
+            robots = self._robots(conn, [int(r[0]) for r in page])
+        hits = [
+            ObjectHit(
+                _record(r, robots.get(int(r[0]), ())),
+                None if q.near is None else math.sqrt(max(float(r[27]), 0.0)),
+            )
+            for r in page
+        ]
+        return ObjectPage(hits, q.offset + q.limit if len(rows) > q.limit else None)
+
+    def get(self, object_id: int, *, max_observations: int = 100) -> ObjectDetail | None:
+        """One object with its latest ``max_observations`` observations (newest first) and the
+        keyframes they came from; None when the object is unknown.
+
+        Raises:
+            ObjectMapError: a bad ``object_id`` or ``max_observations`` (0..:data:`MAX_OBSERVATIONS`).
+        """
+        oid = _check_id(object_id, "object_id")
+        if not _is_int(max_observations) or not 0 <= max_observations <= MAX_OBSERVATIONS:
+            raise ObjectMapError(
+                f"max_observations must be an int in [0, {MAX_OBSERVATIONS}], got {max_observations!r:.80}"
+            )
+        with self._store.reading("object map get") as conn:
+            conn.execute("BEGIN")  # one snapshot for the three reads
+            try:
+                records = self._records(conn, [oid])
+                if oid not in records:
+                    return None
+                obs_rows = conn.execute(
+                    f"SELECT {_OBS_COLUMNS} FROM observations WHERE object_id = ? "
+                    "ORDER BY added_s DESC, observation_id DESC LIMIT ?",
+                    (oid, max_observations),
+                ).fetchall()
+                kf_rows = conn.execute(
+                    "SELECT DISTINCT b.robot_id, b.session_id, b.seq, b.stamp, "
+                    "EXISTS (SELECT 1 FROM keyframes AS k WHERE k.robot_id = b.robot_id AND "
+                    "k.session_id = b.session_id AND k.seq = b.seq) "
+                    "FROM (SELECT robot_id, session_id, seq, stamp FROM observations WHERE object_id = ? "
+                    "ORDER BY added_s DESC, observation_id DESC LIMIT ?) AS b "
+                    "ORDER BY b.stamp, b.robot_id, b.session_id, b.seq",
+                    (oid, max_observations),
+                ).fetchall()
+            finally:
+                conn.execute("COMMIT")
+        observations = [_observation(r) for r in obs_rows]
+        keyframes = [KeyframeRef(str(r[0]), str(r[1]), int(r[2]), float(r[3]), bool(r[4])) for r in kf_rows]
+        return ObjectDetail(records[oid], observations, keyframes)
+
+    def categories(self) -> dict[str, int]:
+        """Number of stored objects per knowledge-graph class (every class, in index order)."""
+        with self._store.reading("object map categories") as conn:
+            rows = conn.execute("SELECT category, COUNT(*) FROM objects GROUP BY category").fetchall()
+        counts = {str(r[0]): int(r[1]) for r in rows}
+        out = {name: counts.pop(name, 0) for name in self._kg.names}
+        out.update(sorted(counts.items()))  # classes of an older knowledge graph stay visible
+        return out
+
+    def count(self) -> int:
+        """Number of stored objects."""
+        with self._store.reading("object map count") as conn:
+            return int(conn.execute("SELECT COUNT(*) FROM objects").fetchone()[0])
+
+    # ------------------------------------------------------------------ internals
+
+    def _now(self) -> float:
+        now = float(self._clock())
+        if not math.isfinite(now) or now <= 0:
+            raise ObjectMapError(f"clock returned {now}: expected positive seconds")
+        return now
+
+    def _object_row(self, obj: ObjectState, i: int) -> dict[str, Any]:
+        where = f"objects[{i}]"
+        if not isinstance(obj, ObjectState):
+            raise ObjectMapError(f"{where}: expected an ObjectState, got {type(obj).__name__}")
+        oid = _check_id(obj.object_id, f"{where}.object_id")
+        self._check_category(obj.category, where)
+        T = _check_pose(obj.T_world_object, f"{where}.T_world_object")
+        size = _check_size(obj.size, f"{where}.size")
+        lo, hi = _bounds(T, size)
+        q = rotation_to_quat(T[:3, :3])
+        row: dict[str, Any] = {
+            "object_id": oid, "category": obj.category,
+            "confidence": _check_unit(obj.confidence, f"{where}.confidence"),
+            "T": T.astype(_POSE_DTYPE).tobytes(), "x": T[0, 3], "y": T[1, 3], "z": T[2, 3],
+            "yaw": math.atan2(T[1, 0], T[0, 0]), "qx": q[0], "qy": q[1], "qz": q[2], "qw": q[3],
+            "size_x": size[0], "size_y": size[1], "size_z": size[2],
+            "min_x": lo[0], "min_y": lo[1], "min_z": lo[2], "max_x": hi[0], "max_y": hi[1], "max_z": hi[2],
+            "color_r": None, "color_g": None, "color_b": None,
+        }
+        if obj.color_rgb is not None:
+            rgb = np.asarray(obj.color_rgb, dtype=np.float64)
+            if rgb.shape != (3,) or not np.all(np.isfinite(rgb)) or rgb.min() < 0 or rgb.max() > 255:
+                raise ObjectMapError(
+                    f"{where}.color_rgb: expected 3 values in [0, 255], got {obj.color_rgb!r:.80}"
+                )
+            row.update(color_r=float(rgb[0]), color_g=float(rgb[1]), color_b=float(rgb[2]))
+        return {k: float(v) if isinstance(v, np.floating) else v for k, v in row.items()}
+
+    def _observation_row(self, obs: Observation, i: int) -> dict[str, Any]:
+        where = f"observations[{i}]"
+        if not isinstance(obs, Observation):
+            raise ObjectMapError(f"{where}: expected an Observation, got {type(obs).__name__}")
+        for name in ("robot_id", "session_id"):
+            try:
+                validate_robot_id(getattr(obs, name))  # session ids share the robot id alphabet
+            except ConfigError as exc:
+                raise ObjectMapError(f"{where}.{name}: {exc}") from exc
+        if not _is_int(obs.seq) or not 0 <= obs.seq < 2**63:
+            raise ObjectMapError(f"{where}.seq: expected an int in [0, 2**63), got {obs.seq!r:.80}")
+        if not _is_finite(obs.stamp) or obs.stamp <= 0:
+            raise ObjectMapError(f"{where}.stamp: expected positive seconds, got {obs.stamp!r:.80}")
+        self._check_category(obs.category, where)
+        box = np.asarray(obs.box_xyxy, dtype=np.float64)
+        if box.shape != (4,) or not np.all(np.isfinite(box)) or box[2] < box[0] or box[3] < box[1]:
+            raise ObjectMapError(f"{where}.box_xyxy: expected finite x1, y1, x2 >= x1, y2 >= y1, got {box}")
+        T = _check_pose(obs.T_world_object, f"{where}.T_world_object")
+        size = _check_size(obs.size, f"{where}.size")
+        return {
+            "object_id": _check_id(obs.object_id, f"{where}.object_id"),
+            "robot_id": obs.robot_id, "session_id": obs.session_id, "seq": int(obs.seq),
+            "stamp": float(obs.stamp), "category": obs.category,
+            "confidence": _check_unit(obs.confidence, f"{where}.confidence"),
+            "box_x1": float(box[0]), "box_y1": float(box[1]),
+            "box_x2": float(box[2]), "box_y2": float(box[3]),
+            "T": T.astype(_POSE_DTYPE).tobytes(),
+            "size_x": float(size[0]), "size_y": float(size[1]), "size_z": float(size[2]),
+        }
+
+    def _check_category(self, category: object, where: str) -> None:
+        if not isinstance(category, str) or category not in self._classes:
+            raise ObjectMapError(
+                f"{where}.category: unknown category {category!r:.40}; known: {', '.join(self._kg.names)}"
+            )
+
+    @staticmethod
+    def _existing(conn: sqlite3.Connection, ids: Sequence[int]) -> set[int]:
+        if not ids:
+            return set()
+        rows = conn.execute(f"SELECT object_id FROM objects WHERE object_id IN {_IN_IDS}", (json.dumps(ids),))
+        return {int(r[0]) for r in rows}
+
+    @staticmethod
+    def _refresh_derived(conn: sqlite3.Connection, ids: Sequence[int]) -> None:
+        """Recompute count, first/last seen and robots of ``ids`` from their observations."""
+        arg = (json.dumps(list(ids)),)
+        conn.execute(
+            "UPDATE objects SET "
+            "n_observations = (SELECT COUNT(*) FROM observations AS b "
+            "WHERE b.object_id = objects.object_id), "
+            "first_seen_s = min(first_seen_s, COALESCE((SELECT MIN(added_s) FROM observations AS b "
+            "WHERE b.object_id = objects.object_id), first_seen_s)), "
+            "last_seen_s = COALESCE((SELECT MAX(added_s) FROM observations AS b "
+            "WHERE b.object_id = objects.object_id), first_seen_s) "
+            f"WHERE object_id IN {_IN_IDS}",
+            arg,
+        )
+        conn.execute(f"DELETE FROM object_robots WHERE object_id IN {_IN_IDS}", arg)
+        conn.execute(
+            "INSERT INTO object_robots (object_id, robot_id) SELECT DISTINCT object_id, robot_id "
+            f"FROM observations WHERE object_id IN {_IN_IDS}",
+            arg,
+        )
+
+    @staticmethod
+    def _robots(conn: sqlite3.Connection, ids: Sequence[int]) -> dict[int, tuple[str, ...]]:
+        if not ids:
+            return {}
+        rows = conn.execute(
+            f"SELECT object_id, robot_id FROM object_robots WHERE object_id IN {_IN_IDS} "
+            "ORDER BY object_id, robot_id",
+            (json.dumps(list(ids)),),
+        ).fetchall()
+        out: dict[int, list[str]] = {}
+        for oid, robot in rows:
+            out.setdefault(int(oid), []).append(str(robot))
+        return {k: tuple(v) for k, v in out.items()}
+
+    def _records(self, conn: sqlite3.Connection, ids: Sequence[int]) -> dict[int, ObjectRecord]:
+        rows = conn.execute(
+            f"SELECT {_OBJECT_COLUMNS} FROM objects AS o WHERE o.object_id IN {_IN_IDS}",
+            (json.dumps(list(ids)),),
+        ).fetchall()
+        robots = self._robots(conn, [int(r[0]) for r in rows])
+        return {int(r[0]): _record(r, robots.get(int(r[0]), ())) for r in rows}
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _is_int(value: object) -> bool:
+    return isinstance(value, int | np.integer) and not isinstance(value, bool)
+
+
+def _is_finite(value: object) -> bool:
+    return (
+        isinstance(value, int | float | np.integer | np.floating)
+        and not isinstance(value, bool)
+        and math.isfinite(float(value))
+    )
+
+
+def _check_id(value: object, where: str) -> int:
+    if not _is_int(value) or not 1 <= int(value) < 2**63:  # type: ignore[call-overload]  # checked int
+        raise ObjectMapError(f"{where}: expected an int in [1, 2**63), got {value!r:.80}")
+    return int(value)  # type: ignore[call-overload]  # checked int above
+
+
+def _check_unit(value: object, where: str) -> float:
+    if not _is_finite(value) or not 0 <= float(value) <= 1:  # type: ignore[arg-type]  # checked number
+        raise ObjectMapError(f"{where}: expected a number in [0, 1], got {value!r:.80}")
+    return float(value)  # type: ignore[arg-type]  # checked number above
+
+
+def _check_pose(T: object, where: str) -> NDArray[np.float64]:
+    try:
+        return check_transform(T, where)  # type: ignore[arg-type]  # any array-like; checked inside
+    except (GeometryError, TypeError, ValueError) as exc:
+        raise ObjectMapError(str(exc) if isinstance(exc, GeometryError) else f"{where}: {exc}") from exc
+
+
+def _check_size(size: object, where: str) -> NDArray[np.float64]:
+    try:
+        s = np.asarray(size, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ObjectMapError(f"{where}: expected 3 numbers, got {size!r:.80}") from exc
+    if s.shape != (3,) or not np.all(np.isfinite(s)) or np.any(s < 0):
+        raise ObjectMapError(f"{where}: expected 3 finite extents >= 0 metres, got {size!r:.80}")
+    return s
+
+
+def _bounds(
+    T: NDArray[np.float64], size: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """World-axis bounds of the box of extent ``size`` (3,) centred at the origin of ``T_world_object``."""
+    half = np.abs(T[:3, :3]) @ (0.5 * size)
+    return T[:3, 3] - half, T[:3, 3] + half
+
+
+def _pose(blob: bytes) -> NDArray[np.float64]:
+    T = np.frombuffer(bytes(blob), dtype=_POSE_DTYPE).astype(np.float64).reshape(4, 4)
+    T.flags.writeable = False
+    return T
+
+
+def _record(r: Sequence[Any], robots: tuple[str, ...]) -> ObjectRecord:
+    color = None if r[21] is None else (float(r[21]), float(r[22]), float(r[23]))
+    return ObjectRecord(
+        object_id=int(r[0]), category=str(r[1]), confidence=float(r[2]), T_world_object=_pose(r[3]),
+        position=(float(r[4]), float(r[5]), float(r[6])), yaw=float(r[7]),
+        q_xyzw=(float(r[8]), float(r[9]), float(r[10]), float(r[11])),
+        size=(float(r[12]), float(r[13]), float(r[14])),
+        bounds_min=(float(r[15]), float(r[16]), float(r[17])),
+        bounds_max=(float(r[18]), float(r[19]), float(r[20])),
+        color_rgb=color, n_observations=int(r[24]), first_seen_s=float(r[25]), last_seen_s=float(r[26]),
+        robots=robots,
+    )
+
+
+def _observation(r: Sequence[Any]) -> ObservationRecord:
+    return ObservationRecord(
+        observation_id=int(r[0]), added_s=float(r[1]), object_id=int(r[2]), robot_id=str(r[3]),
+        session_id=str(r[4]), seq=int(r[5]), stamp=float(r[6]), category=str(r[7]), confidence=float(r[8]),
+        box_xyxy=np.array([r[9], r[10], r[11], r[12]], dtype=np.float64), T_world_object=_pose(r[13]),
+        size=np.array([r[14], r[15], r[16]], dtype=np.float64),
+    )

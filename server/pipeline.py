@@ -1,0 +1,424 @@
+"""The map server's mapping stage: stored keyframes -> perception -> association -> object map.
+
+Ingest stores a keyframe and acks it (``server/ingest.py``); this stage runs behind it in its
+own thread and never delays an ack. It reads keyframes from the store in insertion order
+(SQLite ``rowid``), and for each one:
+
+1. decodes the payload (JPEG colour, depth upsampled to the colour size, intrinsics);
+2. runs the segmenter (``server/perception/models.py``: the trained network by default) and
+   measures every non-``moving`` instance in 3D (paper 000 Eq. 1, ``measure.py``);
+3. commits the measurements and its cursor in one transaction (table ``measurements``,
+   ``pipeline_cursor``), so a crash never loses or repeats one;
+4. when the keyframe's session is on the map (the robot sent ``T_map_odom``, docs/wire.md),
+   feeds the measurements, in the map frame, to the :class:`Associator` (paper 000:
+   keyframe groups per robot session, HDP across groups), and writes the landmarks it
+   created or changed into the :class:`ObjectMap` (which publishes them on Zenoh).
+
+Sessions without ``T_map_odom`` are measured and counted (``unanchored``) but not mapped: their
+odom frame is unknown in the map until loop closure aligns it (a later stage).
+
+Restart: association is a deterministic function of the ordered measurements, so on start the
+stage replays every stored measurement of anchored sessions through a fresh associator (no
+perception is re-run) and upserts the landmarks; then it continues after its cursor.
+
+Backlog: ``backlog`` = stored keyframes not yet processed, exported on ``/metrics``.
+A keyframe whose perception fails (corrupt image, model error) is counted by reason, logged,
+and skipped: the keyframe itself stays stored.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any, Final
+
+import cv2
+import msgpack
+import numpy as np
+from numpy.typing import NDArray
+
+from wardmap.server.association.associator import AssociationConfig, Associator
+from wardmap.server.association.types import Landmark
+from wardmap.server.objectmap import ObjectMap, from_landmark
+from wardmap.server.perception.measure import measure_instances
+from wardmap.server.perception.models import PerceptionConfig, Segmenter, make_segmenter
+from wardmap.server.perception.types import ObjectMeasurement
+from wardmap.server.store import SqliteKeyframeStore
+from wardmap.shared.camera import PinholeCamera
+from wardmap.shared.errors import ConfigError, WardmapError, WireError
+from wardmap.shared.knowledge import KnowledgeGraph
+from wardmap.shared.wire import KeyframeMsg, decode_depth, decode_keyframe
+
+log = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+CURSOR_NAME: Final = "mapping"
+MAX_FAILURE_REASON: Final = 120
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    """The mapping stage (``[pipeline]`` table; perception and association have their own).
+
+    Attributes:
+        enabled: run the stage at all (off: the server only stores keyframes).
+        poll_s: how long the thread sleeps when no keyframe is waiting.
+        batch: keyframes read from the store per round.
+    """
+
+    enabled: bool = True
+    poll_s: float = 0.2
+    batch: int = 8
+
+    def __post_init__(self) -> None:
+        if not self.poll_s > 0:
+            raise ConfigError(f"pipeline.poll_s must be > 0, got {self.poll_s}")
+        if self.batch < 1:
+            raise ConfigError(f"pipeline.batch must be >= 1, got {self.batch}")
+
+
+@dataclass(frozen=True)
+class PipelineCounters:
+    """A snapshot for ``/metrics``.
+
+    Attributes:
+        processed: keyframes this process ran through perception.
+        measurements: object measurements it stored.
+        mapped: keyframes it fed to association (anchored sessions).
+        unanchored: keyframes of sessions without ``T_map_odom`` (measured, not mapped).
+        replayed: measurements replayed through association at start.
+        backlog: stored keyframes not processed yet.
+        failures: keyframes skipped, by reason.
+        landmarks: landmarks the associator holds.
+    """
+
+    processed: int
+    measurements: int
+    mapped: int
+    unanchored: int
+    replayed: int
+    backlog: int
+    failures: dict[str, int]
+    landmarks: int
+
+
+@dataclass
+class _Counts:
+    processed: int = 0
+    measurements: int = 0
+    mapped: int = 0
+    unanchored: int = 0
+    replayed: int = 0
+    failures: Counter[str] = field(default_factory=Counter)
+
+
+class MapPipeline:
+    """The mapping stage thread (see the module docstring).
+
+    Args:
+        store: the open keyframe store (its file also holds measurements and objects).
+        objects: the object map on the same store.
+        config: stage settings.
+        perception: segmenter and measurement settings.
+        association: association settings.
+        segmenter: a ready segmenter (tests); None builds ``perception.segmenter`` in
+            :meth:`start`.
+    """
+
+    def __init__(
+        self,
+        store: SqliteKeyframeStore,
+        objects: ObjectMap,
+        *,
+        config: PipelineConfig | None = None,
+        perception: PerceptionConfig | None = None,
+        association: AssociationConfig | None = None,
+        segmenter: Segmenter | None = None,
+    ) -> None:
+        self.store = store
+        self.objects = objects
+        self.cfg = config or PipelineConfig()
+        self.perception = perception or PerceptionConfig()
+        self.association = association or AssociationConfig()
+        self._segmenter = segmenter
+        self._kg = KnowledgeGraph.load()
+        self._moving = {c.name for c in self._kg.classes if str(c.mobility) == "moving"}
+        self._associator = Associator(self.association)
+        self._lock = threading.Lock()  # guards _counts and _backlog for counters()
+        self._counts = _Counts()
+        self._backlog = 0
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._error: BaseException | None = None
+
+    # ------------------------------------------------------------------ life cycle
+
+    def start(self) -> None:
+        """Build the segmenter (fails here on a bad model), replay association, start the thread.
+
+        Raises:
+            ConfigError: the segmenter cannot be built (missing or bad model file).
+        """
+        if self._segmenter is None:
+            self._segmenter = make_segmenter(self.perception.segmenter, self.perception)
+        self._replay()
+        self._thread = threading.Thread(target=self._main, name="map-pipeline", daemon=True)
+        self._thread.start()
+        log.info("mapping stage started (segmenter %s)", self.perception.segmenter)
+
+    def stop(self) -> None:
+        """Stop after the keyframe in progress (idempotent)."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+
+    def counters(self) -> PipelineCounters:
+        with self._lock:
+            c = self._counts
+            return PipelineCounters(c.processed, c.measurements, c.mapped, c.unanchored, c.replayed,
+                                    self._backlog, dict(c.failures), len(self._associator.landmarks()))
+
+    def wait_idle(self, timeout_s: float) -> bool:
+        """Block until no stored keyframe waits (tests, the demo); True if it happened in time."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if self._error is not None:
+                raise WardmapError(f"mapping stage failed: {self._error}") from self._error
+            if self._pending() == 0:
+                return True
+            time.sleep(0.05)
+        return False
+
+    # ------------------------------------------------------------------ thread
+
+    def _main(self) -> None:
+        try:
+            while not self._stop.is_set():
+                if self._round() == 0:
+                    self._stop.wait(self.cfg.poll_s)
+        except BaseException as exc:  # reported by wait_idle and logged; ingest keeps running
+            self._error = exc
+            log.exception("mapping stage stopped")
+
+    def _round(self) -> int:
+        cursor = self._cursor()
+        with self.store.reading("mapping: next keyframes") as conn:
+            rows = conn.execute(
+                "SELECT rowid, robot_id, session_id, seq, payload FROM keyframes WHERE rowid > ? "
+                "ORDER BY rowid LIMIT ?",
+                (cursor, self.cfg.batch),
+            ).fetchall()
+        for rowid, robot_id, session_id, seq, payload in rows:
+            if self._stop.is_set():
+                break
+            self._process(int(rowid), f"{robot_id}/{session_id}/{int(seq)}", bytes(payload))
+        with self._lock:
+            self._backlog = self._pending()
+        return len(rows)
+
+    def _process(self, rowid: int, key: str, payload: bytes) -> None:
+        try:
+            msg = decode_keyframe(payload)
+            measurements = self._measure(msg, key)
+        except (WardmapError, WireError, cv2.error, ValueError) as exc:
+            reason = f"{type(exc).__name__}: {exc}"[:MAX_FAILURE_REASON]
+            log.warning("keyframe %s: perception skipped: %s", key, reason)
+            with self._lock:
+                self._counts.failures[type(exc).__name__] += 1
+            self._commit(rowid, key, msg=None, measurements=[])
+            return
+        self._commit(rowid, key, msg, measurements)
+        with self._lock:
+            self._counts.processed += 1
+            self._counts.measurements += len(measurements)
+        if msg.T_map_odom is None:
+            with self._lock:
+                self._counts.unanchored += 1
+            return
+        self._associate([(msg, measurements)])
+
+    def _measure(self, msg: KeyframeMsg, key: str) -> list[ObjectMeasurement]:
+        bgr, depth, camera = decode_images(msg)
+        assert self._segmenter is not None
+        instances = [i for i in self._segmenter(bgr, depth) if i.category not in self._moving]
+        T_map_camera = map_pose(msg)
+        return measure_instances(
+            instances, bgr=bgr, depth_m=depth, camera=camera, T_world_camera=T_map_camera,
+            keyframe=key, stamp=msg.stamp, config=self.perception.measure,
+        )
+
+    def _associate(self, keyframes: Iterable[tuple[KeyframeMsg, Sequence[ObjectMeasurement]]]) -> None:
+        touched: dict[int, Landmark] = {}
+        for msg, measurements in keyframes:
+            assert msg.intrinsics is not None
+            camera = camera_of(msg)
+            stream = f"{msg.robot_id}/{msg.session_id}"
+            changes = self._associator.add_keyframe(
+                strip_masks(measurements), map_pose(msg), camera, stream=stream
+            )
+            for change in changes:
+                touched[change.landmark.id] = change.landmark
+            with self._lock:
+                self._counts.mapped += 1
+        self._write_landmarks(touched.values())
+
+    def _write_landmarks(self, landmarks: Iterable[Landmark]) -> None:
+        states, observations = [], []
+        for lm in landmarks:
+            state, obs = from_landmark(lm.id, lm.category, lm.confidence, lm.T_world_object, lm.size,
+                                       lm.measurements, color_rgb=_mean_colour(lm.measurements))
+            states.append(state)
+            observations.extend(obs)
+        if states:
+            self.objects.upsert(states, observations)
+
+    # ------------------------------------------------------------------ storage
+
+    def _cursor(self) -> int:
+        with self.store.reading("mapping: cursor") as conn:
+            row = conn.execute(
+                "SELECT last_rowid FROM pipeline_cursor WHERE name = ?", (CURSOR_NAME,)
+            ).fetchone()
+        return int(row[0]) if row else 0
+
+    def _pending(self) -> int:
+        cursor = self._cursor()
+        with self.store.reading("mapping: backlog") as conn:
+            row = conn.execute("SELECT COUNT(*) FROM keyframes WHERE rowid > ?", (cursor,)).fetchone()
+        return int(row[0])
+
+    def _commit(self, rowid: int, key: str, msg: KeyframeMsg | None,
+                measurements: Sequence[ObjectMeasurement]) -> None:
+        robot_id, session_id, seq = key.split("/")
+        anchored = msg is not None and msg.T_map_odom is not None
+        with self.store.writing("mapping: store measurements") as conn:
+            conn.executemany(
+                "INSERT INTO measurements (robot_id, session_id, seq, anchored, payload) "
+                "VALUES (?, ?, ?, ?, ?)",
+                [(robot_id, session_id, int(seq), int(anchored), pack_measurement(m)) for m in measurements],
+            )
+            conn.execute(
+                "INSERT INTO pipeline_cursor (name, last_rowid) VALUES (?, ?) "
+                "ON CONFLICT(name) DO UPDATE SET last_rowid = excluded.last_rowid",
+                (CURSOR_NAME, rowid),
+            )
+
+    def _replay(self) -> None:
+        """Rebuild the associator from stored measurements of anchored sessions, in order."""
+        with self.store.reading("mapping: replay") as conn:
+            rows = conn.execute(
+                "SELECT m.robot_id, m.session_id, m.seq, m.payload FROM measurements m "
+                "JOIN keyframes k USING (robot_id, session_id, seq) WHERE m.anchored = 1 "
+                "ORDER BY k.rowid, m.measurement_id"
+            ).fetchall()
+            done = conn.execute(
+                "SELECT k.robot_id, k.session_id, k.seq, k.payload FROM keyframes k WHERE k.rowid <= "
+                "COALESCE((SELECT last_rowid FROM pipeline_cursor WHERE name = ?), 0) ORDER BY k.rowid",
+                (CURSOR_NAME,),
+            ).fetchall()
+        if not done:
+            return
+        by_key: dict[str, list[ObjectMeasurement]] = {}
+        for robot_id, session_id, seq, m_payload in rows:
+            key = f"{robot_id}/{session_id}/{int(seq)}"
+            by_key.setdefault(key, []).append(unpack_measurement(m_payload))
+        keyframes = []
+        for robot_id, session_id, seq, payload in done:
+            key = f"{robot_id}/{session_id}/{int(seq)}"
+            try:
+                msg = decode_keyframe(bytes(payload))
+            except WireError:
+                continue  # it was skipped the first time too (counted then)
+            if msg.T_map_odom is not None:
+                keyframes.append((msg, by_key.get(key, [])))
+        self._associate(keyframes)
+        with self._lock:
+            self._counts.replayed = sum(len(v) for v in by_key.values())
+            self._counts.mapped = 0
+        log.info("mapping stage: replayed %d measurements of %d keyframes",
+                 self._counts.replayed, len(keyframes))
+
+
+# ---------------------------------------------------------------------------- helpers
+
+
+def camera_of(msg: KeyframeMsg) -> PinholeCamera:
+    """The colour camera of a keyframe (its intrinsics; ``calib_ref`` is not resolvable yet)."""
+    i = msg.intrinsics
+    if i is None:
+        raise WireError("calib_ref", "keyframes with calib_ref are not supported by the mapping stage yet")
+    return PinholeCamera(i.width, i.height, i.fx, i.fy, i.cx, i.cy, tuple(i.distortion))  # type: ignore[arg-type]
+
+
+def decode_images(msg: KeyframeMsg) -> tuple[NDArray[np.uint8], NDArray[np.float32], PinholeCamera]:
+    """``(bgr (H, W, 3) uint8, depth (H, W) float32 metres at colour size, camera)``.
+
+    Depth sent at 1/s resolution is upsampled by repetition: colour pixel (y, x) takes depth
+    pixel (y // s, x // s) (docs/wire.md, ``depth``).
+    """
+    camera = camera_of(msg)
+    bgr = cv2.imdecode(np.frombuffer(msg.rgb_jpeg, np.uint8), cv2.IMREAD_COLOR)
+    if bgr is None or bgr.shape[:2] != (camera.height, camera.width):
+        raise WireError("rgb_jpeg", "cannot decode the colour image at the intrinsics' size")
+    depth = decode_depth(msg.depth.data, msg.depth.meta)
+    s = camera.height // depth.shape[0]
+    if s > 1:
+        depth = np.repeat(np.repeat(depth, s, axis=0), s, axis=1)
+    return np.ascontiguousarray(bgr, np.uint8), np.ascontiguousarray(depth, np.float32), camera
+
+
+def map_pose(msg: KeyframeMsg) -> F64:
+    """``T_map_camera`` (4, 4) of an anchored keyframe (identity map frame otherwise)."""
+    T_map_odom = msg.T_map_odom if msg.T_map_odom is not None else np.eye(4)
+    return np.asarray(T_map_odom @ msg.T_odom_camera, np.float64)
+
+
+def _mean_colour(measurements: Sequence[Any]) -> tuple[float, float, float] | None:
+    cols = [m.mean_rgb for m in measurements if getattr(m, "mean_rgb", None) is not None]
+    if not cols:
+        return None
+    c = np.mean(np.asarray(cols, np.float64), axis=0)
+    return float(c[0]), float(c[1]), float(c[2])
+
+
+# ---------------------------------------------------------------------------- measurement blobs
+
+_ARRAYS: Final = ("box_xyxy", "points_camera", "T_camera_object", "T_world_camera", "T_world_object",
+                  "size", "color_hist", "descriptors")
+
+
+def pack_measurement(m: ObjectMeasurement) -> bytes:
+    """msgpack of a measurement without its mask (association does not read masks)."""
+    d: dict[str, Any] = {"keyframe": m.keyframe, "stamp": m.stamp, "category": m.category,
+                         "confidence": float(m.confidence), "gt_instance": m.gt_instance}
+    for name in _ARRAYS:
+        a = np.ascontiguousarray(getattr(m, name))
+        d[name] = {"dtype": a.dtype.str, "shape": list(a.shape), "data": a.tobytes()}
+    return bytes(msgpack.packb(d, use_bin_type=True))
+
+
+def unpack_measurement(blob: bytes) -> ObjectMeasurement:
+    """Inverse of :func:`pack_measurement` (the mask comes back empty, shape (0, 0))."""
+    d = msgpack.unpackb(blob, raw=False)
+    arrays = {
+        name: np.frombuffer(d[name]["data"], np.dtype(d[name]["dtype"])).reshape(d[name]["shape"]).copy()
+        for name in _ARRAYS
+    }
+    return ObjectMeasurement(
+        keyframe=d["keyframe"], stamp=float(d["stamp"]), category=d["category"],
+        confidence=float(d["confidence"]), mask=np.zeros((0, 0), bool), gt_instance=d["gt_instance"],
+        **arrays,
+    )
+
+
+def strip_masks(measurements: Sequence[ObjectMeasurement]) -> list[ObjectMeasurement]:
+    """The measurements without their (H, W) masks, for long-lived association state."""
+    return [replace(m, mask=np.zeros((0, 0), bool)) for m in measurements]
+
+
+PipelineFactory = Callable[[SqliteKeyframeStore, ObjectMap], MapPipeline]

@@ -1,0 +1,209 @@
+"""Tests of the object routes of the REST API (``/v1/objects``, ``/v1/objects/{id}``, ``/v1/categories``).
+
+A temporary store is filled through :class:`ObjectMap` with a small known scene (doors, beds
+and wheelchairs on a line, observed by two robots), then the app is driven with FastAPI's
+TestClient, whose lifespan opens the same file. Every filter and every 404/422 path is hit.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from wardmap.server.api import ObjectList, create_app
+from wardmap.server.objectmap import ObjectMap, ObjectState, Observation
+from wardmap.server.store import open_store
+from wardmap.shared.knowledge import KnowledgeGraph
+from wardmap.shared.se3 import quat_to_rotation, yaw_transform
+
+T0 = 1_714_557_600.0
+# id: (category, x, confidence, robots)
+SCENE = {
+    1: ("door", 0.0, 0.9, ("r1",)),
+    2: ("door", 4.0, 0.6, ("r2",)),
+    3: ("bed", 1.0, 0.95, ("r1", "r2")),
+    4: ("wheelchair", 2.5, 0.4, ()),
+    5: ("door", 10.0, 0.8, ("r1",)),
+}
+
+
+@pytest.fixture
+def client(tmp_path: Path) -> Iterator[TestClient]:
+    url = f"sqlite:///{tmp_path / 'map.db'}"
+    with open_store(url) as store:
+        om = ObjectMap(store)
+        objs, obs = [], []
+        for oid, (cat, x, conf, robots) in SCENE.items():
+            objs.append(
+                ObjectState(oid, cat, conf, yaw_transform(x, 0.0, 0.25 * oid, 0.5), np.array([1.0, 0.5, 2.0]))
+            )
+            for k, robot in enumerate(robots):
+                obs.append(
+                    Observation(
+                        oid,
+                        robot,
+                        "s1",
+                        10 * oid + k,
+                        T0 + oid,
+                        cat,
+                        0.7,
+                        np.array([0.0, 0.0, 8.0, 9.0]),
+                        yaw_transform(x, 0.1, 0.0, 0.5),
+                        np.array([1.0, 0.5, 2.0]),
+                    )
+                )
+        om.upsert(objs, obs)
+    with TestClient(create_app(url)) as c:
+        yield c
+
+
+def _ids(resp) -> list[int]:
+    assert resp.status_code == 200, resp.text
+    ObjectList.model_validate(resp.json(), strict=True)  # the documented schema is the one served
+    return [o["object_id"] for o in resp.json()["objects"]]
+
+
+def test_list_all_objects_with_every_field(client: TestClient) -> None:
+    """Without filters every object comes, by id, with its pose, size, bounds and robots."""
+    resp = client.get("/v1/objects")
+    assert _ids(resp) == [1, 2, 3, 4, 5]
+    body = resp.json()
+    assert body["limit"] == 100 and body["offset"] == 0 and body["next_offset"] is None
+    o = body["objects"][2]
+    assert o["category"] == "bed" and o["confidence"] == 0.95 and o["robots"] == ["r1", "r2"]
+    assert o["position"] == pytest.approx([1.0, 0.0, 0.5]) and o["size"] == [1.0, 0.5, 2.0]
+    assert o["yaw"] == pytest.approx(0.75) and o["distance_m"] is None and o["n_observations"] == 2
+    R = quat_to_rotation(o["q_xyzw"])
+    assert np.allclose(R, yaw_transform(0, 0, 0.75)[:3, :3])
+    half_x = 0.5 * (abs(math.cos(0.75)) * 1.0 + abs(math.sin(0.75)) * 0.5)
+    assert o["bounds_min"][0] == pytest.approx(1.0 - half_x) and o["bounds_max"][2] == pytest.approx(1.5)
+    assert body["objects"][3]["robots"] == [] and body["objects"][3]["n_observations"] == 0
+
+
+def test_category_filter(client: TestClient) -> None:
+    assert _ids(client.get("/v1/objects", params={"category": "door"})) == [1, 2, 5]
+    assert _ids(client.get("/v1/objects", params={"category": "sink"})) == []
+
+
+def test_near_orders_nearest_first_with_distance(client: TestClient) -> None:
+    """near=3,0,0.5: distances 3 (id 1), 1 (2), 2 (3), 0.5 (4), 7 (5) give the order 4, 2, 3, 1, 5."""
+    resp = client.get("/v1/objects", params={"near": "3,0,0.5"})
+    assert _ids(resp) == [4, 2, 3, 1, 5]
+    assert [o["distance_m"] for o in resp.json()["objects"]] == pytest.approx([0.5, 1, 2, 3, 7])
+
+
+def test_near_with_radius(client: TestClient) -> None:
+    assert _ids(client.get("/v1/objects", params={"near": "3,0,0.5", "radius": 2})) == [4, 2, 3]
+    assert _ids(client.get("/v1/objects", params={"near": "3,0,0.5", "radius": 0.25})) == []
+    assert _ids(client.get("/v1/objects", params={"near": "3,0,0.5", "radius": 3, "category": "door"})) == [
+        2,
+        1,
+    ]
+
+
+def test_min_confidence_and_robot_filters(client: TestClient) -> None:
+    assert _ids(client.get("/v1/objects", params={"min_confidence": 0.8})) == [1, 3, 5]
+    assert _ids(client.get("/v1/objects", params={"robot": "r2"})) == [2, 3]
+    assert _ids(client.get("/v1/objects", params={"robot": "r1", "min_confidence": 0.85})) == [1, 3]
+    assert _ids(client.get("/v1/objects", params={"robot": "r9"})) == []
+
+
+def test_limit_and_offset(client: TestClient) -> None:
+    first = client.get("/v1/objects", params={"limit": 2})
+    assert _ids(first) == [1, 2] and first.json()["next_offset"] == 2
+    second = client.get("/v1/objects", params={"limit": 2, "offset": 2})
+    assert _ids(second) == [3, 4] and second.json()["next_offset"] == 4
+    last = client.get("/v1/objects", params={"limit": 2, "offset": 4})
+    assert _ids(last) == [5] and last.json()["next_offset"] is None
+    assert _ids(client.get("/v1/objects", params={"near": "3,0,0.5", "limit": 2, "offset": 1})) == [2, 3]
+
+
+@pytest.mark.parametrize(
+    ("params", "detail"),
+    [
+        ({"near": "1,2"}, "near must be three finite numbers 'x,y,z' in metres, got '1,2'"),
+        ({"near": "a,b,c"}, "near must be three finite numbers"),
+        ({"near": "1,2,nan"}, "near must be three finite numbers"),
+        ({"radius": "2"}, "radius needs near=x,y,z"),
+        ({"near": "0,0,0", "radius": "-1"}, "radius must be a finite number >= 0 metres, got -1.0"),
+        ({"near": "0,0,0", "radius": "inf"}, "radius must be a finite number >= 0"),
+        ({"min_confidence": "1.5"}, "min_confidence must be in [0, 1], got 1.5"),
+        ({"robot": "r 1"}, "bad robot id 'r 1'"),
+    ],
+)
+def test_bad_filters_are_422_with_a_message(client: TestClient, params: dict, detail: str) -> None:
+    resp = client.get("/v1/objects", params=params)
+    assert resp.status_code == 422
+    assert detail in resp.json()["detail"]
+
+
+def test_unknown_category_is_422_listing_the_knowledge_graph(client: TestClient) -> None:
+    resp = client.get("/v1/objects", params={"category": "unicorn"})
+    assert resp.status_code == 422
+    detail = resp.json()["detail"]
+    assert detail.startswith("unknown category 'unicorn'; known categories: ")
+    assert detail.endswith(", ".join(KnowledgeGraph.load().names))
+
+
+@pytest.mark.parametrize(
+    "params",
+    [{"limit": 0}, {"limit": 1001}, {"offset": -1}, {"limit": "ten"}, {"radius": "x", "near": "0,0,0"}],
+)
+def test_bad_numbers_are_422(client: TestClient, params: dict) -> None:
+    """Type and range errors of numeric parameters are FastAPI's 422 (a list naming the parameter)."""
+    resp = client.get("/v1/objects", params=params)
+    assert resp.status_code == 422
+    assert resp.json()["detail"][0]["loc"][-1] in params
+
+
+def test_object_detail(client: TestClient) -> None:
+    """GET /v1/objects/3: the bed with both observations (newest first) and their keyframes."""
+    resp = client.get("/v1/objects/3")
+    assert resp.status_code == 200, resp.text
+    body = resp.json()
+    assert body["object"]["object_id"] == 3 and body["object"]["category"] == "bed"
+    assert [(o["robot_id"], o["seq"]) for o in body["observations"]] == [("r2", 31), ("r1", 30)]
+    o = body["observations"][0]
+    assert o["box_xyxy"] == [0.0, 0.0, 8.0, 9.0] and o["position"] == pytest.approx([1.0, 0.1, 0.5])
+    assert o["stamp"] == T0 + 3 and o["q_xyzw"] == pytest.approx([0, 0, 0, 1])
+    assert [(k["robot_id"], k["session_id"], k["seq"], k["stored"]) for k in body["keyframes"]] == [
+        ("r1", "s1", 30, False),
+        ("r2", "s1", 31, False),
+    ]
+    one = client.get("/v1/objects/3", params={"observations": 1}).json()
+    assert len(one["observations"]) == 1 and len(one["keyframes"]) == 1
+
+
+def test_object_detail_errors(client: TestClient) -> None:
+    resp = client.get("/v1/objects/999")
+    assert resp.status_code == 404 and resp.json() == {"detail": "unknown object 999"}
+    resp = client.get("/v1/objects/0")
+    assert resp.status_code == 422 and "object_id: expected an int in [1, 2**63)" in resp.json()["detail"]
+    assert client.get("/v1/objects/door").status_code == 422
+    assert client.get("/v1/objects/3", params={"observations": 5000}).status_code == 422
+
+
+def test_categories(client: TestClient) -> None:
+    body = client.get("/v1/categories").json()
+    kg = KnowledgeGraph.load()
+    assert [c["name"] for c in body["categories"]] == list(kg.names)
+    counts = {c["name"]: c["count"] for c in body["categories"]}
+    assert counts["door"] == 3 and counts["bed"] == 1 and counts["wheelchair"] == 1 and counts["sink"] == 0
+    assert body["total"] == 5
+    mobility = {c["name"]: c["mobility"] for c in body["categories"]}
+    assert mobility["door"] == "static" and mobility["wheelchair"] == "movable"
+
+
+def test_openapi_documents_the_object_routes(client: TestClient) -> None:
+    spec = client.get("/openapi.json").json()
+    params = {p["name"] for p in spec["paths"]["/v1/objects"]["get"]["parameters"]}
+    assert params == {"category", "near", "radius", "min_confidence", "robot", "limit", "offset"}
+    assert {"200", "422"} <= set(spec["paths"]["/v1/objects"]["get"]["responses"])
+    assert {"200", "404", "422"} <= set(spec["paths"]["/v1/objects/{object_id}"]["get"]["responses"])
+    assert "/v1/categories" in spec["paths"]
+    assert "distance_m" in spec["components"]["schemas"]["ObjectOut"]["properties"]
