@@ -36,6 +36,7 @@ from wardmap.sim.scenarios import SCENARIOS
 ROOT = Path(__file__).resolve().parents[1]
 TUM = ROOT.parent / "shared" / "data" / "tum_fr1_rpy_s3_first100"
 DETECTOR = ROOT.parent / "shared" / "models" / "yolox_nano.onnx"
+SEG_MODEL = ROOT / "server" / "models" / "hospital_seg.onnx"
 GOALS = {
     "aisle": "ATE <= 3 cm",
     "ward_chairs": "ATE <= 3 cm",
@@ -82,6 +83,8 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--only", nargs="*", help="scenario names (default: all, plus tum)")
     ap.add_argument("--detector", type=Path, default=DETECTOR, help="YOLOX ONNX model for onnx labels")
+    ap.add_argument("--seg-model", type=Path, default=SEG_MODEL, help="wardmap segmentation network "
+                    "for onnx labels (default: the packaged one)")
     ap.add_argument("--write", type=Path, help="update this markdown file's tracking section")
     args = ap.parse_args()
     cv2.setNumThreads(1)
@@ -108,7 +111,8 @@ def main() -> int:
             for label, folder in folders:
                 label_specs = ["none"]
                 if name == "walking_staff":
-                    label_specs += ["oracle"] + ([f"onnx:{args.detector}"] if args.detector.is_file() else [])
+                    models = [m for m in (args.seg_model, args.detector) if m.is_file()]
+                    label_specs += ["oracle"] + [f"onnx:{m}" for m in models]
                 base = None
                 for spec in label_specs:
                     print(f"tracking {label} labels={spec.split(':')[0]} ...", file=sys.stderr)
@@ -119,8 +123,9 @@ def main() -> int:
                     goal = next((g for k, g in GOALS.items() if label.startswith(k)), "")
                     if name == "walking_staff" and spec != "none":
                         goal = "<= 25% of none"
+                    kind = spec if ":" not in spec else f"onnx {Path(spec.split(':', 1)[1]).stem}"
                     rows.append(
-                        f"| {label} | {spec.split(':')[0]} | {r['frames']} | {r['kf']} | {r['lost']} "
+                        f"| {label} | {kind} | {r['frames']} | {r['kf']} | {r['lost']} "
                         f"| {r['ate_cm']:.2f} | {ratio} | {goal} | {r['med']:.1f} | {r['p95']:.1f} "
                         f"| {r['labels']} | {src} |"
                     )

@@ -327,6 +327,51 @@ def _payload_bytes(http: Any, robot_id: str) -> list[int]:
             return sizes
 
 
+def _mapping_backlog(http: Any) -> int | None:
+    r = http.get("/metrics")
+    r.raise_for_status()
+    for line in r.text.splitlines():
+        if line.startswith("wardmap_mapping_backlog "):
+            return int(float(line.split()[1]))
+    return None
+
+
+def map_summary(plans: list[RobotPlan], http: Any, timeout_s: float = 120.0) -> str:
+    """Wait for the server's mapping stage to catch up, then the objects on the map and the
+    doors it found against the simulated world's doors (``GET /v1/objects?category=door``)."""
+    import numpy as np
+
+    from wardmap.sim.live import LiveRun
+
+    deadline = time.monotonic() + timeout_s
+    while (backlog := _mapping_backlog(http)) not in (0, None) and time.monotonic() < deadline:
+        _say(f"demo: mapping stage backlog {backlog} keyframes")
+        time.sleep(1.0)
+    r = http.get("/v1/categories")
+    r.raise_for_status()
+    counts = {c["name"]: c["count"] for c in r.json()["categories"] if c["count"]}
+    lines = ["MAP: objects by category: " + (", ".join(f"{k} {v}" for k, v in sorted(counts.items()))
+                                            or "none yet")]
+    r = http.get("/v1/objects", params={"category": "door", "limit": 100})
+    r.raise_for_status()
+    doors = [o["position"] for o in r.json()["objects"]]
+    world = {}
+    for p in plans:
+        for o in LiveRun(p.scenario, p.seed, p.sim_robot, frames=1).objects()["objects"]:
+            if o["class"] == "door":
+                world[(p.scenario, p.seed, o["id"])] = np.asarray(o["T_world_object"])[:3, 3]
+    lines.append(f"GET /v1/objects?category=door: {len(doors)} doors on the map; the simulated worlds have "
+                 f"{len(world)} (a robot maps only the doors it passes)")
+    shown = 8
+    for pos in doors[:shown]:
+        d = min((float(np.linalg.norm(np.asarray(pos) - w)) for w in world.values()), default=float("nan"))
+        lines.append(f"  door at ({pos[0]:.2f}, {pos[1]:.2f}, {pos[2]:.2f}) m: "
+                     f"nearest simulated door {d:.2f} m")
+    if len(doors) > shown:
+        lines.append(f"  ... and {len(doors) - shown} more")
+    return "\n".join(lines)
+
+
 def map_pose(plan: RobotPlan) -> str:
     """``X,Y,YAW_DEG`` of the robot's start on the map: the simulated world is the map, and the
     robot starts at a known pose (as a real one starts at its dock)."""
@@ -481,7 +526,9 @@ def _run(opts: DemoOptions, work: Path, children: list[Child], wait: Callable[[]
         short = [r.robot_id for r in results if r.delivered != r.produced or r.produced == 0]
         if short:
             raise DemoError(f"keyframes not all delivered (or none produced) for {', '.join(short)}")
-        print(f"map server: {url}  (try {url}/v1/robots, {url}/metrics)", flush=True)
+        print(map_summary(plans, http), flush=True)
+        print(f"map server: {url}  (try {url}/v1/objects?category=door, {url}/v1/categories, "
+              f"{url}/v1/robots, {url}/metrics)", flush=True)
         if opts.exit_after:
             return 0
         if wait is not None:

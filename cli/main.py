@@ -12,7 +12,19 @@ import sys
 from collections.abc import Sequence
 from importlib.metadata import PackageNotFoundError, version
 
-from wardmap.cli import dataset_cmd, demo_cmd, edge_cmd, eval_cmd, router_cmd, server_cmd, sim_cmd, track_cmd
+from wardmap.cli import (
+    dataset_cmd,
+    demo_cmd,
+    edge_cmd,
+    eval_cmd,
+    map_cmd,
+    router_cmd,
+    segment_cmd,
+    server_cmd,
+    sim_cmd,
+    track_cmd,
+    train_seg_cmd,
+)
 from wardmap.shared.errors import WardmapError
 from wardmap.shared.logsetup import configure_logging
 
@@ -40,6 +52,9 @@ def build_parser() -> argparse.ArgumentParser:
     sim_cmd.register(sub)
     dataset_cmd.register(sub)
     track_cmd.register(sub)
+    map_cmd.register(sub)
+    segment_cmd.register(sub)
+    train_seg_cmd.register(sub)
     eval_cmd.register(sub)
     router_cmd.register(sub)
     server_cmd.register(sub)

@@ -46,3 +46,24 @@ def stop(proc: subprocess.Popen[str], timeout_s: float = 15.0) -> None:
     for stream in (proc.stdout, proc.stderr):
         if stream is not None:
             stream.close()
+
+
+def wardmap(*args: str, timeout_s: float = 300.0) -> subprocess.CompletedProcess[str]:
+    """Run ``python -m wardmap.cli ARGS`` to completion, text output captured."""
+    import sys
+
+    return subprocess.run(
+        [sys.executable, "-m", "wardmap.cli", *args], capture_output=True, text=True, timeout=timeout_s
+    )
+
+
+def one_line_error(p: subprocess.CompletedProcess[str], needle: str, command: str | None = None) -> None:
+    """Exit code 1, no traceback, exactly one stderr line containing ``needle`` (and starting
+    with ``wardmap COMMAND: error:`` when ``command`` is given)."""
+    assert p.returncode == 1, p.stderr
+    assert "Traceback" not in p.stderr
+    lines = [ln for ln in p.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1, p.stderr
+    if command is not None:
+        assert lines[0].startswith(f"wardmap {command}: error:"), lines[0]
+    assert needle in lines[0], lines[0]

@@ -3,27 +3,14 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from procs import one_line_error, wardmap
 
 TUM = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "tum_fr1_rpy_s3_first100"
 
 
-def wardmap(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "wardmap.cli", *args], capture_output=True, text=True, timeout=300
-    )
-
-
-def _one_line_error(p: subprocess.CompletedProcess[str], needle: str) -> None:
-    assert p.returncode == 1, p.stderr
-    assert "Traceback" not in p.stderr
-    lines = [ln for ln in p.stderr.splitlines() if ln.strip()]
-    assert len(lines) == 1, p.stderr
-    assert needle in lines[0]
 
 
 def test_sim_list_names_every_scenario() -> None:
@@ -44,7 +31,7 @@ def test_sim_list_names_every_scenario() -> None:
 
 def test_unknown_scenario(tmp_path: Path) -> None:
     """A misspelt scenario: one line naming the known scenarios, exit 1."""
-    _one_line_error(
+    one_line_error(
         wardmap("sim", "--scenario", "hospital_lop", "--out", str(tmp_path / "o")), "unknown scenario"
     )
 
@@ -54,14 +41,14 @@ def test_unwritable_output_folder(tmp_path: Path) -> None:
     blocker = tmp_path / "afile"
     blocker.write_text("x")
     p = wardmap("sim", "--scenario", "aisle_slow_1", "--out", str(blocker / "sub"), "--frames", "1")
-    _one_line_error(p, "wardmap sim: error:")
+    one_line_error(p, "wardmap sim: error:")
 
 
 def test_non_empty_output_folder_is_refused(tmp_path: Path) -> None:
     """Existing data are never overwritten silently."""
     (tmp_path / "keep.txt").write_text("precious")
     p = wardmap("sim", "--scenario", "aisle_slow_1", "--out", str(tmp_path), "--frames", "1")
-    _one_line_error(p, "wardmap sim: error:")
+    one_line_error(p, "wardmap sim: error:")
     assert (tmp_path / "keep.txt").read_text() == "precious"
 
 
@@ -97,12 +84,12 @@ def test_malformed_tum_folder(tmp_path: Path, setup: object, needle: str) -> Non
     d = tmp_path / "rgbd_dataset_freiburg1_bad"
     d.mkdir()
     setup(d)  # type: ignore[operator]
-    _one_line_error(wardmap("dataset", "info", str(d)), needle)
+    one_line_error(wardmap("dataset", "info", str(d)), needle)
 
 
 def test_missing_dataset_folder(tmp_path: Path) -> None:
     """A path that does not exist: one line, exit 1."""
-    _one_line_error(wardmap("dataset", "info", str(tmp_path / "nope")), "wardmap dataset: error:")
+    one_line_error(wardmap("dataset", "info", str(tmp_path / "nope")), "wardmap dataset: error:")
 
 
 @pytest.mark.skipif(not TUM.is_dir(), reason="../shared/data/tum_fr1_rpy_s3_first100 not present")
@@ -134,13 +121,13 @@ def test_eval_ate_on_reference_trajectories() -> None:
 
 def test_eval_ate_bad_input(tmp_path: Path) -> None:
     """Missing or malformed trajectory files: one line, exit 1."""
-    _one_line_error(
+    one_line_error(
         wardmap("eval", "ate", str(tmp_path / "nope.txt"), "--reference", str(tmp_path / "x")),
         "wardmap eval: error:",
     )
     bad = tmp_path / "bad.txt"
     bad.write_text("1.0 0 0 0 0 0 0\n")  # 7 columns: missing qw
-    _one_line_error(wardmap("eval", "ate", str(bad), "--reference", str(bad)), "wardmap eval: error:")
+    one_line_error(wardmap("eval", "ate", str(bad), "--reference", str(bad)), "wardmap eval: error:")
 
 
 @pytest.mark.parametrize("pose", ["1,2", "a,b,c", "1,2,nan"])
@@ -148,7 +135,7 @@ def test_edge_bad_map_pose(tmp_path: Path, pose: str) -> None:
     """A malformed --map-pose fails before anything connects or an outbox is made."""
     p = wardmap("edge", "--robot", "r1", "--source", "sim:aisle_slow_1", "--connect", "tcp/127.0.0.1:7447",
                 "--outbox", str(tmp_path / "ob"), "--map-pose", pose)
-    _one_line_error(p, "--map-pose")
+    one_line_error(p, "--map-pose")
     assert not (tmp_path / "ob").exists()
 
 

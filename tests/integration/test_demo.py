@@ -73,6 +73,9 @@ def test_demo_two_robots_exits_cleanly() -> None:
         assert 0 < int(m.group(6).replace(",", "")) <= 100_000, (robot, done.stdout)  # bytes/keyframe
         assert 0 < int(m.group(7)) <= int(m.group(8)), (robot, done.stdout)  # latency p50 <= p99, ms
     assert "map server: http://127.0.0.1:" in done.stdout
+    # the map server's mapping stage ran: the demo asked it for the doors
+    assert re.search(r"^MAP: objects by category: ", done.stdout, re.MULTILINE), done.stdout
+    assert re.search(r"^GET /v1/objects\?category=door: \d+ doors on the map", done.stdout, re.MULTILINE)
 
     # every child the demo started is gone, and its temporary work folder with it
     pids = [int(p) for p in re.findall(r"^demo: .*\(pid (\d+)\):", done.stderr, re.MULTILINE)]

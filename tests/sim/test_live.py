@@ -71,7 +71,7 @@ def test_unknown_robot_and_bad_frames() -> None:
 def test_odom_frame_in_the_world_is_the_start_of_the_base() -> None:
     """T_world_odom @ T_odom_base(t) follows the ground-truth base within odometry drift."""
     live = LiveRun("aisle_slow_1", 0, frames=20)
-    stamps, T_odom_base = live.odometry()
+    _, T_odom_base = live.odometry()
     T_world_base_odo = live.T_world_odom() @ T_odom_base[0]
     T_world_cam0 = live.groundtruth()[1][0]
     T_world_base0 = T_world_cam0 @ np.linalg.inv(live.rig.T_base_rgb)
