@@ -270,8 +270,9 @@ class MapPipeline:
     def _write_landmarks(self, landmarks: Iterable[Landmark]) -> None:
         states, observations = [], []
         for lm in landmarks:
+            # No colour yet: measurements carry an HSV histogram, not a mean RGB.
             state, obs = from_landmark(lm.id, lm.category, lm.confidence, lm.T_world_object, lm.size,
-                                       lm.measurements, color_rgb=_mean_colour(lm.measurements))
+                                       lm.measurements)
             states.append(state)
             observations.extend(obs)
         if states:
@@ -376,14 +377,6 @@ def map_pose(msg: KeyframeMsg) -> F64:
     """``T_map_camera`` (4, 4) of an anchored keyframe (identity map frame otherwise)."""
     T_map_odom = msg.T_map_odom if msg.T_map_odom is not None else np.eye(4)
     return np.asarray(T_map_odom @ msg.T_odom_camera, np.float64)
-
-
-def _mean_colour(measurements: Sequence[Any]) -> tuple[float, float, float] | None:
-    cols = [m.mean_rgb for m in measurements if getattr(m, "mean_rgb", None) is not None]
-    if not cols:
-        return None
-    c = np.mean(np.asarray(cols, np.float64), axis=0)
-    return float(c[0]), float(c[1]), float(c[2])
 
 
 # ---------------------------------------------------------------------------- measurement blobs
