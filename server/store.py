@@ -14,7 +14,8 @@ Guarantees (SQLite backend):
 - Idempotent on ``(robot_id, session_id, seq)``: a key already stored returns
   ``"duplicate"`` and changes nothing (see :meth:`~SqliteKeyframeStore.insert` for why the
   first copy wins even when the bytes differ).
-- Nothing is deleted or rewritten; rows only accumulate.
+- Keyframes are never deleted or rewritten (object-map rows on the same file are: see
+  `server/objectmap.py`).
 
 Threads: one SQLite connection per thread (``threading.local``), opened on the thread's
 first call, so the ingest thread writes while HTTP threads read concurrently (WAL lets
