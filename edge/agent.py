@@ -52,14 +52,12 @@ import contextlib
 import json
 import logging
 import queue
-import signal
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import FrameType
 from typing import Any, Final
 
 import cv2
@@ -72,6 +70,7 @@ from wardmap.edge.tracker import Tracker, TrackerConfig, TrackInput, TrackResult
 from wardmap.shared.dataset import DatasetReader, Frame, FrameSource, pose_at
 from wardmap.shared.errors import ConfigError, DatasetError, WardmapError, WireError
 from wardmap.shared.knowledge import KnowledgeGraph
+from wardmap.shared.signals import on_stop_signals
 from wardmap.shared.wire import (
     HeartbeatMsg,
     Intrinsics,
@@ -634,26 +633,7 @@ def _odom_at(odo: tuple[NDArray[np.float64], NDArray[np.float64]] | None, stamp:
     return pose_at(odo[0], odo[1], stamp, max_bracket_s=0.1, max_nearest_s=0.05)
 
 
-@contextlib.contextmanager
-def stop_on_signals(agent: EdgeAgent) -> Iterator[None]:
-    """Call ``agent.stop()`` on SIGTERM/SIGINT while inside the block (main thread only)."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def handler(signum: int, _frame: FrameType | None) -> None:
-        log.info("received %s, stopping the edge agent", signal.Signals(signum).name)
-        agent.stop()
-
-    previous = {s: signal.signal(s, handler) for s in (signal.SIGTERM, signal.SIGINT)}
-    try:
-        yield
-    finally:
-        for s, h in previous.items():
-            signal.signal(s, h)
-
-
 def run_agent(agent: EdgeAgent, on_ready: Callable[[str, int], None] | None = None) -> dict[str, Any]:
     """Run ``agent`` until its data set ends or a SIGTERM/SIGINT arrives; return its summary."""
-    with stop_on_signals(agent):
+    with on_stop_signals(agent.stop, "the edge agent"):
         return agent.run(on_ready)

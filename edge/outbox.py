@@ -37,8 +37,7 @@ import secrets
 import sqlite3
 import threading
 import time
-from collections.abc import Iterable, Iterator
-from contextlib import contextmanager
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
@@ -157,12 +156,15 @@ def new_session_id() -> str:
     return f"{time.time_ns():020d}-{secrets.token_hex(4)}"
 
 
-class Outbox:
+class Outbox(sqlitedb.GuardedAccess):
     """A disk-backed, bounded, never-evicting queue of keyframes awaiting the server's ack.
 
     Create with :meth:`Outbox.open` (a context manager). Thread safe within the owning
     process; see the module docstring.
     """
+
+    _DB_LABEL = "outbox"
+    _DB_ERROR = OutboxError
 
     def __init__(
         self, path: Path, conn: sqlite3.Connection, lock_fd: int, max_items: int, max_bytes: int
@@ -455,25 +457,6 @@ class Outbox:
             raise OutboxError(f"outbox {self.path} is closed")
         return self._conn
 
-    @contextmanager
-    def _db_errors(self, what: str) -> Iterator[None]:
-        try:
-            yield
-        except sqlite3.Error as exc:
-            raise OutboxError(f"outbox {self.path}: {what} failed: {exc}") from exc
-
-    @contextmanager
-    def _read(self, what: str) -> Iterator[sqlite3.Connection]:
-        with self._db_errors(what):
-            yield self._connection()
-
-    @contextmanager
-    def _write(self, what: str) -> Iterator[sqlite3.Connection]:
-        """One ``BEGIN IMMEDIATE`` .. ``COMMIT`` transaction; rolled back on any exception."""
-        with self._db_errors(what):
-            conn = self._connection()
-            with sqlitedb.transaction(conn):
-                yield conn
 
 
 class SessionIds:

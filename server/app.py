@@ -20,9 +20,9 @@ from typing import Any
 from wardmap.server.ingest import Ingest
 from wardmap.server.mapserve import MapServe
 from wardmap.server.objectmap import ObjectMap
-from wardmap.server.router import _stop_on_signals
 from wardmap.server.store import KeyframeStore, open_store
 from wardmap.shared.errors import WardmapError
+from wardmap.shared.signals import on_stop_signals
 from wardmap.shared.zenoh_config import client_config
 
 log = logging.getLogger(__name__)
@@ -157,7 +157,7 @@ def run_server(
     bound_port = int(sock.getsockname()[1])
     url = f"http://{http_host}:{bound_port}"
     try:
-        with _stop_on_signals(stop), _uvicorn_thread(server, sock, done, stop):
+        with on_stop_signals(stop.set, "the server"), _uvicorn_thread(server, sock, done, stop):
             done.wait()  # start-up finished or failed
             if not started.is_set():
                 raise ServerError(f"map server failed to start on {url} (see the log above)")

@@ -10,15 +10,13 @@ from __future__ import annotations
 
 import json
 import logging
-import signal
 import threading
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from types import FrameType
 from typing import Any
 
 from wardmap.shared.errors import ConfigError, WardmapError
+from wardmap.shared.signals import on_stop_signals
 from wardmap.shared.zenoh_config import config_leaves, router_config
 
 log = logging.getLogger(__name__)
@@ -74,25 +72,6 @@ def _first_line(exc: BaseException) -> str:
     return text[:cut] if cut > 0 else text
 
 
-@contextmanager
-def _stop_on_signals(stop: threading.Event) -> Iterator[None]:
-    """Set ``stop`` on SIGTERM/SIGINT while inside the block (main thread only)."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def handler(signum: int, _frame: FrameType | None) -> None:
-        log.info("received %s, stopping router", signal.Signals(signum).name)
-        stop.set()
-
-    previous = {s: signal.signal(s, handler) for s in (signal.SIGTERM, signal.SIGINT)}
-    try:
-        yield
-    finally:
-        for s, h in previous.items():
-            signal.signal(s, h)
-
-
 def run_router(
     listen: Sequence[str],
     *,
@@ -118,7 +97,7 @@ def run_router(
     stop = stop if stop is not None else threading.Event()
     conf = _load_config(listen, config_file)
     endpoints = list(listen)
-    with _stop_on_signals(stop):
+    with on_stop_signals(stop.set, "the router"):
         try:
             session = zenoh.open(conf)
         except zenoh.ZError as exc:

@@ -320,11 +320,14 @@ def open_store(url: str) -> SqliteKeyframeStore:
     return SqliteKeyframeStore.open(Path(path))
 
 
-class SqliteKeyframeStore:
+class SqliteKeyframeStore(sqlitedb.GuardedAccess):
     """The SQLite keyframe store. Create with :func:`open_store` or :meth:`open`.
 
     Thread safe with one connection per thread; see the module docstring.
     """
+
+    _DB_LABEL = "keyframe store"
+    _DB_ERROR = StoreError
 
     def __init__(self, path: Path) -> None:
         """Internal: use :meth:`open`."""
@@ -643,25 +646,6 @@ class SqliteKeyframeStore:
         self._local.conn = conn
         return conn
 
-    @contextmanager
-    def _db_errors(self, what: str) -> Iterator[None]:
-        try:
-            yield
-        except sqlite3.Error as exc:
-            raise StoreError(f"keyframe store {self.path}: {what} failed: {exc}") from exc
-
-    @contextmanager
-    def _read(self, what: str) -> Iterator[sqlite3.Connection]:
-        with self._db_errors(what):
-            yield self._connection()
-
-    @contextmanager
-    def _write(self, what: str) -> Iterator[sqlite3.Connection]:
-        """One ``BEGIN IMMEDIATE`` .. ``COMMIT`` transaction; rolled back on any exception."""
-        with self._db_errors(what):
-            conn = self._connection()
-            with sqlitedb.transaction(conn):
-                yield conn
 
 
 # ---------------------------------------------------------------------- helpers

@@ -120,6 +120,40 @@ def transaction(conn: sqlite3.Connection) -> Iterator[None]:
         raise
 
 
+class GuardedAccess:
+    """Mixin for a class over one SQLite file: ``_read`` and ``_write`` blocks on
+    ``self._connection()`` whose sqlite3 errors become ``_DB_ERROR`` naming the file and what
+    failed (``"<_DB_LABEL> <path>: <what> failed: ..."``). ``_write`` is one :func:`transaction`.
+    """
+
+    _DB_LABEL: str
+    _DB_ERROR: type[WardmapError]
+    path: Path
+
+    def _connection(self) -> sqlite3.Connection:
+        raise NotImplementedError
+
+    @contextmanager
+    def _db_errors(self, what: str) -> Iterator[None]:
+        try:
+            yield
+        except sqlite3.Error as exc:
+            raise self._DB_ERROR(f"{self._DB_LABEL} {self.path}: {what} failed: {exc}") from exc
+
+    @contextmanager
+    def _read(self, what: str) -> Iterator[sqlite3.Connection]:
+        with self._db_errors(what):
+            yield self._connection()
+
+    @contextmanager
+    def _write(self, what: str) -> Iterator[sqlite3.Connection]:
+        """One ``BEGIN IMMEDIATE`` .. ``COMMIT`` transaction; rolled back on any exception."""
+        with self._db_errors(what):
+            conn = self._connection()
+            with transaction(conn):
+                yield conn
+
+
 def _header(conn: sqlite3.Connection) -> tuple[int, int, list[str]]:
     app_id = int(conn.execute("PRAGMA application_id").fetchone()[0])
     version = int(conn.execute("PRAGMA user_version").fetchone()[0])
