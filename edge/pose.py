@@ -41,6 +41,9 @@ CHI2_2DOF_95 = 5.991
 """95 % quantile of chi-square with 2 degrees of freedom: inlier gate on a squared
 reprojection error in (whitened) pixels, as in ORB-SLAM2."""
 
+CHI2_3DOF_95 = 7.815
+"""The same gate for an RGB-D observation with its virtual right coordinate (3 dof)."""
+
 HUBER_PX_DEFAULT = math.sqrt(CHI2_2DOF_95)
 """Huber threshold (about 2.45 px, ORB-SLAM2's choice): the kernel turns linear exactly
 where the chi-square gate starts, so every accepted inlier keeps its full quadratic
@@ -109,15 +112,24 @@ def _normalized(camera: PinholeCamera, uv: F64) -> F64:
         return camera.undistort_normalized(xy_d)
 
 
-def _ideal_pixel_error2(T_cam_world: F64, P: F64, xy: F64, fx: float, fy: float) -> F64:
-    """Squared reprojection error (N,) in ideal-camera pixels; inf behind the camera."""
+def _ideal_pixel_error2(T_cam_world: F64, P: F64, xy: F64, fx: float, fy: float,
+                        inv_depth: F64 | None = None, bf: float = 0.0) -> F64:
+    """Squared reprojection error (N,) in ideal-camera pixels; inf behind the camera.
+
+    Rows with a measured inverse depth ``inv_depth > 0`` add the virtual right coordinate's
+    error ``(du - bf (1/Z - inv_depth))^2`` (ORB-SLAM2's RGB-D observation).
+    """
     pc = P @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
     z = pc[:, 2]
     front = z > _MIN_DEPTH
     zs = np.where(front, z, 1.0)
     du = fx * (pc[:, 0] / zs - xy[:, 0])
     dv = fy * (pc[:, 1] / zs - xy[:, 1])
-    return np.where(front, du * du + dv * dv, np.inf)
+    e2 = du * du + dv * dv
+    if inv_depth is not None and bf > 0:
+        dr = du - bf * (1.0 / zs - inv_depth)
+        e2 = e2 + np.where(inv_depth > 0, dr * dr, 0.0)
+    return np.where(front, e2, np.inf)
 
 
 def _degenerate(P: F64, xy: F64) -> str:
@@ -256,13 +268,15 @@ def _huber_cost(e2: F64, delta: float) -> float:
     return float(np.where(e <= delta, e2, 2.0 * delta * e - delta * delta).sum())
 
 
-def _whitened_error2(T: F64, P: F64, xy: F64, info: F64, fx: float, fy: float) -> F64:
-    return info * _ideal_pixel_error2(T, P, xy, fx, fy)
+def _whitened_error2(T: F64, P: F64, xy: F64, info: F64, fx: float, fy: float,
+                     inv_depth: F64 | None = None, bf: float = 0.0) -> F64:
+    return info * _ideal_pixel_error2(T, P, xy, fx, fy, inv_depth, bf)
 
 
 @njit(cache=True, nogil=True)
 def _robust_system(
-    R: F64, t: F64, P: F64, xy: F64, info: F64, fx: float, fy: float, delta: float, build: bool
+    R: F64, t: F64, P: F64, xy: F64, info: F64, izm: F64, bf: float, fx: float, fy: float, delta: float,
+    build: bool,
 ) -> tuple[F64, F64, float, int]:
     """Gauss-Newton system (H (6, 6), g (6,)) and Huber cost of the pose (R, t).
 
@@ -270,6 +284,9 @@ def _robust_system(
     Jacobian rows for the left perturbation xi = (rho, omega), x = X/Z, y = Y/Z:
     d r_u / d xi = fx [1/Z, 0, -x/Z, -x y, 1 + x^2, -y],
     d r_v / d xi = fy [0, 1/Z, -y/Z, -(1 + y^2), x y, x].
+    Where the observation has a measured inverse depth ``izm > 0`` (RGB-D), a third
+    residual on ORB-SLAM2's virtual right coordinate u_r = u - bf / Z:
+    r_r = r_u - bf (1/Z - izm), d r_r / d xi = d r_u / d xi + bf / Z^2 [0, 0, 1, Y, -X, 0].
     IRLS weight: information (1/sigma^2) times Huber's min(1, delta / e). Points behind
     the camera are left out and counted (last return value).
     """
@@ -277,6 +294,7 @@ def _robust_system(
     g = np.zeros(6)
     ju = np.zeros(6)
     jv = np.zeros(6)
+    jr = np.zeros(6)
     cost = 0.0
     behind = 0
     for i in range(P.shape[0]):
@@ -291,7 +309,9 @@ def _robust_system(
         y = Y * iz
         ru = fx * (x - xy[i, 0])
         rv = fy * (y - xy[i, 1])
-        e2 = info[i] * (ru * ru + rv * rv)
+        stereo = bf > 0.0 and izm[i] > 0.0
+        rr = ru - bf * (iz - izm[i]) if stereo else 0.0
+        e2 = info[i] * (ru * ru + rv * rv + rr * rr)
         e = math.sqrt(e2)
         if e <= delta:
             cost += e2
@@ -313,10 +333,20 @@ def _robust_system(
         jv[3] = -fy * (1.0 + y * y)
         jv[4] = fy * x * y
         jv[5] = fy * x
+        if stereo:
+            k = bf * iz * iz
+            for a in range(6):
+                jr[a] = ju[a]
+            jr[2] += k
+            jr[3] += k * Y
+            jr[4] -= k * X
+        else:
+            for a in range(6):
+                jr[a] = 0.0
         for a in range(6):
-            g[a] += w * (ju[a] * ru + jv[a] * rv)
+            g[a] += w * (ju[a] * ru + jv[a] * rv + jr[a] * rr)
             for b in range(a, 6):
-                H[a, b] += w * (ju[a] * ju[b] + jv[a] * jv[b])
+                H[a, b] += w * (ju[a] * ju[b] + jv[a] * jv[b] + jr[a] * jr[b])
     for a in range(6):
         for b in range(a):
             H[a, b] = H[b, a]
@@ -341,7 +371,8 @@ def _exp_left(xi: NDArray[np.floating], R: F64, t: F64) -> tuple[F64, F64]:
 
 @njit(cache=True, nogil=True)
 def _levenberg(
-    R: F64, t: F64, P: F64, xy: F64, info: F64, fx: float, fy: float, delta: float, iterations: int
+    R: F64, t: F64, P: F64, xy: F64, info: F64, izm: F64, bf: float, fx: float, fy: float, delta: float,
+    iterations: int,
 ) -> tuple[F64, F64]:
     """Levenberg-Marquardt on se(3) with left perturbation ``T <- exp(xi) T`` and Huber IRLS.
 
@@ -350,7 +381,7 @@ def _levenberg(
     """
     lam = 1e-4
     for _ in range(iterations):
-        H, g, cost, behind = _robust_system(R, t, P, xy, info, fx, fy, delta, True)
+        H, g, cost, behind = _robust_system(R, t, P, xy, info, izm, bf, fx, fy, delta, True)
         improved = False
         converged = False
         for _try in range(8):
@@ -362,7 +393,9 @@ def _levenberg(
                 lam *= 10.0
                 continue
             R_new, t_new = _exp_left(step, R, t)
-            _, _, cost_new, behind_new = _robust_system(R_new, t_new, P, xy, info, fx, fy, delta, False)
+            _, _, cost_new, behind_new = _robust_system(
+                R_new, t_new, P, xy, info, izm, bf, fx, fy, delta, False
+            )
             if cost_new <= cost and behind_new <= behind:
                 improved = True
                 converged = cost - cost_new <= 1e-12 * max(cost, 1.0) or np.max(np.abs(step)) < 1e-10
@@ -375,7 +408,8 @@ def _levenberg(
     return R, t
 
 
-def _optimize(T: F64, P: F64, xy: F64, info: F64, fx: float, fy: float, delta: float, iterations: int) -> F64:
+def _optimize(T: F64, P: F64, xy: F64, info: F64, izm: F64, bf: float, fx: float, fy: float, delta: float,
+              iterations: int) -> F64:
     """Robust LM refinement of ``T`` (4, 4) on the given correspondences (see :func:`_levenberg`)."""
     R, t = _levenberg(
         np.ascontiguousarray(T[:3, :3]),
@@ -383,6 +417,8 @@ def _optimize(T: F64, P: F64, xy: F64, info: F64, fx: float, fy: float, delta: f
         np.ascontiguousarray(P),
         np.ascontiguousarray(xy),
         np.ascontiguousarray(info),
+        np.ascontiguousarray(izm),
+        float(bf),
         float(fx),
         float(fy),
         float(delta),
@@ -407,6 +443,9 @@ def refine_pose_huber(
     sigma_px: ArrayLike | None = None,
     rounds: int = 4,
     chi2_threshold: float = CHI2_2DOF_95,
+    depth_m: ArrayLike | None = None,
+    bf: float = 0.0,
+    max_stereo_depth_m: float = 3.0,
 ) -> RefineResult:
     """Motion-only bundle adjustment of a camera pose (ORB-SLAM2's PoseOptimization).
 
@@ -433,7 +472,17 @@ def refine_pose_huber(
         sigma_px: per-point (N,) or scalar standard deviation of the observation in
             pixels, e.g. ``1.2 ** octave`` for pyramid level ``octave``; default 1.
         rounds: optimise / re-classify rounds (ORB-SLAM2: 4).
-        chi2_threshold: inlier gate on the whitened squared error (5.991: 95 %, 2 dof).
+        chi2_threshold: inlier gate on the whitened squared error (5.991: 95 %, 2 dof); an
+            RGB-D observation's gate is this times 7.815 / 5.991 (3 dof).
+        depth_m: (N,) measured depth of each observation in metres (RGB-D keypoints), or
+            None. With ``bf > 0``, observations with 0 < depth <= ``max_stereo_depth_m``
+            add ORB-SLAM2's virtual right coordinate ``u - bf / depth``, which pins the
+            distance to the points (forward motion toward a far wall is otherwise weakly
+            observed by reprojection alone).
+        bf: virtual stereo baseline times fx, pixels metres (ORB-SLAM2's ``Camera.bf``; 40
+            for a Kinect-class sensor); 0 disables the depth term.
+        max_stereo_depth_m: depth beyond which a keypoint is a monocular observation
+            (ORB-SLAM2's ``ThDepth`` times the baseline).
 
     Returns:
         :class:`RefineResult` ``(T_cam_world, inliers (N,), cost)``. With fewer than 3
@@ -457,6 +506,12 @@ def refine_pose_huber(
             f"refine_pose_huber: need rounds >= 1 and iterations >= 0, got {rounds}, {iterations}"
         )
 
+    izm_all = np.zeros(n)
+    if depth_m is not None and bf > 0:
+        z = np.broadcast_to(np.asarray(depth_m, dtype=np.float64), (n,))
+        close = np.isfinite(z) & (z > _MIN_DEPTH) & (z <= max_stereo_depth_m)
+        izm_all[close] = 1.0 / z[close]
+    gate_all = np.where(izm_all > 0, chi2_threshold * CHI2_3DOF_95 / CHI2_2DOF_95, chi2_threshold)
     xy_all = np.full((n, 2), np.nan)
     valid = np.all(np.isfinite(P_all), axis=1) & np.all(np.isfinite(uv_all), axis=1) & np.isfinite(info_all)
     xy_all[valid] = _normalized(camera, uv_all[valid])
@@ -465,7 +520,7 @@ def refine_pose_huber(
     inliers = np.zeros(n, np.bool_)
     if idx.size < 3:
         return RefineResult(T, inliers, math.inf)
-    P, xy, info = P_all[idx], xy_all[idx], info_all[idx]
+    P, xy, info, izm, gate = P_all[idx], xy_all[idx], info_all[idx], izm_all[idx], gate_all[idx]
     fx, fy = camera.fx, camera.fy
 
     active = np.ones(idx.size, np.bool_)
@@ -473,17 +528,18 @@ def refine_pose_huber(
         if int(active.sum()) < 3:
             break
         delta = float(huber_px) if rnd < rounds - 1 or rounds == 1 else math.inf
-        T = _optimize(T, P[active], xy[active], info[active], fx, fy, delta, iterations)
-        e2 = _whitened_error2(T, P, xy, info, fx, fy)
-        active = e2 <= chi2_threshold  # inf (behind the camera) is never an inlier
-    e2 = _whitened_error2(T, P, xy, info, fx, fy)
-    inliers[idx] = e2 <= chi2_threshold
+        T = _optimize(T, P[active], xy[active], info[active], izm[active], bf, fx, fy, delta, iterations)
+        e2 = _whitened_error2(T, P, xy, info, fx, fy, izm, bf)
+        active = e2 <= gate  # inf (behind the camera) is never an inlier
+    e2 = _whitened_error2(T, P, xy, info, fx, fy, izm, bf)
+    inliers[idx] = e2 <= gate
     cost = _huber_cost(e2[np.isfinite(e2)], float(huber_px))
     return RefineResult(T, inliers, cost)
 
 
 __all__ = [
     "CHI2_2DOF_95",
+    "CHI2_3DOF_95",
     "HUBER_PX_DEFAULT",
     "MIN_PNP_POINTS",
     "PnpResult",

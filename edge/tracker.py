@@ -6,7 +6,9 @@ against the local map, predicted by wheel odometry (or a constant-velocity model
 EPnP in RANSAC -> Huber motion-only refinement -> keyframe decision. When RGB is too
 dark or yields too few inliers: relocalisation against recent keyframes, then tracking
 on thermal SIFT with depth moved through the calibration (paper 003 Sec. IV-C), then
-wheel odometry. Every result says which source produced the pose.
+wheel odometry; without odometry (a hand-held or odometry-less camera), depth-only ICP
+against the last measured frame (``edge/icp.py``) before giving up. Every result says
+which source produced the pose.
 
 The tracker's world frame is the robot's odom frame when odometry and ``T_base_rgb``
 are known at the first frame (so poses are ``T_odom_camera``), else the first camera
@@ -34,6 +36,7 @@ from wardmap.edge.features import (
     match_projected,
     thermal_to_gray8,
 )
+from wardmap.edge.icp import DepthPyramid, IcpConfig, icp
 from wardmap.edge.mapstore import Keyframe, MapPoints
 from wardmap.edge.pose import refine_pose_huber, solve_pnp_ransac
 from wardmap.shared.camera import PinholeCamera
@@ -45,7 +48,7 @@ from wardmap.shared.semantic import SemanticConfig, dynamic_mask, semantic_dista
 log = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
-PoseSource = Literal["init", "rgb", "relocalised", "thermal", "odometry", "motion_model", "none"]
+PoseSource = Literal["init", "rgb", "relocalised", "thermal", "depth", "odometry", "motion_model", "none"]
 
 
 @dataclass(frozen=True)
@@ -56,6 +59,7 @@ class TrackerConfig:
         orb: ORB extraction (paper 003 grid).
         sift: thermal SIFT with adaptive contrast threshold (paper 003 Sec. IV-C).
         semantic: dynamic-point removal (paper 001: n = 21, delta = 55, distance 110).
+        icp: the depth-only fallback for blurred RGB frames when there is no odometry.
         match_radius_px: search radius around a map point's predicted pixel.
         match_radius_lost_px: wider radius for a second attempt.
         refine_radius_px: window of the second, pose-refining match pass (0 disables it).
@@ -78,11 +82,17 @@ class TrackerConfig:
         thermal_odometry_blend: weight of a thermal pose against the odometry prediction
             (1 = thermal alone); thermal poses are noisier frame to frame than odometry.
         max_fuse_weight: cap of a map point's averaging weight (lets points keep adapting).
+        rgbd_bf: virtual stereo baseline times fx (ORB-SLAM2's ``Camera.bf``, 40 for a
+            Kinect-class camera): keypoints with depth add a virtual right coordinate to
+            the pose refinement (``refine_pose_huber``); 0 = reprojection only.
+        rgbd_max_depth_m: keypoints farther than this are monocular observations
+            (ORB-SLAM2's ``ThDepth`` x baseline: 40 x 40 / 517 = 3.1 m).
     """
 
     orb: OrbConfig = field(default_factory=OrbConfig)
     sift: SiftConfig = field(default_factory=SiftConfig)
     semantic: SemanticConfig = field(default_factory=SemanticConfig)
+    icp: IcpConfig = field(default_factory=IcpConfig)
     match_radius_px: float = 15.0
     match_radius_lost_px: float = 40.0
     refine_radius_px: float = 4.0
@@ -103,6 +113,8 @@ class TrackerConfig:
     max_lost_before_restart: int = 5
     direct_from_prior: bool = True
     max_fuse_weight: float = 20.0
+    rgbd_bf: float = 40.0
+    rgbd_max_depth_m: float = 3.1
 
     def __post_init__(self) -> None:
         if self.min_inliers < 6:
@@ -196,6 +208,11 @@ class Tracker:
         self._thermal_pending: tuple[NDArray[np.float32], NDArray[np.float32], F64] | None = None
         self._sift_contrast: float | None = None
         self._T_world_odom: F64 | None = None
+        # Depth of the last frame with a measured pose, for the ICP fallback: the array and
+        # its pose are kept, the pyramid is built only when a frame needs it.
+        self._depth_ref: tuple[F64, NDArray[np.float32]] | None = None
+        self._depth_ref_pyr: DepthPyramid | None = None
+        self._rays: F64 | None = None
 
     # ------------------------------------------------------------------ public
     def track(self, inp: TrackInput) -> TrackResult:
@@ -259,6 +276,7 @@ class Tracker:
             T = prior
             self._insert_keyframe(inp.stamp, T, feats, kp_depth, sem, new_all=True)
             self._accept(inp, T, n_inliers=len(feats.uv))
+            self._set_depth_ref(T, depth)
             self._maybe_thermal_ref(inp, depth, T, timings)
             return self._result(
                 inp, T, "init", False, "", feats, n_dyn, 0, len(feats.uv), True, timings, t_start
@@ -272,12 +290,12 @@ class Tracker:
         timings["match"] = _ms(t0)
 
         t0 = time.perf_counter()
-        T_cw, inl = self._pose_from_matches(m_idx, f_idx, feats, T_cw_prior)
+        T_cw, inl = self._pose_from_matches(m_idx, f_idx, feats, kp_depth, T_cw_prior)
         timings["pose"] = _ms(t0)
         source: PoseSource = "rgb"
         if T_cw is None:
             t0 = time.perf_counter()
-            T_cw, inl, m_idx, f_idx = self._relocalise(feats)
+            T_cw, inl, m_idx, f_idx = self._relocalise(feats, kp_depth)
             timings["relocalise"] = _ms(t0)
             source = "relocalised"
             if T_cw is not None and prior_source == "odometry" and not _near(inverse(T_cw), prior, 0.5, 20.0):
@@ -299,8 +317,10 @@ class Tracker:
             )
             # Start a fresh map from this frame when its pose was measured (thermal, odometry);
             # after a guess, keep the old map a few frames so relocalisation can recover.
+            # A depth pose keeps the old map: the next sharp frame is still likely to fit it.
             self._rgb_failures += 1
-            if not result.lost or self._rgb_failures > self.cfg.max_lost_before_restart:
+            measured = not result.lost and result.source != "depth"
+            if measured or self._rgb_failures > self.cfg.max_lost_before_restart:
                 self._restart_map(inp.stamp, result.T_world_camera, feats, kp_depth, sem)
                 self._rgb_failures = 0
             return result
@@ -312,8 +332,8 @@ class Tracker:
             m2, f2 = self._match_map(T_cw, feats, sem, self.cfg.refine_radius_px)
             if len(m2) >= int(inl.sum()):
                 sigma = np.power(self.cfg.orb.scale_factor, feats.octave[f2].astype(np.float64))
-                T2, inl2, _ = refine_pose_huber(
-                    self.map.pos_world[m2], feats.uv[f2].astype(np.float64), self.cam, T_cw, sigma_px=sigma
+                T2, inl2 = self._refine(
+                    self.map.pos_world[m2], feats.uv[f2].astype(np.float64), T_cw, sigma, kp_depth[f2]
                 )
                 if int(inl2.sum()) >= self.cfg.min_inliers:
                     T_cw, inl, m_idx, f_idx = T2, inl2, m2, f2
@@ -333,6 +353,7 @@ class Tracker:
         self._rgb_failures = 0
         timings["map"] = _ms(t0)
         self._accept(inp, T, n_inliers=n_inl, keyframe=is_kf)
+        self._set_depth_ref(T, depth)
         return self._result(
             inp, T, source, False, "", feats, n_dyn, len(m_idx), n_inl, is_kf, timings, t_start
         )
@@ -371,30 +392,46 @@ class Tracker:
             m_idx, f_idx = m_idx[good], f_idx[good]
         return m_idx, f_idx
 
+    def _refine(
+        self, P: F64, uv: F64, T_cw: F64, sigma: F64, z: NDArray[np.float64]
+    ) -> tuple[F64, NDArray[np.bool_]]:
+        """Huber motion-only refinement with the RGB-D term for keypoint depths ``z`` (N,), metres."""
+        T, inl, _ = refine_pose_huber(
+            P, uv, self.cam, T_cw, sigma_px=sigma, depth_m=z, bf=self.cfg.rgbd_bf,
+            max_stereo_depth_m=self.cfg.rgbd_max_depth_m,
+        )
+        return T, inl
+
     def _pose_from_matches(
-        self, m_idx: NDArray[np.intp], f_idx: NDArray[np.intp], feats: Features, T_cw_prior: F64
+        self,
+        m_idx: NDArray[np.intp],
+        f_idx: NDArray[np.intp],
+        feats: Features,
+        kp_depth: NDArray[np.float64],
+        T_cw_prior: F64,
     ) -> tuple[F64 | None, NDArray[np.bool_]]:
         if len(m_idx) < self.cfg.min_inliers:
             return None, np.zeros(len(m_idx), bool)
         P = self.map.pos_world[m_idx]
         uv = feats.uv[f_idx].astype(np.float64)
         sigma = np.power(self.cfg.orb.scale_factor, feats.octave[f_idx].astype(np.float64))
+        z = kp_depth[f_idx]
         if self.cfg.direct_from_prior:
             # ORB-SLAM2 tracks from its motion model without RANSAC: the Huber refinement
             # started at the prior. RANSAC (EPnP) only when that keeps too few inliers.
-            T_cw, inl, _ = refine_pose_huber(P, uv, self.cam, T_cw_prior, sigma_px=sigma)
+            T_cw, inl = self._refine(P, uv, T_cw_prior, sigma, z)
             if int(inl.sum()) >= max(self.cfg.min_inliers, 0.5 * len(m_idx)):
                 return T_cw, inl
         pnp = solve_pnp_ransac(P, uv, self.cam, T_cam_world_guess=T_cw_prior)
         if not pnp.ok or int(pnp.inliers.sum()) < self.cfg.min_inliers:
             return None, np.zeros(len(m_idx), bool)
-        T_cw, inl, _ = refine_pose_huber(P, uv, self.cam, pnp.T_cam_world, sigma_px=sigma)
+        T_cw, inl = self._refine(P, uv, pnp.T_cam_world, sigma, z)
         if int(inl.sum()) < self.cfg.min_inliers:
             return None, inl
         return T_cw, inl
 
     def _relocalise(
-        self, feats: Features
+        self, feats: Features, kp_depth: NDArray[np.float64]
     ) -> tuple[F64 | None, NDArray[np.bool_], NDArray[np.intp], NDArray[np.intp]]:
         """Match against recent keyframes by descriptor alone; EPnP on the best one."""
         best: tuple[F64 | None, NDArray[np.bool_], NDArray[np.intp], NDArray[np.intp]] = (
@@ -428,7 +465,7 @@ class Tracker:
         # Re-match the local map from the relocalised pose so map points are fused as usual.
         T_reloc = best[0]
         m_idx, f_idx = self._match_map(T_reloc, feats, None, self.cfg.match_radius_px)
-        T_new, inl = self._pose_from_matches(m_idx, f_idx, feats, T_reloc)
+        T_new, inl = self._pose_from_matches(m_idx, f_idx, feats, kp_depth, T_reloc)
         if T_new is None:
             return None, np.zeros(0, bool), np.zeros(0, np.intp), np.zeros(0, np.intp)
         return T_new, inl, m_idx, f_idx
@@ -478,6 +515,31 @@ class Tracker:
             return None
         self._thermal_last = (feats, int(inl.sum()), len(ref_world))
         return inverse(T_rgb_th @ T_th_w)
+
+    def _depth_pose(self, depth: NDArray[np.float32], prior: F64, timings: dict[str, float]) -> F64 | None:
+        """``T_world_camera`` by depth ICP against the last measured frame, or None (logged)."""
+        cfg = self.cfg.icp
+        if not cfg.enabled or self._depth_ref is None:
+            return None
+        t0 = time.perf_counter()
+        if self._rays is None:
+            self._rays = self.cam.pixel_rays()
+        T_ref, ref_depth = self._depth_ref
+        if self._depth_ref_pyr is None:
+            self._depth_ref_pyr = DepthPyramid(ref_depth, self.cam, cfg, self._rays)
+        cur = DepthPyramid(depth, self.cam, cfg, self._rays)
+        res = icp(self._depth_ref_pyr, cur, self.cam, inverse(T_ref) @ prior, cfg)
+        timings["depth"] = _ms(t0)
+        if not res.ok:
+            log.debug("depth fallback refused: %s", res.reason)
+            return None
+        T = T_ref @ res.T_ref_cur
+        self._set_depth_ref(T, depth, cur)
+        return T
+
+    def _set_depth_ref(self, T: F64, depth: NDArray[np.float32], pyramid: DepthPyramid | None = None) -> None:
+        self._depth_ref = (T, depth)
+        self._depth_ref_pyr = pyramid
 
     def _maybe_thermal_ref(
         self, inp: TrackInput, depth: NDArray[np.float32], T: F64, timings: dict[str, float]
@@ -623,11 +685,16 @@ class Tracker:
             worn = n_inl < max(2 * self.cfg.min_inliers, 0.3 * n_ref)
             if worn or np.linalg.norm(T_th[:3, 3] - self._thermal_ref_T[:3, 3]) > 0.5:
                 self._set_thermal_ref(feats_th, depth, T_th)
+        T_depth = None
+        if T_th is None and prior_source == "motion_model" and depth is not None:
+            T_depth = self._depth_pose(depth, prior, timings)
         source: PoseSource
         if T_th is not None:
             T, source, lost = T_th, "thermal", False
         elif prior_source == "odometry":
             T, source, lost = prior, "odometry", False
+        elif T_depth is not None:
+            T, source, lost = T_depth, "depth", False
         else:
             T, source, lost = prior, "none" if prior_source == "none" else "motion_model", True
         self._accept(inp, T, n_inliers=self._kf_inliers, keyframe=False)

@@ -71,7 +71,9 @@ RASTER_ZLIB_LEVEL: Final = 1
 """zlib level of :data:`RASTER_CODEC`; level 3 saves ~1 % for ~30 % more encode time."""
 _UNIT_RANGE: Final = (1e-6, 1.0)
 
-PoseSource: TypeAlias = Literal["init", "rgb", "relocalised", "thermal", "odometry", "motion_model", "none"]
+PoseSource: TypeAlias = Literal[
+    "init", "rgb", "relocalised", "thermal", "depth", "odometry", "motion_model", "none"
+]
 """What produced a keyframe's pose; the same values as ``wardmap.edge.tracker.PoseSource``."""
 AckStatus: TypeAlias = Literal["stored", "duplicate", "rejected"]
 POSE_SOURCES: Final[tuple[str, ...]] = get_args(PoseSource)

@@ -228,17 +228,21 @@ def test_refine_with_too_few_points_returns_initial_pose() -> None:
         refine_pose_huber(P, uv, PINHOLE, np.eye(3))
 
 
-def test_analytic_jacobian_matches_finite_differences() -> None:
+@pytest.mark.parametrize("bf", [0.0, 40.0], ids=["mono", "rgbd"])
+def test_analytic_jacobian_matches_finite_differences(bf: float) -> None:
     """Gradient g = J^T W r of the normal equations equals half the numeric cost gradient.
 
     Left perturbation: cost(exp(xi) T); inside the Huber threshold the cost is the plain
-    sum of squares, whose gradient is 2 J^T r.
+    sum of squares, whose gradient is 2 J^T r. With ``bf`` > 0 every point also has a
+    measured inverse depth (the RGB-D virtual right coordinate).
     """
     P, uv, _ = _scene(PINHOLE, 40, 0.3, 0.0, seed=11)
     xy = np.column_stack([(uv[:, 0] - PINHOLE.cx) / PINHOLE.fx, (uv[:, 1] - PINHOLE.cy) / PINHOLE.fy])
     info = np.ones(40)
+    z_true = transform_points(T_TRUE, P)[:, 2]
+    izm = 1.0 / (z_true * (1.0 + 0.01 * np.random.default_rng(3).standard_normal(40))) if bf else np.zeros(40)
     T = se3_exp([0.002, -0.001, 0.001, 0.001, 0.0, -0.001]) @ T_TRUE
-    args = (PINHOLE.fx, PINHOLE.fy, 1e9)
+    args = (izm, bf, PINHOLE.fx, PINHOLE.fy, 1e9)
     _, g, _, _ = _robust_system(T[:3, :3].copy(), T[:3, 3].copy(), P, xy, info, *args, True)
     num = np.zeros(6)
     h = 1e-7
@@ -251,3 +255,26 @@ def test_analytic_jacobian_matches_finite_differences() -> None:
         num[k] = (cp - cm) / (2 * h)
     np.testing.assert_allclose(2 * g, num, rtol=1e-4, atol=1e-3)
     assert pytest.approx(5.991) == CHI2_2DOF_95
+
+
+def test_rgbd_term_pins_the_distance_to_a_small_patch() -> None:
+    """60 points in a 40 px window 1-1.5 m ahead, 1 px pixel noise, 0.5 % depth noise: the
+    pose from reprojection alone is poorly pinned; the RGB-D virtual right coordinate
+    (ORB-SLAM2, bf = 40) halves the translation error (median of 20 trials)."""
+    rng = np.random.default_rng(5)
+    n = 60
+    uv_true = np.column_stack([rng.uniform(300, 340, n), rng.uniform(220, 260, n)])
+    z = rng.uniform(1.0, 1.5, n)
+    P = PINHOLE.unproject(uv_true, z)  # T_cam_world = identity
+    errs = {}
+    for bf in (0.0, 40.0):
+        e = []
+        for trial in range(20):
+            noise = np.random.default_rng(100 + trial).normal(0.0, 1.0, (n, 2))
+            z_obs = z * (1.0 + 0.005 * np.random.default_rng(200 + trial).standard_normal(n))
+            T0 = se3_exp([0.0, 0.0, 0.1, 0.0, 0.0, 0.0])  # 10 cm off along the optical axis
+            T, _, _ = refine_pose_huber(P, uv_true + noise, PINHOLE, T0, depth_m=z_obs, bf=bf)
+            e.append(float(np.linalg.norm(T[:3, 3])))
+        errs[bf] = float(np.median(e))
+    assert errs[40.0] < 0.006
+    assert errs[40.0] < 0.7 * errs[0.0]

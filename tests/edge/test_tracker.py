@@ -12,7 +12,7 @@ import pytest
 
 from wardmap.edge.offline import track_dataset
 from wardmap.edge.tracker import Tracker, TrackInput
-from wardmap.shared.dataset import DatasetReader
+from wardmap.shared.dataset import DatasetReader, pose_at
 from wardmap.shared.metrics import ate
 from wardmap.shared.se3 import transform_from_tum
 from wardmap.sim.runner import generate
@@ -74,9 +74,8 @@ def _frames(reader: DatasetReader, n: int) -> list[TrackInput]:
         (lambda f: TrackInput(f.stamp, f.rgb, np.zeros_like(f.depth_m)), "no valid pixel"),
         (lambda f: TrackInput(f.stamp, f.rgb, np.full_like(f.depth_m, np.nan)), "no valid pixel"),
         (lambda f: TrackInput(f.stamp, f.rgb, f.depth_m[:10]), "shape"),
-        (lambda f: TrackInput(f.stamp, np.zeros_like(f.rgb), f.depth_m), "too dark"),
     ],
-    ids=["no-rgb", "empty-rgb", "zero-depth", "nan-depth", "bad-shape", "black-rgb"],
+    ids=["no-rgb", "empty-rgb", "zero-depth", "nan-depth", "bad-shape"],
 )
 def test_bad_frames_are_lost_with_a_reason(aisle_clip: Path, corrupt: object, reason: str) -> None:
     """A bad frame in the middle of a clip is marked lost (no odometry here) with a reason,
@@ -92,6 +91,34 @@ def test_bad_frames_are_lost_with_a_reason(aisle_clip: Path, corrupt: object, re
     assert np.all(np.isfinite(bad.T_world_camera))
     after = [tracker.track(f) for f in frames[7:]]
     assert after[-1].source == "rgb" and not after[-1].lost
+
+
+def test_black_rgb_frame_is_bridged_by_depth(aisle_clip: Path) -> None:
+    """Without odometry, a black RGB frame with good depth gets its pose from depth ICP (close to
+    the ground truth); with the depth fallback off it is lost, "RGB too dark"."""
+    from wardmap.edge.icp import IcpConfig
+    from wardmap.edge.tracker import TrackerConfig
+
+    reader = DatasetReader(aisle_clip)
+    gt = reader.groundtruth()
+    assert gt is not None
+    frames = _frames(reader, 8)
+    black = TrackInput(frames[6].stamp, np.zeros_like(frames[6].rgb), frames[6].depth_m)
+    for config, lost in ((TrackerConfig(), False), (TrackerConfig(icp=IcpConfig(enabled=False)), True)):
+        tracker = Tracker(reader.calibration, config)
+        first = tracker.track(frames[0])
+        for f in frames[1:6]:
+            tracker.track(f)
+        res = tracker.track(black)
+        assert res.lost is lost and "too dark" in res.reason
+        if not lost:
+            assert res.source == "depth"
+            rel = np.linalg.inv(first.T_world_camera) @ res.T_world_camera
+            T0, T6 = (pose_at(gt[0], gt[1], frames[i].stamp) for i in (0, 6))
+            assert T0 is not None and T6 is not None
+            rel_gt = np.linalg.inv(T0) @ T6
+            assert np.linalg.norm(rel[:3, 3] - rel_gt[:3, 3]) < 0.03
+        assert tracker.track(frames[7]).source == "rgb"
 
 
 def test_nan_in_depth_is_tolerated(aisle_clip: Path) -> None:
