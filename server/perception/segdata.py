@@ -164,6 +164,8 @@ class TrainSegConfig:
         class_weight_power: cross-entropy weight ``(median_freq / freq) ** power`` per class.
         max_class_weight: upper clip of the class weights.
         max_steps: stop after this many optimiser steps (0: no limit; smoke tests).
+        channels_last: train in NHWC memory layout (about 1.5-2x faster steps on CPU with
+            two threads, measured; the exported ONNX file is the same either way).
     """
 
     seed: int = 0
@@ -191,6 +193,7 @@ class TrainSegConfig:
     class_weight_power: float = 0.5
     max_class_weight: float = 10.0
     max_steps: int = 0
+    channels_last: bool = True
 
     def __post_init__(self) -> None:
         if any(s >= EVAL_SEED_MIN for s in self.data.seeds):

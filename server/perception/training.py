@@ -27,7 +27,7 @@ import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -272,6 +272,8 @@ def train_model(
     torch.use_deterministic_algorithms(True, warn_only=True)
     num_classes = len(samples.names)
     model = BaffSkipNet(cfg, num_classes)
+    layout = torch.channels_last if cfg.channels_last else torch.contiguous_format
+    model = cast(Any, model).to(memory_format=layout)
     weights = torch.from_numpy(
         class_weights(samples.classes, num_classes, cfg.class_weight_power, cfg.max_class_weight)
     )
@@ -293,6 +295,7 @@ def train_model(
                 break
             pairs = [augment(samples.rgb[i], samples.classes[i], rng, cfg.crop) for i in idx]
             x = torch.from_numpy(np.stack([p[0] for p in pairs])).permute(0, 3, 1, 2).float().div_(255.0)
+            x = x.contiguous(memory_format=layout)
             y = torch.from_numpy(np.stack([p[1] for p in pairs]).astype(np.int64))
             loss = loss_fn(model(x), y)
             opt.zero_grad(set_to_none=True)
@@ -314,6 +317,7 @@ def train_model(
             )
         if step >= total:
             break
+    model = cast(Any, model).to(memory_format=torch.contiguous_format)
     model.eval()
     return model, losses
 
