@@ -160,6 +160,7 @@ def instances_from_classes(
     depth_jump_m: float = 0.15,
     depth_jump_relative: float = 0.05,
     min_pixels: int = 200,
+    min_confidence: float = 0.0,
 ) -> list[Instance]:
     """Instances of a per-pixel class map: per-class connected components split at depth jumps.
 
@@ -178,6 +179,8 @@ def instances_from_classes(
         depth_jump_m: smallest depth step (metres) that separates instances.
         depth_jump_relative: the step threshold as a fraction of depth, when larger.
         min_pixels: components with fewer pixels are left out (logged at debug).
+        min_confidence: components whose mean confidence is lower are left out (logged at
+            debug): the ragged fringes a network leaves where it hesitates between classes.
 
     Returns:
         Instances ordered by class index, then by component size (largest first).
@@ -198,6 +201,8 @@ def instances_from_classes(
             )
     if not (depth_jump_m > 0 and depth_jump_relative >= 0):
         raise GeometryError("instances_from_classes: depth_jump_m must be > 0, depth_jump_relative >= 0")
+    if not 0.0 <= min_confidence <= 1.0:
+        raise GeometryError(f"instances_from_classes: min_confidence must lie in 0..1, got {min_confidence}")
     depth = np.where(np.isfinite(depth) & (depth > 0), depth, np.float32(0.0)).astype(np.float32)
     jump = np.maximum(np.float32(depth_jump_m), np.float32(depth_jump_relative) * depth)
     present = np.unique(classes)
@@ -224,7 +229,7 @@ def instances_from_classes(
     _grow_into(labels, classes, depth, cut & (labels == 0), jump)
     sizes = np.bincount(labels.ravel(), minlength=len(class_of))
     out: list[Instance] = []
-    small = 0
+    small = unsure = 0
     for index in present.tolist():
         if index == 0:
             continue
@@ -235,9 +240,13 @@ def instances_from_classes(
                 continue
             mask = labels == k
             score = float(conf[mask].mean()) if conf is not None else 1.0
+            if score < min_confidence:
+                unsure += 1
+                continue
             out.append(Instance(class_names[index], score, mask, box_of_mask(mask)))
-    if small:
-        log.debug("instances_from_classes: %d component(s) below %d pixels left out", small, min_pixels)
+    if small or unsure:
+        log.debug("instances_from_classes: left out %d component(s) below %d pixels and %d below "
+                  "confidence %.2f", small, min_pixels, unsure, min_confidence)
     return out
 
 

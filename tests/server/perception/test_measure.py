@@ -221,6 +221,22 @@ def test_connected_components_split_at_a_depth_jump() -> None:
         instances_from_classes(classes, depth, ["background", "person"])
 
 
+def test_low_confidence_components_are_left_out() -> None:
+    """Two chairs, one the network is unsure of (mean confidence 0.4): min_confidence 0.5 keeps one."""
+    classes = np.zeros((60, 100), np.uint8)
+    depth = np.full((60, 100), 3.0, np.float32)
+    classes[10:50, 5:40] = 2
+    classes[10:50, 60:95] = 2
+    conf = np.full((60, 100), 0.9, np.float32)
+    conf[10:50, 60:95] = 0.4
+    names = ["background", "person", "chair"]
+    kept = instances_from_classes(classes, depth, names, conf, min_pixels=100, min_confidence=0.5)
+    assert len(kept) == 1 and kept[0].box_xyxy[0] == 5
+    assert len(instances_from_classes(classes, depth, names, conf, min_pixels=100)) == 2
+    with pytest.raises(GeometryError, match="min_confidence"):
+        instances_from_classes(classes, depth, names, conf, min_confidence=1.5)
+
+
 def test_gt_instance_attached_by_majority() -> None:
     labels = np.zeros((20, 20), np.uint16)
     labels[:, :12] = 5
