@@ -490,6 +490,8 @@ def _pipeline_metrics(c: PipelineCounters) -> str:
         ("wardmap_mapping_failures_total", "counter", "Keyframes perception skipped, by error type.",
          [(f'{{reason="{_label(r)}"}}', n) for r, n in sorted(c.failures.items())]),
         ("wardmap_mapping_landmarks", "gauge", "Landmarks the associator holds.", [("", c.landmarks)]),
+        ("wardmap_mapping_restarts_total", "counter",
+         "Unexpected errors the mapping stage recovered from (see the server log).", [("", c.restarts)]),
     ]
     out = []
     for name, kind, help_text, samples in rows:

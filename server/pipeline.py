@@ -24,6 +24,13 @@ perception is re-run) and upserts the landmarks; then it continues after its cur
 Backlog: ``backlog`` = stored keyframes not yet processed, exported on ``/metrics``.
 A keyframe whose perception fails (corrupt image, model error) is counted by reason, logged,
 and skipped: the keyframe itself stays stored.
+
+Unexpected errors (a bug, a full disk): the stage logs them, counts a restart on ``/metrics``,
+waits (``retry_s``, doubling up to ``max_retry_s``), rebuilds the associator by replay (the
+failed round may have left it half-updated) and carries on from its cursor. When the same
+keyframe fails ``max_attempts`` times in a row it is skipped as ``internal: <error type>``
+(counted with the other failures; the keyframe stays stored), so one bad keyframe cannot stall
+the map. Nothing is committed twice: measurements and the cursor move in one transaction.
 """
 
 from __future__ import annotations
@@ -68,17 +75,27 @@ class PipelineConfig:
         enabled: run the stage at all (off: the server only stores keyframes).
         poll_s: how long the thread sleeps when no keyframe is waiting.
         batch: keyframes read from the store per round.
+        retry_s: first wait after an unexpected error; doubles on each further one.
+        max_retry_s: longest wait between attempts.
+        max_attempts: attempts at one keyframe before it is skipped as an internal error.
     """
 
     enabled: bool = True
     poll_s: float = 0.2
     batch: int = 8
+    retry_s: float = 1.0
+    max_retry_s: float = 60.0
+    max_attempts: int = 3
 
     def __post_init__(self) -> None:
         if not self.poll_s > 0:
             raise ConfigError(f"pipeline.poll_s must be > 0, got {self.poll_s}")
         if self.batch < 1:
             raise ConfigError(f"pipeline.batch must be >= 1, got {self.batch}")
+        if not 0 < self.retry_s <= self.max_retry_s:
+            raise ConfigError("pipeline: need 0 < retry_s <= max_retry_s")
+        if self.max_attempts < 1:
+            raise ConfigError(f"pipeline.max_attempts must be >= 1, got {self.max_attempts}")
 
 
 @dataclass(frozen=True)
@@ -94,6 +111,8 @@ class PipelineCounters:
         backlog: stored keyframes not processed yet.
         failures: keyframes skipped, by reason.
         landmarks: landmarks the associator holds.
+        restarts: unexpected errors the stage recovered from.
+        last_error: the latest of them, ``Type: message`` (empty when none).
     """
 
     processed: int
@@ -104,6 +123,8 @@ class PipelineCounters:
     backlog: int
     failures: dict[str, int]
     landmarks: int
+    restarts: int = 0
+    last_error: str = ""
 
 
 @dataclass
@@ -114,6 +135,8 @@ class _Counts:
     unanchored: int = 0
     replayed: int = 0
     failures: Counter[str] = field(default_factory=Counter)
+    restarts: int = 0
+    last_error: str = ""
 
 
 class MapPipeline:
@@ -181,7 +204,8 @@ class MapPipeline:
         with self._lock:
             c = self._counts
             return PipelineCounters(c.processed, c.measurements, c.mapped, c.unanchored, c.replayed,
-                                    self._backlog, dict(c.failures), len(self._associator.landmarks()))
+                                    self._backlog, dict(c.failures), len(self._associator.landmarks()),
+                                    c.restarts, c.last_error)
 
     def wait_idle(self, timeout_s: float) -> bool:
         """Block until no stored keyframe waits (tests, the demo); True if it happened in time."""
@@ -197,13 +221,53 @@ class MapPipeline:
     # ------------------------------------------------------------------ thread
 
     def _main(self) -> None:
-        try:
-            while not self._stop.is_set():
+        delay = self.cfg.retry_s
+        failing: tuple[int, int] | None = None  # (cursor, consecutive failures there)
+        while not self._stop.is_set():
+            try:
                 if self._round() == 0:
                     self._stop.wait(self.cfg.poll_s)
-        except BaseException as exc:  # reported by wait_idle and logged; ingest keeps running
-            self._error = exc
-            log.exception("mapping stage stopped")
+                delay, failing = self.cfg.retry_s, None
+            except Exception as exc:  # any bug: log, back off, recover
+                text = f"{type(exc).__name__}: {exc}"[:MAX_FAILURE_REASON]
+                with self._lock:
+                    self._counts.restarts += 1
+                    self._counts.last_error = text
+                log.exception("mapping stage: unexpected error; retrying in %.1f s", delay)
+                if self._stop.wait(delay):
+                    break
+                delay = min(2.0 * delay, self.cfg.max_retry_s)
+                try:
+                    cursor = self._cursor()
+                    failing = (cursor, failing[1] + 1 if failing and failing[0] == cursor else 1)
+                    if failing[1] >= self.cfg.max_attempts:
+                        self._skip_after(cursor, f"internal: {type(exc).__name__}")
+                        failing = None
+                    self._associator = Associator(self.association)
+                    self._replay()
+                except Exception:  # e.g. the database is still unreadable
+                    log.exception("mapping stage: recovery failed; retrying")
+            except BaseException as exc:  # reported by wait_idle and logged; ingest keeps running
+                self._error = exc
+                log.exception("mapping stage stopped")
+                return
+
+    def _skip_after(self, cursor: int, reason: str) -> None:
+        """Mark the first keyframe after ``cursor`` processed with no measurements, counted as ``reason``."""
+        with self.store.reading("mapping: keyframe to skip") as conn:
+            row = conn.execute(
+                "SELECT rowid, robot_id, session_id, seq FROM keyframes WHERE rowid > ? "
+                "ORDER BY rowid LIMIT 1",
+                (cursor,),
+            ).fetchone()
+        if row is None:
+            return
+        key = f"{row[1]}/{row[2]}/{int(row[3])}"
+        log.error("mapping stage: keyframe %s failed %d times; skipped (%s)",
+                  key, self.cfg.max_attempts, reason)
+        self._commit(int(row[0]), key, msg=None, measurements=[])
+        with self._lock:
+            self._counts.failures[reason] += 1
 
     def _round(self) -> int:
         cursor = self._cursor()

@@ -107,3 +107,45 @@ def test_measurement_blob_round_trip(anchored: list) -> None:
     for name in ("box_xyxy", "points_camera", "size", "color_hist", "descriptors", "T_world_object"):
         a, b = getattr(m, name), getattr(back, name)
         assert a.dtype == b.dtype and np.array_equal(a, b), name
+
+
+class _Flaky:
+    """A segmenter (no instances) that raises an unexpected error on the given call numbers."""
+
+    def __init__(self, failing_calls: set[int]) -> None:
+        self.failing_calls = failing_calls
+        self.calls = 0
+
+    def __call__(self, bgr: np.ndarray, depth_m: np.ndarray | None) -> list:
+        self.calls += 1
+        if self.calls in self.failing_calls:
+            raise RuntimeError(f"bug on call {self.calls}")
+        return []
+
+
+@pytest.mark.parametrize(
+    ("failing", "processed", "skipped"),
+    [({2}, 4, 0), ({2, 3, 4}, 3, 1)],
+    ids=["recovers", "skips-after-3-attempts"],
+)
+def test_unexpected_errors_restart_with_backoff(
+    tmp_path: Path, anchored: list, failing: set[int], processed: int, skipped: int
+) -> None:
+    """An unexpected error does not stop the stage: it backs off and resumes at its cursor; a
+    keyframe that fails max_attempts times is skipped, counted as internal, and the rest go on."""
+    with SqliteKeyframeStore.open(tmp_path / "map.db") as store:
+        for msg, payload in anchored[:4]:
+            store.insert(msg, payload, time.time())
+        seg = _Flaky(failing)
+        cfg = PipelineConfig(poll_s=0.02, retry_s=0.01, max_retry_s=0.05, max_attempts=3)
+        pipe = MapPipeline(store, ObjectMap(store), config=cfg, segmenter=seg)
+        pipe.start()
+        try:
+            assert pipe.wait_idle(30.0)
+            c = pipe.counters()
+        finally:
+            pipe.stop()
+    assert c.restarts == len(failing) and "RuntimeError: bug on call" in c.last_error
+    assert c.processed == processed
+    assert c.failures == ({"internal: RuntimeError": 1} if skipped else {})
+    assert c.backlog == 0
