@@ -18,8 +18,8 @@ is dropped). Updates are published from the object map's listener on the writer'
 after each commit, so a slow subscriber slows the map writer instead of losing updates; a
 failed put is logged and counted (``update_failures``).
 
-Payloads are msgpack maps with ``schema`` and ``version`` (docs/map_api.md has the fields).
-Poses use the wire convention of ``shared/wire.py``: ``{"t": [x, y, z], "q_xyzw": [...]}``.
+Payloads are msgpack maps with ``schema`` and ``version``, defined in ``shared/mapwire.py``
+so robots decode them without importing the server (docs/map_api.md has the fields).
 """
 
 from __future__ import annotations
@@ -31,8 +31,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Final
 
-import msgpack
-
 from wardmap.server.objectmap import (
     ObjectChange,
     ObjectMap,
@@ -42,8 +40,18 @@ from wardmap.server.objectmap import (
     ObjectRecord,
 )
 from wardmap.server.router import _first_line
-from wardmap.shared.errors import ConfigError, WardmapError, WireError
-from wardmap.shared.zenoh_config import KEY_PREFIX, client_config
+from wardmap.shared.errors import ConfigError, WardmapError
+from wardmap.shared.mapwire import (
+    ENCODING,
+    OBJECTS_KEY,
+    SCHEMA_ERROR,
+    SCHEMA_OBJECTS,
+    SCHEMA_UPDATE,
+    UPDATES_KEY,
+    decode_map_message,
+    pack_map_message,
+)
+from wardmap.shared.zenoh_config import client_config
 
 log = logging.getLogger(__name__)
 
@@ -59,16 +67,8 @@ __all__ = [
     "encode_update",
 ]
 
-OBJECTS_KEY: Final = f"{KEY_PREFIX}/map/objects"
-UPDATES_KEY: Final = f"{KEY_PREFIX}/map/updates"
-SCHEMA_OBJECTS: Final = "wardmap.map.objects"
-SCHEMA_UPDATE: Final = "wardmap.map.update"
-SCHEMA_ERROR: Final = "wardmap.map.error"
-VERSION: Final = 1
-ENCODING: Final = "application/msgpack"
 DEFAULT_CAPACITY: Final = 64
 """Queries the zenoh FIFO channel holds before zenoh applies backpressure."""
-MAX_MESSAGE_BYTES: Final = 16 * 2**20
 
 
 class MapServeError(WardmapError):
@@ -104,15 +104,9 @@ def _object(record: ObjectRecord, distance_m: float | None = None) -> dict[str, 
     return out
 
 
-def _pack(message: dict[str, Any]) -> bytes:
-    payload: bytes = msgpack.packb(message, use_bin_type=True)
-    return payload
-
-
 def encode_objects(page: ObjectPage) -> bytes:
     """The queryable's reply: ``{schema: wardmap.map.objects, version, objects, next_offset}``."""
-    return _pack({
-        "schema": SCHEMA_OBJECTS, "version": VERSION,
+    return pack_map_message(SCHEMA_OBJECTS, {
         "objects": [_object(hit.record, hit.distance_m) for hit in page.hits],
         "next_offset": page.next_offset,
     })
@@ -120,41 +114,15 @@ def encode_objects(page: ObjectPage) -> bytes:
 
 def encode_update(change: ObjectChange) -> bytes:
     """One map update: ``{schema: wardmap.map.update, version, kind, object[, merged_into]}``."""
-    message: dict[str, Any] = {
-        "schema": SCHEMA_UPDATE, "version": VERSION, "kind": change.kind, "object": _object(change.record),
-    }
+    message: dict[str, Any] = {"kind": change.kind, "object": _object(change.record)}
     if change.merged_into is not None:
         message["merged_into"] = change.merged_into
-    return _pack(message)
+    return pack_map_message(SCHEMA_UPDATE, message)
 
 
 def encode_error(detail: str) -> bytes:
     """A reply error: ``{schema: wardmap.map.error, version, detail}``."""
-    return _pack({"schema": SCHEMA_ERROR, "version": VERSION, "detail": str(detail)})
-
-
-def decode_map_message(payload: bytes, *, max_bytes: int = MAX_MESSAGE_BYTES) -> dict[str, Any]:
-    """Unpack a map message (objects reply, update or error) and check ``schema`` and ``version``.
-
-    Returns the message as a dict (fields as in docs/map_api.md).
-
-    Raises:
-        WireError: oversize, not msgpack, not a map, unknown schema or version.
-    """
-    if len(payload) > max_bytes:
-        raise WireError("", f"map message of {len(payload)} bytes exceeds {max_bytes}")
-    try:
-        message = msgpack.unpackb(bytes(payload), raw=False, strict_map_key=True)
-    except (ValueError, msgpack.UnpackException) as exc:
-        raise WireError("", f"not a msgpack map message: {exc}") from exc
-    if not isinstance(message, dict):
-        raise WireError("", f"expected a map, got {type(message).__name__}")
-    schema = message.get("schema")
-    if schema not in (SCHEMA_OBJECTS, SCHEMA_UPDATE, SCHEMA_ERROR):
-        raise WireError("schema", f"unknown map schema {str(schema)[:60]!r}")
-    if message.get("version") != VERSION:
-        raise WireError("version", f"unsupported version {message.get('version')!r:.20} of {schema}")
-    return message
+    return pack_map_message(SCHEMA_ERROR, {"detail": str(detail)})
 
 
 # --------------------------------------------------------------------------- the service
