@@ -306,14 +306,20 @@ class Associator:
             self._update_pose(lm)
 
     def _covisible(self, lm: _LandmarkState, views: Sequence[KeyframeView]) -> bool:
-        """True when the landmark's box is (partly) in the image, grown by a margin, of one of the views."""
+        """True when the landmark's box is (partly) in the image, grown by a margin, of one of the views.
+
+        For a class with a size bound (``HdpConfig.class_size_m``) the box is grown to it: a bed
+        seen so far only at its foot end is still co-visible from where its head end shows.
+        """
         cfg = self.config.hdp
+        bound = cfg.class_extent(lm.category)
+        size = lm.size if bound is None else np.maximum(lm.size, bound)
         for v in views:
             T_cw = inverse(v.T_world_camera)
             centre = T_cw[:3, :3] @ lm.centre + T_cw[:3, 3]
             if np.linalg.norm(centre) > cfg.covisibility_max_depth_m:
                 continue
-            box = project_box(lm.T_world_object, lm.size, v.T_world_camera, v.camera,
+            box = project_box(lm.T_world_object, size, v.T_world_camera, v.camera,
                               margin_px=cfg.covisibility_margin_px)
             if box is not None:
                 return True
@@ -352,7 +358,7 @@ class Associator:
         for it in items:
             centre = it.poses[refine_index(it.poses, cfg.refine), :3, 3]
             cands = []
-            for lid in self._grid.query(centre, cfg.hdp.candidate_radius_m):
+            for lid in self._grid.query(centre, cfg.hdp.search_radius(it.category)):
                 lm = self._landmarks[lid]
                 if lm.category != it.category or not self._covisible(lm, views):
                     continue

@@ -161,13 +161,22 @@ def world_extents(T_world_object: F64, size: F64) -> F64:
     return np.asarray(np.einsum("...ij,...j->...i", R_abs, size), dtype=np.float64)
 
 
-def partial_view_slack(residual_p: F64, extents_q: F64, extents_r: F64, factor: float) -> F64:
+def partial_view_slack(residual_p: F64, extents_q: F64, extents_r: F64, factor: float,
+                       class_extent: F64 | None = None) -> F64:
     """Position residuals (Q, R, 3) shrunk by the partial-view slack ``factor * |E_q - E_r| / 2`` per axis.
 
     A partly seen object is measured as a smaller box whose centre moves towards the seen
     part; if one view's box lies inside the other's, their centres differ by at most half
     the difference of their extents along each axis. Two full views of neighbouring
     identical objects have equal extents and keep their whole residual.
+
+    With ``class_extent`` (3,), the largest world-axis extent an object of the class can
+    have, two views that are both partial (e.g. a bed seen through two doors) may lie up to
+    ``S - (E_q + E_r) / 2`` apart per axis, which is the larger slack when neither box
+    contains the other; for two full views (``E = S``) it adds nothing.
     """
     slack = factor * np.abs(extents_q[:, None, :] - extents_r[None, :, :]) / 2.0
+    if class_extent is not None:
+        both = np.asarray(class_extent)[None, None, :] - (extents_q[:, None, :] + extents_r[None, :, :]) / 2.0
+        slack = np.maximum(slack, factor * np.maximum(both, 0.0))
     return np.asarray(np.sign(residual_p) * np.maximum(np.abs(residual_p) - slack, 0.0), dtype=np.float64)

@@ -81,6 +81,13 @@ class HdpConfig:
     objects are biased, so the landmark's box may fall just outside)."""
     symmetry: Symmetry = "quarter_turn"
     """Box symmetry about z used when comparing orientations."""
+    class_size_m: tuple[tuple[str, float, float], ...] = (
+        ("bed", 2.3, 1.1), ("door", 1.3, 2.3), ("cabinet", 1.3, 2.1), ("desk", 1.8, 0.9),
+        ("cart", 1.2, 1.2), ("wheelchair", 1.2, 1.1), ("sink", 0.9, 1.1), ("wall_monitor", 1.1, 0.8),
+    )
+    """Largest horizontal extent and height (metres) of large classes: two partial views of one
+    object may lie this far apart (``geometry.partial_view_slack``), and candidates are looked
+    for within the larger of this and ``candidate_radius_m``. Classes not listed get no prior."""
 
     def __post_init__(self) -> None:
         if not (self.concentration > 0 and self.sigma_position_m > 0 and self.sigma_angle_rad > 0
@@ -93,6 +100,23 @@ class HdpConfig:
         if (self.candidate_radius_m <= 0 or self.covisibility_max_depth_m <= 0
                 or self.covisibility_margin_px < 0):
             raise ValueError("candidate radius and co-visibility depth must be > 0, the margin >= 0")
+        for entry in self.class_size_m:
+            if len(entry) != 3 or not (entry[1] > 0 and entry[2] > 0):
+                raise ValueError(
+                    f"class_size_m entries are [class, horizontal m > 0, height m > 0], got {entry!r}"
+                )
+
+    def class_extent(self, category: str) -> F64 | None:
+        """World-axis extent bound (3,) ``(S, S, H)`` of ``category``, or None when not listed."""
+        for name, horizontal, height in self.class_size_m:
+            if name == category:
+                return np.array([horizontal, horizontal, height])
+        return None
+
+    def search_radius(self, category: str) -> float:
+        """Candidate search radius for ``category`` (metres)."""
+        ext = self.class_extent(category)
+        return self.candidate_radius_m if ext is None else max(self.candidate_radius_m, float(ext[0]))
 
 
 @dataclass(frozen=True, eq=False)
@@ -155,6 +179,7 @@ def gmm_log_density(
     component_sigmas: F64 | None = None,
     query_extents: F64 | None = None,
     component_extents: F64 | None = None,
+    class_extent: F64 | None = None,
 ) -> F64:
     """``log sum_z phi(O_q | Theta_z)`` (Q,) for query poses (Q, 4, 4), components (Z, 4, 4).
 
@@ -170,7 +195,8 @@ def gmm_log_density(
     cfg = config or HdpConfig()
     r = pose_residuals(query, components, symmetry_rotations(cfg.symmetry))  # (Q, Z, 6)
     if query_extents is not None and component_extents is not None and cfg.size_slack > 0:
-        r[..., :3] = partial_view_slack(r[..., :3], query_extents, component_extents, cfg.size_slack)
+        r[..., :3] = partial_view_slack(r[..., :3], query_extents, component_extents, cfg.size_slack,
+                                        class_extent)
     sq = np.full(len(query), cfg.sigma_position_m) if query_sigmas is None else query_sigmas
     sz = np.full(len(components), cfg.sigma_position_m) if component_sigmas is None else component_sigmas
     sigma = np.sqrt((sq[:, None] ** 2 + sz[None, :] ** 2) / 2.0)  # (Q, Z)
@@ -261,7 +287,8 @@ def gibbs_associate(
         key = (i, src)
         if key not in cache:
             cache[key] = gmm_log_density(items[i].poses, source_poses(src), cfg, items[i].sigmas,
-                                         source_sigmas(src), items[i].extents, source_extents(src))
+                                         source_sigmas(src), items[i].extents, source_extents(src),
+                                         cfg.class_extent(items[i].category))
         return cache[key]
 
     def loglik(i: int, sources: list[tuple[str, int]]) -> float:

@@ -53,6 +53,15 @@ def test_partial_view_slack() -> None:
     part = np.array([0.2, 1.0, 1.0])
     np.testing.assert_allclose(partial_view_slack(r, part[None], full[None], 1.0), [[[0.1, 0.0, 0.0]]])
     np.testing.assert_allclose(partial_view_slack(r, full[None], full[None], 1.0), r)
+    # With a class bound S = (2, 2, 1): two partial views (0.2 and 0.4 wide in x) of one object
+    # may lie S - (0.2 + 0.4) / 2 = 1.7 m apart in x; views as large as the bound (y here) keep
+    # their whole residual, smaller ones get the gap to the bound (x: 2 - 1 = 1 m).
+    bound = np.array([2.0, 2.0, 1.0])
+    far = np.array([[[1.8, 0.0, 0.0]]])
+    a, b = np.array([0.2, 2.0, 1.0]), np.array([0.4, 2.0, 1.0])
+    np.testing.assert_allclose(partial_view_slack(far, a[None], b[None], 1.0, bound), [[[0.1, 0.0, 0.0]]])
+    np.testing.assert_allclose(partial_view_slack(r, full[None], full[None], 1.0, np.array([2.0, 2.0, 1.0])),
+                               r - np.array([[[0.5, 0.0, 0.0]]]))
 
 
 def test_grid_query_matches_brute_force() -> None:
