@@ -74,6 +74,10 @@ class MeasureConfig:
     """Mask erosion radius in pixels before back-projection (mixed depth at borders)."""
     min_points: int = 50
     """Instances with fewer inlier points are skipped."""
+    min_depth_fraction: float = 0.25
+    """Instances whose mask has valid depth on a smaller share of its pixels are skipped: the
+    3D points then come from whatever part returns depth (a monitor's bezel and stand when the
+    black screen returns none), not from the object."""
     max_points: int = 3000
     """Points are subsampled (fixed stride) to at most this many before outlier removal."""
     depth_gap_m: float = 0.2
@@ -106,6 +110,10 @@ class MeasureConfig:
     def __post_init__(self) -> None:
         if not 0 < self.min_depth_m < self.max_depth_m:
             raise ConfigError("MeasureConfig: need 0 < min_depth_m < max_depth_m")
+        if not 0.0 <= self.min_depth_fraction <= 1.0:
+            raise ConfigError(
+                f"MeasureConfig: min_depth_fraction must lie in 0..1, got {self.min_depth_fraction}"
+            )
         if self.erode_px < 0 or self.min_points < 3 or self.max_points < self.min_points:
             raise ConfigError("MeasureConfig: need erode_px >= 0, min_points >= 3, max_points >= min_points")
         if self.depth_gap_m <= 0 or self.depth_gap_relative < 0:
@@ -383,6 +391,14 @@ def measure_instances_report(
         r0, r1 = max(0, rows[0] - pad), min(shape[0], rows[-1] + 1 + pad)
         c0, c1 = max(0, cols[0] - pad), min(shape[1], cols[-1] + 1 + pad)
         mask = inst.mask[r0:r1, c0:c1]
+        if cfg.min_depth_fraction > 0:
+            d = depth[r0:r1, c0:c1][mask]
+            share = float(np.count_nonzero((d >= cfg.min_depth_m) & (d <= cfg.max_depth_m))) / max(d.size, 1)
+            if share < cfg.min_depth_fraction:
+                reason = f"depth on {100 * share:.0f} % of the mask < {100 * cfg.min_depth_fraction:.0f} %"
+                report.skipped.append((index, reason))
+                log.debug("measure %s: skip instance %d (%s): %s", keyframe, index, inst.category, reason)
+                continue
         if kernel is not None:
             eroded = cv2.erode(mask.astype(np.uint8), kernel).astype(bool)
             if int(eroded.sum()) >= cfg.min_points:

@@ -152,7 +152,21 @@ def test_empty_and_depthless_masks_are_skipped_with_a_reason() -> None:
                                       T_world_camera=T_WORLD_CAM, keyframe="k", stamp=0.0)
     assert len(report.measurements) == 1
     assert [i for i, _ in report.skipped] == [0, 2]
-    assert all("min_points" in reason for _, reason in report.skipped)
+    assert "min_points" in report.skipped[0][1]
+    assert "depth on 0 % of the mask" in report.skipped[1][1]
+
+
+def test_masks_mostly_without_depth_are_skipped() -> None:
+    """Depth on only 10 % of the box's mask (a black screen's bezel): skipped with a reason under
+    the default min_depth_fraction 0.25, measured when the check is off."""
+    depth, mask = render_box(T_WORLD_CAM, T_WORLD_BOX, BOX_SIZE)
+    holes = depth.copy()
+    rng = np.random.default_rng(0)
+    holes[mask & (rng.random(mask.shape) < 0.9)] = 0.0
+    report = measure_instances_report([Instance("cabinet", 1.0, mask, np.zeros(4))], bgr=BGR, depth_m=holes,
+                                      camera=CAMERA, T_world_camera=T_WORLD_CAM, keyframe="k", stamp=0.0)
+    assert not report.measurements and "< 25 %" in report.skipped[0][1]
+    assert len(measure_one(mask, holes, config=MeasureConfig(min_depth_fraction=0.0))) == 1
 
 
 def test_gravity_other_than_minus_z() -> None:
