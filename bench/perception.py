@@ -43,7 +43,13 @@ from _report import git_rev, machine, write_section
 
 from wardmap.server.perception.instances import attach_gt_instances, id_to_class, oracle_instances
 from wardmap.server.perception.measure import MeasureConfig, measure_instances
-from wardmap.server.perception.models import OnnxSegmenter, make_segmenter, packaged_model_path
+from wardmap.server.perception.models import (
+    OnnxSegmenter,
+    PerceptionConfig,
+    make_segmenter,
+    measure_config_for,
+    packaged_model_path,
+)
 from wardmap.server.perception.types import Instance, ObjectMeasurement
 from wardmap.shared.dataset import DatasetReader, Frame
 from wardmap.shared.knowledge import KnowledgeGraph
@@ -210,9 +216,10 @@ def tum_monitor(yolox: Path) -> list[str]:
         "itself returns no depth (Kinect on a black screen): \"depth %\" is the share of mask pixels "
         "with depth.\n",
     ]
-    for label, cfg in (("default measurement (`cluster_gap_m = 0`)", MeasureConfig()),
-                       ("detector setting `cluster_gap_m = 0.05` (largest 3D piece)",
-                        MeasureConfig(cluster_gap_m=0.05))):
+    yolox_default = measure_config_for(PerceptionConfig(), f"yolox:{YOLOX}")
+    for label, cfg in ((f"server default for `yolox:` (largest 3D piece, `cluster_gap_m = "
+                        f"{yolox_default.cluster_gap_m}`)", yolox_default),
+                       ("no clustering (`cluster_gap_m = 0`, the network's default)", MeasureConfig())):
         centroids = []
         for i, frame, monitors in seen:
             for m in measure_instances(monitors, bgr=bgr_of(frame), depth_m=frame.depth_m,

@@ -52,7 +52,7 @@ from wardmap.server.association.associator import AssociationConfig, Associator
 from wardmap.server.association.types import Landmark
 from wardmap.server.objectmap import ObjectMap, from_landmark
 from wardmap.server.perception.measure import measure_instances
-from wardmap.server.perception.models import PerceptionConfig, Segmenter, make_segmenter
+from wardmap.server.perception.models import PerceptionConfig, Segmenter, make_segmenter, measure_config_for
 from wardmap.server.perception.types import ObjectMeasurement
 from wardmap.server.store import SqliteKeyframeStore
 from wardmap.shared.camera import PinholeCamera
@@ -168,6 +168,7 @@ class MapPipeline:
         self.perception = perception or PerceptionConfig()
         self.association = association or AssociationConfig()
         self._segmenter = segmenter
+        self._measure_config = measure_config_for(self.perception, self.perception.segmenter)
         self._kg = KnowledgeGraph.load()
         self._moving = {c.name for c in self._kg.classes if str(c.mobility) == "moving"}
         self._associator = Associator(self.association)
@@ -313,7 +314,7 @@ class MapPipeline:
         T_map_camera = map_pose(msg)
         return measure_instances(
             instances, bgr=bgr, depth_m=depth, camera=camera, T_world_camera=T_map_camera,
-            keyframe=key, stamp=msg.stamp, config=self.perception.measure,
+            keyframe=key, stamp=msg.stamp, config=self._measure_config,
         )
 
     def _associate(self, keyframes: Iterable[tuple[KeyframeMsg, Sequence[ObjectMeasurement]]]) -> None:

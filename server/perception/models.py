@@ -31,6 +31,7 @@ imported inside the constructors, so importing this module loads nothing.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
@@ -59,6 +60,7 @@ __all__ = [
     "YoloxDetector",
     "load_perception_config",
     "make_segmenter",
+    "measure_config_for",
     "packaged_model_path",
 ]
 
@@ -98,6 +100,10 @@ class PerceptionConfig:
     """YOLOX: per-class non-maximum suppression IoU."""
     measure: MeasureConfig = field(default_factory=MeasureConfig)
     """3D measurement parameters (``[perception.measure]``)."""
+    detector_cluster_gap_m: float = 0.05
+    """``yolox:`` segmenters: a box-based mask takes in things around the object, so its
+    measurement keeps the largest 3D piece with this gap (``MeasureConfig.cluster_gap_m``)
+    unless ``[perception.measure] cluster_gap_m`` is set; 0 turns it off."""
     masks: MaskConfig = field(default_factory=MaskConfig)
     """YOLOX: depth-based instance masks inside boxes (``[perception.masks]``)."""
 
@@ -108,9 +114,22 @@ class PerceptionConfig:
             raise ConfigError(f"PerceptionConfig: min_pixels must be >= 1, got {self.min_pixels}")
         if self.depth_jump_m <= 0 or self.depth_jump_relative < 0:
             raise ConfigError("PerceptionConfig: need depth_jump_m > 0 and depth_jump_relative >= 0")
+        if self.detector_cluster_gap_m < 0:
+            raise ConfigError(
+                f"PerceptionConfig: detector_cluster_gap_m must be >= 0, got {self.detector_cluster_gap_m}"
+            )
         for name in ("score_threshold", "nms_iou", "min_confidence"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ConfigError(f"PerceptionConfig: {name} must lie in 0..1, got {getattr(self, name)!r}")
+
+
+def measure_config_for(config: PerceptionConfig, spec: str) -> MeasureConfig:
+    """The measurement parameters for segmenter ``spec``: ``config.measure``, with
+    ``detector_cluster_gap_m`` as the cluster gap for a ``yolox:`` detector when none is set."""
+    m = config.measure
+    if spec.strip().startswith("yolox:") and m.cluster_gap_m == 0 and config.detector_cluster_gap_m > 0:
+        return dataclasses.replace(m, cluster_gap_m=config.detector_cluster_gap_m)
+    return m
 
 
 def load_perception_config(path: str | Path | None) -> PerceptionConfig:

@@ -16,6 +16,7 @@ from wardmap.server.perception.models import (
     YoloxDetector,
     load_perception_config,
     make_segmenter,
+    measure_config_for,
     packaged_model_path,
 )
 from wardmap.shared.config import to_mapping
@@ -152,6 +153,15 @@ def test_perception_config_toml(tmp_path: Path) -> None:
     bad.write_text('[perception]\nsegmenter = "yolox:x.onnx"\n[perception.measure]\nmin_points = 80\n')
     cfg = load_perception_config(bad)
     assert cfg.segmenter == "yolox:x.onnx" and cfg.measure.min_points == 80
+    # A yolox: detector's measurements keep their largest 3D piece by default; the network's do not;
+    # an explicit [perception.measure] cluster_gap_m wins.
+    assert measure_config_for(cfg, cfg.segmenter).cluster_gap_m == 0.05
+    assert measure_config_for(cfg, "model").cluster_gap_m == 0.0
+    bad.write_text('[perception]\nsegmenter = "yolox:x.onnx"\n[perception.measure]\ncluster_gap_m = 0.1\n')
+    assert measure_config_for(load_perception_config(bad), "yolox:x.onnx").cluster_gap_m == 0.1
+    bad.write_text("[perception]\ndetector_cluster_gap_m = -1\n")
+    with pytest.raises(ConfigError, match="detector_cluster_gap_m"):
+        load_perception_config(bad)
 
 
 @pytest.mark.skipif(not (YOLOX.is_file() and TUM.is_dir()), reason="needs ../shared (YOLOX, TUM excerpt)")
