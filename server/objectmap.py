@@ -140,21 +140,11 @@ class Observation:
 
 
 @dataclass(frozen=True, eq=False)
-class ObservationRecord:
+class ObservationRecord(Observation):
     """A stored :class:`Observation` with its row id and the server time it was first added."""
 
     observation_id: int
     added_s: float
-    object_id: int
-    robot_id: str
-    session_id: str
-    seq: int
-    stamp: float
-    category: str
-    confidence: float
-    box_xyxy: NDArray[np.float64]
-    T_world_object: NDArray[np.float64]
-    size: NDArray[np.float64]
 
 
 @dataclass(frozen=True, eq=False)

@@ -218,7 +218,12 @@ def interpolate_transform(T0: ArrayLike, T1: ArrayLike, s: float) -> F64:
     return make_transform(quat_to_rotation(q), (1 - s) * A[:3, 3] + s * B[:3, 3])
 
 
+def yaw_rotation(yaw: float) -> F64:
+    """Rotation (3, 3) by ``yaw`` radians about +z."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
 def yaw_transform(x: float, y: float, yaw: float, z: float = 0.0) -> F64:
     """Planar pose (4, 4) of a ground robot: translation (x, y, z), rotation yaw about +z."""
-    c, s = np.cos(yaw), np.sin(yaw)
-    return make_transform([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], [x, y, z])
+    return make_transform(yaw_rotation(yaw), [x, y, z])

@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from wardmap.shared.camera import PinholeCamera
-from wardmap.shared.se3 import inverse
+from wardmap.shared.se3 import inverse, yaw_rotation
 
 __all__ = [
     "Symmetry",
@@ -31,18 +31,13 @@ F64 = NDArray[np.float64]
 Symmetry = Literal["none", "half_turn", "quarter_turn"]
 
 
-def _rz(angle: float) -> F64:
-    c, s = np.cos(angle), np.sin(angle)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
 def symmetry_rotations(symmetry: Symmetry) -> F64:
     """Rotations (S, 3, 3) about the object z axis under which a box pose is the same pose.
 
     ``none``: identity only; ``half_turn``: 0 and 180 deg; ``quarter_turn``: multiples of 90 deg.
     """
     steps = {"none": 1, "half_turn": 2, "quarter_turn": 4}[symmetry]
-    return np.stack([_rz(2 * np.pi * k / steps) for k in range(steps)])
+    return np.stack([yaw_rotation(2 * np.pi * k / steps) for k in range(steps)])
 
 
 def _rotvec(R: F64) -> F64:

@@ -47,7 +47,7 @@ from scipy.spatial import cKDTree
 from wardmap.server.perception.types import Instance, ObjectMeasurement
 from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.errors import ConfigError, GeometryError
-from wardmap.shared.se3 import check_transform, inverse
+from wardmap.shared.se3 import check_transform, inverse, yaw_rotation
 
 __all__ = ["MeasureConfig", "MeasureReport", "measure_instances", "measure_instances_report"]
 
@@ -283,14 +283,14 @@ def _gravity_box(points_g: F64, cfg: MeasureConfig) -> tuple[float, F64, F64, st
     yaw = math.atan2(direction[1], direction[0])
     q = cfg.extent_quantile
     for _ in range(2):
-        R = _yaw_rotation(yaw)[:2, :2]
+        R = yaw_rotation(yaw)[:2, :2]
         local = xy @ R  # coordinates along the object x, y axes
         ext = np.ptp(local, axis=0)
         if ext[0] >= ext[1]:
             break
         yaw += math.pi / 2
     yaw = (yaw + math.pi / 2) % math.pi - math.pi / 2
-    R = _yaw_rotation(yaw)[:2, :2]
+    R = yaw_rotation(yaw)[:2, :2]
     local = np.column_stack([xy @ R, points_g[:, 2]])
     lo, hi = np.quantile(local, [q, 1.0 - q], axis=0)
     centre_xy = R @ ((lo[:2] + hi[:2]) / 2)
@@ -328,11 +328,6 @@ def _appearance(
         if desc is not None:
             descriptors = np.ascontiguousarray(desc, dtype=np.uint8)
     return counts, descriptors
-
-
-def _yaw_rotation(yaw: float) -> F64:
-    c, s = math.cos(yaw), math.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 def measure_instances_report(
@@ -416,7 +411,7 @@ def measure_instances_report(
         points_g = points_c @ T_gc[:3, :3].T + T_gc[:3, 3]
         yaw, centre_g, size, source = _gravity_box(points_g, cfg)
         T_world_object = np.eye(4)
-        T_world_object[:3, :3] = R_wg @ _yaw_rotation(yaw)
+        T_world_object[:3, :3] = R_wg @ yaw_rotation(yaw)
         T_world_object[:3, 3] = R_wg @ centre_g
         T_camera_object = T_cw @ T_world_object
         hist, descriptors = _appearance(image, inst.mask, cfg)

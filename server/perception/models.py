@@ -235,10 +235,10 @@ class OnnxSegmenter:
         threads: int = 1,
         *,
         kg: KnowledgeGraph | None = None,
-        min_pixels: int = 400,
-        depth_jump_m: float = 0.15,
-        depth_jump_relative: float = 0.05,
-        min_confidence: float = 0.7,
+        min_pixels: int = PerceptionConfig.min_pixels,
+        depth_jump_m: float = PerceptionConfig.depth_jump_m,
+        depth_jump_relative: float = PerceptionConfig.depth_jump_relative,
+        min_confidence: float = PerceptionConfig.min_confidence,
     ) -> None:
         """Open and check the model.
 
@@ -324,10 +324,10 @@ class YoloxDetector:
         *,
         coco_map: CocoMap | None = None,
         kg: KnowledgeGraph | None = None,
-        score_threshold: float = 0.3,
-        nms_iou: float = 0.45,
+        score_threshold: float = PerceptionConfig.score_threshold,
+        nms_iou: float = PerceptionConfig.nms_iou,
         mask_config: MaskConfig | None = None,
-        min_pixels: int = 400,
+        min_pixels: int = PerceptionConfig.min_pixels,
     ) -> None:
         """Open and check the detector.
 
