@@ -29,12 +29,19 @@ def machine() -> str:
 
 
 def git_rev() -> str:
+    """Short hash of HEAD, marked when tracked files other than BENCHMARKS.md are modified (the
+    figures then come from code that no commit holds)."""
     try:
-        return subprocess.run(
+        rev = subprocess.run(
             ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no", "--", ".", ":!BENCHMARKS.md"],
+            capture_output=True, text=True, check=True,
         ).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
+    return f"{rev} with uncommitted changes" if dirty else rev
 
 
 def write_section(path: Path, name: str, body: str) -> None:

@@ -104,6 +104,16 @@ class MeasureConfig:
     """HSV histogram bins (hue, saturation, value); length of ``color_hist`` is their product."""
     orb_features: int = 200
     """Most ORB keypoints per instance."""
+    raised_classes: tuple[str, ...] = ("wall_monitor", "sink")
+    """Classes that stand out from the wall they hang on. Their instances are skipped when the
+    mask lies flush with its surroundings (see ``flush_tolerance_m``): a poster taken for a
+    monitor, a patch of tiled wall taken for a sink."""
+    flush_tolerance_m: float = 0.02
+    """Flush: the median depth of the mask is within this of the median depth of a ring
+    around it (``flush_ring_px`` wide, 2 px away from the mask); 0 disables the test. A
+    monitor's screen stands 5 cm or more proud of the wall, a poster 1 cm."""
+    flush_ring_px: int = 10
+    """Width of that ring, pixels."""
     seed: int = 0
     """Seed of the RANSAC sampler."""
 
@@ -127,6 +137,8 @@ class MeasureConfig:
         if self.plane_threshold_m <= 0 or not 0 < self.plane_min_fraction <= 1 or self.plane_iterations < 1:
             raise ConfigError("MeasureConfig: need plane_threshold_m > 0, 0 < plane_min_fraction <= 1 "
                               "and plane_iterations >= 1")
+        if self.flush_tolerance_m < 0 or self.flush_ring_px < 1:
+            raise ConfigError("MeasureConfig: need flush_tolerance_m >= 0 and flush_ring_px >= 1")
         if len(self.hist_bins) != 3 or min(self.hist_bins) < 1 or self.orb_features < 0:
             raise ConfigError("MeasureConfig: hist_bins needs three positive counts; orb_features >= 0")
 
@@ -394,6 +406,14 @@ def measure_instances_report(
                 report.skipped.append((index, reason))
                 log.debug("measure %s: skip instance %d (%s): %s", keyframe, index, inst.category, reason)
                 continue
+        if cfg.flush_tolerance_m > 0 and inst.category in cfg.raised_classes:
+            relief = _relief(inst.mask, depth, cfg)
+            if relief is not None and abs(relief) < cfg.flush_tolerance_m:
+                reason = (f"flush with its surroundings ({100 * relief:+.1f} cm, a {inst.category} "
+                          f"stands out more than {100 * cfg.flush_tolerance_m:.0f} cm)")
+                report.skipped.append((index, reason))
+                log.debug("measure %s: skip instance %d (%s): %s", keyframe, index, inst.category, reason)
+                continue
         if kernel is not None:
             eroded = cv2.erode(mask.astype(np.uint8), kernel).astype(bool)
             if int(eroded.sum()) >= cfg.min_points:
@@ -437,6 +457,32 @@ def measure_instances_report(
     if report.skipped:
         log.debug("measure %s: %d of %d instance(s) skipped", keyframe, len(report.skipped), len(instances))
     return report
+
+
+def _relief(mask: NDArray[np.bool_], depth: NDArray[np.float32], cfg: MeasureConfig) -> float | None:
+    """Median depth of a ring around ``mask`` minus the mask's median depth, metres.
+
+    The ring starts 2 px outside the mask (mixed depth at the border) and is
+    ``cfg.flush_ring_px`` wide. Positive: the object stands in front of its surroundings.
+    None when the mask or the ring has fewer than ``cfg.min_points`` valid depths.
+    """
+    h, w = mask.shape
+    rows = np.flatnonzero(mask.any(axis=1))
+    cols = np.flatnonzero(mask.any(axis=0))
+    pad = cfg.flush_ring_px + 1
+    r0, r1 = max(0, rows[0] - pad), min(h, rows[-1] + 1 + pad)
+    c0, c1 = max(0, cols[0] - pad), min(w, cols[-1] + 1 + pad)
+    m = mask[r0:r1, c0:c1].astype(np.uint8)
+    d = depth[r0:r1, c0:c1]
+    near = cv2.dilate(m, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))).astype(bool)
+    side = 2 * cfg.flush_ring_px + 5
+    far = cv2.dilate(m, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (side, side))).astype(bool)
+    valid = (d >= cfg.min_depth_m) & (d <= cfg.max_depth_m)
+    inside = d[m.astype(bool) & valid]
+    ring = d[far & ~near & valid]
+    if inside.size < cfg.min_points or ring.size < cfg.min_points:
+        return None
+    return float(np.median(ring) - np.median(inside))
 
 
 def measure_instances(

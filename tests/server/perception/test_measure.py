@@ -169,6 +169,31 @@ def test_masks_mostly_without_depth_are_skipped() -> None:
     assert len(measure_one(mask, holes, config=MeasureConfig(min_depth_fraction=0.0))) == 1
 
 
+def test_a_monitor_flush_with_the_wall_is_a_picture() -> None:
+    """A 'wall_monitor' mask 6 cm proud of a wall at 3 m is measured; one 1 cm proud (a poster)
+    is skipped as flush; a cabinet flush with the wall (not a raised class) is measured."""
+    wall = np.full((CAMERA.height, CAMERA.width), 3.0, np.float32)
+    rect = np.zeros(wall.shape, bool)
+    rect[100:140, 140:200] = True
+    rng = np.random.default_rng(1)
+    noise = rng.normal(0.0, 0.004, wall.shape).astype(np.float32)  # Kinect-like at 3 m
+    def report(proud_m: float, category: str = "wall_monitor") -> object:
+        depth = np.where(rect, 3.0 - proud_m, wall).astype(np.float32) + noise
+        return measure_instances_report([Instance(category, 0.9, rect, np.zeros(4))], bgr=BGR, depth_m=depth,
+                                        camera=CAMERA, T_world_camera=T_WORLD_CAM, keyframe="k", stamp=0.0)
+    assert len(report(0.06).measurements) == 1
+    poster = report(0.01)
+    assert not poster.measurements and "flush with its surroundings" in poster.skipped[0][1]
+    assert len(report(0.01, "cabinet").measurements) == 1
+    off = MeasureConfig(flush_tolerance_m=0.0)
+    depth = np.where(rect, 2.99, wall).astype(np.float32)
+    assert len(measure_instances([Instance("wall_monitor", 0.9, rect, np.zeros(4))], bgr=BGR, depth_m=depth,
+                                 camera=CAMERA, T_world_camera=T_WORLD_CAM, keyframe="k", stamp=0.0,
+                                 config=off)) == 1
+    with pytest.raises(ConfigError, match="flush"):
+        MeasureConfig(flush_tolerance_m=-0.01)
+
+
 def test_gravity_other_than_minus_z() -> None:
     """The same scene in a world whose up axis is +y: object z follows -gravity."""
     depth, mask = render_box(T_WORLD_CAM, T_WORLD_BOX, BOX_SIZE)
