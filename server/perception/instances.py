@@ -6,6 +6,9 @@
   network's class map, split where the depth jumps (issue 5 "Inference"): two chairs of
   the same class that overlap in the image but stand at different depths become two
   instances.
+- :func:`off_background_planes`: the pixels of a mask that lie on the wall or floor around
+  it; :func:`instances_from_classes` drops them for the classes it is told to trim, which
+  splits chairs that the network's bleed onto the wall joined into one region.
 - :func:`attach_gt_instances`: the simulator id most of each mask covers, for scoring
   model or detector instances against ground truth.
 
@@ -33,6 +36,7 @@ __all__ = [
     "gt_instance_of",
     "id_to_class",
     "instances_from_classes",
+    "off_background_planes",
     "oracle_instances",
 ]
 
@@ -151,6 +155,109 @@ def _grow_into(labels: NDArray[np.int32], classes: NDArray[np.uint8], depth_m: N
             todo[p] &= ~take
 
 
+def _fit_inverse_depth_plane(
+    u: NDArray[np.float64], v: NDArray[np.float64], z: NDArray[np.float64], tol: NDArray[np.float64],
+    rng: np.random.Generator, iterations: int,
+) -> tuple[NDArray[np.float64] | None, Mask]:
+    """RANSAC: coefficients ``(a, b, c)`` of ``1/z = a u + b v + c`` with the most inliers
+    (``|z - z_plane| <= tol``), refined by least squares on them; None when no sample works.
+    All ``iterations`` hypotheses are solved and scored at once."""
+    n = u.size
+    A = np.column_stack([u, v, np.ones(n)])
+    w = 1.0 / z
+    picks = np.stack([rng.choice(n, size=3, replace=False) for _ in range(iterations)])
+    As, ws = A[picks], w[picks]  # (k, 3, 3), (k, 3)
+    ok = np.abs(np.linalg.det(As)) > 1e-12
+    if not ok.any():
+        return None, np.zeros(n, dtype=bool)
+    coefs = np.linalg.solve(As[ok], ws[ok][..., None])[..., 0]  # (k', 3)
+    wp = coefs @ A.T  # (k', n)
+    inl = (wp > 0) & (np.abs(1.0 / np.where(wp > 0, wp, 1.0) - z) <= tol)
+    best = int(np.argmax(inl.sum(axis=1)))
+    best_in = inl[best]
+    if best_in.sum() < 3:
+        return None, best_in
+    coef = np.linalg.lstsq(A[best_in], w[best_in], rcond=None)[0]
+    return coef, best_in
+
+
+def off_background_planes(
+    mask: Mask,
+    depth_m: NDArray[np.float32],
+    *,
+    ring_px: int = 8,
+    tolerance_m: float = 0.03,
+    tolerance_relative: float = 0.01,
+    min_share: float = 0.25,
+    max_planes: int = 2,
+    iterations: int = 48,
+    max_ring_samples: int = 600,
+    seed: int = 0,
+) -> Mask:
+    """Pixels of ``mask`` that lie on a plane of the surfaces around it (wall, floor).
+
+    A network's mask bleeds a few pixels onto the wall and floor an object stands by; where
+    identical chairs stand in a row, the bleed joins them into one region. The surroundings
+    are a ring of pixels ``ring_px`` wide starting 2 px outside the mask. Up to ``max_planes``
+    planes are fitted to the ring's depth by RANSAC, each one explaining at least
+    ``min_share`` of the ring. A plane is affine in inverse depth over the image
+    (``1/z = a u + b v + c`` for a pinhole camera; lens distortion is ignored), so no
+    intrinsics are needed. A mask pixel lies on a plane when its depth is within
+    ``max(tolerance_m, tolerance_relative * z)`` of the plane's. At most
+    ``max_ring_samples`` ring pixels (a seeded random subset) are used for the fit.
+
+    Args:
+        mask: bool (H, W) one instance.
+        depth_m: float32 (H, W) metres, 0 = no data (such pixels are never on a plane).
+
+    Returns:
+        bool (H, W): the mask's pixels on a background plane (all False when the ring has
+        too little depth or no plane explains enough of it).
+    """
+    h, w = mask.shape
+    out = np.zeros((h, w), dtype=bool)
+    rows = np.flatnonzero(mask.any(axis=1))
+    cols = np.flatnonzero(mask.any(axis=0))
+    if rows.size == 0:
+        return out
+    pad = ring_px + 3
+    r0, r1 = max(0, rows[0] - pad), min(h, rows[-1] + 1 + pad)
+    c0, c1 = max(0, cols[0] - pad), min(w, cols[-1] + 1 + pad)
+    m = mask[r0:r1, c0:c1].astype(np.uint8)
+    d = depth_m[r0:r1, c0:c1].astype(np.float64)
+    near = cv2.dilate(m, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))).astype(bool)
+    side = 2 * ring_px + 5
+    far = cv2.dilate(m, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (side, side))).astype(bool)
+    ring = far & ~near & (d > 0)
+    rr, rc = np.nonzero(ring)
+    if rr.size < 50:
+        return out
+    rng = np.random.default_rng(seed)
+    if rr.size > max_ring_samples:
+        keep = rng.choice(rr.size, size=max_ring_samples, replace=False)
+        rr, rc = rr[keep], rc[keep]
+    z = d[rr, rc]
+    u, v = rc.astype(np.float64), rr.astype(np.float64)
+    tol = np.maximum(tolerance_m, tolerance_relative * z)
+    mr, mc = np.nonzero(m.astype(bool) & (d > 0))
+    zm = d[mr, mc]
+    tol_m = np.maximum(tolerance_m, tolerance_relative * zm)
+    on = np.zeros(mr.size, dtype=bool)
+    left = np.ones(rr.size, dtype=bool)
+    for _ in range(max_planes):
+        if left.sum() < max(50, min_share * rr.size):
+            break
+        idx = np.flatnonzero(left)
+        coef, inl = _fit_inverse_depth_plane(u[idx], v[idx], z[idx], tol[idx], rng, iterations)
+        if coef is None or inl.sum() < min_share * rr.size:
+            break
+        left[idx[inl]] = False
+        wp = coef[0] * mc + coef[1] * mr + coef[2]
+        on |= (wp > 0) & (np.abs(1.0 / np.where(wp > 0, wp, 1.0) - zm) <= tol_m)
+    out[r0 + mr[on], c0 + mc[on]] = True
+    return out
+
+
 def instances_from_classes(
     class_map: NDArray[np.uint8],
     depth_m: NDArray[np.float32],
@@ -161,6 +268,7 @@ def instances_from_classes(
     depth_jump_relative: float = 0.05,
     min_pixels: int = 200,
     min_confidence: float = 0.0,
+    trim_classes: Sequence[int] = (),
 ) -> list[Instance]:
     """Instances of a per-pixel class map: per-class connected components split at depth jumps.
 
@@ -181,6 +289,10 @@ def instances_from_classes(
         min_pixels: components with fewer pixels are left out (logged at debug).
         min_confidence: components whose mean confidence is lower are left out (logged at
             debug): the ragged fringes a network leaves where it hesitates between classes.
+        trim_classes: class indices whose components lose the pixels on the planes around
+            them (:func:`off_background_planes`; chairs, carts, not doors flush with a wall);
+            what remains is split into 4-connected pieces, each one instance when it has
+            ``min_pixels``.
 
     Returns:
         Instances ordered by class index, then by component size (largest first).
@@ -239,14 +351,38 @@ def instances_from_classes(
                 small += 1 if sizes[k] > 0 else 0
                 continue
             mask = labels == k
-            score = float(conf[mask].mean()) if conf is not None else 1.0
-            if score < min_confidence:
-                unsure += 1
-                continue
-            out.append(Instance(class_names[index], score, mask, box_of_mask(mask)))
+            pieces = [mask]
+            if index in trim_classes:
+                pieces = _pieces(mask & ~off_background_planes(mask, depth), min_pixels)
+                small += not pieces
+            for piece in pieces:
+                score = float(conf[piece].mean()) if conf is not None else 1.0
+                if score < min_confidence:
+                    unsure += 1
+                    continue
+                out.append(Instance(class_names[index], score, piece, box_of_mask(piece)))
     if small or unsure:
         log.debug("instances_from_classes: left out %d component(s) below %d pixels and %d below "
                   "confidence %.2f", small, min_pixels, unsure, min_confidence)
+    return out
+
+
+def _pieces(mask: Mask, min_pixels: int) -> list[Mask]:
+    """4-connected pieces of ``mask`` with at least ``min_pixels`` pixels, largest first."""
+    rows = np.flatnonzero(mask.any(axis=1))
+    cols = np.flatnonzero(mask.any(axis=0))
+    if rows.size == 0:
+        return []
+    window = np.s_[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1]
+    count, comp = cv2.connectedComponents(mask[window].astype(np.uint8), connectivity=4)
+    sizes = np.bincount(comp.ravel(), minlength=count)
+    out = []
+    for k in np.argsort(-sizes[1:], kind="stable") + 1:
+        if sizes[k] < min_pixels:
+            break
+        piece = np.zeros(mask.shape, dtype=bool)
+        piece[window] = comp == k
+        out.append(piece)
     return out
 
 

@@ -34,6 +34,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -94,6 +95,13 @@ class PerceptionConfig:
     """Segmentation network: instances whose mean softmax confidence is lower are left out
     (on held-out seed-1002 worlds, 0.7 with ``min_pixels`` 400 raised the share of instances
     on a real object from 57 % to 78 % and kept 70 % of those)."""
+    trim_classes: tuple[str, ...] = ("wheelchair", "cart", "iv_pole", "chair", "bed", "sink")
+    """Segmentation network: classes whose regions lose the pixels on the wall and floor
+    planes around them and split into the pieces that remain
+    (``instances.off_background_planes``). The network's masks bleed onto the wall, which
+    joins a row of chairs into one region. Not for classes flush with a wall (doors, wall
+    monitors). On held-out seed-1002 worlds the share of measurements on a real object went
+    from 80.6 % to 90.1 % (chairs on ward_chairs: 67 of 170 to 455 of 552)."""
     score_threshold: float = 0.3
     """YOLOX: smallest detection score used."""
     nms_iou: float = 0.45
@@ -239,6 +247,7 @@ class OnnxSegmenter:
         depth_jump_m: float = PerceptionConfig.depth_jump_m,
         depth_jump_relative: float = PerceptionConfig.depth_jump_relative,
         min_confidence: float = PerceptionConfig.min_confidence,
+        trim_classes: Sequence[str] = PerceptionConfig.trim_classes,
     ) -> None:
         """Open and check the model.
 
@@ -266,6 +275,10 @@ class OnnxSegmenter:
         self._depth_jump_m = depth_jump_m
         self._depth_jump_relative = depth_jump_relative
         self._min_confidence = min_confidence
+        unknown = sorted(set(trim_classes) - set(self._class_names[1:]))
+        if unknown:
+            raise ConfigError(f"{what}: trim_classes names classes the model does not have: {unknown}")
+        self._trim_classes = tuple(self._class_names.index(c) for c in trim_classes)
         w, h = self._input_wh
         log.info("segmentation model %s: %d classes, input %dx%d, %d thread(s)",
                  self.path, len(self._class_names), w, h, threads)
@@ -298,6 +311,7 @@ class OnnxSegmenter:
             depth_jump_relative=self._depth_jump_relative,
             min_pixels=self._min_pixels,
             min_confidence=self._min_confidence,
+            trim_classes=self._trim_classes,
         )
         return Segmentation(classes, confidence, instances, (time.perf_counter() - started) * 1e3)
 
@@ -480,4 +494,5 @@ def make_segmenter(
         depth_jump_m=cfg.depth_jump_m,
         depth_jump_relative=cfg.depth_jump_relative,
         min_confidence=cfg.min_confidence,
+        trim_classes=cfg.trim_classes,
     )

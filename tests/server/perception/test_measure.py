@@ -12,6 +12,7 @@ from wardmap.server.perception.instances import (
     gt_instance_of,
     id_to_class,
     instances_from_classes,
+    off_background_planes,
     oracle_instances,
 )
 from wardmap.server.perception.measure import (
@@ -274,6 +275,56 @@ def test_low_confidence_components_are_left_out() -> None:
     assert len(instances_from_classes(classes, depth, names, conf, min_pixels=100)) == 2
     with pytest.raises(GeometryError, match="min_confidence"):
         instances_from_classes(classes, depth, names, conf, min_confidence=1.5)
+
+
+def _wall_and_floor(h: int = 120, w: int = 200) -> np.ndarray:
+    """Depth of a slanted wall (upper part) and a floor (lower rows), both planes: inverse
+    depth affine in the pixel coordinates."""
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    wall = 1.0 / (1 / 3.0 - 0.0006 * u)  # 3 m at the left edge, farther to the right
+    floor = 1.0 / (1 / 3.0 + 0.01 * (v - 90) - 0.0006 * u)
+    return np.where(v < 90, wall, floor).astype(np.float32)
+
+
+def test_bleed_onto_the_wall_joining_two_chairs_is_trimmed() -> None:
+    """Two chairs leaning on a wall (up to 0.6 m in front of it, meeting it at their sides, so
+    no depth jump separates them), the class mask bleeding over the wall between them and the
+    floor below: with chair in trim_classes they are two instances, each on its chair;
+    without, one. A door flush with the wall is never trimmed (not listed)."""
+    depth = _wall_and_floor()
+    rng = np.random.default_rng(0)
+    depth += rng.normal(0.0, 0.003, depth.shape).astype(np.float32)
+    chairs = np.zeros(depth.shape, bool)
+    relief = np.zeros(depth.shape)
+    tent = 1.0 - np.abs(np.arange(50) - 24.5) / 25.0  # 0.02 at the sides, 1 in the middle
+    for c0 in (30, 110):
+        chairs[40:85, c0:c0 + 50] = True
+        relief[40:85, c0:c0 + 50] = 0.6 * tent[None, :]
+    depth -= relief.astype(np.float32)
+    classes = np.zeros(depth.shape, np.uint8)
+    classes[35:100, 25:165] = 2  # bleed: the wall between the chairs, a band of wall and floor around
+    classes[10:30, 170:195] = 3  # a door on the wall
+    names = ["background", "person", "chair", "door"]
+    joined = instances_from_classes(classes, depth, names, min_pixels=100)
+    assert [i.category for i in joined] == ["chair", "door"]
+    insts = instances_from_classes(classes, depth, names, min_pixels=100, trim_classes=(2,))
+    assert [i.category for i in insts] == ["chair", "chair", "door"]
+    for inst in insts[:2]:
+        on_chair = (inst.mask & chairs).sum() / inst.mask.sum()
+        assert on_chair > 0.95, on_chair
+        assert (inst.mask & chairs).sum() > 0.9 * 45 * 50
+    assert insts[2].mask.sum() == 20 * 25
+    # The planes alone: nothing of the chairs 5 cm or more off the wall, most of the bleed.
+    on = off_background_planes(classes == 2, depth)
+    assert not (on & (relief > 0.05)).any()
+    assert on.sum() > 0.9 * ((classes == 2) & ~chairs).sum()
+
+
+def test_no_planes_without_depth_around() -> None:
+    mask = np.zeros((40, 40), bool)
+    mask[10:30, 10:30] = True
+    assert not off_background_planes(mask, np.zeros((40, 40), np.float32)).any()
+    assert not off_background_planes(np.zeros((40, 40), bool), np.ones((40, 40), np.float32)).any()
 
 
 def test_gt_instance_attached_by_majority() -> None:

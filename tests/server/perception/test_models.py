@@ -109,6 +109,13 @@ def test_wrong_model_fails_at_start_up(tmp_path: Path, kwargs: dict, message: st
     assert "wrong.onnx" in str(info.value)
 
 
+def test_unknown_trim_class_fails_at_start_up(tmp_path: Path) -> None:
+    path = tiny.write_tiny_seg(tmp_path / "m.onnx")
+    with pytest.raises(ConfigError, match=r"trim_classes.*'stool'"):
+        OnnxSegmenter(path, trim_classes=("chair", "stool"))
+    assert OnnxSegmenter(path, trim_classes=("chair",)).class_names[0] == "background"
+
+
 def test_class_list_must_match_the_knowledge_graph(tmp_path: Path) -> None:
     classes = tiny.kg_classes()
     swapped = [classes[0], classes[2], classes[1], *classes[3:]]
