@@ -51,7 +51,7 @@ from numpy.typing import NDArray
 from wardmap.server.association.associator import AssociationConfig, Associator
 from wardmap.server.association.types import Landmark
 from wardmap.server.objectmap import ObjectMap, from_landmark
-from wardmap.server.perception.measure import measure_instances
+from wardmap.server.perception.measure import mean_rgb, measure_instances
 from wardmap.server.perception.models import PerceptionConfig, Segmenter, make_segmenter, measure_config_for
 from wardmap.server.perception.types import ObjectMeasurement
 from wardmap.server.store import SqliteKeyframeStore
@@ -334,10 +334,11 @@ class MapPipeline:
 
     def _write_landmarks(self, landmarks: Iterable[Landmark]) -> None:
         states, observations = [], []
+        bins = self._measure_config.hist_bins
         for lm in landmarks:
-            # No colour yet: measurements carry an HSV histogram, not a mean RGB.
+            colour = mean_rgb([m.color_hist for m in lm.measurements], bins)
             state, obs = from_landmark(lm.id, lm.category, lm.confidence, lm.T_world_object, lm.size,
-                                       lm.measurements)
+                                       lm.measurements, colour)
             states.append(state)
             observations.extend(obs)
         if states:

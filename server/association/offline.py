@@ -33,7 +33,7 @@ from numpy.typing import NDArray
 from wardmap.server.association.associator import METHODS, AssociationConfig, Associator, Method
 from wardmap.server.association.types import Landmark
 from wardmap.server.perception.instances import attach_gt_instances, id_to_class, oracle_instances
-from wardmap.server.perception.measure import MeasureConfig, measure_instances
+from wardmap.server.perception.measure import MeasureConfig, mean_rgb, measure_instances
 from wardmap.server.perception.types import Instance, ObjectMeasurement
 from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.config import load_config, to_mapping
@@ -284,6 +284,10 @@ def _measurement_json(m: ObjectMeasurement, dataset: str) -> dict[str, Any]:
     }
 
 
+def _rounded(rgb: tuple[float, float, float] | None) -> list[float] | None:
+    return None if rgb is None else [round(c, 1) for c in rgb]
+
+
 def landmarks_document(
     landmarks: Sequence[Landmark],
     *,
@@ -291,8 +295,10 @@ def landmarks_document(
     measurements: MeasurementSource,
     datasets: Sequence[DatasetMeasurements],
     config: AssociationConfig,
+    hist_bins: tuple[int, int, int] = MeasureConfig.hist_bins,
 ) -> dict[str, Any]:
-    """The ``landmarks.json`` document (docs/association.md)."""
+    """The ``landmarks.json`` document (docs/association.md); ``hist_bins`` are the bins of
+    the measurements' colour histograms (for each landmark's mean colour)."""
     dataset_of = {kf.key: ds.name for ds in datasets for kf in ds.keyframes}
     return {
         "format_version": FORMAT_VERSION,
@@ -311,6 +317,7 @@ def landmarks_document(
                 "confidence": round(lm.confidence, 6),
                 "T_world_object": np.round(lm.T_world_object, 6).tolist(),
                 "size": [round(float(v), 6) for v in lm.size],
+                "color_rgb": _rounded(mean_rgb([m.color_hist for m in lm.measurements], hist_bins)),
                 "measurements": [_measurement_json(m, dataset_of.get(m.keyframe, ""))
                                  for m in lm.measurements],
             }
@@ -368,7 +375,7 @@ def run_map(
     ]
     landmarks = associate(measured, assoc_cfg)
     doc = landmarks_document(landmarks, method=assoc_cfg.method, measurements=measurements,
-                             datasets=measured, config=assoc_cfg)
+                             datasets=measured, config=assoc_cfg, hist_bins=measure_cfg.hist_bins)
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
         path = out_dir / "landmarks.json"

@@ -49,7 +49,7 @@ from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.errors import ConfigError, GeometryError
 from wardmap.shared.se3 import check_transform, inverse, yaw_rotation
 
-__all__ = ["MeasureConfig", "MeasureReport", "measure_instances", "measure_instances_report"]
+__all__ = ["MeasureConfig", "MeasureReport", "mean_rgb", "measure_instances", "measure_instances_report"]
 
 log = logging.getLogger(__name__)
 
@@ -308,6 +308,37 @@ def _gravity_box(points_g: F64, cfg: MeasureConfig) -> tuple[float, F64, F64, st
     centre_xy = R @ ((lo[:2] + hi[:2]) / 2)
     size = hi - lo
     return yaw, np.array([centre_xy[0], centre_xy[1], (lo[2] + hi[2]) / 2]), size, source
+
+
+def mean_rgb(
+    histograms: Sequence[ArrayLike], bins: tuple[int, int, int]
+) -> tuple[float, float, float] | None:
+    """Mean colour (R, G, B in 0..255) of the pixels behind HSV histograms made by
+    :func:`measure_instances` with ``bins`` (``MeasureConfig.hist_bins``).
+
+    Each histogram is L1-normalised, so every measurement weighs the same. The colour is the
+    average of the bins' centre colours weighted by the summed histogram (the least saturated
+    bin counts as grey): coarse (with the default 16 x 4 x 4 bins, one value bin spans 64
+    grey levels) but enough to tell a red chair from a blue one. None when there is no
+    histogram, one has another length, or all are empty.
+    """
+    k = bins[0] * bins[1] * bins[2]
+    hists = [np.asarray(h, dtype=np.float64).ravel() for h in histograms]
+    if not hists or any(h.size != k for h in hists):
+        return None
+    total = np.sum(hists, axis=0)
+    if not total.sum() > 0:
+        return None
+    h, s, v = np.meshgrid(*[(np.arange(n) + 0.5) * (top / n) for n, top in zip(bins, (180, 256, 256),
+                                                                                  strict=True)],
+                          indexing="ij")
+    s[:, 0, :] = 0.0  # the least saturated bin holds the greys (walls, metal): no tint
+    hsv = np.stack([h, s, v], axis=-1).reshape(1, k, 3).astype(np.float32)
+    hsv[..., 0] *= 2.0  # float HSV in OpenCV: hue in degrees, saturation and value in 0..1
+    hsv[..., 1:] /= 255.0
+    rgb = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB).reshape(k, 3).astype(np.float64) * 255.0
+    out = total @ rgb / total.sum()
+    return (float(out[0]), float(out[1]), float(out[2]))
 
 
 def _appearance(

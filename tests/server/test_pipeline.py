@@ -49,6 +49,7 @@ def _keyframes(anchored: bool) -> list[tuple[KeyframeMsg, bytes]]:
 
 
 def _run(path: Path, keyframes: list[tuple[KeyframeMsg, bytes]]) -> tuple[dict[str, int], int, int]:
+    """Run the stage until idle; every object it wrote has a mean colour."""
     with SqliteKeyframeStore.open(path) as store:
         for msg, payload in keyframes:
             store.insert(msg, payload, time.time())
@@ -62,6 +63,8 @@ def _run(path: Path, keyframes: list[tuple[KeyframeMsg, bytes]]) -> tuple[dict[s
             pipe.stop()
         with store.reading("test") as conn:
             n_meas = int(conn.execute("SELECT COUNT(*) FROM measurements").fetchone()[0])
+            colours = conn.execute("SELECT color_r, color_g, color_b FROM objects").fetchall()
+        assert all(c is not None and 0 <= c <= 255 for row in colours for c in row)
         return objects.categories(), n_meas, counters.replayed
 
 

@@ -61,6 +61,7 @@ def test_oracle_map_of_a_small_sequence(small: Path, config_file: Path, tmp_path
     for lm in doc["landmarks"]:
         T = np.array(lm["T_world_object"])
         assert T.shape == (4, 4) and len(lm["size"]) == 3
+        assert len(lm["color_rgb"]) == 3 and all(0 <= c <= 255 for c in lm["color_rgb"])
         ids = {m["gt_instance"] for m in lm["measurements"]}
         assert len(ids) == 1  # oracle: one object per landmark
         gt_ids |= ids

@@ -17,6 +17,7 @@ from wardmap.server.perception.instances import (
 )
 from wardmap.server.perception.measure import (
     MeasureConfig,
+    mean_rgb,
     measure_instances,
     measure_instances_report,
 )
@@ -193,6 +194,31 @@ def test_a_monitor_flush_with_the_wall_is_a_picture() -> None:
                                  config=off)) == 1
     with pytest.raises(ConfigError, match="flush"):
         MeasureConfig(flush_tolerance_m=-0.01)
+
+
+@pytest.mark.parametrize(("rgb", "tol"), [((200, 30, 40), 35), ((30, 60, 200), 35), ((40, 160, 60), 35),
+                                          ((128, 128, 128), 35), ((20, 20, 20), 15)])
+def test_mean_colour_from_the_histograms(rgb: tuple[int, int, int], tol: float) -> None:
+    """A uniformly coloured box: the colour from its HSV histogram is within the bins' coarseness;
+    greys get no tint; two measurements of it give the same colour."""
+    depth, mask = render_box(T_WORLD_CAM, T_WORLD_BOX, BOX_SIZE)
+    bgr = np.zeros_like(BGR)
+    bgr[:] = rgb[::-1]
+    (m,) = measure_instances([Instance("cabinet", 1.0, mask, np.zeros(4))], bgr=bgr, depth_m=depth,
+                             camera=CAMERA, T_world_camera=T_WORLD_CAM, keyframe="k", stamp=0.0)
+    got = mean_rgb([m.color_hist], MeasureConfig().hist_bins)
+    assert got is not None
+    np.testing.assert_allclose(got, rgb, atol=tol)
+    if len(set(rgb)) == 1:
+        assert got[0] == pytest.approx(got[1]) == pytest.approx(got[2])
+    assert mean_rgb([m.color_hist, m.color_hist], MeasureConfig().hist_bins) == pytest.approx(got)
+
+
+def test_mean_colour_of_nothing_is_none() -> None:
+    bins = MeasureConfig().hist_bins
+    assert mean_rgb([], bins) is None
+    assert mean_rgb([np.zeros(256, np.float32)], bins) is None
+    assert mean_rgb([np.ones(10, np.float32)], bins) is None  # another binning
 
 
 def test_gravity_other_than_minus_z() -> None:
