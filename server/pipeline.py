@@ -7,8 +7,9 @@ own thread and never delays an ack. It reads keyframes from the store in inserti
 1. decodes the payload (JPEG colour, depth upsampled to the colour size, intrinsics);
 2. runs the segmenter (``server/perception/models.py``: the trained network by default) and
    measures every non-``moving`` instance in 3D (paper 000 Eq. 1, ``measure.py``);
-3. commits the measurements and its cursor in one transaction (table ``measurements``,
-   ``pipeline_cursor``), so a crash never loses or repeats one;
+3. commits the measurements, the keyframe's map pose and camera (``mapped_keyframes``), and
+   its cursor in one transaction (``measurements``, ``pipeline_cursor``), so a crash never
+   loses or repeats one;
 4. when the keyframe's session is on the map (the robot sent ``T_map_odom``, docs/wire.md),
    feeds the measurements, in the map frame, to the :class:`Associator` (paper 000:
    keyframe groups per robot session, HDP across groups), and writes the landmarks it
@@ -19,7 +20,10 @@ odom frame is unknown in the map until loop closure aligns it (a later stage).
 
 Restart: association is a deterministic function of the ordered measurements, so on start the
 stage replays every stored measurement of anchored sessions through a fresh associator (no
-perception is re-run) and upserts the landmarks; then it continues after its cursor.
+perception is re-run) and upserts the landmarks; then it continues after its cursor. The
+replay reads ``mapped_keyframes`` and ``measurements`` in chunks of ``REPLAY_CHUNK``
+keyframes, never the keyframe payloads (a store from before schema v4 has them read once, one
+at a time, to fill ``mapped_keyframes``).
 
 Backlog: ``backlog`` = stored keyframes not yet processed, exported on ``/metrics``.
 A keyframe whose perception fails (corrupt image, model error) is counted by reason, logged,
@@ -35,6 +39,7 @@ the map. Nothing is committed twice: measurements and the cursor move in one tra
 
 from __future__ import annotations
 
+import json
 import logging
 import threading
 import time
@@ -65,6 +70,10 @@ log = logging.getLogger(__name__)
 F64 = NDArray[np.float64]
 CURSOR_NAME: Final = "mapping"
 MAX_FAILURE_REASON: Final = 120
+_INSERT_MAPPED: Final = ("INSERT OR REPLACE INTO mapped_keyframes (robot_id, session_id, seq, T_map_camera, "
+                         "camera) VALUES (?, ?, ?, ?, ?)")
+REPLAY_CHUNK: Final = 500
+"""Keyframes read per step of the replay at start (bounds its memory besides the associator's)."""
 
 
 @dataclass(frozen=True)
@@ -305,7 +314,8 @@ class MapPipeline:
             with self._lock:
                 self._counts.unanchored += 1
             return
-        self._associate([(msg, measurements)])
+        self._associate([_MappedKeyframe(f"{msg.robot_id}/{msg.session_id}", map_pose(msg), camera_of(msg),
+                                         measurements)])
 
     def _measure(self, msg: KeyframeMsg, key: str) -> list[ObjectMeasurement]:
         bgr, depth, camera = decode_images(msg)
@@ -317,14 +327,11 @@ class MapPipeline:
             keyframe=key, stamp=msg.stamp, config=self._measure_config,
         )
 
-    def _associate(self, keyframes: Iterable[tuple[KeyframeMsg, Sequence[ObjectMeasurement]]]) -> None:
+    def _associate(self, keyframes: Iterable[_MappedKeyframe]) -> None:
         touched: dict[int, Landmark] = {}
-        for msg, measurements in keyframes:
-            assert msg.intrinsics is not None
-            camera = camera_of(msg)
-            stream = f"{msg.robot_id}/{msg.session_id}"
+        for kf in keyframes:
             changes = self._associator.add_keyframe(
-                strip_masks(measurements), map_pose(msg), camera, stream=stream
+                strip_masks(kf.measurements), kf.T_map_camera, kf.camera, stream=kf.stream
             )
             for change in changes:
                 touched[change.landmark.id] = change.landmark
@@ -363,12 +370,14 @@ class MapPipeline:
                 measurements: Sequence[ObjectMeasurement]) -> None:
         robot_id, session_id, seq = key.split("/")
         anchored = msg is not None and msg.T_map_odom is not None
+        pose, camera = _mapped_row(msg)
         with self.store.writing("mapping: store measurements") as conn:
             conn.executemany(
                 "INSERT INTO measurements (robot_id, session_id, seq, anchored, payload) "
                 "VALUES (?, ?, ?, ?, ?)",
                 [(robot_id, session_id, int(seq), int(anchored), pack_measurement(m)) for m in measurements],
             )
+            conn.execute(_INSERT_MAPPED, (robot_id, session_id, int(seq), pose, camera))
             conn.execute(
                 "INSERT INTO pipeline_cursor (name, last_rowid) VALUES (?, ?) "
                 "ON CONFLICT(name) DO UPDATE SET last_rowid = excluded.last_rowid",
@@ -376,42 +385,118 @@ class MapPipeline:
             )
 
     def _replay(self) -> None:
-        """Rebuild the associator from stored measurements of anchored sessions, in order."""
-        with self.store.reading("mapping: replay") as conn:
-            rows = conn.execute(
-                "SELECT m.robot_id, m.session_id, m.seq, m.payload FROM measurements m "
-                "JOIN keyframes k USING (robot_id, session_id, seq) WHERE m.anchored = 1 "
-                "ORDER BY k.rowid, m.measurement_id"
-            ).fetchall()
-            done = conn.execute(
-                "SELECT k.robot_id, k.session_id, k.seq, k.payload FROM keyframes k WHERE k.rowid <= "
-                "COALESCE((SELECT last_rowid FROM pipeline_cursor WHERE name = ?), 0) ORDER BY k.rowid",
-                (CURSOR_NAME,),
-            ).fetchall()
-        if not done:
+        """Rebuild the associator from stored measurements of anchored keyframes, in order.
+
+        Keyframes are read in chunks of ``REPLAY_CHUNK`` from ``mapped_keyframes`` (pose and
+        camera) and ``measurements``; no keyframe payload is read (except once, to fill
+        ``mapped_keyframes`` for keyframes a version before it processed).
+        """
+        cursor = self._cursor()
+        if cursor == 0:
             return
-        by_key: dict[str, list[ObjectMeasurement]] = {}
-        for robot_id, session_id, seq, m_payload in rows:
-            key = f"{robot_id}/{session_id}/{int(seq)}"
-            by_key.setdefault(key, []).append(unpack_measurement(m_payload))
-        keyframes = []
-        for robot_id, session_id, seq, payload in done:
-            key = f"{robot_id}/{session_id}/{int(seq)}"
-            try:
-                msg = decode_keyframe(bytes(payload))
-            except WireError:
-                continue  # it was skipped the first time too (counted then)
-            if msg.T_map_odom is not None:
-                keyframes.append((msg, by_key.get(key, [])))
-        self._associate(keyframes)
+        self._backfill(cursor)
+        after = 0
+        keyframes = replayed = 0
+        while not self._stop.is_set():
+            with self.store.reading("mapping: replay") as conn:
+                rows = conn.execute(
+                    "SELECT k.rowid, k.robot_id, k.session_id, k.seq, mk.T_map_camera, mk.camera "
+                    "FROM keyframes k JOIN mapped_keyframes mk USING (robot_id, session_id, seq) "
+                    "WHERE k.rowid > ? AND k.rowid <= ? AND mk.T_map_camera IS NOT NULL "
+                    "ORDER BY k.rowid LIMIT ?",
+                    (after, cursor, REPLAY_CHUNK),
+                ).fetchall()
+                if not rows:
+                    break
+                last = int(rows[-1][0])
+                by_key: dict[str, list[ObjectMeasurement]] = {}
+                for robot_id, session_id, seq, payload in conn.execute(
+                    "SELECT m.robot_id, m.session_id, m.seq, m.payload FROM measurements m "
+                    "JOIN keyframes k USING (robot_id, session_id, seq) "
+                    "WHERE k.rowid > ? AND k.rowid <= ? AND m.anchored = 1 "
+                    "ORDER BY k.rowid, m.measurement_id",
+                    (after, last),
+                ):
+                    by_key.setdefault(f"{robot_id}/{session_id}/{int(seq)}", []).append(
+                        unpack_measurement(payload))
+            chunk = [
+                _MappedKeyframe(f"{robot_id}/{session_id}", _pose_from_blob(pose), _camera_from_json(camera),
+                                by_key.get(f"{robot_id}/{session_id}/{int(seq)}", []))
+                for _, robot_id, session_id, seq, pose, camera in rows
+            ]
+            self._associate(chunk)
+            keyframes += len(chunk)
+            replayed += sum(len(v) for v in by_key.values())
+            after = last
         with self._lock:
-            self._counts.replayed = sum(len(v) for v in by_key.values())
+            self._counts.replayed = replayed
             self._counts.mapped = 0
-        log.info("mapping stage: replayed %d measurements of %d keyframes",
-                 self._counts.replayed, len(keyframes))
+        log.info("mapping stage: replayed %d measurements of %d keyframes", replayed, keyframes)
+
+    def _backfill(self, cursor: int) -> None:
+        """Fill ``mapped_keyframes`` for processed keyframes that have no row (stores written
+        before schema v4), decoding their payloads one at a time."""
+        done = 0
+        while True:
+            with self.store.reading("mapping: keyframes to backfill") as conn:
+                rows = conn.execute(
+                    "SELECT k.rowid, k.robot_id, k.session_id, k.seq FROM keyframes k "
+                    "LEFT JOIN mapped_keyframes mk USING (robot_id, session_id, seq) "
+                    "WHERE k.rowid <= ? AND mk.robot_id IS NULL ORDER BY k.rowid LIMIT ?",
+                    (cursor, REPLAY_CHUNK),
+                ).fetchall()
+            if not rows:
+                break
+            filled = []
+            for rowid, robot_id, session_id, seq in rows:
+                with self.store.reading("mapping: keyframe to backfill") as conn:
+                    (payload,) = conn.execute("SELECT payload FROM keyframes WHERE rowid = ?",
+                                              (rowid,)).fetchone()
+                try:
+                    msg: KeyframeMsg | None = decode_keyframe(bytes(payload))
+                except WireError:
+                    msg = None  # it was skipped the first time too (counted then)
+                filled.append((robot_id, session_id, int(seq), *_mapped_row(msg)))
+            with self.store.writing("mapping: backfill mapped keyframes") as conn:
+                conn.executemany(_INSERT_MAPPED, filled)
+            done += len(filled)
+        if done:
+            log.info("mapping stage: recorded the map pose of %d keyframes processed by an older version",
+                     done)
 
 
 # ---------------------------------------------------------------------------- helpers
+
+
+@dataclass(frozen=True)
+class _MappedKeyframe:
+    """What association needs of one anchored keyframe."""
+
+    stream: str  # "<robot>/<session>": keyframe groups never span two sessions
+    T_map_camera: F64
+    camera: PinholeCamera
+    measurements: Sequence[ObjectMeasurement]
+
+
+def _mapped_row(msg: KeyframeMsg | None) -> tuple[bytes | None, str | None]:
+    """``(T_map_camera blob, camera JSON)`` of a processed keyframe for ``mapped_keyframes``;
+    ``(None, None)`` when it is not on the map (unanchored, undecodable, no intrinsics)."""
+    if msg is None or msg.T_map_odom is None or msg.intrinsics is None:
+        return None, None
+    cam = camera_of(msg)
+    camera = json.dumps({"width": cam.width, "height": cam.height, "fx": cam.fx, "fy": cam.fy,
+                         "cx": cam.cx, "cy": cam.cy, "distortion": list(cam.distortion)})
+    return np.ascontiguousarray(map_pose(msg), "<f8").tobytes(), camera
+
+
+def _pose_from_blob(blob: bytes) -> F64:
+    return np.frombuffer(blob, "<f8").reshape(4, 4).astype(np.float64)
+
+
+def _camera_from_json(text: str) -> PinholeCamera:
+    d = json.loads(text)
+    return PinholeCamera(int(d["width"]), int(d["height"]), float(d["fx"]), float(d["fy"]), float(d["cx"]),
+                         float(d["cy"]), tuple(float(v) for v in d["distortion"]))  # type: ignore[arg-type]
 
 
 def camera_of(msg: KeyframeMsg) -> PinholeCamera:

@@ -152,6 +152,18 @@ MIGRATIONS: Final[tuple[sqlitedb.Migration, ...]] = (
         "CREATE INDEX measurements_keyframe ON measurements (robot_id, session_id, seq)",
         "CREATE TABLE pipeline_cursor (name TEXT PRIMARY KEY, last_rowid INTEGER NOT NULL)",
     ),
+    # v4: what association needs of each keyframe the mapping stage has processed, so a restart
+    # replays without reading keyframe payloads. T_map_camera is NULL for a keyframe that is not
+    # on the map (unanchored session, undecodable payload); camera is the colour camera as JSON.
+    (
+        """CREATE TABLE mapped_keyframes (
+            robot_id TEXT NOT NULL,
+            session_id TEXT NOT NULL,
+            seq INTEGER NOT NULL,
+            T_map_camera BLOB CHECK (T_map_camera IS NULL OR length(T_map_camera) = 128),
+            camera TEXT,
+            PRIMARY KEY (robot_id, session_id, seq)) WITHOUT ROWID""",
+    ),
 )
 
 InsertResult: TypeAlias = Literal["stored", "duplicate"]

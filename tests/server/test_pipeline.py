@@ -21,6 +21,7 @@ MODEL = Path(__file__).resolve().parents[2] / "server" / "models" / "hospital_se
 pytestmark = pytest.mark.skipif(not MODEL.is_file(), reason="the packaged segmentation network is not built")
 
 FRAMES = (0, 8, 16, 24, 32, 40, 48, 56)
+LAST: dict[str, int] = {}
 
 
 def _keyframes(anchored: bool) -> list[tuple[KeyframeMsg, bytes]]:
@@ -49,7 +50,9 @@ def _keyframes(anchored: bool) -> list[tuple[KeyframeMsg, bytes]]:
 
 
 def _run(path: Path, keyframes: list[tuple[KeyframeMsg, bytes]]) -> tuple[dict[str, int], int, int]:
-    """Run the stage until idle; every object it wrote has a mean colour."""
+    """Run the stage until idle; every object it wrote has a mean colour. Returns the map's
+    categories, the stored measurements and the measurements replayed at start; ``LAST``
+    gets the associator's landmark count."""
     with SqliteKeyframeStore.open(path) as store:
         for msg, payload in keyframes:
             store.insert(msg, payload, time.time())
@@ -59,6 +62,7 @@ def _run(path: Path, keyframes: list[tuple[KeyframeMsg, bytes]]) -> tuple[dict[s
         try:
             assert pipe.wait_idle(120.0)
             counters = pipe.counters()
+            LAST["landmarks"] = len(pipe._associator.landmarks())
         finally:
             pipe.stop()
         with store.reading("test") as conn:
@@ -85,6 +89,28 @@ def test_keyframes_become_objects_and_a_restart_replays(tmp_path: Path, anchored
     categories2, n_meas2, replayed2 = _run(db, [])
     assert n_meas2 == n_meas and replayed2 == n_meas
     assert categories2 == categories
+
+
+def test_replay_reads_no_keyframe_payload_and_backfills_old_stores(tmp_path: Path, anchored: list) -> None:
+    """A restart replays from mapped_keyframes + measurements: with every payload blanked the map
+    comes back the same. A store from before mapped_keyframes (rows deleted) is backfilled from
+    the payloads once, and replays the same map too."""
+    db = tmp_path / "map.db"
+    categories, n_meas, _ = _run(db, anchored)
+    landmarks = LAST["landmarks"]
+    assert landmarks > 0
+    with SqliteKeyframeStore.open(db) as store, store.writing("test") as conn:
+        rows = conn.execute("SELECT seq, T_map_camera IS NOT NULL FROM mapped_keyframes ORDER BY seq")
+        rows = rows.fetchall()
+        assert [tuple(r) for r in rows] == [(i, 1) for i in range(len(FRAMES))]
+        conn.execute("DELETE FROM mapped_keyframes")
+    categories2, _, replayed2 = _run(db, [])  # backfill from the payloads, then replay
+    assert replayed2 == n_meas and categories2 == categories and LAST["landmarks"] == landmarks
+    with SqliteKeyframeStore.open(db) as store, store.writing("test") as conn:
+        assert conn.execute("SELECT COUNT(*) FROM mapped_keyframes").fetchone()[0] == len(FRAMES)
+        conn.execute("UPDATE keyframes SET payload = x'00'")
+    categories3, _, replayed3 = _run(db, [])
+    assert replayed3 == n_meas and categories3 == categories and LAST["landmarks"] == landmarks
 
 
 def test_sessions_without_map_pose_are_measured_not_mapped(tmp_path: Path) -> None:
