@@ -331,7 +331,7 @@ class MapPipeline:
         touched: dict[int, Landmark] = {}
         for kf in keyframes:
             changes = self._associator.add_keyframe(
-                strip_masks(kf.measurements), kf.T_map_camera, kf.camera, stream=kf.stream
+                for_association(kf.measurements), kf.T_map_camera, kf.camera, stream=kf.stream
             )
             for change in changes:
                 touched[change.landmark.id] = change.landmark
@@ -560,9 +560,12 @@ def unpack_measurement(blob: bytes) -> ObjectMeasurement:
     )
 
 
-def strip_masks(measurements: Sequence[ObjectMeasurement]) -> list[ObjectMeasurement]:
-    """The measurements without their (H, W) masks, for long-lived association state."""
-    return [replace(m, mask=np.zeros((0, 0), bool)) for m in measurements]
+def for_association(measurements: Sequence[ObjectMeasurement]) -> list[ObjectMeasurement]:
+    """The measurements without their (H, W) masks and 3D points, for long-lived association
+    state: association never reads either, and the points (up to ``MeasureConfig.max_points``,
+    36 kB) were most of a measurement's memory. Both stay in the stored measurement."""
+    return [replace(m, mask=np.zeros((0, 0), bool), points_camera=np.zeros((0, 3), np.float32))
+            for m in measurements]
 
 
 PipelineFactory = Callable[[SqliteKeyframeStore, ObjectMap], MapPipeline]

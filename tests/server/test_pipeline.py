@@ -62,7 +62,11 @@ def _run(path: Path, keyframes: list[tuple[KeyframeMsg, bytes]]) -> tuple[dict[s
         try:
             assert pipe.wait_idle(120.0)
             counters = pipe.counters()
-            LAST["landmarks"] = len(pipe._associator.landmarks())
+            landmarks = pipe._associator.landmarks()
+            LAST["landmarks"] = len(landmarks)
+            # Long-lived association state holds no masks or 3D points (memory).
+            held = [m for lm in landmarks for m in lm.measurements]
+            assert all(m.mask.size == 0 and len(m.points_camera) == 0 for m in held)
         finally:
             pipe.stop()
         with store.reading("test") as conn:
