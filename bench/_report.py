@@ -44,6 +44,13 @@ def git_rev() -> str:
     return f"{rev} with uncommitted changes" if dirty else rev
 
 
+def publish(body: str, path: Path | None, name: str) -> None:
+    """Print a bench's markdown ``body``; with ``path`` (``--write``), also put it in section ``name``."""
+    print(body)
+    if path is not None:
+        write_section(path, name, body)
+
+
 def write_section(path: Path, name: str, body: str) -> None:
     """Replace (or append) the section between ``<!-- name:start -->`` and ``<!-- name:end -->``."""
     start, end = f"<!-- {name}:start -->", f"<!-- {name}:end -->"

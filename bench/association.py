@@ -41,7 +41,7 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _report import git_rev, machine, write_section
+from _report import git_rev, machine, publish
 
 from wardmap.server.association.associator import AssociationConfig
 from wardmap.server.association.evaluate import AssociationScore, score_landmarks
@@ -209,9 +209,7 @@ def main() -> int:
         parts.append(f"Model measurements: column missing, `{MODEL.relative_to(ROOT)}` does not exist.")
     tmpdir.cleanup()
     body = "\n".join(parts)
-    print(body)
-    if args.write:
-        write_section(args.write, "association", body)
+    publish(body, args.write, "association")
     return 0
 
 

@@ -39,7 +39,7 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _report import git_rev, machine, write_section
+from _report import git_rev, machine, publish
 
 from wardmap.server.perception.instances import attach_gt_instances, id_to_class, oracle_instances
 from wardmap.server.perception.measure import MeasureConfig, measure_instances
@@ -366,9 +366,7 @@ def main() -> int:
     else:
         parts.append(f"TUM part skipped: {TUM} or {args.yolox} absent.\n")
     body = "\n".join(parts)
-    print(body)
-    if args.write:
-        write_section(args.write, "perception", body)
+    publish(body, args.write, "perception")
     return 0
 
 

@@ -180,7 +180,7 @@ class MapPipeline:
         self._measure_config = measure_config_for(self.perception, self.perception.segmenter)
         self._kg = KnowledgeGraph.load()
         self._moving = {c.name for c in self._kg.classes if str(c.mobility) == "moving"}
-        self._associator = Associator(self.association)
+        self._new_associator()
         self._lock = threading.Lock()  # guards _counts and _backlog for counters()
         self._counts = _Counts()
         self._backlog = 0
@@ -253,7 +253,7 @@ class MapPipeline:
                     if failing[1] >= self.cfg.max_attempts:
                         self._skip_after(cursor, f"internal: {type(exc).__name__}")
                         failing = None
-                    self._associator = Associator(self.association)
+                    self._new_associator()
                     self._replay()
                 except Exception:  # e.g. the database is still unreadable
                     log.exception("mapping stage: recovery failed; retrying")
@@ -339,17 +339,36 @@ class MapPipeline:
                 self._counts.mapped += 1
         self._write_landmarks(touched.values())
 
+    def _new_associator(self) -> None:
+        self._associator = Associator(self.association)
+        # Landmarks only ever gain measurements (appended): per landmark, how many are already
+        # written as observations, and the running sum of their colour histograms.
+        self._written: dict[int, int] = {}
+        self._hist_sum: dict[int, NDArray[np.float64]] = {}
+
     def _write_landmarks(self, landmarks: Iterable[Landmark]) -> None:
+        """Upsert the landmarks with only their observations not yet written, so an update costs
+        the same however often the object has been seen."""
+        landmarks = list(landmarks)
         states, observations = [], []
         bins = self._measure_config.hist_bins
         for lm in landmarks:
-            colour = mean_rgb([m.color_hist for m in lm.measurements], bins)
+            done = self._written.get(lm.id, 0)
+            new = lm.measurements[done:]
+            hists = [np.asarray(m.color_hist, np.float64) for m in new
+                     if np.shape(m.color_hist) == (bins[0] * bins[1] * bins[2],)]
+            if hists:
+                self._hist_sum[lm.id] = self._hist_sum.get(lm.id, 0.0) + np.sum(hists, axis=0)
+            total = self._hist_sum.get(lm.id)
+            colour = None if total is None else mean_rgb([total], bins)
             state, obs = from_landmark(lm.id, lm.category, lm.confidence, lm.T_world_object, lm.size,
-                                       lm.measurements, colour)
+                                       new, colour)
             states.append(state)
             observations.extend(obs)
         if states:
             self.objects.upsert(states, observations)
+        for lm in landmarks:
+            self._written[lm.id] = len(lm.measurements)
 
     # ------------------------------------------------------------------ storage
 

@@ -64,6 +64,7 @@ def _run(path: Path, keyframes: list[tuple[KeyframeMsg, bytes]]) -> tuple[dict[s
             counters = pipe.counters()
             landmarks = pipe._associator.landmarks()
             LAST["landmarks"] = len(landmarks)
+            LAST["associated"] = sum(len(lm.measurements) for lm in landmarks)
             # Long-lived association state holds no masks or 3D points (memory).
             held = [m for lm in landmarks for m in lm.measurements]
             assert all(m.mask.size == 0 and len(m.points_camera) == 0 for m in held)
@@ -72,6 +73,11 @@ def _run(path: Path, keyframes: list[tuple[KeyframeMsg, bytes]]) -> tuple[dict[s
         with store.reading("test") as conn:
             n_meas = int(conn.execute("SELECT COUNT(*) FROM measurements").fetchone()[0])
             colours = conn.execute("SELECT color_r, color_g, color_b FROM objects").fetchall()
+            # Every associated measurement is one observation, written once as landmarks grow
+            # (measurements of a group still filling up wait for it).
+            n_obs = int(conn.execute("SELECT COUNT(*) FROM observations").fetchone()[0])
+            assert n_obs == LAST["associated"]
+            assert conn.execute("SELECT COALESCE(SUM(n_observations), 0) FROM objects").fetchone()[0] == n_obs
         assert all(c is not None and 0 <= c <= 255 for row in colours for c in row)
         return objects.categories(), n_meas, counters.replayed
 
