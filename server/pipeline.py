@@ -13,7 +13,9 @@ own thread and never delays an ack. It reads keyframes from the store in inserti
 4. when the keyframe's session is on the map (the robot sent ``T_map_odom``, docs/wire.md),
    feeds the measurements, in the map frame, to the :class:`Associator` (paper 000:
    keyframe groups per robot session, HDP across groups), and writes the landmarks it
-   created or changed into the :class:`ObjectMap` (which publishes them on Zenoh).
+   created or changed into the :class:`ObjectMap` (which publishes them on Zenoh). The
+   first keyframe of a robot's new session first closes its previous session's last,
+   incomplete group (``Associator.flush``).
 
 Sessions without ``T_map_odom`` are measured and counted (``unanchored``) but not mapped: their
 odom frame is unknown in the map until loop closure aligns it (a later stage).
@@ -330,6 +332,15 @@ class MapPipeline:
     def _associate(self, keyframes: Iterable[_MappedKeyframe]) -> None:
         touched: dict[int, Landmark] = {}
         for kf in keyframes:
+            # A robot's new session ends its previous one: that session's last, incomplete
+            # keyframe group is associated now (it would wait for keyframes that never come).
+            # Decided from the keyframe order alone, so replay repeats it exactly.
+            robot = kf.stream.split("/", 1)[0]
+            previous = self._open_stream.get(robot)
+            if previous is not None and previous != kf.stream:
+                for change in self._associator.flush(previous):
+                    touched[change.landmark.id] = change.landmark
+            self._open_stream[robot] = kf.stream
             changes = self._associator.add_keyframe(
                 for_association(kf.measurements), kf.T_map_camera, kf.camera, stream=kf.stream
             )
@@ -345,6 +356,7 @@ class MapPipeline:
         # written as observations, and the running sum of their colour histograms.
         self._written: dict[int, int] = {}
         self._hist_sum: dict[int, NDArray[np.float64]] = {}
+        self._open_stream: dict[str, str] = {}  # robot -> its session being associated
 
     def _write_landmarks(self, landmarks: Iterable[Landmark]) -> None:
         """Upsert the landmarks with only their observations not yet written, so an update costs

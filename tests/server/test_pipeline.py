@@ -3,6 +3,7 @@ stored keyframes become measurements and objects; a restart replays and does not
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 
@@ -121,6 +122,32 @@ def test_replay_reads_no_keyframe_payload_and_backfills_old_stores(tmp_path: Pat
         conn.execute("UPDATE keyframes SET payload = x'00'")
     categories3, _, replayed3 = _run(db, [])
     assert replayed3 == n_meas and categories3 == categories and LAST["landmarks"] == landmarks
+
+
+def _session_observations(db: Path, session: str) -> tuple[int, int]:
+    """(observations, anchored measurements) of one session in the store ``db``."""
+    with SqliteKeyframeStore.open(db) as store, store.reading("test") as conn:
+        n_obs = conn.execute("SELECT COUNT(*) FROM observations WHERE session_id = ?",
+                             (session,)).fetchone()[0]
+        n_meas = conn.execute("SELECT COUNT(*) FROM measurements WHERE session_id = ? AND anchored = 1",
+                              (session,)).fetchone()[0]
+    return int(n_obs), int(n_meas)
+
+
+def test_a_new_session_maps_the_last_group_of_the_previous_one(tmp_path: Path, anchored: list) -> None:
+    """Session s1's last keyframes form an incomplete group that waits for more; the robot's next
+    session closes it, so every measurement of s1 reaches the map, also after a restart."""
+    db = tmp_path / "map.db"
+    _run(db, anchored)
+    n_obs, n_meas = _session_observations(db, "s1")
+    assert 0 < n_obs < n_meas  # the last group (keyframes after the first 6) is still open
+    msg = dataclasses.replace(anchored[0][0], session_id="s3", seq=0)
+    _run(db, [(msg, encode(msg))])
+    assert _session_observations(db, "s1") == (n_meas, n_meas)
+    landmarks = LAST["landmarks"]
+    _, _, replayed = _run(db, [])
+    assert replayed > n_meas and LAST["landmarks"] == landmarks
+    assert _session_observations(db, "s1") == (n_meas, n_meas)
 
 
 def test_sessions_without_map_pose_are_measured_not_mapped(tmp_path: Path) -> None:
