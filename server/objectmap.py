@@ -42,7 +42,7 @@ from typing import Any, Final, Literal, Protocol, TypeAlias
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from wardmap.server.store import SqliteKeyframeStore
+from wardmap.server.store import SqliteKeyframeStore, pose_blob, pose_from_blob
 from wardmap.shared.errors import ConfigError, GeometryError, WardmapError
 from wardmap.shared.knowledge import KnowledgeGraph
 from wardmap.shared.se3 import check_transform, rotation_to_quat
@@ -75,7 +75,6 @@ MAX_LIMIT: Final = 1000
 MAX_OFFSET: Final = 1_000_000
 MAX_OBSERVATIONS: Final = 1000
 """Most observations :meth:`ObjectMap.get` returns for one object."""
-_POSE_DTYPE: Final = np.dtype("<f8")
 
 ChangeKind: TypeAlias = Literal["created", "updated", "deleted"]
 Vec3: TypeAlias = tuple[float, float, float]
@@ -771,7 +770,7 @@ class ObjectMap:
         row: dict[str, Any] = {
             "object_id": oid, "category": obj.category,
             "confidence": _check_unit(obj.confidence, f"{where}.confidence"),
-            "T": T.astype(_POSE_DTYPE).tobytes(), "x": T[0, 3], "y": T[1, 3], "z": T[2, 3],
+            "T": pose_blob(T), "x": T[0, 3], "y": T[1, 3], "z": T[2, 3],
             "yaw": math.atan2(T[1, 0], T[0, 0]), "qx": q[0], "qy": q[1], "qz": q[2], "qw": q[3],
             "size_x": size[0], "size_y": size[1], "size_z": size[2],
             "min_x": lo[0], "min_y": lo[1], "min_z": lo[2], "max_x": hi[0], "max_y": hi[1], "max_z": hi[2],
@@ -812,7 +811,7 @@ class ObjectMap:
             "confidence": _check_unit(obs.confidence, f"{where}.confidence"),
             "box_x1": float(box[0]), "box_y1": float(box[1]),
             "box_x2": float(box[2]), "box_y2": float(box[3]),
-            "T": T.astype(_POSE_DTYPE).tobytes(),
+            "T": pose_blob(T),
             "size_x": float(size[0]), "size_y": float(size[1]), "size_z": float(size[2]),
         }
 
@@ -926,16 +925,10 @@ def _bounds(
     return T[:3, 3] - half, T[:3, 3] + half
 
 
-def _pose(blob: bytes) -> NDArray[np.float64]:
-    T = np.frombuffer(bytes(blob), dtype=_POSE_DTYPE).astype(np.float64).reshape(4, 4)
-    T.flags.writeable = False
-    return T
-
-
 def _record(r: Sequence[Any], robots: tuple[str, ...]) -> ObjectRecord:
     color = None if r[21] is None else (float(r[21]), float(r[22]), float(r[23]))
     return ObjectRecord(
-        object_id=int(r[0]), category=str(r[1]), confidence=float(r[2]), T_world_object=_pose(r[3]),
+        object_id=int(r[0]), category=str(r[1]), confidence=float(r[2]), T_world_object=pose_from_blob(r[3]),
         position=(float(r[4]), float(r[5]), float(r[6])), yaw=float(r[7]),
         q_xyzw=(float(r[8]), float(r[9]), float(r[10]), float(r[11])),
         size=(float(r[12]), float(r[13]), float(r[14])),
@@ -950,6 +943,7 @@ def _observation(r: Sequence[Any]) -> ObservationRecord:
     return ObservationRecord(
         observation_id=int(r[0]), added_s=float(r[1]), object_id=int(r[2]), robot_id=str(r[3]),
         session_id=str(r[4]), seq=int(r[5]), stamp=float(r[6]), category=str(r[7]), confidence=float(r[8]),
-        box_xyxy=np.array([r[9], r[10], r[11], r[12]], dtype=np.float64), T_world_object=_pose(r[13]),
+        box_xyxy=np.array([r[9], r[10], r[11], r[12]], dtype=np.float64),
+        T_world_object=pose_from_blob(r[13]),
         size=np.array([r[14], r[15], r[16]], dtype=np.float64),
     )

@@ -61,8 +61,9 @@ from wardmap.server.objectmap import ObjectMap, from_landmark
 from wardmap.server.perception.measure import mean_rgb, measure_instances
 from wardmap.server.perception.models import PerceptionConfig, Segmenter, make_segmenter, measure_config_for
 from wardmap.server.perception.types import ObjectMeasurement
-from wardmap.server.store import SqliteKeyframeStore
+from wardmap.server.store import SqliteKeyframeStore, pose_blob, pose_from_blob
 from wardmap.shared.camera import PinholeCamera
+from wardmap.shared.config import to_mapping
 from wardmap.shared.errors import ConfigError, WardmapError, WireError
 from wardmap.shared.knowledge import KnowledgeGraph
 from wardmap.shared.wire import KeyframeMsg, decode_depth, decode_keyframe
@@ -451,7 +452,7 @@ class MapPipeline:
                     by_key.setdefault(f"{robot_id}/{session_id}/{int(seq)}", []).append(
                         unpack_measurement(payload))
             chunk = [
-                _MappedKeyframe(f"{robot_id}/{session_id}", _pose_from_blob(pose), _camera_from_json(camera),
+                _MappedKeyframe(f"{robot_id}/{session_id}", pose_from_blob(pose), _camera_from_json(camera),
                                 by_key.get(f"{robot_id}/{session_id}/{int(seq)}", []))
                 for _, robot_id, session_id, seq, pose, camera in rows
             ]
@@ -514,20 +515,12 @@ def _mapped_row(msg: KeyframeMsg | None) -> tuple[bytes | None, str | None]:
     ``(None, None)`` when it is not on the map (unanchored, undecodable, no intrinsics)."""
     if msg is None or msg.T_map_odom is None or msg.intrinsics is None:
         return None, None
-    cam = camera_of(msg)
-    camera = json.dumps({"width": cam.width, "height": cam.height, "fx": cam.fx, "fy": cam.fy,
-                         "cx": cam.cx, "cy": cam.cy, "distortion": list(cam.distortion)})
-    return np.ascontiguousarray(map_pose(msg), "<f8").tobytes(), camera
-
-
-def _pose_from_blob(blob: bytes) -> F64:
-    return np.frombuffer(blob, "<f8").reshape(4, 4).astype(np.float64)
+    return pose_blob(map_pose(msg)), json.dumps(to_mapping(camera_of(msg)))
 
 
 def _camera_from_json(text: str) -> PinholeCamera:
     d = json.loads(text)
-    return PinholeCamera(int(d["width"]), int(d["height"]), float(d["fx"]), float(d["fy"]), float(d["cx"]),
-                         float(d["cy"]), tuple(float(v) for v in d["distortion"]))  # type: ignore[arg-type]
+    return PinholeCamera(**{**d, "distortion": tuple(d["distortion"])})
 
 
 def camera_of(msg: KeyframeMsg) -> PinholeCamera:

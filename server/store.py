@@ -48,7 +48,7 @@ from types import TracebackType
 from typing import Final, Literal, Protocol, TypeAlias
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from wardmap.shared import sqlitedb
 from wardmap.shared.errors import WardmapError
@@ -65,6 +65,18 @@ MAX_REASON_LEN: Final = 200
 SQLITE_SCHEME: Final = "sqlite:///"
 _POSE_DTYPE: Final = np.dtype("<f8")
 _POSE_BYTES: Final = 16 * 8
+
+
+def pose_blob(T: ArrayLike) -> bytes:
+    """A (4, 4) pose as this file's tables store it: 16 little-endian float64, row-major."""
+    return np.ascontiguousarray(T, dtype=_POSE_DTYPE).tobytes()
+
+
+def pose_from_blob(blob: bytes) -> NDArray[np.float64]:
+    """Inverse of :func:`pose_blob`: a read-only (4, 4) float64 array."""
+    T = np.frombuffer(bytes(blob), dtype=_POSE_DTYPE).astype(np.float64).reshape(4, 4)
+    T.flags.writeable = False
+    return T
 
 """SQL statements that take the schema from version ``i`` to ``i + 1`` (``MIGRATIONS[i]``)."""
 
@@ -424,7 +436,7 @@ class SqliteKeyframeStore(sqlitedb.GuardedAccess):
             raise StoreError("payload is empty")
         t = _check_seconds(received_s, "received_s")
         key = (msg.robot_id, msg.session_id, int(msg.seq))
-        pose = np.ascontiguousarray(msg.T_odom_camera, dtype=_POSE_DTYPE).tobytes()
+        pose = pose_blob(msg.T_odom_camera)
         with self._write("insert") as conn:
             cur = conn.execute(
                 "INSERT INTO keyframes (robot_id, session_id, seq, stamp, received_s, pose_source, "

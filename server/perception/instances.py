@@ -38,6 +38,7 @@ __all__ = [
     "instances_from_classes",
     "off_background_planes",
     "oracle_instances",
+    "ring_around",
 ]
 
 log = logging.getLogger(__name__)
@@ -181,6 +182,29 @@ def _fit_inverse_depth_plane(
     return coef, best_in
 
 
+def ring_around(mask: Mask, ring_px: int) -> tuple[tuple[slice, slice], Mask, Mask] | None:
+    """The surroundings of a non-empty mask: ``(window, mask[window], ring)``.
+
+    ``window`` is the mask's bounding box grown to hold the ring; ``ring`` (in the window) is
+    ``ring_px`` wide and starts 2 px outside the mask, past the mixed depth at its border.
+    None for an empty mask.
+    """
+    h, w = mask.shape
+    rows = np.flatnonzero(mask.any(axis=1))
+    cols = np.flatnonzero(mask.any(axis=0))
+    if rows.size == 0:
+        return None
+    pad = ring_px + 3
+    window = np.s_[max(0, rows[0] - pad):min(h, rows[-1] + 1 + pad),
+                   max(0, cols[0] - pad):min(w, cols[-1] + 1 + pad)]
+    m = mask[window]
+    m8 = m.astype(np.uint8)
+    near = cv2.dilate(m8, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))).astype(bool)
+    side = 2 * ring_px + 5
+    far = cv2.dilate(m8, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (side, side))).astype(bool)
+    return window, m, far & ~near
+
+
 def off_background_planes(
     mask: Mask,
     depth_m: NDArray[np.float32],
@@ -214,21 +238,13 @@ def off_background_planes(
         bool (H, W): the mask's pixels on a background plane (all False when the ring has
         too little depth or no plane explains enough of it).
     """
-    h, w = mask.shape
-    out = np.zeros((h, w), dtype=bool)
-    rows = np.flatnonzero(mask.any(axis=1))
-    cols = np.flatnonzero(mask.any(axis=0))
-    if rows.size == 0:
+    out = np.zeros(mask.shape, dtype=bool)
+    around = ring_around(mask, ring_px)
+    if around is None:
         return out
-    pad = ring_px + 3
-    r0, r1 = max(0, rows[0] - pad), min(h, rows[-1] + 1 + pad)
-    c0, c1 = max(0, cols[0] - pad), min(w, cols[-1] + 1 + pad)
-    m = mask[r0:r1, c0:c1].astype(np.uint8)
-    d = depth_m[r0:r1, c0:c1].astype(np.float64)
-    near = cv2.dilate(m, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))).astype(bool)
-    side = 2 * ring_px + 5
-    far = cv2.dilate(m, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (side, side))).astype(bool)
-    ring = far & ~near & (d > 0)
+    window, m, ring = around
+    d = depth_m[window].astype(np.float64)
+    ring &= d > 0
     rr, rc = np.nonzero(ring)
     if rr.size < 50:
         return out
@@ -239,7 +255,7 @@ def off_background_planes(
     z = d[rr, rc]
     u, v = rc.astype(np.float64), rr.astype(np.float64)
     tol = np.maximum(tolerance_m, tolerance_relative * z)
-    mr, mc = np.nonzero(m.astype(bool) & (d > 0))
+    mr, mc = np.nonzero(m & (d > 0))
     zm = d[mr, mc]
     tol_m = np.maximum(tolerance_m, tolerance_relative * zm)
     on = np.zeros(mr.size, dtype=bool)
@@ -254,7 +270,7 @@ def off_background_planes(
         left[idx[inl]] = False
         wp = coef[0] * mc + coef[1] * mr + coef[2]
         on |= (wp > 0) & (np.abs(1.0 / np.where(wp > 0, wp, 1.0) - zm) <= tol_m)
-    out[r0 + mr[on], c0 + mc[on]] = True
+    out[window][mr[on], mc[on]] = True
     return out
 
 

@@ -44,6 +44,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from wardmap.server.perception.instances import ring_around
 from wardmap.server.perception.types import Instance, ObjectMeasurement
 from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.errors import ConfigError, GeometryError
@@ -497,23 +498,17 @@ def _relief(mask: NDArray[np.bool_], depth: NDArray[np.float32], cfg: MeasureCon
     ``cfg.flush_ring_px`` wide. Positive: the object stands in front of its surroundings.
     None when the mask or the ring has fewer than ``cfg.min_points`` valid depths.
     """
-    h, w = mask.shape
-    rows = np.flatnonzero(mask.any(axis=1))
-    cols = np.flatnonzero(mask.any(axis=0))
-    pad = cfg.flush_ring_px + 1
-    r0, r1 = max(0, rows[0] - pad), min(h, rows[-1] + 1 + pad)
-    c0, c1 = max(0, cols[0] - pad), min(w, cols[-1] + 1 + pad)
-    m = mask[r0:r1, c0:c1].astype(np.uint8)
-    d = depth[r0:r1, c0:c1]
-    near = cv2.dilate(m, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))).astype(bool)
-    side = 2 * cfg.flush_ring_px + 5
-    far = cv2.dilate(m, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (side, side))).astype(bool)
-    valid = (d >= cfg.min_depth_m) & (d <= cfg.max_depth_m)
-    inside = d[m.astype(bool) & valid]
-    ring = d[far & ~near & valid]
-    if inside.size < cfg.min_points or ring.size < cfg.min_points:
+    around = ring_around(mask, cfg.flush_ring_px)
+    if around is None:
         return None
-    return float(np.median(ring) - np.median(inside))
+    window, m, ring = around
+    d = depth[window]
+    valid = (d >= cfg.min_depth_m) & (d <= cfg.max_depth_m)
+    inside = d[m & valid]
+    outside = d[ring & valid]
+    if inside.size < cfg.min_points or outside.size < cfg.min_points:
+        return None
+    return float(np.median(outside) - np.median(inside))
 
 
 def measure_instances(
