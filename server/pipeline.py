@@ -187,6 +187,9 @@ class MapPipeline:
         self._lock = threading.Lock()  # guards _counts and _backlog for counters()
         self._counts = _Counts()
         self._backlog = 0
+        # Rowid up to which keyframes are stored *and* associated and written to the object map
+        # (the cursor moves before association): what wait_idle waits for.
+        self._settled = -1
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._error: BaseException | None = None
@@ -202,6 +205,7 @@ class MapPipeline:
         if self._segmenter is None:
             self._segmenter = make_segmenter(self.perception.segmenter, self.perception)
         self._replay()
+        self._settle()
         self._thread = threading.Thread(target=self._main, name="map-pipeline", daemon=True)
         self._thread.start()
         log.info("mapping stage started (segmenter %s)", self.perception.segmenter)
@@ -226,7 +230,9 @@ class MapPipeline:
         while time.monotonic() < deadline:
             if self._error is not None:
                 raise WardmapError(f"mapping stage failed: {self._error}") from self._error
-            if self._pending() == 0:
+            with self._lock:
+                settled = self._settled
+            if settled >= 0 and self._pending(after=settled) == 0:
                 return True
             time.sleep(0.05)
         return False
@@ -238,7 +244,9 @@ class MapPipeline:
         failing: tuple[int, int] | None = None  # (cursor, consecutive failures there)
         while not self._stop.is_set():
             try:
-                if self._round() == 0:
+                done = self._round()
+                self._settle()
+                if done == 0:
                     self._stop.wait(self.cfg.poll_s)
                 delay, failing = self.cfg.retry_s, None
             except Exception as exc:  # any bug: log, back off, recover
@@ -258,6 +266,7 @@ class MapPipeline:
                         failing = None
                     self._new_associator()
                     self._replay()
+                    self._settle()
                 except Exception:  # e.g. the database is still unreadable
                     log.exception("mapping stage: recovery failed; retrying")
             except BaseException as exc:  # reported by wait_idle and logged; ingest keeps running
@@ -392,8 +401,14 @@ class MapPipeline:
             ).fetchone()
         return int(row[0]) if row else 0
 
-    def _pending(self) -> int:
+    def _settle(self) -> None:
         cursor = self._cursor()
+        with self._lock:
+            self._settled = cursor
+
+    def _pending(self, after: int | None = None) -> int:
+        """Stored keyframes after ``after`` (default: the cursor)."""
+        cursor = self._cursor() if after is None else after
         with self.store.reading("mapping: backlog") as conn:
             row = conn.execute("SELECT COUNT(*) FROM keyframes WHERE rowid > ?", (cursor,)).fetchone()
         return int(row[0])

@@ -150,6 +150,29 @@ def test_a_new_session_maps_the_last_group_of_the_previous_one(tmp_path: Path, a
     assert _session_observations(db, "s1") == (n_meas, n_meas)
 
 
+def test_wait_idle_waits_for_association_not_just_the_cursor(tmp_path: Path, anchored: list) -> None:
+    """The cursor is committed before a keyframe is associated; idle means associated and written
+    too (the flaky CI failure: the map was read between the two)."""
+    with SqliteKeyframeStore.open(tmp_path / "map.db") as store:
+        for msg, payload in anchored[:3]:
+            store.insert(msg, payload, time.time())
+        pipe = MapPipeline(store, ObjectMap(store), config=PipelineConfig(poll_s=0.05),
+                           perception=PerceptionConfig())
+        associate = pipe._associate
+
+        def slow_associate(keyframes):  # type: ignore[no-untyped-def]
+            time.sleep(0.4)
+            associate(keyframes)
+
+        pipe._associate = slow_associate  # type: ignore[method-assign]
+        pipe.start()
+        try:
+            assert pipe.wait_idle(120.0)
+            assert pipe.counters().mapped == 3
+        finally:
+            pipe.stop()
+
+
 def test_sessions_without_map_pose_are_measured_not_mapped(tmp_path: Path) -> None:
     categories, n_meas, _ = _run(tmp_path / "map.db", _keyframes(anchored=False)[:3])
     assert n_meas > 0 and sum(categories.values()) == 0
