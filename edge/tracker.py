@@ -42,13 +42,27 @@ from wardmap.edge.pose import refine_pose_huber, solve_pnp_ransac
 from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.dataset import Calibration
 from wardmap.shared.errors import ConfigError
-from wardmap.shared.se3 import interpolate_transform, inverse, rotation_angle, transform_points
+from wardmap.shared.se3 import interpolate_transform, inverse, rotation_angle, transform_points, yaw_rotation
 from wardmap.shared.semantic import SemanticConfig, dynamic_mask, semantic_distance
 
 log = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
 PoseSource = Literal["init", "rgb", "relocalised", "thermal", "depth", "odometry", "motion_model", "none"]
+
+
+def level_toward_floor(T_world_cam: F64, T_base_rgb: F64, gain: float) -> F64:
+    """``T_world_cam`` (4, 4) moved ``gain`` (0..1) of the way to the camera pose of a level base.
+
+    The level base keeps the base's x, y and yaw in the world (= odom) frame and sets its
+    roll, pitch and height to 0 (the floor); the camera sits on it at ``T_base_rgb`` (4, 4).
+    Rotation is slerped, translation interpolated (:func:`interpolate_transform`).
+    """
+    T_wb = T_world_cam @ inverse(T_base_rgb)
+    level = np.eye(4)
+    level[:3, :3] = yaw_rotation(float(np.arctan2(T_wb[1, 0], T_wb[0, 0])))
+    level[:2, 3] = T_wb[:2, 3]
+    return interpolate_transform(T_world_cam, level @ T_base_rgb, gain)
 
 
 @dataclass(frozen=True)
@@ -87,6 +101,11 @@ class TrackerConfig:
             the pose refinement (``refine_pose_huber``); 0 = reprojection only.
         rgbd_max_depth_m: keypoints farther than this are monocular observations
             (ORB-SLAM2's ``ThDepth`` x baseline: 40 x 40 / 517 = 3.1 m).
+        floor_level_tau_s: ground robots (world = odom frame, ``T_base_rgb`` known): time
+            constant (s) of a complementary filter that pulls each visual pose's roll, pitch
+            and height toward those of a level base on the floor (the odom frame's z = 0
+            plane); visual drift in tilt and height is slow, the base's wobble fast. Each
+            frame moves ``1 - exp(-dt / tau)`` of the way. 0 disables it (e.g. ramps).
     """
 
     orb: OrbConfig = field(default_factory=OrbConfig)
@@ -115,6 +134,7 @@ class TrackerConfig:
     max_fuse_weight: float = 20.0
     rgbd_bf: float = 40.0
     rgbd_max_depth_m: float = 3.1
+    floor_level_tau_s: float = 2.0
 
     def __post_init__(self) -> None:
         if self.min_inliers < 6:
@@ -123,6 +143,10 @@ class TrackerConfig:
             raise ConfigError("tracker: need 0 < min_depth_m < max_depth_m")
         if self.match_radius_px <= 0 or self.match_radius_lost_px < self.match_radius_px:
             raise ConfigError("tracker: need 0 < match_radius_px <= match_radius_lost_px")
+        if not (np.isfinite(self.floor_level_tau_s) and self.floor_level_tau_s >= 0):
+            raise ConfigError(
+                f"tracker.floor_level_tau_s must be >= 0 (0 = off), got {self.floor_level_tau_s}"
+            )
 
 
 @dataclass(frozen=True)
@@ -226,7 +250,8 @@ class Tracker:
             return self._fallback(inp, prior, prior_source, bad, timings, t_start, n_feat=0)
 
         assert inp.rgb is not None and inp.depth_m is not None  # checked by _frame_problem
-        depth = np.nan_to_num(inp.depth_m, nan=0.0, posinf=0.0, neginf=0.0)
+        depth = inp.depth_m.copy()
+        depth[~np.isfinite(depth)] = 0.0  # 3x faster than np.nan_to_num on a VGA frame
         gray: NDArray[np.uint8] = np.asarray(cv2.cvtColor(inp.rgb, cv2.COLOR_RGB2GRAY), np.uint8)
         dark = float(gray.mean()) < self.cfg.dark_mean_level
         t0 = time.perf_counter()
@@ -338,7 +363,8 @@ class Tracker:
                 if int(inl2.sum()) >= self.cfg.min_inliers:
                     T_cw, inl, m_idx, f_idx = T2, inl2, m2, f2
             timings["refine"] = _ms(t0)
-        T = inverse(T_cw)
+        T = self._level(inverse(T_cw), inp.stamp)
+        T_cw = inverse(T)
         n_inl = int(inl.sum())
         t0 = time.perf_counter()
         self._fuse(T_cw, m_idx[inl], feats.uv[f_idx[inl]], kp_depth[f_idx[inl]])
@@ -359,6 +385,14 @@ class Tracker:
         )
 
     # ------------------------------------------------------------------ prediction
+    def _level(self, T_world_cam: F64, stamp: float) -> F64:
+        """A visual pose moved part-way to a level base on the floor (``floor_level_tau_s``)."""
+        T_base_rgb, tau = self.calib.T_base_rgb, self.cfg.floor_level_tau_s
+        if tau <= 0 or self._T_world_odom is None or T_base_rgb is None or self._prev_stamp is None:
+            return T_world_cam
+        dt = min(max(stamp - self._prev_stamp, 0.0), 1.0)
+        return level_toward_floor(T_world_cam, T_base_rgb, 1.0 - float(np.exp(-dt / tau)))
+
     def _predict(self, inp: TrackInput) -> tuple[F64, PoseSource]:
         """Prior pose ``T_world_camera``: odometry increment, else constant velocity."""
         T_base_rgb = self.calib.T_base_rgb

@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
 from wardmap.shared.errors import GeometryError
@@ -92,16 +93,10 @@ class PinholeCamera:
         pd = np.asarray(xy_d, dtype=np.float64)
         if not self.has_distortion:
             return pd.copy()
-        k1, k2, p1, p2, k3 = self.distortion
-        x, y = pd[:, 0].copy(), pd[:, 1].copy()
-        for _ in range(iterations):
-            r2 = x * x + y * y
-            radial = 1 + k1 * r2 + k2 * r2 * r2 + k3 * r2 * r2 * r2
-            dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-            dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-            x = (pd[:, 0] - dx) / radial
-            y = (pd[:, 1] - dy) / radial
-        return np.stack([x, y], axis=1)
+        if pd.ndim != 2 or pd.shape[1] != 2:
+            raise GeometryError(f"undistort_normalized: expected (N, 2) points, got {pd.shape}")
+        k1, k2, p1, p2, k3 = (float(k) for k in self.distortion)
+        return _undistort(np.ascontiguousarray(pd), k1, k2, p1, p2, k3, int(iterations))
 
     def project(self, points_cam: ArrayLike) -> tuple[F64, NDArray[np.bool_]]:
         """Project camera-frame points (N, 3) in metres to pixels (N, 2).
@@ -153,3 +148,23 @@ class PinholeCamera:
             xy = self.undistort_normalized(xy)
         rays = np.concatenate([xy, np.ones((xy.shape[0], 1))], axis=1)
         return rays.reshape(self.height, self.width, 3)
+
+
+@njit(cache=True, nogil=True)
+def _undistort(pd: F64, k1: float, k2: float, p1: float, p2: float, k3: float,
+               iterations: int) -> F64:  # pragma: no cover - jit
+    """Fixed-point inversion of the Brown-Conrady model, point by point (N, 2) -> (N, 2)."""
+    out = np.empty_like(pd)
+    for i in range(pd.shape[0]):
+        xd, yd = pd[i, 0], pd[i, 1]
+        x, y = xd, yd
+        for _ in range(iterations):
+            r2 = x * x + y * y
+            radial = 1 + k1 * r2 + k2 * r2 * r2 + k3 * r2 * r2 * r2
+            dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+            dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+            x = (xd - dx) / radial
+            y = (yd - dy) / radial
+        out[i, 0] = x
+        out[i, 1] = y
+    return out

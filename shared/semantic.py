@@ -171,8 +171,7 @@ def moving_counts(descriptors: ArrayLike, mobility_lut: ArrayLike) -> I64:
     _check_classes_in_lut(desc, lut)
     is_moving = np.zeros(256, dtype=np.bool_)
     is_moving[: lut.shape[0]] = lut == MOVING_CODE
-    flags = np.take(is_moving, desc.reshape(desc.shape[0], -1))
-    return np.count_nonzero(flags, axis=1).astype(np.int64)
+    return _count_flagged(np.ascontiguousarray(desc.reshape(desc.shape[0], -1)), is_moving)
 
 
 def dynamic_mask(
@@ -281,6 +280,19 @@ def _sample_rotated(image: NDArray[Any], points: NDArray[np.float64], cos_t: NDA
                     out[k, i, j] = image[int(row), int(col)]
                 else:
                     out[k, i, j] = 0
+
+
+@njit(cache=True, nogil=True)
+def _count_flagged(cells: NDArray[np.uint8], flagged: NDArray[np.bool_]) -> I64:  # pragma: no cover - jit
+    """Per row of ``cells`` (N, m), how many cells have a class with ``flagged[class]`` (256,)."""
+    out = np.zeros(cells.shape[0], np.int64)
+    for k in range(cells.shape[0]):
+        count = 0
+        for c in cells[k]:
+            if flagged[c]:
+                count += 1
+        out[k] = count
+    return out
 
 
 # ---------------------------------------------------------------------------- checks

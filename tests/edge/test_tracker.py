@@ -121,6 +121,58 @@ def test_black_rgb_frame_is_bridged_by_depth(aisle_clip: Path) -> None:
         assert tracker.track(frames[7]).source == "rgb"
 
 
+def _tilt_deg(T_a: np.ndarray, T_b: np.ndarray) -> float:
+    """Angle (deg) between the world's up axis seen from two camera poses (roll/pitch only)."""
+    up_a, up_b = T_a[:3, :3].T @ [0, 0, 1.0], T_b[:3, :3].T @ [0, 0, 1.0]
+    return float(np.degrees(np.arccos(np.clip(up_a @ up_b, -1.0, 1.0))))
+
+
+def test_level_toward_floor_moves_tilt_and_height_only() -> None:
+    """Gain 1 puts the base level on the floor with its x, y and yaw; gain 0.5 halves the tilt."""
+    from wardmap.edge.tracker import level_toward_floor
+    from wardmap.shared.se3 import make_transform, so3_exp
+
+    T_base_rgb = make_transform(so3_exp([-np.pi / 2, 0, 0]) @ so3_exp([0, 0, -np.pi / 2]),
+                                [0.2, 0.0, 1.1])
+    T_wb = make_transform(so3_exp([0, 0, 0.7]) @ so3_exp([0.01, -0.02, 0]),
+                          [3.0, -1.0, 0.05])
+    T = T_wb @ T_base_rgb
+    level = level_toward_floor(T, T_base_rgb, 1.0)
+    base = level @ np.linalg.inv(T_base_rgb)
+    assert np.allclose(base[:3, 2], [0, 0, 1], atol=1e-9) and abs(base[2, 3]) < 1e-9
+    assert np.allclose(base[:2, 3], T_wb[:2, 3], atol=0.05)  # the camera turns about itself
+    assert abs(np.arctan2(base[1, 0], base[0, 0]) - 0.7) < 1e-3
+    assert np.allclose(level_toward_floor(T, T_base_rgb, 0.0), T)
+    half = level_toward_floor(T, T_base_rgb, 0.5)
+    assert _tilt_deg(half, level) == pytest.approx(_tilt_deg(T, level) / 2, rel=0.02)
+    assert half[2, 3] == pytest.approx((T[2, 3] + level[2, 3]) / 2)
+
+
+def test_floor_levelling_removes_a_tilt_error(aisle_clip: Path) -> None:
+    """A ground robot whose map starts 1.5 deg pitched (a bad first odometry pose) keeps that tilt
+    without the floor filter; with it (tau 0.5 s) the tilt decays within the 8 s clip."""
+    from wardmap.edge.tracker import TrackerConfig
+    from wardmap.shared.se3 import make_transform, so3_exp
+
+    reader = DatasetReader(aisle_clip)
+    gt, odo = reader.groundtruth(), reader.odometry()
+    assert gt is not None and odo is not None
+    frames = [TrackInput(f.stamp, f.rgb, f.depth_m, None, pose_at(odo[0], odo[1], f.stamp))
+              for f in (reader.frame(i) for i in range(len(reader)))]
+    pitched = make_transform(so3_exp([0, np.radians(1.5), 0]), [0, 0, 0])
+    frames[0] = TrackInput(frames[0].stamp, frames[0].rgb, frames[0].depth_m, None,
+                           frames[0].T_odom_base @ pitched)
+    T_gt = pose_at(gt[0], gt[1], frames[-1].stamp)
+    assert T_gt is not None
+    tilt = {}
+    for tau in (0.0, 0.5):
+        tracker = Tracker(reader.calibration, TrackerConfig(floor_level_tau_s=tau))
+        results = [tracker.track(f) for f in frames]
+        assert all(r.source in ("init", "rgb") for r in results)
+        tilt[tau] = _tilt_deg(results[-1].T_world_camera, T_gt)
+    assert tilt[0.0] > 1.0 and tilt[0.5] < 0.3, tilt
+
+
 def test_nan_in_depth_is_tolerated(aisle_clip: Path) -> None:
     """Scattered NaNs in depth are treated as missing depth, not as a failure."""
     reader = DatasetReader(aisle_clip)
@@ -188,6 +240,8 @@ def test_bad_tracker_config_is_rejected(tmp_path: Path) -> None:
         "[tracker]\nmin_inlier = 30\n",
         "[tracker]\nmin_inliers = 3\n",
         "[tracker.orb]\nn_features = 'x'\n",
+        "[tracker]\nfloor_level_tau_s = -1.0\n",
+        "[tracker]\nfloor_level_tau_s = nan\n",
     ):
         p = tmp_path / "c.toml"
         p.write_text(text)
