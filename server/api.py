@@ -492,6 +492,9 @@ def _pipeline_metrics(c: PipelineCounters) -> str:
         ("wardmap_mapping_landmarks", "gauge", "Landmarks the associator holds.", [("", c.landmarks)]),
         ("wardmap_mapping_restarts_total", "counter",
          "Unexpected errors the mapping stage recovered from (see the server log).", [("", c.restarts)]),
+        ("wardmap_mapping_idle_sessions_closed_total", "counter",
+         "Sessions whose last keyframe group was mapped because they went quiet (close_idle_s).",
+         [("", c.closed_idle)]),
     ]
     out = []
     for name, kind, help_text, samples in rows:

@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import threading
 import time
 from collections import Counter
@@ -90,6 +91,10 @@ class PipelineConfig:
         retry_s: first wait after an unexpected error; doubles on each further one.
         max_retry_s: longest wait between attempts.
         max_attempts: attempts at one keyframe before it is skipped as an internal error.
+        close_idle_s: a session that sent no keyframe for this long (wall clock, seconds)
+            has its last, incomplete keyframe group associated, so what a robot saw before
+            it parked or shut down reaches the map; a later keyframe of the session starts a
+            new group. 0 = only when the robot starts a new session.
     """
 
     enabled: bool = True
@@ -98,6 +103,7 @@ class PipelineConfig:
     retry_s: float = 1.0
     max_retry_s: float = 60.0
     max_attempts: int = 3
+    close_idle_s: float = 60.0
 
     def __post_init__(self) -> None:
         if not self.poll_s > 0:
@@ -108,6 +114,8 @@ class PipelineConfig:
             raise ConfigError("pipeline: need 0 < retry_s <= max_retry_s")
         if self.max_attempts < 1:
             raise ConfigError(f"pipeline.max_attempts must be >= 1, got {self.max_attempts}")
+        if not (math.isfinite(self.close_idle_s) and self.close_idle_s >= 0):
+            raise ConfigError(f"pipeline.close_idle_s must be >= 0 (0 = never), got {self.close_idle_s}")
 
 
 @dataclass(frozen=True)
@@ -125,6 +133,8 @@ class PipelineCounters:
         landmarks: landmarks the associator holds.
         restarts: unexpected errors the stage recovered from.
         last_error: the latest of them, ``Type: message`` (empty when none).
+        closed_idle: sessions whose last keyframe group this process associated because they
+            went quiet (``close_idle_s``).
     """
 
     processed: int
@@ -137,6 +147,7 @@ class PipelineCounters:
     landmarks: int
     restarts: int = 0
     last_error: str = ""
+    closed_idle: int = 0
 
 
 @dataclass
@@ -149,6 +160,7 @@ class _Counts:
     failures: Counter[str] = field(default_factory=Counter)
     restarts: int = 0
     last_error: str = ""
+    closed_idle: int = 0
 
 
 class MapPipeline:
@@ -222,7 +234,7 @@ class MapPipeline:
             c = self._counts
             return PipelineCounters(c.processed, c.measurements, c.mapped, c.unanchored, c.replayed,
                                     self._backlog, dict(c.failures), len(self._associator.landmarks()),
-                                    c.restarts, c.last_error)
+                                    c.restarts, c.last_error, c.closed_idle)
 
     def wait_idle(self, timeout_s: float) -> bool:
         """Block until no stored keyframe waits (tests, the demo); True if it happened in time."""
@@ -246,6 +258,7 @@ class MapPipeline:
             try:
                 done = self._round()
                 self._settle()
+                self._close_idle()  # also while other robots keep the stage busy
                 if done == 0:
                     self._stop.wait(self.cfg.poll_s)
                 delay, failing = self.cfg.retry_s, None
@@ -351,6 +364,7 @@ class MapPipeline:
                 for change in self._associator.flush(previous):
                     touched[change.landmark.id] = change.landmark
             self._open_stream[robot] = kf.stream
+            self._last_seen[kf.stream] = time.monotonic()
             changes = self._associator.add_keyframe(
                 for_association(kf.measurements), kf.T_map_camera, kf.camera, stream=kf.stream
             )
@@ -360,6 +374,38 @@ class MapPipeline:
                 self._counts.mapped += 1
         self._write_landmarks(touched.values())
 
+    def _close_idle(self) -> None:
+        """Associate the open keyframe group of every session quiet for ``close_idle_s``; the
+        closure is stored with the cursor first, so replay repeats it at the same point."""
+        if self.cfg.close_idle_s <= 0:
+            return
+        now = time.monotonic()
+        quiet = sorted(stream for stream in self._open_stream.values()
+                       if now - self._last_seen.get(stream, now) >= self.cfg.close_idle_s)
+        if not quiet:
+            return
+        cursor = self._cursor()
+        with self.store.writing("mapping: close idle sessions") as conn:
+            conn.executemany(
+                "INSERT OR IGNORE INTO closed_sessions (robot_id, session_id, at_rowid) VALUES (?, ?, ?)",
+                [(*stream.split("/", 1), cursor) for stream in quiet],
+            )
+        self._close(quiet)
+        with self._lock:
+            self._counts.closed_idle += len(quiet)
+        log.info("mapping stage: closed the last keyframe group of idle session(s) %s", ", ".join(quiet))
+
+    def _close(self, streams: Iterable[str]) -> None:
+        """Flush the streams' open groups into the map; each robot then has no open session."""
+        touched: dict[int, Landmark] = {}
+        for stream in streams:
+            for change in self._associator.flush(stream):
+                touched[change.landmark.id] = change.landmark
+            robot = stream.split("/", 1)[0]
+            if self._open_stream.get(robot) == stream:
+                del self._open_stream[robot]
+        self._write_landmarks(touched.values())
+
     def _new_associator(self) -> None:
         self._associator = Associator(self.association)
         # Landmarks only ever gain measurements (appended): per landmark, how many are already
@@ -367,6 +413,7 @@ class MapPipeline:
         self._written: dict[int, int] = {}
         self._hist_sum: dict[int, NDArray[np.float64]] = {}
         self._open_stream: dict[str, str] = {}  # robot -> its session being associated
+        self._last_seen: dict[str, float] = {}  # stream -> monotonic time of its last keyframe
 
     def _write_landmarks(self, landmarks: Iterable[Landmark]) -> None:
         """Upsert the landmarks with only their observations not yet written, so an update costs
@@ -442,8 +489,29 @@ class MapPipeline:
         if cursor == 0:
             return
         self._backfill(cursor)
+        with self.store.reading("mapping: closed sessions") as conn:
+            closures: dict[int, list[str]] = {}
+            for at, robot_id, session_id in conn.execute(
+                "SELECT at_rowid, robot_id, session_id FROM closed_sessions WHERE at_rowid <= ? "
+                "ORDER BY at_rowid, robot_id, session_id", (cursor,)
+            ):
+                closures.setdefault(int(at), []).append(f"{robot_id}/{session_id}")
+        counts = [0, 0]  # keyframes, measurements
         after = 0
-        keyframes = replayed = 0
+        for end in [*sorted(closures), cursor]:
+            self._replay_range(after, end, counts)
+            if self._stop.is_set():
+                break
+            self._close(closures.get(end, []))
+            after = end
+        keyframes, replayed = counts
+        with self._lock:
+            self._counts.replayed = replayed
+            self._counts.mapped = 0
+        log.info("mapping stage: replayed %d measurements of %d keyframes", replayed, keyframes)
+
+    def _replay_range(self, after: int, end: int, counts: list[int]) -> None:
+        """Replay the keyframes with ``after < rowid <= end`` (see :meth:`_replay`)."""
         while not self._stop.is_set():
             with self.store.reading("mapping: replay") as conn:
                 rows = conn.execute(
@@ -451,7 +519,7 @@ class MapPipeline:
                     "FROM keyframes k JOIN mapped_keyframes mk USING (robot_id, session_id, seq) "
                     "WHERE k.rowid > ? AND k.rowid <= ? AND mk.T_map_camera IS NOT NULL "
                     "ORDER BY k.rowid LIMIT ?",
-                    (after, cursor, REPLAY_CHUNK),
+                    (after, end, REPLAY_CHUNK),
                 ).fetchall()
                 if not rows:
                     break
@@ -472,13 +540,9 @@ class MapPipeline:
                 for _, robot_id, session_id, seq, pose, camera in rows
             ]
             self._associate(chunk)
-            keyframes += len(chunk)
-            replayed += sum(len(v) for v in by_key.values())
+            counts[0] += len(chunk)
+            counts[1] += sum(len(v) for v in by_key.values())
             after = last
-        with self._lock:
-            self._counts.replayed = replayed
-            self._counts.mapped = 0
-        log.info("mapping stage: replayed %d measurements of %d keyframes", replayed, keyframes)
 
     def _backfill(self, cursor: int) -> None:
         """Fill ``mapped_keyframes`` for processed keyframes that have no row (stores written

@@ -176,6 +176,16 @@ MIGRATIONS: Final[tuple[sqlitedb.Migration, ...]] = (
             camera TEXT,
             PRIMARY KEY (robot_id, session_id, seq)) WITHOUT ROWID""",
     ),
+    # v5: sessions whose last, incomplete keyframe group the mapping stage associated because
+    # no keyframe came for a while (pipeline.close_idle_s), with the stage's cursor at that
+    # moment, so a restart replays the closure at the same point.
+    (
+        """CREATE TABLE closed_sessions (
+            robot_id TEXT NOT NULL,
+            session_id TEXT NOT NULL,
+            at_rowid INTEGER NOT NULL,
+            PRIMARY KEY (at_rowid, robot_id, session_id)) WITHOUT ROWID""",
+    ),
 )
 
 InsertResult: TypeAlias = Literal["stored", "duplicate"]

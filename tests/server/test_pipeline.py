@@ -50,19 +50,26 @@ def _keyframes(anchored: bool) -> list[tuple[KeyframeMsg, bytes]]:
     return out
 
 
-def _run(path: Path, keyframes: list[tuple[KeyframeMsg, bytes]]) -> tuple[dict[str, int], int, int]:
-    """Run the stage until idle; every object it wrote has a mean colour. Returns the map's
-    categories, the stored measurements and the measurements replayed at start; ``LAST``
-    gets the associator's landmark count."""
+def _run(path: Path, keyframes: list[tuple[KeyframeMsg, bytes]], close_idle_s: float = 0.0,
+         closures: int = 0) -> tuple[dict[str, int], int, int]:
+    """Run the stage until idle (and until it closed ``closures`` idle sessions); every object it
+    wrote has a mean colour. Returns the map's categories, the stored measurements and the
+    measurements replayed at start; ``LAST`` gets the associator's landmark count."""
     with SqliteKeyframeStore.open(path) as store:
         for msg, payload in keyframes:
             store.insert(msg, payload, time.time())
         objects = ObjectMap(store)
-        pipe = MapPipeline(store, objects, config=PipelineConfig(poll_s=0.05), perception=PerceptionConfig())
+        config = PipelineConfig(poll_s=0.05, close_idle_s=close_idle_s)
+        pipe = MapPipeline(store, objects, config=config, perception=PerceptionConfig())
         pipe.start()
         try:
             assert pipe.wait_idle(120.0)
+            deadline = time.monotonic() + 30.0
+            while pipe.counters().closed_idle < closures and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert pipe.wait_idle(120.0)
             counters = pipe.counters()
+            assert counters.closed_idle == closures
             landmarks = pipe._associator.landmarks()
             LAST["landmarks"] = len(landmarks)
             LAST["associated"] = sum(len(lm.measurements) for lm in landmarks)
@@ -148,6 +155,29 @@ def test_a_new_session_maps_the_last_group_of_the_previous_one(tmp_path: Path, a
     _, _, replayed = _run(db, [])
     assert replayed > n_meas and LAST["landmarks"] == landmarks
     assert _session_observations(db, "s1") == (n_meas, n_meas)
+
+
+def test_an_idle_session_is_closed_and_replayed(tmp_path: Path, anchored: list) -> None:
+    """A session that goes quiet for close_idle_s has its last group mapped without waiting for a
+    new session; the closure is stored and a restart replays it: same landmarks, no closure
+    again. Keyframes of the session that come later start a new group and are mapped too."""
+    db = tmp_path / "map.db"
+    first, later = anchored[:7], anchored[7:]
+    _run(db, first, close_idle_s=0.3, closures=1)
+    n_obs, n_meas = _session_observations(db, "s1")
+    assert n_obs == n_meas > 0
+    landmarks = LAST["landmarks"]
+    with SqliteKeyframeStore.open(db) as store, store.reading("test") as conn:
+        rows = conn.execute("SELECT robot_id, session_id, at_rowid FROM closed_sessions").fetchall()
+    assert [tuple(r) for r in rows] == [("r1", "s1", 7)]
+    _, _, replayed = _run(db, [], close_idle_s=0.0)  # replay alone repeats the closure
+    assert replayed == n_meas and LAST["landmarks"] == landmarks
+    assert _session_observations(db, "s1") == (n_meas, n_meas)
+    _run(db, later, close_idle_s=0.3, closures=1)  # the session resumes, then goes quiet again
+    n_obs, n_meas = _session_observations(db, "s1")
+    assert n_obs == n_meas
+    _, _, replayed = _run(db, [], close_idle_s=0.0)
+    assert replayed == n_meas and _session_observations(db, "s1") == (n_meas, n_meas)
 
 
 def test_wait_idle_waits_for_association_not_just_the_cursor(tmp_path: Path, anchored: list) -> None:
@@ -238,3 +268,12 @@ def test_unexpected_errors_restart_with_backoff(
     assert c.processed == processed
     assert c.failures == ({"internal: RuntimeError": 1} if skipped else {})
     assert c.backlog == 0
+
+
+@pytest.mark.parametrize("kwargs", [{"close_idle_s": -1.0}, {"close_idle_s": float("nan")}, {"batch": 0},
+                                    {"max_attempts": 0}])
+def test_bad_pipeline_config_is_rejected(kwargs: dict) -> None:
+    from wardmap.shared.errors import ConfigError
+
+    with pytest.raises(ConfigError):
+        PipelineConfig(**kwargs)
