@@ -49,6 +49,7 @@ from wardmap.server.perception.models import (
     make_segmenter,
     measure_config_for,
     packaged_model_path,
+    split_instances,
 )
 from wardmap.server.perception.types import Instance, ObjectMeasurement
 from wardmap.shared.dataset import DatasetReader, Frame
@@ -309,7 +310,9 @@ def main() -> int:
             gt = class_image(frame.labels, truth, names)
             confusion += np.bincount(gt.ravel().astype(np.int64) * len(names) + classes.ravel(),
                                      minlength=len(names) ** 2).reshape(len(names), len(names))
-            ms, skipped = measure(reader, frame, attach_gt_instances(out.instances, frame.labels))
+            # As the server does: touching chairs in one mask are cut apart before measuring.
+            cut = split_instances(out.instances, frame.depth_m, cam, PerceptionConfig(), "model")
+            ms, skipped = measure(reader, frame, attach_gt_instances(cut, frame.labels))
             learned.skipped += skipped
             for m in ms:
                 learned.add(m, truth, cam.width, cam.height)

@@ -60,7 +60,13 @@ from wardmap.server.association.associator import AssociationConfig, Associator
 from wardmap.server.association.types import Landmark
 from wardmap.server.objectmap import ObjectMap, from_landmark
 from wardmap.server.perception.measure import mean_rgb, measure_instances
-from wardmap.server.perception.models import PerceptionConfig, Segmenter, make_segmenter, measure_config_for
+from wardmap.server.perception.models import (
+    PerceptionConfig,
+    Segmenter,
+    make_segmenter,
+    measure_config_for,
+    split_instances,
+)
 from wardmap.server.perception.types import ObjectMeasurement
 from wardmap.server.store import SqliteKeyframeStore, pose_blob, pose_from_blob
 from wardmap.shared.camera import PinholeCamera
@@ -345,7 +351,9 @@ class MapPipeline:
     def _measure(self, msg: KeyframeMsg, key: str) -> list[ObjectMeasurement]:
         bgr, depth, camera = decode_images(msg)
         assert self._segmenter is not None
-        instances = [i for i in self._segmenter(bgr, depth) if i.category not in self._moving]
+        instances = split_instances(self._segmenter(bgr, depth), depth, camera, self.perception,
+                                    self.perception.segmenter)
+        instances = [i for i in instances if i.category not in self._moving]
         T_map_camera = map_pose(msg)
         return measure_instances(
             instances, bgr=bgr, depth_m=depth, camera=camera, T_world_camera=T_map_camera,

@@ -34,6 +34,7 @@ from wardmap.server.association.associator import METHODS, AssociationConfig, As
 from wardmap.server.association.types import Landmark
 from wardmap.server.perception.instances import attach_gt_instances, id_to_class, oracle_instances
 from wardmap.server.perception.measure import MeasureConfig, mean_rgb, measure_instances
+from wardmap.server.perception.models import PerceptionConfig, split_instances
 from wardmap.server.perception.types import Instance, ObjectMeasurement
 from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.config import load_config, to_mapping
@@ -217,6 +218,7 @@ def measure_dataset(
         raise DatasetError(f"{reader.root}: --measurements oracle needs labels.txt + labels/ and "
                            "objects.json (a simulated data set)")
     segment = _segmenter(measurements) if measurements == "model" else None
+    perception = PerceptionConfig()
     frame_poses = _frame_poses(reader, Path(poses) if poses is not None else None)
     without_pose = sum(1 for T in frame_poses if T is None)
     if without_pose == len(frame_poses):
@@ -241,7 +243,8 @@ def measure_dataset(
                 raise DatasetError(f"{reader.root}: frame {frame.stamp:.6f} has no label image")
             instances = oracle_instances(frame.labels, gt_classes, min_pixels=cfg.min_pixels)
         else:
-            instances = segment(bgr, frame.depth_m)
+            instances = split_instances(segment(bgr, frame.depth_m), frame.depth_m, camera, perception,
+                                        "model")
             if frame.labels is not None:
                 instances = attach_gt_instances(instances, frame.labels)
         kept = [inst for inst in instances if not kg.is_moving(inst.category)]

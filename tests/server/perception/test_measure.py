@@ -14,6 +14,7 @@ from wardmap.server.perception.instances import (
     instances_from_classes,
     off_background_planes,
     oracle_instances,
+    split_side_by_side,
 )
 from wardmap.server.perception.measure import (
     MeasureConfig,
@@ -344,6 +345,35 @@ def test_bleed_onto_the_wall_joining_two_chairs_is_trimmed() -> None:
     on = off_background_planes(classes == 2, depth)
     assert not (on & (relief > 0.05)).any()
     assert on.sum() > 0.9 * ((classes == 2) & ~chairs).sum()
+
+
+def test_touching_chairs_in_one_mask_are_split_at_the_gap() -> None:
+    """A mask over three touching chairs 2 m away (0.55, 0.45, 0.5 m wide, a 1-pixel seam without
+    depth between them) becomes three pieces, each on its chair; a single chair, an unlisted
+    class and a mask without depth stay whole."""
+    camera = PinholeCamera(200, 100, 100.0, 100.0, 100.0, 50.0)
+    depth = np.full((100, 200), 2.0, np.float32)
+    bounds = np.array([30.0, 57.5, 80.0, 105.0])  # pixel columns: 0.5 px = 1 cm at 2 m
+    cols = np.arange(200)
+    chair_of = np.searchsorted(bounds, cols + 0.5) - 1  # -1 / 3: outside
+    depth[:, (cols == 57) | (cols == 80)] = 0.0  # the seams
+    mask = np.zeros((100, 200), bool)
+    mask[40:80, 30:105] = True
+    joined = Instance("chair", 0.9, mask, np.array([30.0, 40.0, 105.0, 80.0]))
+    pieces = split_side_by_side([joined], depth, camera, classes=("chair",), width_m=0.5, min_pixels=50)
+    assert len(pieces) == 3 and all(p.category == "chair" and p.confidence == 0.9 for p in pieces)
+    for k, piece in enumerate(sorted(pieces, key=lambda p: p.box_xyxy[0])):
+        on = chair_of[np.nonzero(piece.mask)[1]] == k
+        assert on.mean() > 0.95, (k, on.mean())
+        assert piece.box_xyxy[0] >= 29 and piece.box_xyxy[2] <= 106
+    single = mask.copy()
+    single[:, 57:] = False
+    for inst, classes, d in ((Instance("chair", 0.9, single, np.zeros(4)), ("chair",), depth),
+                             (Instance("door", 0.9, mask, np.zeros(4)), ("chair",), depth),
+                             (joined, ("chair",), np.zeros_like(depth))):
+        assert split_side_by_side([inst], d, camera, classes=classes, width_m=0.5, min_pixels=50) == [inst]
+    with pytest.raises(GeometryError):
+        split_side_by_side([joined], depth, camera, classes=("chair",), width_m=0.0, min_pixels=50)
 
 
 def test_no_planes_without_depth_around() -> None:

@@ -169,6 +169,9 @@ def test_perception_config_toml(tmp_path: Path) -> None:
     bad.write_text("[perception]\ndetector_cluster_gap_m = -1\n")
     with pytest.raises(ConfigError, match="detector_cluster_gap_m"):
         load_perception_config(bad)
+    bad.write_text("[perception]\nsplit_width_m = 0\n")
+    with pytest.raises(ConfigError, match="split_width_m"):
+        load_perception_config(bad)
 
 
 @pytest.mark.skipif(not (YOLOX.is_file() and TUM.is_dir()), reason="needs ../shared (YOLOX, TUM excerpt)")
