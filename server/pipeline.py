@@ -243,7 +243,8 @@ class MapPipeline:
                                     c.restarts, c.last_error, c.closed_idle)
 
     def wait_idle(self, timeout_s: float) -> bool:
-        """Block until no stored keyframe waits (tests, the demo); True if it happened in time."""
+        """Block until every stored keyframe is measured, associated and on the object map (tests,
+        the demo); True if that happened in time. Idle-session closures are not waited for."""
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             if self._error is not None:
