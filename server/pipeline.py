@@ -394,6 +394,13 @@ class MapPipeline:
         if not quiet:
             return
         cursor = self._cursor()
+        with self.store.reading("mapping: idle sessions") as conn:
+            # A session whose keyframes wait behind other robots' backlog is not idle.
+            quiet = [stream for stream in quiet if conn.execute(
+                "SELECT 1 FROM keyframes WHERE robot_id = ? AND session_id = ? AND rowid > ? LIMIT 1",
+                (*stream.split("/", 1), cursor)).fetchone() is None]
+        if not quiet:
+            return
         with self.store.writing("mapping: close idle sessions") as conn:
             conn.executemany(
                 "INSERT OR IGNORE INTO closed_sessions (robot_id, session_id, at_rowid) VALUES (?, ?, ?)",

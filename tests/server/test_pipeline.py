@@ -180,6 +180,28 @@ def test_an_idle_session_is_closed_and_replayed(tmp_path: Path, anchored: list) 
     assert replayed == n_meas and _session_observations(db, "s1") == (n_meas, n_meas)
 
 
+def test_a_session_waiting_in_the_backlog_is_not_idle(tmp_path: Path, anchored: list) -> None:
+    """A session quiet on the associator's clock but with stored keyframes the stage has not
+    reached yet (behind other robots' backlog) is not closed; once they are processed it is."""
+    with SqliteKeyframeStore.open(tmp_path / "map.db") as store:
+        msg, payload = anchored[0]
+        store.insert(msg, payload, time.time())
+        pipe = MapPipeline(store, ObjectMap(store), config=PipelineConfig(close_idle_s=1.0),
+                           perception=PerceptionConfig())
+        pipe._open_stream["r1"] = "r1/s1"
+        pipe._last_seen["r1/s1"] = time.monotonic() - 5.0
+        pipe._close_idle()  # cursor 0: the keyframe waits
+        assert pipe.counters().closed_idle == 0 and pipe._open_stream == {"r1": "r1/s1"}
+        with store.writing("test") as conn:
+            conn.execute("INSERT INTO pipeline_cursor (name, last_rowid) VALUES ('mapping', 1) "
+                         "ON CONFLICT(name) DO UPDATE SET last_rowid = 1")
+        pipe._close_idle()
+        assert pipe.counters().closed_idle == 1 and pipe._open_stream == {}
+        with store.reading("test") as conn:
+            assert conn.execute("SELECT robot_id, session_id, at_rowid FROM closed_sessions").fetchall() == [
+                ("r1", "s1", 1)]
+
+
 def test_wait_idle_waits_for_association_not_just_the_cursor(tmp_path: Path, anchored: list) -> None:
     """The cursor is committed before a keyframe is associated; idle means associated and written
     too (the flaky CI failure: the map was read between the two)."""
