@@ -3,9 +3,10 @@
 A hospital robot passes the same objects many times a day, so each landmark keeps gaining
 measurements. This feeds one data set's keyframes (oracle or model measurements, ground-truth
 poses) to one :class:`Associator` ``--passes`` times, each pass a new robot session, and
-prints per pass: milliseconds per keyframe, landmarks, and the most measurements one landmark
-holds. The landmark count should stay at the first pass's, and the time should level off once
-landmarks hold ``AssociationConfig.max_history`` measurements.
+prints per pass: milliseconds per keyframe, landmarks, the most measurements one landmark has
+had, and the measurements the associator holds in memory (as on the server:
+``keep_measurements`` off). The landmark count should stay at the first pass's, and time and
+memory should level off once landmarks have ``AssociationConfig.max_history`` measurements.
 
     python bench/association_revisits.py [--data out/bench_data] [--sequence aisle_slow_2]
         [--seed 1001] [--passes 8] [--measurements oracle|model] [--max-history N [N ...]]
@@ -59,9 +60,9 @@ def main() -> int:
         generate(args.sequence, args.seed, folder, overwrite=True)
     ds = measure_dataset(folder, measurements=args.measurements)
     keyframes = [(for_association(kf.measurements), kf.T_world_camera) for kf in ds.keyframes]
-    results: dict[int, list[tuple[float, int, int]]] = {}
+    results: dict[int, list[tuple[float, int, int, int]]] = {}
     for history in args.max_history:
-        assoc = Associator(AssociationConfig(max_history=history))
+        assoc = Associator(AssociationConfig(max_history=history, keep_measurements=False))
         results[history] = []
         for p in range(args.passes):
             t0 = time.perf_counter()
@@ -70,11 +71,13 @@ def main() -> int:
             assoc.flush(f"robot/pass{p}")
             ms = 1e3 * (time.perf_counter() - t0) / len(keyframes)
             lms = assoc.landmarks()
-            most = max((len(lm.measurements) for lm in lms), default=0)
-            results[history].append((ms, len(lms), most))
+            most = max((lm.n_measurements for lm in lms), default=0)
+            held = sum(len(lm.measurements) for lm in lms)
+            results[history].append((ms, len(lms), most, held))
             print(f"max_history {history}, pass {p + 1}: {ms:.1f} ms/keyframe, {len(lms)} landmarks, "
-                  f"at most {most} measurements", file=sys.stderr)
-    heads = " | ".join(f"ms/keyframe, landmarks (max_history {h})" for h in args.max_history)
+                  f"at most {most} measurements, {held} held", file=sys.stderr)
+    heads = " | ".join(f"ms/keyframe, landmarks, measurements held (max_history {h})"
+                       for h in args.max_history)
     lines = [
         "## Association on a route driven again and again (issue 6)\n",
         f"Command: `python bench/association_revisits.py --sequence {args.sequence} --seed {args.seed} "
@@ -87,7 +90,8 @@ def main() -> int:
         "|---|---|" + "---|" * len(args.max_history),
     ]
     for p in range(args.passes):
-        cells = " | ".join(f"{results[h][p][0]:.1f}, {results[h][p][1]}" for h in args.max_history)
+        cells = " | ".join(f"{results[h][p][0]:.1f}, {results[h][p][1]}, {results[h][p][3]}"
+                           for h in args.max_history)
         lines.append(f"| {p + 1} | {results[args.max_history[0]][p][2]} | {cells} |")
     text = "\n".join(lines)
     publish(text, args.write, "association_revisits")

@@ -57,7 +57,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from wardmap.server.association.associator import AssociationConfig, Associator
-from wardmap.server.association.types import Landmark
+from wardmap.server.association.types import Landmark, LandmarkChange
 from wardmap.server.objectmap import ObjectMap, from_landmark
 from wardmap.server.perception.measure import mean_rgb, measure_instances
 from wardmap.server.perception.models import (
@@ -363,6 +363,7 @@ class MapPipeline:
 
     def _associate(self, keyframes: Iterable[_MappedKeyframe]) -> None:
         touched: dict[int, Landmark] = {}
+        new: dict[int, list[ObjectMeasurement]] = {}
         for kf in keyframes:
             # A robot's new session ends its previous one: that session's last, incomplete
             # keyframe group is associated now (it would wait for keyframes that never come).
@@ -370,18 +371,16 @@ class MapPipeline:
             robot = kf.stream.split("/", 1)[0]
             previous = self._open_stream.get(robot)
             if previous is not None and previous != kf.stream:
-                for change in self._associator.flush(previous):
-                    touched[change.landmark.id] = change.landmark
+                self._collect(self._associator.flush(previous), touched, new)
             self._open_stream[robot] = kf.stream
             self._last_seen[kf.stream] = time.monotonic()
             changes = self._associator.add_keyframe(
                 for_association(kf.measurements), kf.T_map_camera, kf.camera, stream=kf.stream
             )
-            for change in changes:
-                touched[change.landmark.id] = change.landmark
+            self._collect(changes, touched, new)
             with self._lock:
                 self._counts.mapped += 1
-        self._write_landmarks(touched.values())
+        self._write_landmarks(touched.values(), new)
 
     def _close_idle(self) -> None:
         """Associate the open keyframe group of every session quiet for ``close_idle_s``; the
@@ -414,46 +413,59 @@ class MapPipeline:
     def _close(self, streams: Iterable[str]) -> None:
         """Flush the streams' open groups into the map; each robot then has no open session."""
         touched: dict[int, Landmark] = {}
+        new: dict[int, list[ObjectMeasurement]] = {}
         for stream in streams:
-            for change in self._associator.flush(stream):
-                touched[change.landmark.id] = change.landmark
+            self._collect(self._associator.flush(stream), touched, new)
             robot = stream.split("/", 1)[0]
             if self._open_stream.get(robot) == stream:
                 del self._open_stream[robot]
-        self._write_landmarks(touched.values())
+        self._write_landmarks(touched.values(), new)
 
     def _new_associator(self) -> None:
-        self._associator = Associator(self.association)
+        # The database holds every measurement; the live associator only each landmark's recent ones.
+        self._associator = Associator(replace(self.association, keep_measurements=False))
         # Landmarks only ever gain measurements (appended): per landmark, how many are already
-        # written as observations, and the running sum of their colour histograms.
+        # taken for writing as observations, and the running sum of their colour histograms.
         self._written: dict[int, int] = {}
         self._hist_sum: dict[int, NDArray[np.float64]] = {}
         self._open_stream: dict[str, str] = {}  # robot -> its session being associated
         self._last_seen: dict[str, float] = {}  # stream -> monotonic time of its last keyframe
 
-    def _write_landmarks(self, landmarks: Iterable[Landmark]) -> None:
-        """Upsert the landmarks with only their observations not yet written, so an update costs
-        the same however often the object has been seen."""
-        landmarks = list(landmarks)
-        states, observations = [], []
+    def _collect(self, changes: Iterable[LandmarkChange], touched: dict[int, Landmark],
+                 new: dict[int, list[ObjectMeasurement]]) -> None:
+        """Take the measurements each change added (right after the update that made it: the
+        associator drops a landmark's older measurements at its next update) and add their
+        colour histograms to the landmark's running sum."""
         bins = self._measure_config.hist_bins
-        for lm in landmarks:
-            done = self._written.get(lm.id, 0)
-            new = lm.measurements[done:]
-            hists = [np.asarray(m.color_hist, np.float64) for m in new
+        for change in changes:
+            lm = change.landmark
+            added = lm.n_measurements - self._written.get(lm.id, 0)
+            if added > len(lm.measurements):  # cannot happen: pruning waits for the next update
+                raise WardmapError(f"landmark {lm.id}: {added} new measurements, {len(lm.measurements)} held")
+            fresh = lm.measurements[len(lm.measurements) - added:] if added > 0 else ()
+            hists = [np.asarray(m.color_hist, np.float64) for m in fresh
                      if np.shape(m.color_hist) == (bins[0] * bins[1] * bins[2],)]
             if hists:
                 self._hist_sum[lm.id] = self._hist_sum.get(lm.id, 0.0) + np.sum(hists, axis=0)
+            new.setdefault(lm.id, []).extend(fresh)
+            self._written[lm.id] = lm.n_measurements
+            touched[lm.id] = lm
+
+    def _write_landmarks(self, landmarks: Iterable[Landmark],
+                         new: dict[int, list[ObjectMeasurement]]) -> None:
+        """Upsert the landmarks (their latest state) with only the observations ``new`` to them
+        (:meth:`_collect`), so an update costs the same however often the object has been seen."""
+        states, observations = [], []
+        bins = self._measure_config.hist_bins
+        for lm in landmarks:
             total = self._hist_sum.get(lm.id)
             colour = None if total is None else mean_rgb([total], bins)
             state, obs = from_landmark(lm.id, lm.category, lm.confidence, lm.T_world_object, lm.size,
-                                       new, colour)
+                                       new.get(lm.id, []), colour)
             states.append(state)
             observations.extend(obs)
         if states:
             self.objects.upsert(states, observations)
-        for lm in landmarks:
-            self._written[lm.id] = len(lm.measurements)
 
     # ------------------------------------------------------------------ storage
 

@@ -78,10 +78,16 @@ class AssociationConfig:
     """The ``nearest`` baseline (``[association.nearest]``)."""
     max_history: int = 100
     """A landmark's pose prior (Eq. 2-3), pose refinement (Eq. 4-6) and size use its most recent
-    this many measurements (all of them are kept). Eq. 4-6 compares every pair, so without a
-    bound a robot that passes the same objects all day would slow association down without
-    end (bench/association_revisits.py, a route driven 8 times: 75.9 ms per keyframe on the
-    eighth pass and growing, against 13.9 ms with the bound). Beyond the paper."""
+    this many measurements (``keep_measurements`` says whether the older ones stay in memory).
+    Eq. 4-6 compares every pair, so without a bound a robot that passes the same objects all
+    day would slow association down without end (bench/association_revisits.py, a route
+    driven 8 times: 75.9 ms per keyframe on the eighth pass and growing, against 13.9 ms with
+    the bound). Beyond the paper."""
+    keep_measurements: bool = True
+    """Keep every measurement of a landmark in memory (the offline runner writes them all to
+    landmarks.json). False: only the most recent ``max_history`` (plus the first, for
+    ``per_keyframe_hdp``), so memory stays bounded on a server that runs for months; its
+    database has all of them and :attr:`Landmark.n_measurements` counts them."""
 
     def __post_init__(self) -> None:
         if self.max_history < 1:
@@ -101,6 +107,10 @@ class _LandmarkState:
     mids: list[int] = field(default_factory=list)
     keyframe_mids: dict[int, set[int]] = field(default_factory=dict)
     tables: int = 0
+    count: int = 0  # measurements ever added (``measurements`` may hold only the recent ones)
+    confidence_sum: float = 0.0
+    first: ObjectMeasurement | None = None
+    first_mid: int = -1
     T_world_object: F64 = field(default_factory=lambda: np.eye(4))
     size: F64 = field(default_factory=lambda: np.zeros(3))
     centre: F64 = field(default_factory=lambda: np.zeros(3))  # grid position
@@ -110,18 +120,30 @@ class _LandmarkState:
         (keyframe indexes only grow, so the dict's first key is the oldest)."""
         self.measurements.append(m)
         self.mids.append(mid)
+        self.count += 1
+        self.confidence_sum += float(m.confidence)
+        if self.first is None:
+            self.first, self.first_mid = m, mid
         self.keyframe_mids.setdefault(keyframe, set()).add(mid)
         while len(self.keyframe_mids) > history:
             del self.keyframe_mids[next(iter(self.keyframe_mids))]
+
+    def prune(self, history: int) -> list[int]:
+        """Keep only the most recent ``history`` measurements; returns the dropped ids."""
+        if len(self.mids) <= history:
+            return []
+        dropped = self.mids[:-history]
+        del self.measurements[:-history], self.mids[:-history]
+        return dropped
 
     def poses(self, history: int) -> F64:
         """(n, 4, 4) poses of the most recent ``history`` measurements, oldest first."""
         return np.stack([m.T_world_object for m in self.measurements[-history:]])
 
     def snapshot(self) -> Landmark:
-        conf = float(np.mean([m.confidence for m in self.measurements]))
+        conf = self.confidence_sum / max(self.count, 1)
         return Landmark(self.id, self.category, self.T_world_object.copy(), self.size.copy(), conf,
-                        tuple(self.measurements))
+                        tuple(self.measurements), self.count)
 
 
 def _check_measurements(measurements: Sequence[ObjectMeasurement]) -> None:
@@ -167,6 +189,7 @@ class Associator:
         radius = cfg.nearest.max_distance_m if cfg.method == "nearest" else cfg.hdp.candidate_radius_m
         self._grid = SpatialGrid(radius)
         self._poses_cache: dict[int, tuple[int, F64]] = {}  # id -> (measurements, recent poses)
+        self._grown: set[int] = set()  # landmarks that gained measurements since the last _prune
 
     # ------------------------------------------------------------------ public API
 
@@ -198,6 +221,7 @@ class Associator:
         if not isinstance(camera, PinholeCamera):
             raise GeometryError(f"add_keyframe: camera must be a PinholeCamera, got {type(camera).__name__}")
         _check_measurements(measurements)
+        self._prune()
         index = self._next_keyframe
         self._next_keyframe += 1
         mids = tuple(range(self._next_mid, self._next_mid + len(measurements)))
@@ -230,6 +254,7 @@ class Associator:
         Call it at the end of a run or robot session; the stream's next keyframe starts a
         new run of groups (no group spans a flush).
         """
+        self._prune()
         changed: dict[int, str] = {}
         names = sorted(self._streams) if stream is None else [stream] if stream in self._streams else []
         for name in names:
@@ -266,12 +291,31 @@ class Associator:
         changed[lm.id] = "created"
         return lm
 
+    def _add(self, lm: _LandmarkState, mid: int, m: ObjectMeasurement, keyframe: int) -> None:
+        """Give measurement ``mid`` to ``lm``."""
+        self._owner[mid] = lm.id
+        lm.add(mid, m, keyframe, self.config.max_history)
+        self._grown.add(lm.id)
+
+    def _prune(self) -> None:
+        """Without ``keep_measurements``: landmarks that grew since the last call drop all but their
+        most recent ``max_history`` measurements. Called before each update, so the changes an
+        update returns still carry every measurement it added."""
+        if not self.config.keep_measurements:
+            for lid in self._grown:
+                lm = self._landmarks[lid]
+                for old in lm.prune(self.config.max_history):
+                    if old != lm.first_mid:  # per_keyframe_hdp's topic is the first measurement
+                        del self._owner[old], self._sigma[old], self._extent[old]
+        self._grown.clear()
+
     def _mark(self, lid: int, changed: dict[int, str]) -> None:
         changed.setdefault(lid, "updated")
 
     def _update_pose(self, lm: _LandmarkState) -> None:
         if self.config.method == "per_keyframe_hdp":
-            first = lm.measurements[0]  # HDP-SLAM: the first measurement (maybe older than the history)
+            first = lm.first  # HDP-SLAM: the first measurement (maybe older than the history)
+            assert first is not None
             lm.T_world_object = np.asarray(first.T_world_object, dtype=np.float64).copy()
             lm.size = np.asarray(first.size, dtype=np.float64).copy()
             lm.centre = lm.T_world_object[:3, 3].copy()
@@ -290,7 +334,7 @@ class Associator:
 
     def _poses_of(self, lm: _LandmarkState) -> F64:
         """Poses of the landmark's most recent ``max_history`` measurements (cached)."""
-        n = len(lm.measurements)
+        n = lm.count
         cached = self._poses_cache.get(lm.id)
         if cached is None or cached[0] != n:
             cached = (n, lm.poses(self.config.max_history))
@@ -313,9 +357,8 @@ class Associator:
         touched = []
         for m, mid, target in zip(ms, view.mids, assignment, strict=True):
             lm = self._new_landmark(m.category, changed) if target is None else self._landmarks[target]
-            lm.add(mid, m, view.index, self.config.max_history)
+            self._add(lm, mid, m, view.index)
             lm.tables += 1
-            self._owner[mid] = lm.id
             self._mark(lm.id, changed)
             touched.append(lm)
         for lm in touched:
@@ -343,8 +386,9 @@ class Associator:
 
     def _topic(self, lm: _LandmarkState) -> HdpTopic:
         if self.config.method == "per_keyframe_hdp":
-            poses = lm.measurements[0].T_world_object[None].astype(np.float64)  # HDP-SLAM: the first
-            mids = lm.mids[:1]
+            assert lm.first is not None
+            poses = lm.first.T_world_object[None].astype(np.float64)  # HDP-SLAM: the first
+            mids = [lm.first_mid]
         else:
             poses = self._poses_of(lm)
             mids = lm.mids[-len(poses):]
@@ -403,8 +447,7 @@ class Associator:
                 continue  # only measurements already in landmarks: nothing to create
             lm.tables += 1
             for mid, m, k in fresh:
-                lm.add(mid, m, k, self.config.max_history)
-                self._owner[mid] = lm.id
+                self._add(lm, mid, m, k)
             if fresh:
                 self._mark(lm.id, changed)
                 touched[lm.id] = lm

@@ -33,7 +33,10 @@ class Landmark:
         size: (3,) float64 extent along the object's x, y, z in metres (element-wise
             median of the measurements' sizes; first measurement's for ``per_keyframe_hdp``).
         confidence: mean confidence of its measurements, in [0, 1].
-        measurements: its measurements in the order they were associated (keyframe order).
+        measurements: its measurements in the order they were associated (keyframe order);
+            with ``AssociationConfig.keep_measurements`` off, only the most recent
+            ``max_history`` of them.
+        n_measurements: how many measurements it has had in all (0: ``len(measurements)``).
     """
 
     id: int
@@ -42,6 +45,11 @@ class Landmark:
     size: NDArray[np.float64]
     confidence: float
     measurements: tuple[ObjectMeasurement, ...]
+    n_measurements: int = 0
+
+    def __post_init__(self) -> None:
+        if self.n_measurements == 0:
+            object.__setattr__(self, "n_measurements", len(self.measurements))
 
     @property
     def position(self) -> NDArray[np.float64]:

@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
+from wardmap.server.association.associator import AssociationConfig
 from wardmap.server.objectmap import ObjectMap
 from wardmap.server.perception.models import PerceptionConfig
 from wardmap.server.pipeline import MapPipeline, PipelineConfig, pack_measurement, unpack_measurement
@@ -51,7 +52,7 @@ def _keyframes(anchored: bool) -> list[tuple[KeyframeMsg, bytes]]:
 
 
 def _run(path: Path, keyframes: list[tuple[KeyframeMsg, bytes]], close_idle_s: float = 0.0,
-         closures: int = 0) -> tuple[dict[str, int], int, int]:
+         closures: int = 0, association: AssociationConfig | None = None) -> tuple[dict[str, int], int, int]:
     """Run the stage until idle (and until it closed ``closures`` idle sessions); every object it
     wrote has a mean colour. Returns the map's categories, the stored measurements and the
     measurements replayed at start; ``LAST`` gets the associator's landmark count."""
@@ -60,7 +61,8 @@ def _run(path: Path, keyframes: list[tuple[KeyframeMsg, bytes]], close_idle_s: f
             store.insert(msg, payload, time.time())
         objects = ObjectMap(store)
         config = PipelineConfig(poll_s=0.05, close_idle_s=close_idle_s)
-        pipe = MapPipeline(store, objects, config=config, perception=PerceptionConfig())
+        pipe = MapPipeline(store, objects, config=config, perception=PerceptionConfig(),
+                           association=association)
         pipe.start()
         try:
             assert pipe.wait_idle(120.0)
@@ -72,7 +74,9 @@ def _run(path: Path, keyframes: list[tuple[KeyframeMsg, bytes]], close_idle_s: f
             assert counters.closed_idle == closures
             landmarks = pipe._associator.landmarks()
             LAST["landmarks"] = len(landmarks)
-            LAST["associated"] = sum(len(lm.measurements) for lm in landmarks)
+            LAST["associated"] = sum(lm.n_measurements for lm in landmarks)
+            LAST["held"] = max((len(lm.measurements) for lm in landmarks), default=0)
+            LAST["most"] = max((lm.n_measurements for lm in landmarks), default=0)
             # Long-lived association state holds no masks or 3D points (memory).
             held = [m for lm in landmarks for m in lm.measurements]
             assert all(m.mask.size == 0 and len(m.points_camera) == 0 for m in held)
@@ -200,6 +204,28 @@ def test_a_session_waiting_in_the_backlog_is_not_idle(tmp_path: Path, anchored: 
         with store.reading("test") as conn:
             assert conn.execute("SELECT robot_id, session_id, at_rowid FROM closed_sessions").fetchall() == [
                 ("r1", "s1", 1)]
+
+
+def test_the_live_associator_holds_only_recent_measurements(tmp_path: Path, anchored: list) -> None:
+    """With max_history 2 the stage's associator keeps at most a few measurements per landmark,
+    yet every associated measurement is written once as an observation, colours come from all
+    of them, and a restart replays to the same landmarks."""
+    db = tmp_path / "map.db"
+    small = AssociationConfig(max_history=2)
+    categories, n_meas, _ = _run(db, anchored, association=small)
+    landmarks, associated = LAST["landmarks"], LAST["associated"]
+    assert LAST["held"] < LAST["most"]  # older measurements were dropped from memory
+    with SqliteKeyframeStore.open(db) as store, store.reading("test") as conn:
+        colours = conn.execute("SELECT color_r, color_g, color_b FROM objects ORDER BY object_id").fetchall()
+    _run(tmp_path / "full.db", anchored)
+    with SqliteKeyframeStore.open(tmp_path / "full.db") as store, store.reading("test") as conn:
+        n_full = conn.execute("SELECT COUNT(*) FROM observations").fetchone()[0]
+    assert n_full == associated  # the same measurements reach the map as with everything held
+    categories2, _, replayed = _run(db, [], association=small)
+    assert replayed == n_meas and LAST["landmarks"] == landmarks and categories2 == categories
+    with SqliteKeyframeStore.open(db) as store, store.reading("test") as conn:
+        assert conn.execute("SELECT color_r, color_g, color_b FROM objects ORDER BY object_id").fetchall() \
+            == colours
 
 
 def test_wait_idle_waits_for_association_not_just_the_cursor(tmp_path: Path, anchored: list) -> None:

@@ -107,6 +107,37 @@ def test_hierarchical_is_deterministic(make_measurement: MeasurementFactory) -> 
         [[id(m) for m in lm.measurements] for lm in b.landmarks()]
 
 
+@pytest.mark.parametrize("method", ["hierarchical", "per_keyframe_hdp", "nearest"])
+def test_bounded_memory_associates_the_same(make_measurement: MeasurementFactory, method: str) -> None:
+    """keep_measurements off (the server): the same landmarks, poses, sizes and confidences as
+    keeping everything, with at most max_history measurements held per landmark (plus what one
+    update adds), every update's changes still carrying the measurements it added, and
+    n_measurements counting them all."""
+    scene = _scene(make_measurement, n_keyframes=30, seed=2)
+    full, _ = _run(AssociationConfig(method=method, max_history=4), scene)  # type: ignore[arg-type]
+    cfg = AssociationConfig(method=method, max_history=4, keep_measurements=False)  # type: ignore[arg-type]
+    bounded = Associator(cfg)
+    seen: dict[int, list[int]] = {}
+    for ms, T in [*scene, ([], None)]:
+        changes = bounded.add_keyframe(ms, T, CAMERA) if T is not None else bounded.flush()
+        for c in changes:
+            held = [id(m) for m in c.landmark.measurements]
+            old = seen.setdefault(c.landmark.id, [])
+            added = c.landmark.n_measurements - len(old)
+            assert 0 < added <= len(held)  # the update's new measurements are all there
+            old.extend(held[len(held) - added:])
+    a, b = full.landmarks(), bounded.landmarks()
+    assert [lm.id for lm in a] == [lm.id for lm in b]
+    for x, y in zip(a, b, strict=True):
+        np.testing.assert_array_equal(x.T_world_object, y.T_world_object)
+        np.testing.assert_array_equal(x.size, y.size)
+        assert x.confidence == pytest.approx(y.confidence)
+        assert y.n_measurements == x.n_measurements == len(x.measurements)
+        assert seen[y.id] == [id(m) for m in x.measurements]  # every measurement was handed out once
+    assert max(len(lm.measurements) for lm in b) < max(lm.n_measurements for lm in b)
+    assert len(bounded._owner) < len(full._owner)
+
+
 def test_bad_input_and_config(make_measurement: MeasurementFactory) -> None:
     assoc = Associator()
     with pytest.raises(GeometryError, match="T_world_camera"):
