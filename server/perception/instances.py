@@ -41,6 +41,7 @@ __all__ = [
     "instances_from_classes",
     "off_background_planes",
     "oracle_instances",
+    "principal_direction",
     "ring_around",
     "split_side_by_side",
 ]
@@ -96,6 +97,13 @@ def split_side_by_side(
     return out
 
 
+def principal_direction(xy: NDArray[np.float64]) -> NDArray[np.float64]:
+    """First principal axis (2,) (unit length) of points (N, 2)."""
+    centred = xy - xy.mean(axis=0)
+    _, vecs = np.linalg.eigh(centred.T @ centred)
+    return np.asarray(vecs[:, -1], dtype=np.float64)
+
+
 def _side_by_side(mask: Mask, depth: NDArray[np.float32], camera: PinholeCamera, width_m: float,
                   min_pixels: int) -> list[Mask]:
     v, u = np.nonzero(mask)
@@ -105,9 +113,7 @@ def _side_by_side(mask: Mask, depth: NDArray[np.float32], camera: PinholeCamera,
         return []
     v, u, z = v[ok], u[ok], z[ok]
     xz = np.stack([(u - camera.cx) * z / camera.fx, z], axis=1)
-    centred = xz - xz.mean(axis=0)
-    _, vecs = np.linalg.eigh(centred.T @ centred)
-    along = centred @ vecs[:, -1]
+    along = (xz - xz.mean(axis=0)) @ principal_direction(xz)
     lo, hi = (float(q) for q in np.quantile(along, [0.02, 0.98]))
     k = int((hi - lo) / width_m + 0.5)
     if k < 2:

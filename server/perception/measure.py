@@ -44,7 +44,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from wardmap.server.perception.instances import ring_around
+from wardmap.server.perception.instances import principal_direction, ring_around
 from wardmap.server.perception.types import Instance, ObjectMeasurement
 from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.errors import ConfigError, GeometryError
@@ -271,14 +271,7 @@ def _ransac_line_direction(xy: F64, cfg: MeasureConfig) -> F64 | None:
     if counts[best] < cfg.plane_min_fraction * score_pts.shape[0]:
         return None
     inliers = np.abs(xy @ normals[best] - offsets[best]) <= cfg.plane_threshold_m
-    return _principal_direction(xy[inliers])
-
-
-def _principal_direction(xy: F64) -> F64:
-    """First principal axis (2,) of points (N, 2)."""
-    centred = xy - xy.mean(axis=0)
-    _, vecs = np.linalg.eigh(centred.T @ centred)
-    return vecs[:, -1]
+    return principal_direction(xy[inliers])
 
 
 def _gravity_box(points_g: F64, cfg: MeasureConfig) -> tuple[float, F64, F64, str]:
@@ -292,7 +285,7 @@ def _gravity_box(points_g: F64, cfg: MeasureConfig) -> tuple[float, F64, F64, st
     direction = _ransac_line_direction(xy, cfg)
     source = "plane"
     if direction is None:
-        direction, source = _principal_direction(xy), "pca"
+        direction, source = principal_direction(xy), "pca"
     yaw = math.atan2(direction[1], direction[0])
     q = cfg.extent_quantile
     for _ in range(2):
