@@ -18,6 +18,7 @@ from wardmap.cli import (
     edge_cmd,
     eval_cmd,
     map_cmd,
+    readout_cmd,
     router_cmd,
     segment_cmd,
     server_cmd,
@@ -52,6 +53,7 @@ def build_parser() -> argparse.ArgumentParser:
     sim_cmd.register(sub)
     dataset_cmd.register(sub)
     track_cmd.register(sub)
+    readout_cmd.register(sub)
     map_cmd.register(sub)
     segment_cmd.register(sub)
     train_seg_cmd.register(sub)

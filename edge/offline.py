@@ -17,7 +17,7 @@ import numpy as np
 
 from wardmap.edge.labels import make_label_source
 from wardmap.edge.tracker import Tracker, TrackerConfig, TrackInput, TrackResult
-from wardmap.shared.dataset import DatasetReader, pose_at
+from wardmap.shared.dataset import Calibration, DatasetReader, pose_at
 from wardmap.shared.errors import DatasetError, WardmapError
 from wardmap.shared.knowledge import KnowledgeGraph
 from wardmap.shared.se3 import transform_to_tum
@@ -34,8 +34,12 @@ def track_dataset(
     max_frames: int | None = None,
     label_threads: int = 1,
     progress: Callable[[int, int, TrackResult], None] | None = None,
+    calibration: Calibration | None = None,
 ) -> dict[str, Any]:
     """Track every frame of ``dataset``; write ``out`` (TUM trajectory); return a summary.
+
+    ``calibration`` replaces the folder's own (e.g. with a readout time estimated by
+    :func:`wardmap.edge.readout.estimate_readout`).
 
     The summary has frames, keyframes, lost frames (with the reasons), pose sources, and
     milliseconds per frame (median and p95) for each stage and in total; label inference
@@ -51,7 +55,7 @@ def track_dataset(
         raise WardmapError(f"--max-frames must be positive, got {max_frames}")
     kg = KnowledgeGraph.load()
     source = make_label_source(labels, dataset=reader, kg=kg, threads=label_threads)
-    tracker = Tracker(reader.calibration, config, kg.mobility_lut())
+    tracker = Tracker(calibration or reader.calibration, config, kg.mobility_lut())
     odo = reader.odometry()
     n = len(reader) if max_frames is None else min(max_frames, len(reader))
     results: list[TrackResult] = []

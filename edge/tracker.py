@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import cv2
@@ -42,7 +42,14 @@ from wardmap.edge.pose import refine_pose_huber, solve_pnp_ransac
 from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.dataset import Calibration
 from wardmap.shared.errors import ConfigError
-from wardmap.shared.se3 import interpolate_transform, inverse, rotation_angle, transform_points, yaw_rotation
+from wardmap.shared.se3 import (
+    interpolate_transform,
+    inverse,
+    rotation_angle,
+    so3_log,
+    transform_points,
+    yaw_rotation,
+)
 from wardmap.shared.semantic import SemanticConfig, dynamic_mask, semantic_distance
 
 log = logging.getLogger(__name__)
@@ -220,6 +227,7 @@ class Tracker:
         self._T_world_cam: F64 | None = None
         self._velocity: F64 = np.eye(4)  # T_prev_cur of the last step (camera frames)
         self._prev_stamp: float | None = None
+        self._prev_dt = 0.0  # seconds spanned by self._velocity
         self._prev_odom: F64 | None = None
         self._kf_inliers = 0
         self._kf_T: F64 | None = None
@@ -297,6 +305,14 @@ class Tracker:
             )
 
         kp_depth = _depth_at(depth, feats.uv)
+        readout = self.calib.rgb_readout_s
+        if readout > 0 and self._prev_dt > 0:
+            # Rolling shutter: keypoints moved to the middle row's instant (motion model's spin).
+            omega = so3_log(self._velocity[:3, :3]) / self._prev_dt
+            if np.linalg.norm(omega) * readout * self.cam.fx > 0.1:  # the edge rows move > 0.05 px
+                t0 = time.perf_counter()
+                feats, kp_depth = unroll_keypoints(self.cam, readout, omega, feats, kp_depth)
+                timings["unroll"] = _ms(t0)
         if len(self.map) == 0:
             T = prior
             self._insert_keyframe(inp.stamp, T, feats, kp_depth, sem, new_all=True)
@@ -685,6 +701,7 @@ class Tracker:
     def _accept(self, inp: TrackInput, T: F64, *, n_inliers: int, keyframe: bool = True) -> None:
         if self._T_world_cam is not None:
             self._velocity = inverse(self._T_world_cam) @ T
+            self._prev_dt = inp.stamp - (self._prev_stamp if self._prev_stamp is not None else inp.stamp)
         self._T_world_cam = T
         self._prev_stamp = inp.stamp
         if inp.T_odom_base is not None:
@@ -788,6 +805,36 @@ def _near(T_a: F64, T_b: F64, max_m: float, max_deg: float) -> bool:
     """Whether two poses are within ``max_m`` metres and ``max_deg`` degrees of each other."""
     rel = inverse(T_a) @ T_b
     return bool(np.linalg.norm(rel[:3, 3]) <= max_m and np.degrees(rotation_angle(rel[:3, :3])) <= max_deg)
+
+
+def unroll_keypoints(
+    cam: PinholeCamera, readout_s: float, omega_cam: F64, feats: Features, kp_depth: NDArray[np.float64]
+) -> tuple[Features, NDArray[np.float64]]:
+    """Keypoints of a rolling-shutter frame moved to where a global shutter at the middle
+    row's instant would have seen them.
+
+    Row v is exposed ``dt = (v - cy) / height * readout_s`` after the middle row; over
+    ``dt`` the camera turned by ``omega_cam dt`` (rad/s, camera frame), so the point it saw
+    at ``X`` is at ``X + dt omega x X`` in the middle row's frame (first order: 0.02 rad at
+    100 deg/s and 20 ms). Translation during the readout is ignored (millimetres).
+
+    Args:
+        cam: the colour camera (distortion handled through ``unproject`` / ``project``).
+        readout_s: first-row-to-last readout time, seconds.
+        omega_cam: (3,) angular velocity in the camera frame, rad/s (the motion model's).
+        feats: keypoints; only ``uv`` changes.
+        kp_depth: (N,) depth at each keypoint, metres (0 = none: the ray is moved alone).
+
+    Returns:
+        (features with moved ``uv``, depth (N,) of the moved points, 0 where there was none).
+    """
+    uv = feats.uv.astype(np.float64)
+    has = kp_depth > 0
+    X = cam.unproject(uv, np.where(has, kp_depth, 1.0))
+    dt = (uv[:, 1] - cam.cy) / cam.height * readout_s
+    Xm = X + dt[:, None] * np.cross(omega_cam, X)
+    uv_m, _ = cam.project(Xm)
+    return replace(feats, uv=uv_m.astype(np.float32)), np.where(has, Xm[:, 2], 0.0)
 
 
 def _depth_at(depth: NDArray[np.float32], uv: NDArray[np.float32]) -> NDArray[np.float64]:

@@ -53,6 +53,8 @@ U16 = NDArray[np.uint16]
 U8 = NDArray[np.uint8]
 
 DEFAULT_DEPTH_SCALE: Final = 5000.0
+MAX_READOUT_S: Final = 0.1
+"""Largest rolling-shutter readout time accepted (a 10 Hz frame period), seconds."""
 """Depth PNG units per metre (TUM's value)."""
 DEFAULT_THERMAL_SCALE: Final = 100.0
 """Thermal PNG units per kelvin (centikelvin)."""
@@ -134,6 +136,9 @@ class Calibration:
         wheel_radius_m, wheel_base_m, ticks_per_mm: differential-drive geometry for
             ``encoders.txt`` (wheel radius, distance between wheels, encoder ticks per mm of
             wheel travel); they need ``T_base_rgb`` (they live in the ``[base]`` table).
+        rgb_readout_s: rolling-shutter readout time of the colour camera, seconds from the
+            first row to the last (``[rgb] readout_s``); 0 = global shutter (the simulator).
+            ``wardmap calibrate-readout`` estimates it from a recording.
 
     Matrices are stored as read-only float64 copies. Equality compares every field exactly.
     """
@@ -147,6 +152,7 @@ class Calibration:
     wheel_radius_m: float | None = None
     wheel_base_m: float | None = None
     ticks_per_mm: float | None = None
+    rgb_readout_s: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.rgb, PinholeCamera):
@@ -157,6 +163,11 @@ class Calibration:
             )
         _positive_finite(self.depth_scale, "Calibration.depth_scale")
         _positive_finite(self.thermal_scale, "Calibration.thermal_scale")
+        if not (math.isfinite(self.rgb_readout_s) and 0.0 <= self.rgb_readout_s <= MAX_READOUT_S):
+            raise DatasetError(
+                f"Calibration.rgb_readout_s ([rgb] readout_s) must be in [0, {MAX_READOUT_S}] seconds, "
+                f"got {self.rgb_readout_s!r}"
+            )
         if (self.thermal is None) != (self.T_rgb_thermal is None):
             raise DatasetError("Calibration: thermal and T_rgb_thermal must be given together")
         for name in ("T_rgb_thermal", "T_base_rgb"):
@@ -183,15 +194,17 @@ class Calibration:
             if (a is None) != (b is None) or (a is not None and not np.array_equal(a, b)):
                 return False
         return (self.rgb, self.depth_scale, self.thermal, self.thermal_scale,
-                self.wheel_radius_m, self.wheel_base_m, self.ticks_per_mm) == (
+                self.wheel_radius_m, self.wheel_base_m, self.ticks_per_mm, self.rgb_readout_s) == (
                 other.rgb, other.depth_scale, other.thermal, other.thermal_scale,
-                other.wheel_radius_m, other.wheel_base_m, other.ticks_per_mm)
+                other.wheel_radius_m, other.wheel_base_m, other.ticks_per_mm, other.rgb_readout_s)
 
     __hash__ = None  # type: ignore[assignment]  # holds arrays: equality is by value
 
     def to_toml_dict(self) -> dict[str, Any]:
         """The ``calibration.toml`` tables as plain Python values (None fields left out)."""
         out: dict[str, Any] = {"rgb": {**_camera_dict(self.rgb), "depth_scale": self.depth_scale}}
+        if self.rgb_readout_s > 0:
+            out["rgb"]["readout_s"] = self.rgb_readout_s
         if self.thermal is not None and self.T_rgb_thermal is not None:
             out["thermal"] = {
                 **_camera_dict(self.thermal),
@@ -223,10 +236,11 @@ class Calibration:
             raise DatasetError(f"{source}: expected a TOML document (tables), got {type(d)}")
         _check_keys(d, source, "", required=("rgb",), optional=("thermal", "base"))
         rgb_t = _table(d, "rgb", source)
-        _check_keys(rgb_t, source, "rgb", required=_CAMERA_KEYS, optional=("depth_scale",))
+        _check_keys(rgb_t, source, "rgb", required=_CAMERA_KEYS, optional=("depth_scale", "readout_s"))
         kwargs: dict[str, Any] = {
             "rgb": _camera_from(rgb_t, source, "rgb"),
             "depth_scale": _number(rgb_t, "depth_scale", source, "rgb", DEFAULT_DEPTH_SCALE),
+            "rgb_readout_s": _number(rgb_t, "readout_s", source, "rgb", 0.0),
         }
         if "thermal" in d:
             th_t = _table(d, "thermal", source)

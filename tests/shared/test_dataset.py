@@ -170,6 +170,13 @@ def test_calibration_toml_round_trip(tmp_path: Path) -> None:
     assert set(full.to_toml_dict()) == {"rgb", "thermal", "base"}
     assert set(rgb_only.to_toml_dict()) == {"rgb"}
     assert full != rgb_only
+    # A rolling-shutter readout time is written only when set, and read back exactly.
+    assert "readout_s" not in rgb_only.to_toml_dict()["rgb"]
+    rolling = Calibration(rgb=TUM_CAMERAS["freiburg1"], rgb_readout_s=0.0175)
+    save_calibration(tmp_path / "rs.toml", rolling)
+    assert "readout_s = 0.0175\n" in (tmp_path / "rs.toml").read_text()
+    assert load_calibration(tmp_path / "rs.toml") == rolling
+    assert rolling != rgb_only
 
 
 def test_written_twice_is_byte_identical(tmp_path: Path) -> None:
@@ -426,6 +433,9 @@ def test_corrupt_objects_json(synthetic: tuple[Path, dict[str, Any]]) -> None:
         ("T_base_rgb = [\n    [", "T_base_rgb = [\n    [2.0, 0.0, 0.0, 0.0], [",
          r"\[base\] T_base_rgb: expected a 4x4 matrix"),
         ("ticks_per_mm = 11.7", "ticks_per_mm = 0.0", r"ticks_per_mm must be a positive"),
+        ("fx = 50.5", "fx = 50.5\nreadout_s = -0.01", r"\[rgb\] readout_s\) must be in \[0, 0.1\]"),
+        ("fx = 50.5", "fx = 50.5\nreadout_s = 0.5", r"\[rgb\] readout_s\) must be in \[0, 0.1\]"),
+        ("fx = 50.5", 'fx = 50.5\nreadout_s = "20ms"', r"\[rgb\] readout_s: expected a finite number"),
         ("[rgb]", "[rgb\n", "malformed TOML"),
     ],
 )
