@@ -22,6 +22,12 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument(
         "--config", metavar="FILE", help="TOML file with a [train_seg] table (deploy/train_seg.toml)"
     )
+    p.add_argument(
+        "--adjust",
+        metavar="RAW.onnx",
+        help="skip training: choose and bake the logit adjustment ([train_seg] logit_adjust) into RAW.onnx, "
+        "a model from an earlier run without one, and write it to --out (needs onnx, not torch)",
+    )
     p.set_defaults(func=run)
 
 
@@ -30,6 +36,8 @@ def run(args: argparse.Namespace) -> int:
     from wardmap.shared.config import load_config
 
     config = load_config(TrainSegConfig, args.config, section="train_seg")
+    if args.adjust:
+        return _adjust(args, config)
     missing = [m for m in ("torch", "onnx") if importlib.util.find_spec(m) is None]
     if missing:
         raise TrainingError(
@@ -62,4 +70,34 @@ def run(args: argparse.Namespace) -> int:
             }
         )
     )
+    return 0
+
+
+def _adjust(args: argparse.Namespace, config: object) -> int:
+    from pathlib import Path
+
+    from wardmap.server.perception.logit_adjust import adjust_model
+    from wardmap.server.perception.segdata import (
+        TrainingError,
+        TrainSegConfig,
+        build_samples,
+        class_weights,
+    )
+    from wardmap.shared.knowledge import KnowledgeGraph
+
+    assert isinstance(config, TrainSegConfig)
+    if importlib.util.find_spec("onnx") is None:
+        raise TrainingError("onnx not installed; --adjust needs it: pip install -e '.[train]'")
+    src, dst = Path(args.adjust), Path(args.out)
+    if not src.is_file():
+        raise TrainingError(f"--adjust {src}: no such model file")
+    if dst.suffix != ".onnx" or dst.is_dir():
+        raise TrainingError(f"--out must be an .onnx file name, got {dst}")
+    kg = KnowledgeGraph.load()
+    print("loading training frames (class weights) and validation frames ...", file=sys.stderr)
+    train = build_samples(config.data, config.cache_dir, kg=kg, workers=config.threads)
+    val = build_samples(config.val, config.cache_dir, kg=kg, workers=config.threads)
+    weights = class_weights(train.classes, len(val.names), config.class_weight_power, config.max_class_weight)
+    done = adjust_model(src, dst, val, weights, config.logit_adjust, threads=config.threads)
+    print(json.dumps({"onnx": str(dst), **done}))
     return 0

@@ -166,6 +166,10 @@ class TrainSegConfig:
         max_steps: stop after this many optimiser steps (0: no limit; smoke tests).
         channels_last: train in NHWC memory layout (about 1.5-2x faster steps on CPU with
             two threads, measured; the exported ONNX file is the same either way).
+        logit_adjust: candidate strengths alpha in [0, 1] of the post-hoc logit adjustment
+            ``logits - alpha log(w_c)`` that undoes the class weighting's bias toward rare
+            classes (``server/perception/logit_adjust.py``); the one with the best
+            validation mIoU is baked into the exported model. ``[0]`` turns it off.
     """
 
     seed: int = 0
@@ -194,6 +198,7 @@ class TrainSegConfig:
     max_class_weight: float = 10.0
     max_steps: int = 0
     channels_last: bool = True
+    logit_adjust: tuple[float, ...] = (0.0, 0.25, 0.5, 0.75, 1.0)
 
     def __post_init__(self) -> None:
         if any(s >= EVAL_SEED_MIN for s in self.data.seeds):
@@ -220,6 +225,8 @@ class TrainSegConfig:
             )
         if self.lr <= 0 or self.weight_decay < 0 or self.max_class_weight < 1:
             raise ValueError("lr must be > 0, weight_decay >= 0, max_class_weight >= 1")
+        if not self.logit_adjust or not all(0.0 <= a <= 1.0 for a in self.logit_adjust):
+            raise ValueError(f"logit_adjust needs strengths in [0, 1] (0 = off), got {self.logit_adjust}")
 
 
 @dataclass(frozen=True)
@@ -709,6 +716,20 @@ def augment(
     img = img + rng.standard_normal(img.shape, dtype=np.float32) * np.float32(rng.uniform(0.0, 0.03))
     out = np.clip(img * 255.0 + 0.5, 0, 255).astype(np.uint8)
     return np.ascontiguousarray(out), np.ascontiguousarray(lab)
+
+
+def class_weights(
+    classes: NDArray[np.uint8], num_classes: int, power: float, max_weight: float
+) -> NDArray[np.float32]:
+    """Cross-entropy weights (C,): ``(median_freq / freq_c) ** power``, clipped to [1/max, max].
+
+    Classes absent from the data get ``max_weight``.
+    """
+    counts = np.bincount(classes.reshape(-1), minlength=256)[:num_classes].astype(np.float64)
+    freq = counts / max(counts.sum(), 1.0)
+    med = float(np.median(freq[freq > 0])) if np.any(freq > 0) else 1.0
+    w = np.where(freq > 0, (med / np.maximum(freq, 1e-12)) ** power, max_weight)
+    return np.clip(w, 1.0 / max_weight, max_weight).astype(np.float32)
 
 
 def confusion(pred: NDArray[np.integer], truth: NDArray[np.integer], n: int) -> NDArray[np.int64]:

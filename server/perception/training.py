@@ -35,6 +35,7 @@ import torch.nn.functional as F  # noqa: N812 - torch's conventional alias
 from numpy.typing import NDArray
 from torch import Tensor, nn
 
+from wardmap.server.perception.logit_adjust import adjust_model
 from wardmap.server.perception.segdata import (
     IGNORE_INDEX,
     SegSamples,
@@ -43,6 +44,7 @@ from wardmap.server.perception.segdata import (
     augment,
     build_samples,
     class_names,
+    class_weights,
     config_hash,
     confusion,
     iou_from_confusion,
@@ -235,20 +237,6 @@ class TrainResult:
     card_path: Path
     metrics: dict[str, Any]
     summary: dict[str, Any]
-
-
-def class_weights(
-    classes: NDArray[np.uint8], num_classes: int, power: float, max_weight: float
-) -> NDArray[np.float32]:
-    """Cross-entropy weights (C,): ``(median_freq / freq_c) ** power``, clipped to [1/max, max].
-
-    Classes absent from the data get ``max_weight``.
-    """
-    counts = np.bincount(classes.reshape(-1), minlength=256)[:num_classes].astype(np.float64)
-    freq = counts / max(counts.sum(), 1.0)
-    med = float(np.median(freq[freq > 0])) if np.any(freq > 0) else 1.0
-    w = np.where(freq > 0, (med / np.maximum(freq, 1e-12)) ** power, max_weight)
-    return np.clip(w, 1.0 / max_weight, max_weight).astype(np.float32)
 
 
 def _batches(n: int, batch: int, rng: np.random.Generator) -> list[NDArray[np.int64]]:
@@ -454,6 +442,8 @@ def train_and_export(
     diff = check_export(model, out, val.rgb[0])
     if not math.isfinite(diff) or diff > 1e-2:
         raise TrainingError(f"exported model disagrees with torch: max abs logit difference {diff:.3g}")
+    weights = class_weights(train.classes, len(names), cfg.class_weight_power, cfg.max_class_weight)
+    adjust = adjust_model(out, out, val, weights, cfg.logit_adjust, threads=cfg.threads)
     metrics = evaluate_onnx(out, val, threads=1)
     if val.on_track.any():
         metrics["on_track"] = evaluate_onnx(out, val.subset(val.on_track), threads=1)
@@ -479,6 +469,7 @@ def train_and_export(
         "config": to_mapping(cfg),
         "classes": list(names),
         "class_pixel_share": _class_share(train, names),
+        "logit_adjust": adjust,
     }
     card_path = out.with_suffix(".md")
     if card:
@@ -509,6 +500,18 @@ def _track_line(metrics: dict[str, Any]) -> str:
         f"robot has): mIoU {t['miou']:.1f} %, person IoU {person_s}, pixel accuracy "
         f"{t['pixel_accuracy']:.1f} %.\n"
     )
+
+
+def _adjust_section(adjust: dict[str, Any] | None) -> str:
+    if not adjust:
+        return "No logit adjustment (the argmax of the network's own logits)."
+    by = ", ".join(f"{a}: {s:.1f} %" for a, s in adjust["val_miou_by_alpha"].items())
+    return f"""## Logit adjustment (server/perception/logit_adjust.py)
+
+Class weighting makes the argmax over-predict rare classes; the exported model adds
+`-alpha log(w_c)` to each class's logit (Menon et al. 2021), alpha chosen on the validation
+worlds below: validation mIoU by alpha {by}; chosen **alpha = {adjust["alpha"]}**, bias
+{adjust["bias"]} (also in the metadata `wardmap.logit_bias`)."""
 
 
 def model_card(summary: dict[str, Any], metrics: dict[str, Any]) -> str:
@@ -604,6 +607,8 @@ Command:
 Wall time {t_all:.1f} min in total (data {t_data:.1f} min, training {t_train:.1f} min, the
 rest export and validation) on a 2-core machine shared with other jobs.{cached} ONNX vs torch
 max abs logit difference {summary["onnx_torch_max_abs_diff"]:.2e}.
+
+{_adjust_section(summary.get("logit_adjust"))}
 
 ## Validation (held-out worlds, seeds >= 1000)
 

@@ -15,7 +15,6 @@ from wardmap.server.perception.segdata import SegDataConfig, TrainSegConfig  # n
 from wardmap.server.perception.training import (  # noqa: E402
     Baff,
     BaffSkipNet,
-    class_weights,
     train_and_export,
 )
 from wardmap.shared.knowledge import KnowledgeGraph  # noqa: E402
@@ -63,16 +62,6 @@ def test_network_logits_at_input_resolution() -> None:
     with torch.no_grad():
         assert net(torch.rand(1, 3, 240, 320)).shape == (1, 14, 240, 320)
         assert net(torch.rand(2, 3, 192, 256)).shape == (2, 14, 192, 256)
-
-
-def test_class_weights_favour_rare_classes() -> None:
-    """Rarer classes weigh more; absent classes get the maximum; weights are clipped."""
-    cls = np.zeros(1000, np.uint8)
-    cls[:10] = 1
-    cls[10:300] = 2
-    w = class_weights(cls, 4, 0.5, 10.0)
-    assert w[1] > w[2] > w[0]
-    assert w[3] == 10.0 and w.max() <= 10.0 and w.min() >= 0.1
 
 
 def test_two_step_training_exports_contract_onnx(tmp_path: Path) -> None:
