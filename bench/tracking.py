@@ -126,7 +126,8 @@ def main() -> int:
                     ms_est = 1e3 * est.readout_s
                     notes.append(
                         f"TUM readout time estimated with `wardmap calibrate-readout` ({est.frames} "
-                        f"frames, candidates 0-40 ms every 2.5 ms, no ground truth): **{ms_est:.1f} ms** "
+                        f"frames, candidates 0-40 ms every 2.5 ms, no ground truth): **{ms_est:.1f} ms**, "
+                        f"{100 * est.gain:+.0f} % inliers over 0 ms (3 % needed to count) "
                         "(mean inliers per frame by candidate: "
                         + ", ".join(
                             f"{1e3 * c:g}: {x:.0f}"

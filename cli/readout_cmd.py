@@ -63,12 +63,21 @@ def run(args: argparse.Namespace) -> int:
         print(f"readout {1e3 * c:5.1f} ms: {inl:6.1f} inliers per frame", file=sys.stderr, flush=True)
 
     est = estimate_readout(reader, config, candidates_s=cands, max_frames=args.max_frames, progress=progress)
-    print(f"estimated readout time: {1e3 * est.readout_s:.1f} ms", file=sys.stderr)
+    if est.decisive:
+        print(f"estimated readout time: {1e3 * est.readout_s:.1f} ms", file=sys.stderr)
+    else:
+        print(
+            f"no readout time stands out (best {100 * est.gain:+.1f} % inliers over 0 ms, 3 % needed): "
+            "0 (global shutter); record the camera turning to estimate it",
+            file=sys.stderr,
+        )
     if out is not None:
         save_calibration(out, replace(reader.calibration, rgb_readout_s=est.readout_s))
         print(f"wrote {out}", file=sys.stderr)
     summary = {
         "readout_s": est.readout_s,
+        "decisive": est.decisive,
+        "gain": round(est.gain, 4),
         "frames": est.frames,
         "candidates_s": list(est.candidates_s),
         "inliers_per_frame": [round(x, 2) for x in est.inliers_per_frame],

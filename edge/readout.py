@@ -10,7 +10,10 @@ The readout time is seldom published. :func:`estimate_readout` finds it from a r
 with some rotation in it: it tracks the frames once per candidate time and keeps the one
 under which the most keypoints fit one rigid pose (mean inliers per frame; the peak is
 placed between grid points by a parabola through the best candidate and its neighbours).
-No ground truth is used.
+No ground truth is used. A recording that barely turns cannot tell readout times apart (the
+curve is flat within noise: on a simulated global-shutter drive the best candidate fits 1 %
+more keypoints than 0 ms, at a random time); unless the best candidate beats 0 ms by
+``min_gain`` (3 %), the estimate is 0 and marked not decisive.
 """
 
 from __future__ import annotations
@@ -41,12 +44,17 @@ class ReadoutEstimate:
         inliers_per_frame: (K,) mean pose inliers per frame under each candidate (lost
             frames count 0): the criterion.
         frames: frames tracked per candidate.
+        gain: relative gain in inliers per frame of the best candidate over 0 ms.
+        decisive: the gain reached ``min_gain`` (else ``readout_s`` is 0: no evidence of a
+            rolling shutter in this recording).
     """
 
     readout_s: float
     candidates_s: tuple[float, ...]
     inliers_per_frame: tuple[float, ...]
     frames: int
+    gain: float
+    decisive: bool
 
 
 def estimate_readout(
@@ -55,6 +63,7 @@ def estimate_readout(
     *,
     candidates_s: Sequence[float] = DEFAULT_CANDIDATES_S,
     max_frames: int = 300,
+    min_gain: float = 0.03,
     progress: Callable[[float, float], None] | None = None,
 ) -> ReadoutEstimate:
     """The readout time under which the tracker fits the most keypoints (module docstring).
@@ -67,15 +76,17 @@ def estimate_readout(
         config: tracker settings (defaults if None).
         candidates_s: readout times to try, seconds, each in [0, ``MAX_READOUT_S``].
         max_frames: track at most this many frames from the start.
+        min_gain: smallest relative gain in inliers per frame over 0 ms that counts as
+            evidence (0 is always tried).
         progress: called with (candidate, mean inliers per frame) after each candidate.
 
     Raises:
         WardmapError: no candidates, a candidate out of range, fewer than 10 frames, or
             no candidate tracked any frame (nothing to compare).
     """
-    cands = sorted({float(c) for c in candidates_s})
-    if not cands:
-        raise WardmapError("estimate_readout: no candidate readout times")
+    cands = sorted({0.0, *(float(c) for c in candidates_s)})
+    if len(cands) < 2:
+        raise WardmapError("estimate_readout: no candidate readout times besides 0")
     if cands[0] < 0 or cands[-1] > MAX_READOUT_S:
         raise WardmapError(
             f"readout candidates must lie in [0, {MAX_READOUT_S}] s, got {cands[0]}..{cands[-1]}"
@@ -100,7 +111,16 @@ def estimate_readout(
             progress(c, per_frame[-1])
     if max(per_frame) <= 0:
         raise WardmapError(f"{reader.root}: no frame tracked under any readout time; cannot estimate it")
-    return ReadoutEstimate(_peak(cands, per_frame), tuple(cands), tuple(per_frame), n)
+    gain = max(per_frame) / max(per_frame[0], 1e-9) - 1.0
+    decisive = gain >= min_gain
+    if not decisive:
+        log.warning(
+            "%s: readout times are not told apart (best %+.1f %% inliers over 0 ms, need %.0f %%); "
+            "keeping 0 (global shutter). Record the camera turning to estimate it.",
+            reader.root, 100 * gain, 100 * min_gain,
+        )
+    best = _peak(cands, per_frame) if decisive else 0.0
+    return ReadoutEstimate(best, tuple(cands), tuple(per_frame), n, float(gain), decisive)
 
 
 def _peak(x: Sequence[float], y: Sequence[float]) -> float:
