@@ -228,6 +228,7 @@ class Tracker:
         self._velocity: F64 = np.eye(4)  # T_prev_cur of the last step (camera frames)
         self._prev_stamp: float | None = None
         self._prev_dt = 0.0  # seconds spanned by self._velocity
+        self._cpu_start = 0.0
         self._prev_odom: F64 | None = None
         self._kf_inliers = 0
         self._kf_T: F64 | None = None
@@ -252,6 +253,7 @@ class Tracker:
         self._frame_index += 1
         timings: dict[str, float] = {}
         t_start = time.perf_counter()
+        self._cpu_start = time.thread_time()
         prior, prior_source = self._predict(inp)
         bad = _frame_problem(inp, self.cam)
         if bad:
@@ -771,6 +773,8 @@ class Tracker:
         n_feat: int | None = None,
     ) -> TrackResult:
         timings["total"] = _ms(t_start)
+        # CPU time of this thread: the frame's compute, without time other processes took.
+        timings["cpu_total"] = (time.thread_time() - self._cpu_start) * 1e3
         n = n_feat if n_feat is not None else (0 if feats is None else len(feats.uv))
         return TrackResult(
             inp.stamp, T.copy(), source, lost, reason, n, n_dyn, n_matches, n_inliers, keyframe, timings,

@@ -43,7 +43,9 @@ def test_tracks_a_simulated_clip_within_2cm(aisle_clip: Path, tmp_path: Path) ->
     gt = DatasetReader(aisle_clip).groundtruth()
     assert gt is not None
     assert ate(stamps, poses, gt[0], gt[1]).rmse < 0.02
-    assert set(summary["ms_per_frame"]) >= {"features", "match", "pose", "total"}
+    assert set(summary["ms_per_frame"]) >= {"features", "match", "pose", "total", "cpu_total"}
+    ms = summary["ms_per_frame"]
+    assert 0 < ms["cpu_total"]["median"] <= 1.5 * ms["total"]["median"]
 
 
 def test_oracle_labels_remove_points(tmp_path: Path) -> None:
