@@ -65,9 +65,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from wardmap.edge.labels import LabelSource, make_label_source
+from wardmap.edge.offline import odom_at
 from wardmap.edge.outbox import Outbox, OutboxFull, OutboxItem, SessionIds
 from wardmap.edge.tracker import Tracker, TrackerConfig, TrackInput, TrackResult
-from wardmap.shared.dataset import DatasetReader, Frame, FrameSource, pose_at
+from wardmap.shared.dataset import DatasetReader, Frame, FrameSource
 from wardmap.shared.errors import ConfigError, DatasetError, WardmapError, WireError
 from wardmap.shared.knowledge import KnowledgeGraph
 from wardmap.shared.signals import on_stop_signals
@@ -360,7 +361,7 @@ class EdgeAgent:
                     break
                 next_t = max(next_t + period, time.monotonic() - period)
             stamp = float(reader.stamps[i])
-            T_odom_base = _odom_at(odo, stamp)
+            T_odom_base = odom_at(odo, stamp)
             frame: Frame | None
             try:
                 frame = reader.frame(i)
@@ -625,12 +626,6 @@ def _percentiles(values: NDArray[np.float64]) -> dict[str, float] | None:
     p50, p95, p99 = np.percentile(values, [50, 95, 99])
     return {"n": len(values), "p50": round(float(p50), 1), "p95": round(float(p95), 1),
             "p99": round(float(p99), 1), "max": round(float(values.max()), 1)}
-
-
-def _odom_at(odo: tuple[NDArray[np.float64], NDArray[np.float64]] | None, stamp: float) -> Any:
-    if odo is None:
-        return None
-    return pose_at(odo[0], odo[1], stamp, max_bracket_s=0.1, max_nearest_s=0.05)
 
 
 def run_agent(agent: EdgeAgent, on_ready: Callable[[str, int], None] | None = None) -> dict[str, Any]:

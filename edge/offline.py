@@ -67,7 +67,7 @@ def track_dataset(
         except DatasetError as exc:
             log.warning("frame %d: %s", i, exc)
             inp = TrackInput(
-                stamp, None, None, T_odom_base=_odom_at(odo, stamp), problem=f"cannot read frame: {exc}"
+                stamp, None, None, T_odom_base=odom_at(odo, stamp), problem=f"cannot read frame: {exc}"
             )
             results.append(tracker.track(inp))
             continue
@@ -77,7 +77,7 @@ def track_dataset(
         if lab is not None:
             class_image = lab.class_image
             label_ms.append(lab.inference_ms if lab.inference_ms else (time.perf_counter() - t0) * 1e3)
-        inp = TrackInput(stamp, frame.rgb, frame.depth_m, frame.thermal_k, _odom_at(odo, stamp), class_image)
+        inp = TrackInput(stamp, frame.rgb, frame.depth_m, frame.thermal_k, odom_at(odo, stamp), class_image)
         res = tracker.track(inp)
         results.append(res)
         if progress is not None:
@@ -86,7 +86,9 @@ def track_dataset(
     return summarize(results, label_ms)
 
 
-def _odom_at(odo: tuple[np.ndarray, np.ndarray] | None, stamp: float) -> np.ndarray | None:
+def odom_at(odo: tuple[np.ndarray, np.ndarray] | None, stamp: float) -> np.ndarray | None:
+    """Wheel-odometry pose ``T_odom_base`` at ``stamp`` from ``DatasetReader.odometry()``, or
+    None (no odometry, or none within 0.1 s bracket / 0.05 s nearest)."""
     if odo is None:
         return None
     return pose_at(odo[0], odo[1], stamp, max_bracket_s=0.1, max_nearest_s=0.05)

@@ -24,8 +24,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from wardmap.edge.offline import odom_at
 from wardmap.edge.tracker import Tracker, TrackerConfig, TrackInput
-from wardmap.shared.dataset import MAX_READOUT_S, DatasetReader, pose_at
+from wardmap.shared.dataset import MAX_READOUT_S, DatasetReader
 from wardmap.shared.errors import WardmapError
 
 log = logging.getLogger(__name__)
@@ -96,8 +97,7 @@ def estimate_readout(
         raise WardmapError(f"{reader.root}: {n} frames; the readout estimate needs at least 10 with motion")
     odo = reader.odometry()
     frames = [reader.frame(i) for i in range(n)]
-    odoms = [None if odo is None else pose_at(odo[0], odo[1], f.stamp, max_bracket_s=0.1, max_nearest_s=0.05)
-             for f in frames]
+    odoms = [odom_at(odo, f.stamp) for f in frames]
     per_frame = []
     for c in cands:
         tracker = Tracker(replace(reader.calibration, rgb_readout_s=c), config)

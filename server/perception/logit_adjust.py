@@ -74,6 +74,13 @@ def choose_alpha(
     return best, scores
 
 
+def onnx_logits(session: Any, rgb: NDArray[np.uint8]) -> NDArray[np.float32]:
+    """Logits (1, C, H, W) of one uint8 (H, W, 3) RGB image through an onnxruntime session."""
+    x = (rgb.astype(np.float32) / 255.0).transpose(2, 0, 1)[None]
+    out = session.run(["logits"], {"image": np.ascontiguousarray(x)})[0]
+    return np.asarray(out, np.float32)
+
+
 def val_logits(path: Path, samples: SegSamples, threads: int = 1) -> NDArray[np.float16]:
     """Raw logits (N, C, H, W) of ``samples`` through the ONNX model at ``path`` (float16)."""
     import onnxruntime as ort
@@ -81,11 +88,7 @@ def val_logits(path: Path, samples: SegSamples, threads: int = 1) -> NDArray[np.
     opts = ort.SessionOptions()
     opts.intra_op_num_threads = threads
     sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
-    out = []
-    for rgb in samples.rgb:
-        x = (rgb.astype(np.float32) / 255.0).transpose(2, 0, 1)[None]
-        out.append(np.asarray(sess.run(["logits"], {"image": np.ascontiguousarray(x)})[0][0], np.float16))
-    return np.stack(out)
+    return np.stack([onnx_logits(sess, rgb)[0].astype(np.float16) for rgb in samples.rgb])
 
 
 def add_logit_bias(src: Path, dst: Path, bias: NDArray[np.floating]) -> None:
@@ -154,5 +157,6 @@ __all__ = [
     "adjust_model",
     "adjustment_bias",
     "choose_alpha",
+    "onnx_logits",
     "val_logits",
 ]

@@ -35,7 +35,7 @@ import torch.nn.functional as F  # noqa: N812 - torch's conventional alias
 from numpy.typing import NDArray
 from torch import Tensor, nn
 
-from wardmap.server.perception.logit_adjust import adjust_model
+from wardmap.server.perception.logit_adjust import adjust_model, onnx_logits
 from wardmap.server.perception.segdata import (
     IGNORE_INDEX,
     SegSamples,
@@ -350,13 +350,6 @@ def export_onnx(model: BaffSkipNet, path: Path, names: Sequence[str], width: int
     onnx.checker.check_model(proto)
     onnx.save(proto, str(path))
     tmp.unlink()
-
-
-def onnx_logits(session: Any, rgb: NDArray[np.uint8]) -> NDArray[np.float32]:
-    """Logits (1, C, H, W) of one uint8 (H, W, 3) RGB image through an onnxruntime session."""
-    x = (rgb.astype(np.float32) / 255.0).transpose(2, 0, 1)[None]
-    out = session.run(["logits"], {"image": np.ascontiguousarray(x)})[0]
-    return np.asarray(out, np.float32)
 
 
 def evaluate_onnx(path: Path, samples: SegSamples, threads: int = 1) -> dict[str, Any]:
