@@ -11,6 +11,8 @@
   splits chairs that the network's bleed onto the wall joined into one region.
 - :func:`split_side_by_side`: an instance as wide as two or more objects of its class (touching
   chairs in a row) cut into side-by-side pieces at the gaps, using depth and the camera.
+- :func:`merge_stacked`: pieces of one object that trimming cut apart one above the other (a
+  chair's open back above its seat) joined again.
 - :func:`attach_gt_instances`: the simulator id most of each mask covers, for scoring
   model or detector instances against ground truth.
 
@@ -39,6 +41,7 @@ __all__ = [
     "gt_instance_of",
     "id_to_class",
     "instances_from_classes",
+    "merge_stacked",
     "off_background_planes",
     "oracle_instances",
     "principal_direction",
@@ -94,6 +97,87 @@ def split_side_by_side(
             continue
         out.extend(dataclasses.replace(inst, mask=p, box_xyxy=box_of_mask(p), gt_instance=None)
                    for p in pieces)
+    return out
+
+
+def merge_stacked(
+    instances: Sequence[Instance],
+    depth_m: NDArray[np.float32],
+    camera: PinholeCamera,
+    *,
+    classes: Sequence[str],
+    max_gap_m: float = 0.1,
+    max_depth_step_m: float = 0.6,
+    min_overlap: float = 0.6,
+) -> list[Instance]:
+    """Instances of ``classes`` stacked one above the other in the image joined into one.
+
+    An open chair back stands on thin posts above the seat; the wall shows through the gap
+    between them, and trimming the wall from a network's mask
+    (:func:`off_background_planes`) leaves the back and the seat as two pieces: a
+    measurement of the seat alone is half the chair's height and 20 cm too low. A piece
+    whose box lies just above another's (its bottom edge within ``max_gap_m``, converted to
+    pixels at their depth, of the other's top edge) is joined to it when their columns
+    overlap by at least ``min_overlap`` of the narrower box and their median depths differ
+    by at most ``max_depth_step_m`` (a chair in the row behind is farther; the back of a chair
+    by the wall and its seat differ by 0.4 m at 7 m in simulated depth). Each piece joins
+    at most one other, the one with the largest overlap; the join keeps the class and the
+    pixel-weighted confidence.
+
+    Args:
+        instances: instances of one colour image (H, W).
+        depth_m: float32 (H, W) depth, metres, registered to the colour image; 0 = none.
+        camera: the colour camera (``fy``).
+        classes: class names to join.
+
+    Returns:
+        The instances in order, a joined pair in the place of its lower piece.
+    """
+    if not (max_gap_m >= 0 and max_depth_step_m > 0 and 0 < min_overlap <= 1):
+        raise GeometryError("merge_stacked: need max_gap_m >= 0, max_depth_step_m > 0, 0 < min_overlap <= 1")
+    depth = np.asarray(depth_m, dtype=np.float32)
+    med: dict[int, float] = {}
+    for i, inst in enumerate(instances):
+        if inst.category in classes:
+            z = depth[inst.mask]
+            z = z[np.isfinite(z) & (z > 0)]
+            if z.size:
+                med[i] = float(np.median(z))
+    pairs: list[tuple[float, int, int]] = []
+    for a in med:
+        for b in med:
+            ia, ib = instances[a], instances[b]
+            if a == b or ia.category != ib.category:
+                continue
+            ax1, ay1, ax2, ay2 = ia.box_xyxy
+            bx1, by1, bx2, _ = ib.box_xyxy
+            gap_px = max_gap_m * camera.fy / max(med[a], med[b])
+            if not (ay1 < by1 and abs(ay2 - by1) <= gap_px):
+                continue  # a is not just above b
+            narrow = min(ax2 - ax1, bx2 - bx1)
+            overlap = min(ax2, bx2) - max(ax1, bx1)
+            if overlap < min_overlap * narrow or abs(med[a] - med[b]) > max_depth_step_m:
+                continue
+            pairs.append((overlap / narrow, a, b))
+    upper_of: dict[int, int] = {}
+    used: set[int] = set()
+    for _, a, b in sorted(pairs, reverse=True):
+        if a not in used and b not in used:
+            used.update((a, b))
+            upper_of[b] = a
+    uppers = set(upper_of.values())
+    out: list[Instance] = []
+    for i, inst in enumerate(instances):
+        if i in uppers:
+            continue
+        if i in upper_of:
+            top = instances[upper_of[i]]
+            mask = inst.mask | top.mask
+            na, nb = int(inst.mask.sum()), int(top.mask.sum())
+            conf = (inst.confidence * na + top.confidence * nb) / max(na + nb, 1)
+            inst = dataclasses.replace(inst, confidence=conf, mask=mask, box_xyxy=box_of_mask(mask),
+                                       gt_instance=None)
+        out.append(inst)
     return out
 
 

@@ -43,7 +43,12 @@ from typing import Any, Final, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from wardmap.server.perception.instances import box_of_mask, instances_from_classes, split_side_by_side
+from wardmap.server.perception.instances import (
+    box_of_mask,
+    instances_from_classes,
+    merge_stacked,
+    split_side_by_side,
+)
 from wardmap.server.perception.measure import MeasureConfig
 from wardmap.server.perception.types import Instance
 from wardmap.shared.camera import PinholeCamera
@@ -153,12 +158,15 @@ def measure_config_for(config: PerceptionConfig, spec: str) -> MeasureConfig:
 def split_instances(instances: Sequence[Instance], depth_m: NDArray[np.float32], camera: PinholeCamera,
                     config: PerceptionConfig, spec: str) -> list[Instance]:
     """``config.split_classes`` instances of the segmentation network (``model`` specs) cut into
-    side-by-side objects (:func:`~wardmap.server.perception.instances.split_side_by_side`);
-    other segmenters' instances are returned unchanged (a detector boxes each chair)."""
+    side-by-side objects (:func:`~wardmap.server.perception.instances.split_side_by_side`), then
+    pieces one above the other joined (:func:`~wardmap.server.perception.instances.merge_stacked`:
+    a chair's open back and its seat); other segmenters' instances are returned unchanged (a
+    detector boxes each chair)."""
     if not spec.strip().startswith("model") or not config.split_classes:
         return list(instances)
-    return split_side_by_side(instances, depth_m, camera, classes=config.split_classes,
-                              width_m=config.split_width_m, min_pixels=config.min_pixels)
+    pieces = split_side_by_side(instances, depth_m, camera, classes=config.split_classes,
+                                width_m=config.split_width_m, min_pixels=config.min_pixels)
+    return merge_stacked(pieces, depth_m, camera, classes=config.split_classes)
 
 
 def load_perception_config(path: str | Path | None) -> PerceptionConfig:

@@ -9,9 +9,11 @@ import pytest
 
 from wardmap.server.perception.instances import (
     attach_gt_instances,
+    box_of_mask,
     gt_instance_of,
     id_to_class,
     instances_from_classes,
+    merge_stacked,
     off_background_planes,
     oracle_instances,
     split_side_by_side,
@@ -374,6 +376,40 @@ def test_touching_chairs_in_one_mask_are_split_at_the_gap() -> None:
         assert split_side_by_side([inst], d, camera, classes=classes, width_m=0.5, min_pixels=50) == [inst]
     with pytest.raises(GeometryError):
         split_side_by_side([joined], depth, camera, classes=("chair",), width_m=0.0, min_pixels=50)
+
+
+def test_chair_back_above_its_seat_is_joined_to_it() -> None:
+    """Two chairs 2 m away, each cut into an open back (rows 20-39) above its seat (rows 42-79):
+    each back joins its own seat; a back over a chair 0.8 m farther, a door, a piece far
+    above and one overlapping too little stay apart."""
+    camera = PinholeCamera(200, 100, 100.0, 100.0, 100.0, 50.0)
+    depth = np.full((100, 200), 2.0, np.float32)
+    depth[:40, :] = 2.2  # the backs stand 20 cm behind the seats
+
+    def inst(cat: str, rows: slice, cols: slice, conf: float = 0.9) -> Instance:
+        m = np.zeros((100, 200), bool)
+        m[rows, cols] = True
+        return Instance(cat, conf, m, box_of_mask(m))
+
+    seats = [inst("chair", slice(42, 80), slice(20, 70)), inst("chair", slice(42, 80), slice(80, 130), 0.8)]
+    backs = [inst("chair", slice(20, 40), slice(25, 68), 1.0), inst("chair", slice(20, 40), slice(82, 128))]
+    out = merge_stacked(seats + backs, depth, camera, classes=("chair",))
+    assert len(out) == 2
+    for joined, seat, back in zip(out, seats, backs, strict=True):
+        assert np.array_equal(joined.mask, seat.mask | back.mask)
+        assert joined.box_xyxy[1] == 20 and joined.box_xyxy[3] == 80
+    n_seat, n_back = 38 * 50, 20 * 43
+    assert out[0].confidence == pytest.approx((0.9 * n_seat + 1.0 * n_back) / (n_seat + n_back))
+    far = depth.copy()
+    far[:40, :] = 2.8
+    assert len(merge_stacked([seats[0], backs[0]], far, camera, classes=("chair",))) == 2
+    assert len(merge_stacked([seats[0], backs[0]], depth, camera, classes=("door",))) == 2
+    high = inst("chair", slice(0, 25), slice(25, 68))  # 17 rows = 34 cm above the seat
+    assert len(merge_stacked([seats[0], high], depth, camera, classes=("chair",))) == 2
+    side = inst("chair", slice(20, 40), slice(60, 110))  # covers 10 of the seat's 50 columns
+    assert len(merge_stacked([seats[0], side], depth, camera, classes=("chair",))) == 2
+    with pytest.raises(GeometryError):
+        merge_stacked(seats, depth, camera, classes=("chair",), min_overlap=0.0)
 
 
 def test_no_planes_without_depth_around() -> None:
