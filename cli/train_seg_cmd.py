@@ -8,6 +8,10 @@ import json
 import shlex
 import sys
 import time
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from wardmap.server.perception.segdata import TrainSegConfig
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -73,19 +77,13 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _adjust(args: argparse.Namespace, config: object) -> int:
+def _adjust(args: argparse.Namespace, config: TrainSegConfig) -> int:
     from pathlib import Path
 
     from wardmap.server.perception.logit_adjust import adjust_model
-    from wardmap.server.perception.segdata import (
-        TrainingError,
-        TrainSegConfig,
-        build_samples,
-        class_weights,
-    )
+    from wardmap.server.perception.segdata import TrainingError, build_samples, class_weights
     from wardmap.shared.knowledge import KnowledgeGraph
 
-    assert isinstance(config, TrainSegConfig)
     if importlib.util.find_spec("onnx") is None:
         raise TrainingError("onnx not installed; --adjust needs it: pip install -e '.[train]'")
     src, dst = Path(args.adjust), Path(args.out)

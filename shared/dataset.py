@@ -53,9 +53,9 @@ U16 = NDArray[np.uint16]
 U8 = NDArray[np.uint8]
 
 DEFAULT_DEPTH_SCALE: Final = 5000.0
+"""Depth PNG units per metre (TUM's value)."""
 MAX_READOUT_S: Final = 0.1
 """Largest rolling-shutter readout time accepted (a 10 Hz frame period), seconds."""
-"""Depth PNG units per metre (TUM's value)."""
 DEFAULT_THERMAL_SCALE: Final = 100.0
 """Thermal PNG units per kelvin (centikelvin)."""
 MAX_DEPTH_DT_S: Final = 0.02

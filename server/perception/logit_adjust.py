@@ -29,6 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from wardmap.server.perception.segdata import SegSamples, TrainingError, confusion, iou_from_confusion
+from wardmap.shared.segmentation import INPUT_NAME, OUTPUT_NAME
 
 META_LOGIT_BIAS = "wardmap.logit_bias"
 """ONNX metadata key recording a baked-in logit bias (JSON list of floats, one per class)."""
@@ -77,7 +78,7 @@ def choose_alpha(
 def onnx_logits(session: Any, rgb: NDArray[np.uint8]) -> NDArray[np.float32]:
     """Logits (1, C, H, W) of one uint8 (H, W, 3) RGB image through an onnxruntime session."""
     x = (rgb.astype(np.float32) / 255.0).transpose(2, 0, 1)[None]
-    out = session.run(["logits"], {"image": np.ascontiguousarray(x)})[0]
+    out = session.run([OUTPUT_NAME], {INPUT_NAME: np.ascontiguousarray(x)})[0]
     return np.asarray(out, np.float32)
 
 
@@ -111,18 +112,19 @@ def add_logit_bias(src: Path, dst: Path, bias: NDArray[np.floating]) -> None:
     if META_LOGIT_BIAS in meta:
         raise TrainingError(f"{src} already has a logit bias ({META_LOGIT_BIAS}); adjust the raw model")
     graph = model.graph
-    outs = [o for o in graph.output if o.name == "logits"]
+    outs = [o for o in graph.output if o.name == OUTPUT_NAME]
     if len(graph.output) != 1 or not outs:
-        raise TrainingError(f"{src}: expected one output named 'logits'")
+        raise TrainingError(f"{src}: expected one output named {OUTPUT_NAME!r}")
     dims = [d.dim_value for d in outs[0].type.tensor_type.shape.dim]
     b = np.asarray(bias, np.float32).reshape(-1)
     if len(dims) != 4 or dims[1] != b.size:
         raise TrainingError(f"{src}: output shape {dims} does not have {b.size} channels")
     for node in graph.node:
-        node.output[:] = ["logits_raw" if o == "logits" else o for o in node.output]
-        node.input[:] = ["logits_raw" if i == "logits" else i for i in node.input]
+        node.output[:] = ["logits_raw" if o == OUTPUT_NAME else o for o in node.output]
+        node.input[:] = ["logits_raw" if i == OUTPUT_NAME else i for i in node.input]
     graph.initializer.append(numpy_helper.from_array(b.reshape(1, -1, 1, 1), "logit_bias"))
-    graph.node.append(helper.make_node("Add", ["logits_raw", "logit_bias"], ["logits"], name="logit_adjust"))
+    add = helper.make_node("Add", ["logits_raw", "logit_bias"], [OUTPUT_NAME], name="logit_adjust")
+    graph.node.append(add)
     entry = model.metadata_props.add()
     entry.key, entry.value = META_LOGIT_BIAS, json.dumps([round(float(x), 6) for x in b])
     onnx.checker.check_model(model)
