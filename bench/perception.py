@@ -303,7 +303,7 @@ def main() -> int:
             if model is None:
                 continue
             started = time.perf_counter()
-            classes, _ = model.classify(bgr_of(frame))
+            classes, _ = model.classify(bgr_of(frame), frame.depth_m)
             net_ms.append((time.perf_counter() - started) * 1e3)
             out = model.segment(bgr_of(frame), frame.depth_m)
             seg_ms.append(out.inference_ms)

@@ -309,7 +309,8 @@ class OnnxSegmentationLabels:
     def labels(self, frame: Frame) -> LabelResult:
         started = time.perf_counter()
         bgr = np.ascontiguousarray(frame.rgb[..., ::-1])
-        (logits,) = self._session.run([OUTPUT_NAME], {INPUT_NAME: self._contract.preprocess(bgr)})
+        x = self._contract.preprocess(bgr, frame.depth_m)  # an RGB-D network also takes the depth
+        (logits,) = self._session.run([OUTPUT_NAME], {INPUT_NAME: x})
         classes, _ = self._contract.postprocess(logits, bgr.shape[:2], self.name)
         elapsed_ms = (time.perf_counter() - started) * 1e3
         return LabelResult(class_image=classes, instance_image=None, inference_ms=elapsed_ms)

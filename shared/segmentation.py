@@ -8,7 +8,9 @@ lives in each of them.
 Contract (what ``wardmap train-seg`` exports):
 
 - one input ``image``: float32 ``[1, 3, H, W]``, RGB, values 0..1 (any normalisation is
-  inside the model);
+  inside the model); or ``[1, 4, H, W]`` for an RGB-D network: RGB 0..1 and, as the fourth
+  channel, depth in metres along the camera z axis, 0 where the sensor has none (depth is
+  resized to the input size by nearest neighbour, so holes stay holes);
 - one output ``logits``: float32 ``[1, C, H, W]``, C = 1 + the knowledge graph's classes
   (index 0 background, index i = the i-th ``[[classes]]`` of
   ``shared/data/knowledge_graph.toml``, so a class map is directly a knowledge-graph class
@@ -63,10 +65,12 @@ class SegContract:
     Attributes:
         class_names: the C class names, index order, ``"background"`` first.
         input_wh: ``(width, height)`` the network runs at.
+        depth_input: True for an RGB-D network (4 input channels): it needs the depth image.
     """
 
     class_names: tuple[str, ...]
     input_wh: tuple[int, int]
+    depth_input: bool = False
 
     @staticmethod
     def check(
@@ -96,13 +100,21 @@ class SegContract:
         out_names = [n for n, _ in outputs]
         if OUTPUT_NAME not in out_names:
             raise ConfigError(f"{what}: expected an output named {OUTPUT_NAME!r}, got {out_names}")
-        _check_shape(what, f"input {INPUT_NAME!r}", list(inputs[0][1]), [1, 3, h, w])
+        in_shape = list(inputs[0][1])
+        channels = in_shape[1] if len(in_shape) == 4 and in_shape[1] in (3, 4) else 3
+        _check_shape(what, f"input {INPUT_NAME!r}", in_shape, [1, channels, h, w])
         out_shape = list(outputs[out_names.index(OUTPUT_NAME)][1])
         _check_shape(what, f"output {OUTPUT_NAME!r}", out_shape, [1, len(names), h, w])
-        return SegContract(names, (w, h))
+        return SegContract(names, (w, h), depth_input=channels == 4)
 
-    def preprocess(self, bgr: U8) -> F32:
-        """The network input ``[1, 3, h, w]`` float32 RGB 0..1 of a uint8 (H, W, 3) BGR image."""
+    def preprocess(self, bgr: U8, depth_m: F32 | None = None) -> F32:
+        """The network input ``[1, 3, h, w]`` float32 RGB 0..1 of a uint8 (H, W, 3) BGR image;
+        ``[1, 4, h, w]`` with the depth (H, W) float32 metres (0 = no data) for an RGB-D network.
+
+        Raises:
+            GeometryError: a malformed image; an RGB-D network without a depth image of the
+                image's size.
+        """
         image = np.asarray(bgr)
         if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3 or 0 in image.shape:
             raise GeometryError(f"segment: expected a uint8 (H, W, 3) BGR image, got {image.dtype} "
@@ -110,7 +122,17 @@ class SegContract:
         w, h = self.input_wh
         interp = cv2.INTER_AREA if w < image.shape[1] else cv2.INTER_LINEAR
         rgb = cv2.cvtColor(cv2.resize(image, (w, h), interpolation=interp), cv2.COLOR_BGR2RGB)
-        return np.ascontiguousarray(rgb.transpose(2, 0, 1)[None], dtype=np.float32) / np.float32(255.0)
+        x = np.ascontiguousarray(rgb.transpose(2, 0, 1)[None], dtype=np.float32) / np.float32(255.0)
+        if not self.depth_input:
+            return x
+        if depth_m is None:
+            raise GeometryError("segment: this is an RGB-D network; it needs the frame's depth image")
+        depth = np.asarray(depth_m, np.float32)
+        if depth.shape != image.shape[:2]:
+            raise GeometryError(f"segment: depth has shape {depth.shape}, the image {image.shape[:2]}")
+        depth = np.where(np.isfinite(depth) & (depth > 0), depth, np.float32(0.0)).astype(np.float32)
+        small = cv2.resize(depth, (w, h), interpolation=cv2.INTER_NEAREST)
+        return np.ascontiguousarray(np.concatenate([x, small[None, None]], axis=1), np.float32)
 
     def postprocess(self, logits: Any, image_hw: tuple[int, int], what: str) -> tuple[U8, F32]:
         """Per-pixel class uint8 (H, W) and softmax confidence float32 (H, W) at ``image_hw``.

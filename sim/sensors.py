@@ -98,7 +98,7 @@ class SensorSimulator:
         self.atlas = raster.build_mipmaps(texture_stack)
         self.temp_k = np.array([m.temperature_c + KELVIN_OFFSET for m in MATERIALS], np.float32)
         self.contrast_k = np.array([m.thermal_contrast_k for m in MATERIALS], np.float32)
-        self.dropout = np.array([m.depth_dropout for m in MATERIALS], np.float32)
+        self.dropout = depth_dropout_table()
         self.emissive = np.array([m.emissive for m in MATERIALS], bool)
         self.T_rgb_thermal = self.rig.T_rgb_thermal
 
@@ -159,19 +159,38 @@ class SensorSimulator:
     def _depth_noise(
         self, z: NDArray[np.float32], material: NDArray[np.uint16], rng: np.random.Generator
     ) -> NDArray[np.float32]:
-        rig = self.rig
-        h, w = z.shape
-        sigma = rig.depth_noise_a_m + rig.depth_noise_b_per_m * z * z
-        noisy = z + sigma * rng.standard_normal(size=z.shape, dtype=np.float32)
-        valid = (z >= rig.depth_min_m) & (z <= rig.depth_max_m)
-        # Holes on dark / specular materials come in blobs: threshold a smooth random field.
-        coarse = rng.random((h // 8 + 1, w // 8 + 1), dtype=np.float32)
-        blobs = cv2.resize(coarse, (w, h), interpolation=cv2.INTER_LINEAR)
-        valid &= blobs >= self.dropout[material]
-        # Depth edges: mixed pixels are rejected by the sensor (dilated edge band).
-        zmax = cv2.dilate(z, np.ones((3, 3), np.uint8))
-        zmin = cv2.erode(z, np.ones((3, 3), np.uint8))
-        edge = (zmax - zmin) > 0.04 * np.maximum(z, 0.1)
-        edge = cv2.dilate(edge.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
-        valid &= ~(edge & (rng.random(z.shape, dtype=np.float32) < rig.depth_edge_dropout))
-        return np.where(valid, noisy, 0.0).astype(np.float32)
+        return depth_noise(z, material, self.rig, self.dropout, rng)
+
+
+def depth_dropout_table() -> NDArray[np.float32]:
+    """Per-material probability (n_materials,) of a pixel without depth."""
+    return np.array([m.depth_dropout for m in MATERIALS], np.float32)
+
+
+def depth_noise(
+    z: NDArray[np.float32],
+    material: NDArray[np.uint16],
+    rig: SensorRig,
+    dropout: NDArray[np.float32],
+    rng: np.random.Generator,
+) -> NDArray[np.float32]:
+    """The depth sensor's reading (H, W) float32 metres, 0 = no data, of true depth ``z`` (H, W).
+
+    Axial noise ``a + b z^2``, no data out of range, blob-shaped holes on materials with a
+    ``depth_dropout`` (``dropout`` indexed by ``material`` (H, W)) and at depth edges.
+    """
+    h, w = z.shape
+    sigma = rig.depth_noise_a_m + rig.depth_noise_b_per_m * z * z
+    noisy = z + sigma * rng.standard_normal(size=z.shape, dtype=np.float32)
+    valid = (z >= rig.depth_min_m) & (z <= rig.depth_max_m)
+    # Holes on dark / specular materials come in blobs: threshold a smooth random field.
+    coarse = rng.random((h // 8 + 1, w // 8 + 1), dtype=np.float32)
+    blobs = cv2.resize(coarse, (w, h), interpolation=cv2.INTER_LINEAR)
+    valid &= blobs >= dropout[material]
+    # Depth edges: mixed pixels are rejected by the sensor (dilated edge band).
+    zmax = cv2.dilate(z, np.ones((3, 3), np.uint8))
+    zmin = cv2.erode(z, np.ones((3, 3), np.uint8))
+    edge = (zmax - zmin) > 0.04 * np.maximum(z, 0.1)
+    edge = cv2.dilate(edge.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    valid &= ~(edge & (rng.random(z.shape, dtype=np.float32) < rig.depth_edge_dropout))
+    return np.where(valid, noisy, 0.0).astype(np.float32)

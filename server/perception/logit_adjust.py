@@ -75,9 +75,18 @@ def choose_alpha(
     return best, scores
 
 
-def onnx_logits(session: Any, rgb: NDArray[np.uint8]) -> NDArray[np.float32]:
-    """Logits (1, C, H, W) of one uint8 (H, W, 3) RGB image through an onnxruntime session."""
+def onnx_logits(
+    session: Any, rgb: NDArray[np.uint8], depth_mm: NDArray[np.uint16] | None = None
+) -> NDArray[np.float32]:
+    """Logits (1, C, H, W) of one uint8 (H, W, 3) RGB image through an onnxruntime session.
+
+    An RGB-D model (4 input channels) also gets ``depth_mm`` (H, W) uint16 millimetres.
+    """
     x = (rgb.astype(np.float32) / 255.0).transpose(2, 0, 1)[None]
+    if session.get_inputs()[0].shape[1] == 4:
+        if depth_mm is None:
+            raise ValueError("an RGB-D segmentation model needs a depth image")
+        x = np.concatenate([x, (depth_mm.astype(np.float32) / np.float32(1000.0))[None, None]], axis=1)
     out = session.run([OUTPUT_NAME], {INPUT_NAME: np.ascontiguousarray(x)})[0]
     return np.asarray(out, np.float32)
 
@@ -89,7 +98,8 @@ def val_logits(path: Path, samples: SegSamples, threads: int = 1) -> NDArray[np.
     opts = ort.SessionOptions()
     opts.intra_op_num_threads = threads
     sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
-    return np.stack([onnx_logits(sess, rgb)[0].astype(np.float16) for rgb in samples.rgb])
+    pairs = zip(samples.rgb, samples.depth, strict=True)
+    return np.stack([onnx_logits(sess, rgb, depth)[0].astype(np.float16) for rgb, depth in pairs])
 
 
 def add_logit_bias(src: Path, dst: Path, bias: NDArray[np.floating]) -> None:

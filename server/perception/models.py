@@ -17,7 +17,8 @@ ONNX contract of a segmentation network (what ``wardmap train-seg`` exports; che
 pre/post-processed by :mod:`wardmap.shared.segmentation`, which the edge's label source shares):
 
 - one input ``image``: float32 ``[1, 3, H, W]``, RGB, values 0..1 (any normalisation is
-  inside the model);
+  inside the model), or ``[1, 4, H, W]``: RGB and depth in metres (an RGB-D network, which
+  then needs the frame's depth);
 - one output ``logits``: float32 ``[1, C, H, W]``, C = 1 + the knowledge graph's classes
   (index 0 background, index i = the i-th ``[[classes]]`` of
   ``shared/data/knowledge_graph.toml``);
@@ -309,8 +310,8 @@ class OnnxSegmenter:
             raise ConfigError(f"{what}: trim_classes names classes the model does not have: {unknown}")
         self._trim_classes = tuple(self._class_names.index(c) for c in trim_classes)
         w, h = self._input_wh
-        log.info("segmentation model %s: %d classes, input %dx%d, %d thread(s)",
-                 self.path, len(self._class_names), w, h, threads)
+        log.info("segmentation model %s: %d classes, input %dx%d %s, %d thread(s)",
+                 self.path, len(self._class_names), w, h, "RGB-D" if self.depth_input else "RGB", threads)
 
     @property
     def class_names(self) -> tuple[str, ...]:
@@ -321,16 +322,30 @@ class OnnxSegmenter:
         """``(width, height)`` the network runs at."""
         return self._input_wh
 
-    def classify(self, bgr: U8) -> tuple[U8, F32]:
-        """Per-pixel classes uint8 (H, W) and softmax confidence float32 (H, W) of a BGR image."""
+    @property
+    def depth_input(self) -> bool:
+        """True for an RGB-D network: :meth:`classify` needs the depth image."""
+        return self._contract.depth_input
+
+    def classify(self, bgr: U8, depth_m: F32 | None = None) -> tuple[U8, F32]:
+        """Per-pixel classes uint8 (H, W) and softmax confidence float32 (H, W) of a BGR image
+        (and its (H, W) depth in metres, which an RGB-D network needs).
+
+        Raises:
+            GeometryError: a malformed image or depth; no depth for an RGB-D network.
+        """
         image = _check_bgr(bgr)
-        (logits,) = self._session.run([OUTPUT_NAME], {INPUT_NAME: self._contract.preprocess(image)})
+        if depth_m is None and self._contract.depth_input:
+            raise GeometryError(f"{self._what} is an RGB-D network; it needs the frame's depth image")
+        x = self._contract.preprocess(image, depth_m)
+        (logits,) = self._session.run([OUTPUT_NAME], {INPUT_NAME: x})
         return self._contract.postprocess(logits, image.shape[:2], self._what)
 
     def segment(self, bgr: U8, depth_m: F32 | None) -> Segmentation:
         started = time.perf_counter()
-        classes, confidence = self.classify(bgr)
-        depth = _check_depth(depth_m, classes.shape)
+        image = _check_bgr(bgr)
+        depth = _check_depth(depth_m, image.shape[:2])
+        classes, confidence = self.classify(image, depth if depth_m is not None else None)
         instances = instances_from_classes(
             classes,
             depth,

@@ -43,7 +43,7 @@ from wardmap.shared.config import to_mapping
 from wardmap.shared.errors import WardmapError
 from wardmap.shared.knowledge import KnowledgeGraph
 from wardmap.shared.se3 import make_transform, yaw_transform
-from wardmap.sim import models, raster, textures
+from wardmap.sim import models, raster, sensors, textures
 from wardmap.sim.geometry import Part, TriangleSoup
 from wardmap.sim.live import base_pose
 from wardmap.sim.runner import objects_document
@@ -55,10 +55,14 @@ log = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
 U8 = NDArray[np.uint8]
+U16 = NDArray[np.uint16]
+F32 = NDArray[np.float32]
 DATA_VERSION: Final = 1
 EVAL_SEED_MIN: Final = 1000
 IGNORE_INDEX: Final = 255
 _VIEW_TRIES: Final = 4
+_DEPTH_STREAM: Final = 5000  # frame i's depth noise: stream 5000 + i (RGB uses 1000 + i)
+CACHE_LAYOUT: Final = 2  # 2: samples carry depth; part of the cache key, not of the worlds' seeds
 _SURFACE_CLASSES: Final = ("desk", "cabinet", "cart", "bed", "sink")
 _PROP_CLASSES: Final = ("wheelchair", "cart", "iv_pole", "chair", "wheelchair", "iv_pole")
 _OUTFITS: Final = (
@@ -148,6 +152,8 @@ class TrainSegConfig:
         cache_dir: rendered samples are cached under ``cache_dir/<config hash>/``.
         data: training worlds (seeds must be < 1000).
         val: held-out validation worlds (seeds must be >= 1000).
+        depth_input: the network also takes the depth image (RGB-D, a 4-channel input: RGB
+            0..1 and depth in metres, 0 = no data); off: RGB only, as in paper 003.
         stem_channels: channels of the stride-2 stem convolution.
         encoder: inverted-residual stages ``(expansion, channels, repeats, stride)``
             (MobileNetV2 Table 2 layout at a small width).
@@ -177,6 +183,7 @@ class TrainSegConfig:
     cache_dir: str = "out/segdata"
     data: SegDataConfig = field(default_factory=SegDataConfig)
     val: SegDataConfig = field(default_factory=_val_data)
+    depth_input: bool = False
     stem_channels: int = 16
     encoder: tuple[tuple[int, int, int, int], ...] = (
         (1, 8, 1, 1),
@@ -236,6 +243,8 @@ class SegSamples:
     Attributes:
         rgb: uint8 (N, H, W, 3) RGB.
         classes: uint8 (N, H, W) class index per pixel (0 background, then KG order).
+        depth: uint16 (N, H, W) depth sensor reading in millimetres along the camera z axis,
+            0 = no data.
         world: int32 (N,) index of the (scenario, seed) world each frame comes from.
         on_track: bool (N,) True for frames on the scenario's robot trajectory.
         names: class names in index order, ``background`` first.
@@ -245,6 +254,7 @@ class SegSamples:
 
     rgb: U8
     classes: U8
+    depth: U16
     world: NDArray[np.int32]
     on_track: NDArray[np.bool_]
     names: tuple[str, ...] = field(default=())
@@ -257,7 +267,8 @@ class SegSamples:
     def subset(self, keep: NDArray[np.bool_]) -> SegSamples:
         """The frames where ``keep`` (N,) is True."""
         return SegSamples(
-            self.rgb[keep], self.classes[keep], self.world[keep], self.on_track[keep], self.names
+            self.rgb[keep], self.classes[keep], self.depth[keep], self.world[keep], self.on_track[keep],
+            self.names,
         )
 
 
@@ -268,7 +279,9 @@ def class_names(kg: KnowledgeGraph) -> tuple[str, ...]:
 
 def config_hash(cfg: SegDataConfig) -> str:
     """Hex digest of the data config and the generator version (the cache key)."""
-    blob = json.dumps({"version": DATA_VERSION, "config": to_mapping(cfg)}, sort_keys=True)
+    blob = json.dumps(
+        {"version": DATA_VERSION, "layout": CACHE_LAYOUT, "config": to_mapping(cfg)}, sort_keys=True
+    )
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
@@ -488,8 +501,14 @@ def _render(
     light: float,
     cfg: SegDataConfig,
     rng: np.random.Generator,
-) -> tuple[U8, NDArray[np.uint16]]:
-    """RGB (h, w, 3) uint8 and instance ids (h, w) at the network size (see module docstring)."""
+    depth_rng: np.random.Generator,
+) -> tuple[U8, NDArray[np.uint16], U16]:
+    """RGB (h, w, 3) uint8, instance ids (h, w) and depth (h, w) uint16 mm at the network size.
+
+    Depth is the simulated sensor's reading (noise, range, holes; :func:`sensors.depth_noise`)
+    at render size, subsampled every ``render_scale`` pixels as the edge subsamples depth for
+    the wire. Its noise comes from ``depth_rng`` so the RGB does not depend on it.
+    """
     rig = SensorRig()
     sc = cfg.render_scale
     W, H = cfg.width * sc, cfg.height * sc
@@ -521,7 +540,9 @@ def _render(
         )
     else:
         inst = out.instance
-    return rgb, inst
+    depth = sensors.depth_noise(out.depth, out.material, rig, sensors.depth_dropout_table(), depth_rng)
+    depth_mm = np.round(depth[::sc, ::sc] * 1000.0).clip(0, 65535).astype(np.uint16)
+    return rgb, inst, depth_mm
 
 
 def instance_to_class(instances: NDArray[np.uint16], id_to_class: dict[int, int]) -> U8:
@@ -539,12 +560,12 @@ def world_rng(scenario: str, seed: int, stream: int) -> np.random.Generator:
 
 def render_world(
     scenario: str, seed: int, cfg: SegDataConfig, kg: KnowledgeGraph | None = None, frames: int | None = None
-) -> tuple[U8, U8]:
+) -> tuple[U8, U8, U16]:
     """Render ``frames`` (default ``cfg.frames_per_world``) samples of one world.
 
     Returns:
-        ``(rgb (n, H, W, 3) uint8, classes (n, H, W) uint8)``; the same arguments always
-        give identical arrays.
+        ``(rgb (n, H, W, 3) uint8, classes (n, H, W) uint8, depth (n, H, W) uint16 mm, 0 = no
+        data)``; the same arguments always give identical arrays.
     """
     kg = kg or KnowledgeGraph.load()
     if (kg.index_of("temperature_gun"), kg.index_of("cup"), kg.index_of("person")) != (5, 6, 1):
@@ -556,6 +577,7 @@ def render_world(
     rig = SensorRig()
     rgb = np.empty((n, cfg.height, cfg.width, 3), np.uint8)
     cls = np.empty((n, cfg.height, cfg.width), np.uint8)
+    depth = np.empty((n, cfg.height, cfg.width), np.uint16)
     n_track = round(n * cfg.track_fraction)
     for i in range(n):
         frng = world_rng(scenario, seed, 1000 + i)
@@ -569,11 +591,12 @@ def render_world(
             light = float(frng.uniform(*cfg.light_range))
             max_people = cfg.max_extra_people
         dyn = [soup_of(*a.at(t), a.id, scene.world.bank) for a in scene.actors]
+        drng = world_rng(scenario, seed, _DEPTH_STREAM + i)
         for attempt in range(_VIEW_TRIES):
             if i >= n_track:
                 T_wc, target = _random_view(w, cfg, frng, kg)
             extra, extra_cls, _ = _extra_people(w, T_wc, frng, max_people, w.next_id)
-            img, inst = _render(w, T_wc, dyn + extra, light, cfg, frng)
+            img, inst, dmm = _render(w, T_wc, dyn + extra, light, cfg, frng, drng)
             # A random view whose target is hidden (behind a wall) is drawn again.
             if (
                 i < n_track
@@ -583,11 +606,12 @@ def render_world(
             ):
                 break
         rgb[i] = img
+        depth[i] = dmm
         cls[i] = instance_to_class(inst, {**w.id_to_class, **extra_cls})
-    return rgb, cls
+    return rgb, cls, depth
 
 
-def _render_world_job(job: tuple[str, int, SegDataConfig]) -> tuple[U8, U8]:
+def _render_world_job(job: tuple[str, int, SegDataConfig]) -> tuple[U8, U8, U16]:
     return render_world(*job)
 
 
@@ -617,15 +641,16 @@ def build_samples(
                         log.info("segmentation data: cached %s", target)
                         gen = float(z["generation_s"]) if "generation_s" in z.files else float("nan")
                         return SegSamples(
-                            z["rgb"], z["classes"], z["world"], z["on_track"], names, gen, cached=True
+                            z["rgb"], z["classes"], z["depth"], z["world"], z["on_track"], names, gen,
+                            cached=True,
                         )
                     log.info("segmentation data: %s has other class names; rendering again", target)
             except (OSError, KeyError, ValueError) as exc:
                 raise TrainingError(f"corrupt data cache {target}: {exc}; delete it to regenerate") from exc
     started = time.perf_counter()
     worlds = [(s, seed) for s in cfg.scenarios for seed in cfg.seeds]
-    rgbs, clss, widx, track = [], [], [], []
-    results: Iterator[tuple[U8, U8]]
+    rgbs, clss, depths, widx, track = [], [], [], [], []
+    results: Iterator[tuple[U8, U8, U16]]
     pool = None
     if workers > 1 and len(worlds) > 1:
         # Worlds are independent and seeded: the result does not depend on the worker count.
@@ -634,9 +659,10 @@ def build_samples(
     else:
         results = (render_world(sc, sd, cfg, kg) for sc, sd in worlds)
     try:
-        for k, (rgb, cls) in enumerate(results):
+        for k, (rgb, cls, depth) in enumerate(results):
             rgbs.append(rgb)
             clss.append(cls)
+            depths.append(depth)
             widx.append(np.full(len(rgb), k, np.int32))
             track.append(np.arange(len(rgb)) < round(len(rgb) * cfg.track_fraction))
             if progress is not None:
@@ -647,6 +673,7 @@ def build_samples(
     samples = SegSamples(
         np.concatenate(rgbs),
         np.concatenate(clss),
+        np.concatenate(depths),
         np.concatenate(widx),
         np.concatenate(track),
         names,
@@ -660,6 +687,7 @@ def build_samples(
                 tmp,
                 rgb=samples.rgb,
                 classes=samples.classes,
+                depth=samples.depth,
                 world=samples.world,
                 on_track=samples.on_track,
                 names=np.array(names),
@@ -678,23 +706,34 @@ def build_samples(
 
 
 def augment(
-    rgb: U8, classes: U8, rng: np.random.Generator, crop: tuple[int, int] | None = None
-) -> tuple[U8, U8]:
+    rgb: U8,
+    classes: U8,
+    rng: np.random.Generator,
+    crop: tuple[int, int] | None = None,
+    depth: U16 | None = None,
+) -> tuple[U8, U8, F32 | None]:
     """Photometric and geometric augmentation of one sample (new arrays, inputs untouched).
 
     Args:
         rgb: uint8 (H, W, 3); classes: uint8 (H, W).
         crop: ``(h, w)`` random crop after a random rescale (0.8..1.25); None keeps the size.
+        depth: uint16 (H, W) millimetres, 0 = no data, or None.
 
     Returns:
-        ``(rgb, classes)``; pixels outside the source after rescale/crop are
+        ``(rgb, classes, depth)``; pixels outside the source after rescale/crop are
         :data:`IGNORE_INDEX`. Applied: horizontal flip, brightness, contrast, gamma,
-        colour cast, Gaussian blur, sensor noise.
+        colour cast, Gaussian blur, sensor noise. Depth (float32 (h, w) metres, None without
+        one) follows the flip and crop; a rescale by ``s`` stands for a camera ``s`` times
+        closer, so depth is divided by ``s``; half the samples get depth at half resolution
+        (every other pixel repeated), as the server gets it from a robot sending depth at 1/4
+        (``agent.depth_stride = 4``).
     """
     img = rgb.astype(np.float32) / 255.0
     lab = classes
+    dep = None if depth is None else depth.astype(np.float32) * np.float32(0.001)
     if rng.random() < 0.5:
         img, lab = img[:, ::-1], lab[:, ::-1]
+        dep = None if dep is None else dep[:, ::-1]
     if crop is not None:
         s = float(rng.uniform(0.8, 1.25))
         h, w = lab.shape
@@ -707,6 +746,10 @@ def augment(
         x0 = int(rng.integers(0, nw - crop[1] + 1))
         img = img[y0 : y0 + crop[0], x0 : x0 + crop[1]]
         lab = lab[y0 : y0 + crop[0], x0 : x0 + crop[1]]
+        if dep is not None:
+            dep = np.asarray(
+                cv2.resize(np.ascontiguousarray(dep), (nw, nh), interpolation=cv2.INTER_NEAREST), np.float32
+            )[y0 : y0 + crop[0], x0 : x0 + crop[1]] / np.float32(s)
     img = img * np.float32(rng.uniform(0.6, 1.4)) * rng.uniform(0.9, 1.1, 3).astype(np.float32)
     mean = img.mean()
     img = (img - mean) * np.float32(rng.uniform(0.7, 1.3)) + mean
@@ -715,7 +758,12 @@ def augment(
         img = cv2.GaussianBlur(img, (0, 0), float(rng.uniform(0.4, 1.5)))
     img = img + rng.standard_normal(img.shape, dtype=np.float32) * np.float32(rng.uniform(0.0, 0.03))
     out = np.clip(img * 255.0 + 0.5, 0, 255).astype(np.uint8)
-    return np.ascontiguousarray(out), np.ascontiguousarray(lab)
+    if dep is not None:
+        h, w = dep.shape
+        if rng.random() < 0.5:
+            dep = np.repeat(np.repeat(dep[::2, ::2], 2, axis=0), 2, axis=1)[:h, :w]
+        dep = np.ascontiguousarray(dep, np.float32)
+    return np.ascontiguousarray(out), np.ascontiguousarray(lab), dep
 
 
 def class_weights(

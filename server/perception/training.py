@@ -3,17 +3,19 @@
 The only module of wardmap that imports torch (extra ``train``); nothing imports it at
 import time. The server runs the exported file with onnxruntime.
 
-Network (:class:`BaffSkipNet`): input ``[N, 3, H, W]`` RGB in 0..1, normalised inside the
-model; a MobileNetV2-style encoder of inverted residual blocks (expansion, depthwise 3x3,
-linear projection, residual when the shape allows) at a small width; a skip decoder that
+Network (:class:`BaffSkipNet`): input ``[N, 3, H, W]`` RGB in 0..1, or ``[N, 4, H, W]`` RGB
+plus depth in metres (0 = no data) with ``depth_input``, normalised inside the model; a
+MobileNetV2-style encoder of inverted residual blocks (expansion, depthwise 3x3, linear
+projection, residual when the shape allows) at a small width; a skip decoder that
 climbs from stride 32 to stride 2, fusing each upsampled deep level with the encoder skip of
 the same stride through block-adaptive feature fusion (:class:`Baff`, Eq. 2); logits
 ``[N, C, H, W]`` at full input resolution (bilinear from stride 2).
 
-ONNX contract (the inference side depends on it): input ``image`` float32 ``[1, 3, 240, 320]``
-RGB 0..1; output ``logits`` float32 ``[1, C, 240, 320]``, C = 1 + knowledge-graph classes;
-metadata ``wardmap.classes`` (JSON list of names, ``background`` first) and
-``wardmap.input_size`` (``"320x240"``). One self-contained file.
+ONNX contract (the inference side depends on it, ``wardmap.shared.segmentation``): input
+``image`` float32 ``[1, 3, 240, 320]`` RGB 0..1 (``[1, 4, 240, 320]`` RGB-D); output
+``logits`` float32 ``[1, C, 240, 320]``, C = 1 + knowledge-graph classes; metadata
+``wardmap.classes`` (JSON list of names, ``background`` first) and ``wardmap.input_size``
+(``"320x240"``). One self-contained file.
 """
 
 from __future__ import annotations
@@ -55,9 +57,12 @@ from wardmap.shared.knowledge import KnowledgeGraph
 log = logging.getLogger(__name__)
 
 ONNX_OPSET = 17
-# ImageNet statistics: the model normalises its 0..1 RGB input itself.
+# ImageNet statistics: the model normalises its 0..1 RGB input itself. Depth (metres): a
+# rough spread of indoor ranges; 0 (no data) maps to about -1.7.
 _MEAN = (0.485, 0.456, 0.406)
 _STD = (0.229, 0.224, 0.225)
+_DEPTH_MEAN_M = 2.5
+_DEPTH_STD_M = 1.5
 
 Progress = Callable[[str, int, int, str], None]
 
@@ -172,7 +177,8 @@ class _DecoderLevel(nn.Module):
 class BaffSkipNet(nn.Module):
     """MobileNetV2-style encoder + BAFF skip decoder (paper 003 Fig. 5), see the module docstring.
 
-    Input (N, 3, H, W) RGB 0..1; output logits (N, num_classes, H, W).
+    Input (N, 3, H, W) RGB 0..1, or (N, 4, H, W) RGB 0..1 + depth metres with
+    ``cfg.depth_input``; output logits (N, num_classes, H, W).
     """
 
     mean: Tensor
@@ -180,9 +186,11 @@ class BaffSkipNet(nn.Module):
 
     def __init__(self, cfg: TrainSegConfig, num_classes: int) -> None:
         super().__init__()
-        self.register_buffer("mean", torch.tensor(_MEAN).view(1, 3, 1, 1))
-        self.register_buffer("std", torch.tensor(_STD).view(1, 3, 1, 1))
-        self.stem = _conv_bn(3, cfg.stem_channels, 3, 2)
+        mean, std = (*_MEAN, _DEPTH_MEAN_M), (*_STD, _DEPTH_STD_M)
+        self.in_channels = 4 if cfg.depth_input else 3
+        self.register_buffer("mean", torch.tensor(mean[: self.in_channels]).view(1, -1, 1, 1))
+        self.register_buffer("std", torch.tensor(std[: self.in_channels]).view(1, -1, 1, 1))
+        self.stem = _conv_bn(self.in_channels, cfg.stem_channels, 3, 2)
         stages: list[nn.Module] = []
         cin = cfg.stem_channels
         strides, stride = [], 2
@@ -281,8 +289,15 @@ def train_model(
         for idx in _batches(len(samples), cfg.batch_size, rng):
             if step >= total:
                 break
-            pairs = [augment(samples.rgb[i], samples.classes[i], rng, cfg.crop) for i in idx]
+            pairs = [
+                augment(samples.rgb[i], samples.classes[i], rng, cfg.crop,
+                        samples.depth[i] if cfg.depth_input else None)
+                for i in idx
+            ]
             x = torch.from_numpy(np.stack([p[0] for p in pairs])).permute(0, 3, 1, 2).float().div_(255.0)
+            if cfg.depth_input:
+                d = torch.from_numpy(np.stack([cast(NDArray[np.float32], p[2]) for p in pairs]))
+                x = torch.cat([x, d[:, None]], dim=1)
             x = x.contiguous(memory_format=layout)
             y = torch.from_numpy(np.stack([p[1] for p in pairs]).astype(np.int64))
             loss = loss_fn(model(x), y)
@@ -324,7 +339,7 @@ def export_onnx(model: BaffSkipNet, path: Path, names: Sequence[str], width: int
     except ImportError as exc:
         raise TrainingError("onnx is not installed; pip install -e '.[train]'") from exc
     model = model.eval()
-    dummy = torch.rand(1, 3, height, width)
+    dummy = torch.rand(1, model.in_channels, height, width)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp.onnx")
     with torch.no_grad(), warnings.catch_warnings():
@@ -370,7 +385,7 @@ def evaluate_onnx(path: Path, samples: SegSamples, threads: int = 1) -> dict[str
     times = []
     for i in range(len(samples)):
         t0 = time.perf_counter()
-        logits = onnx_logits(sess, samples.rgb[i])
+        logits = onnx_logits(sess, samples.rgb[i], samples.depth[i])
         times.append(time.perf_counter() - t0)
         cm += confusion(logits[0].argmax(0), samples.classes[i], n)
     iou = iou_from_confusion(cm)
@@ -387,14 +402,20 @@ def evaluate_onnx(path: Path, samples: SegSamples, threads: int = 1) -> dict[str
     }
 
 
-def check_export(model: BaffSkipNet, path: Path, rgb: NDArray[np.uint8]) -> float:
-    """Max abs logit difference between torch and onnxruntime on one (H, W, 3) uint8 image."""
+def check_export(
+    model: BaffSkipNet, path: Path, rgb: NDArray[np.uint8], depth_mm: NDArray[np.uint16]
+) -> float:
+    """Max abs logit difference between torch and onnxruntime on one (H, W, 3) uint8 image
+    and its (H, W) uint16 depth in millimetres (used by RGB-D models)."""
     import onnxruntime as ort
 
     sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    x = torch.from_numpy(rgb).permute(2, 0, 1)[None].float() / 255.0
+    if model.in_channels == 4:
+        x = torch.cat([x, torch.from_numpy(depth_mm.astype(np.float32) / 1000.0)[None, None]], dim=1)
     with torch.no_grad():
-        ref = model(torch.from_numpy(rgb).permute(2, 0, 1)[None].float() / 255.0).numpy()
-    return float(np.abs(onnx_logits(sess, rgb) - ref).max())
+        ref = model(x).numpy()
+    return float(np.abs(onnx_logits(sess, rgb, depth_mm) - ref).max())
 
 
 def train_and_export(
@@ -432,7 +453,7 @@ def train_and_export(
     model, losses = train_model(cfg, train, progress)
     t_train = time.perf_counter() - started - t_data
     export_onnx(model, out, names, cfg.data.width, cfg.data.height)
-    diff = check_export(model, out, val.rgb[0])
+    diff = check_export(model, out, val.rgb[0], val.depth[0])
     if not math.isfinite(diff) or diff > 1e-2:
         raise TrainingError(f"exported model disagrees with torch: max abs logit difference {diff:.3g}")
     weights = class_weights(train.classes, len(names), cfg.class_weight_power, cfg.max_class_weight)
@@ -507,6 +528,31 @@ worlds below: validation mIoU by alpha {by}; chosen **alpha = {adjust["alpha"]}*
 {adjust["bias"]} (also in the metadata `wardmap.logit_bias`)."""
 
 
+def _input_line(cfg: dict[str, Any], w: int, h: int, sc: int) -> str:
+    resize = (f"Frames of another size are resized to {w}x{h} first (`cv2.INTER_AREA`, as the training data\n"
+              f"  was made from {w * sc}x{h * sc} renders)")
+    if not cfg.get("depth_input"):
+        return (f"- input `image`: float32 `[1, 3, {h}, {w}]`, RGB in 0..1 (normalisation is inside the "
+                f"model).\n  {resize}.")
+    return (f"- input `image`: float32 `[1, 4, {h}, {w}]`: RGB in 0..1, then depth in metres along the "
+            f"camera\n  z axis, 0 where the sensor has none (RGB-D; normalisation is inside the model).\n"
+            f"  {resize}; depth by nearest neighbour, so holes stay holes.")
+
+
+def _depth_data(cfg: dict[str, Any], sc: int) -> str:
+    if not cfg.get("depth_input"):
+        return ""
+    return (f"\n- depth: the simulated depth sensor's reading (axial noise, 0.4-8 m range, holes at depth\n"
+            f"  edges and on dark, specular and glass materials), one pixel in {sc} along each axis;")
+
+
+def _depth_augment(cfg: dict[str, Any]) -> str:
+    if not cfg.get("depth_input"):
+        return ""
+    return (";\n  depth follows flip and crop, is divided by the rescale factor (a camera that much\n"
+            "  closer), and half the samples get it at half resolution (a robot sending depth at 1/4)")
+
+
 def model_card(summary: dict[str, Any], metrics: dict[str, Any]) -> str:
     """The Markdown model card of an exported model."""
     cfg = summary["config"]
@@ -536,9 +582,7 @@ Made by `wardmap train-seg` (server/perception/training.py, docs/training.md).
 
 ## Interface (ONNX opset {ONNX_OPSET}, one self-contained file, {mb:.2f} MB)
 
-- input `image`: float32 `[1, 3, {h}, {w}]`, RGB in 0..1 (normalisation is inside the model).
-  Frames of another size are resized to {w}x{h} first (`cv2.INTER_AREA`, as the training data
-  was made from {w * sc}x{h * sc} renders).
+{_input_line(cfg, w, h, sc)}
 - output `logits`: float32 `[1, {nc}, {h}, {w}]`; class = argmax over axis 1.
 - metadata: `wardmap.classes` = `{json.dumps(summary["classes"])}`;
   `wardmap.input_size` = `{w}x{h}`.
@@ -578,10 +622,10 @@ hash `{summary["train_data_hash"]}`:
   {d["max_extra_people"]} extra people (random walk phase, height 1.5-1.95 m, heading,
   outfit; 30 % hold a cup or a temperature gun);
 - illumination gain {d["light_range"][0]}-{d["light_range"][1]} for random viewpoints;
-  rendered at {w * sc}x{h * sc} with the simulator's sensor noise, area-downsampled;
+  rendered at {w * sc}x{h * sc} with the simulator's sensor noise, area-downsampled;{_depth_data(cfg, sc)}
 - augmentation: horizontal flip, rescale 0.8-1.25 and {cfg["crop"][0]}x{cfg["crop"][1]} random
   crop, brightness 0.6-1.4, per-channel gain 0.9-1.1, contrast 0.7-1.3, gamma 0.7-1.4,
-  Gaussian blur (30 %), noise.
+  Gaussian blur (30 %), noise{_depth_augment(cfg)}.
 
 ## Training settings
 

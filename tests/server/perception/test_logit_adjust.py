@@ -103,7 +103,8 @@ def test_adjust_model_keeps_a_model_that_needs_none(tmp_path: Path) -> None:
     rgb[:, :12] = (255, 0, 0)  # red: person in the tiny model
     truth = np.zeros((2, 24, 32), np.uint8)
     truth[:, :12] = names.index("person")
-    val = SegSamples(rgb, truth, np.zeros(2, np.int32), np.zeros(2, bool), names)
+    no_depth = np.zeros(truth.shape, np.uint16)
+    val = SegSamples(rgb, truth, no_depth, np.zeros(2, np.int32), np.zeros(2, bool), names)
     done = adjust_model(raw, tmp_path / "out.onnx", val, np.ones(len(names)), (0.0,))
     assert done["alpha"] == 0.0 and done["val_miou_by_alpha"] == {"0.0": 100.0}
     assert (tmp_path / "out.onnx").read_bytes() == raw.read_bytes()

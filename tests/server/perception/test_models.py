@@ -20,7 +20,7 @@ from wardmap.server.perception.models import (
     packaged_model_path,
 )
 from wardmap.shared.config import to_mapping
-from wardmap.shared.errors import ConfigError
+from wardmap.shared.errors import ConfigError, GeometryError
 
 pytest.importorskip("onnx", reason="building test models needs the onnx package (dev dependency)")
 
@@ -72,6 +72,29 @@ def test_class_mapping_of_the_onnx_contract(tmp_path: Path) -> None:
     blue = np.zeros_like(bgr)
     blue[..., 0] = 255
     assert not seg.segment(blue, None).class_map.any()
+
+
+def test_rgbd_network_takes_the_depth_image(tmp_path: Path) -> None:
+    """A 4-channel network is RGB-D: depth (metres, resized by nearest neighbour) is its
+    fourth input channel; without a depth image it is a clear error, not a silent zero."""
+    seg = OnnxSegmenter(tiny.write_tiny_seg(tmp_path / "d.onnx", depth_channel=True), min_pixels=10)
+    assert seg.depth_input
+    bgr = np.zeros((48, 64, 3), np.uint8)
+    depth = np.full((48, 64), 1.0, np.float32)
+    depth[:, 32:] = 4.0
+    depth[0:8, 40:48] = 0.0  # no data: not far
+    classes, _ = seg.classify(bgr, depth)
+    chair = seg.class_names.index("chair")
+    assert np.all(classes[:, :32] == 0) and np.all(classes[8:, 32:] == chair)
+    assert np.all(classes[0:8, 40:48] == 0)
+    assert [i.category for i in seg(bgr, depth)] == ["chair"]
+    with pytest.raises(GeometryError, match="RGB-D"):
+        seg.classify(bgr)
+    with pytest.raises(GeometryError, match="RGB-D"):
+        seg.segment(bgr, None)
+    with pytest.raises(GeometryError, match="depth"):
+        seg.classify(bgr, depth[:10])
+    assert not OnnxSegmenter(tiny.write_tiny_seg(tmp_path / "rgb.onnx")).depth_input
 
 
 def test_missing_model_fails_at_start_up(tmp_path: Path) -> None:

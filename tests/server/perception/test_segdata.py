@@ -30,20 +30,33 @@ TINY = SegDataConfig(scenarios=("walking_staff",), seeds=(3,), frames_per_world=
 
 def test_same_seed_same_samples_other_seed_differs() -> None:
     """Rendering one world twice gives identical frames; another seed gives other frames."""
-    rgb_a, cls_a = render_world("walking_staff", 3, TINY)
-    rgb_b, cls_b = render_world("walking_staff", 3, TINY)
+    rgb_a, cls_a, depth_a = render_world("walking_staff", 3, TINY)
+    rgb_b, cls_b, depth_b = render_world("walking_staff", 3, TINY)
     assert rgb_a.shape == (3, 240, 320, 3) and rgb_a.dtype == np.uint8
     assert cls_a.shape == (3, 240, 320) and cls_a.dtype == np.uint8
+    assert depth_a.shape == (3, 240, 320) and depth_a.dtype == np.uint16
     np.testing.assert_array_equal(rgb_a, rgb_b)
     np.testing.assert_array_equal(cls_a, cls_b)
-    rgb_c, _ = render_world("walking_staff", 4, TINY)
+    np.testing.assert_array_equal(depth_a, depth_b)
+    rgb_c, _, _ = render_world("walking_staff", 4, TINY)
     assert not np.array_equal(rgb_a, rgb_c)
+
+
+def test_depth_is_the_sensor_reading_in_millimetres() -> None:
+    """Samples carry the depth sensor's reading: metric (people in front of the camera are
+    0.4-8 m away), with holes (0) where the sensor has none, and nothing beyond its range."""
+    _, cls, depth = render_world("walking_staff", 3, TINY)
+    valid = depth > 0
+    assert 0.5 < valid.mean() < 1.0
+    assert depth[valid].min() >= 350 and depth[valid].max() <= 8100
+    people = (cls == 1) & valid
+    assert people.any() and 400 <= np.median(depth[people]) <= 8000
 
 
 def test_labels_are_knowledge_graph_classes() -> None:
     """Every label is background or a KG class index, and the frames show some objects."""
     kg = KnowledgeGraph.load()
-    _, cls = render_world("ward_chairs", 5, TINY, kg, frames=4)
+    _, cls, _ = render_world("ward_chairs", 5, TINY, kg, frames=4)
     assert int(cls.max()) <= kg.num_classes
     assert np.count_nonzero(cls) > 0.02 * cls.size
     assert class_names(kg)[0] == "background" and class_names(kg)[1:] == kg.names
@@ -77,14 +90,43 @@ def test_augment_keeps_image_and_labels_aligned() -> None:
     cls[:, :80] = 1
     flips = 0
     for seed in range(12):
-        img, lab = augment(rgb, cls, np.random.default_rng(seed), crop=(96, 128))
-        assert img.shape == (96, 128, 3) and lab.shape == (96, 128)
+        img, lab, none = augment(rgb, cls, np.random.default_rng(seed), crop=(96, 128))
+        assert img.shape == (96, 128, 3) and lab.shape == (96, 128) and none is None
         assert set(np.unique(lab)) <= {1, 2, IGNORE_INDEX}
         gray = img.mean(axis=2)
         assert gray[lab == 1].mean() > gray[lab == 2].mean() + 40
         flips += int(lab[:, 0].mean() > 1.5)
     assert 0 < flips < 12  # both orientations occur
     assert rgb[0, 0, 0] == 220 and cls[0, 0] == 1  # inputs untouched
+
+
+def test_augment_moves_depth_with_the_image() -> None:
+    """Depth follows flip and crop (labelled-1 pixels keep their 1 m, labelled-2 their 3 m,
+    both divided by the rescale: a zoom by s is a camera s times closer) in metres. Some
+    samples get half-resolution depth (2x2 blocks)."""
+    rgb = np.full((120, 160, 3), 128, np.uint8)
+    cls = np.full((120, 160), 2, np.uint8)
+    cls[:, :80] = 1
+    depth = np.full((120, 160), 3000, np.uint16)
+    depth[:, :80] = 1000
+    for seed in range(40):
+        _, lab, d = augment(rgb, cls, np.random.default_rng(seed), crop=(96, 128), depth=depth)
+        assert d is not None and d.shape == (96, 128) and d.dtype == np.float32
+        near, far = d[(lab == 1) & (d > 0)], d[(lab == 2) & (d > 0)]
+        # Half-resolution depth may shift the boundary by a pixel: 95 % of pixels, not all.
+        near_m = float(np.median(near))
+        assert 0.79 < near_m < 1.26 and np.mean(np.abs(near - near_m) < 1e-6) > 0.95
+        if far.size:
+            assert float(np.median(far)) == pytest.approx(3 * near_m, rel=1e-5)  # one scale per sample
+    assert depth[0, 0] == 1000  # input untouched
+    ramp = (1000 + 7 * np.arange(160)[None, :] + 3 * np.arange(120)[:, None]).astype(np.uint16)
+    coarse = fine = 0
+    for seed in range(40):
+        _, _, d = augment(rgb, cls, np.random.default_rng(seed), depth=ramp)
+        assert d is not None
+        coarse += int(np.array_equal(d[0::2, 0::2], d[1::2, 1::2]))
+        fine += int(not np.any(d[0::2, 0::2] == d[1::2, 1::2]))
+    assert coarse > 5 and fine > 5
 
 
 def test_confusion_and_iou() -> None:
@@ -110,6 +152,7 @@ def test_cache_is_reused(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Non
     second = build_samples(cfg, tmp_path)
     np.testing.assert_array_equal(first.rgb, second.rgb)
     np.testing.assert_array_equal(first.classes, second.classes)
+    np.testing.assert_array_equal(first.depth, second.depth)
     assert second.names == first.names
     assert not first.cached and second.cached
     assert second.generation_s == pytest.approx(first.generation_s) and first.generation_s > 0

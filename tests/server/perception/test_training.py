@@ -62,11 +62,15 @@ def test_network_logits_at_input_resolution() -> None:
     with torch.no_grad():
         assert net(torch.rand(1, 3, 240, 320)).shape == (1, 14, 240, 320)
         assert net(torch.rand(2, 3, 192, 256)).shape == (2, 14, 192, 256)
+        rgbd = BaffSkipNet(TrainSegConfig(depth_input=True), 14).eval()
+        assert rgbd(torch.rand(1, 4, 240, 320)).shape == (1, 14, 240, 320)
 
 
-def test_two_step_training_exports_contract_onnx(tmp_path: Path) -> None:
+@pytest.mark.parametrize("depth_input", [False, True], ids=["rgb", "rgbd"])
+def test_two_step_training_exports_contract_onnx(tmp_path: Path, depth_input: bool) -> None:
     """Two optimiser steps on a few tiny samples export one ONNX file that meets the contract
-    (names, shapes, metadata, self-contained) and matches torch; the model card is written."""
+    (names, shapes, metadata, self-contained) and matches torch; the model card is written.
+    An RGB-D network takes a 4-channel input."""
     import onnxruntime as ort
 
     cfg = TrainSegConfig(
@@ -78,6 +82,7 @@ def test_two_step_training_exports_contract_onnx(tmp_path: Path) -> None:
         batch_size=2,
         crop=(96, 128),
         max_steps=2,
+        depth_input=depth_input,
     )
     out = tmp_path / "model" / "seg.onnx"
     result = train_and_export(cfg, out, command="pytest smoke")
@@ -92,9 +97,11 @@ def test_two_step_training_exports_contract_onnx(tmp_path: Path) -> None:
 
     sess = ort.InferenceSession(str(out), providers=["CPUExecutionProvider"])
     (inp,), (outp,) = sess.get_inputs(), sess.get_outputs()
-    assert (inp.name, inp.shape, inp.type) == ("image", [1, 3, 240, 320], "tensor(float)")
+    channels = 4 if depth_input else 3
+    assert (inp.name, inp.shape, inp.type) == ("image", [1, channels, 240, 320], "tensor(float)")
     assert (outp.name, outp.shape, outp.type) == ("logits", [1, len(names), 240, 320], "tensor(float)")
-    logits = sess.run(["logits"], {"image": np.random.default_rng(0).random((1, 3, 240, 320), np.float32)})[0]
+    x = np.random.default_rng(0).random((1, channels, 240, 320), np.float32)
+    logits = sess.run(["logits"], {"image": x})[0]
     assert logits.shape == (1, 14, 240, 320) and np.isfinite(logits).all()
 
     assert result.summary["onnx_torch_max_abs_diff"] < 1e-3

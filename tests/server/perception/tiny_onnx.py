@@ -2,7 +2,9 @@
 
 The network is one 1x1 convolution: per pixel, ``logits = W @ rgb + b``. With the default
 weights a red pixel (RGB 0..1) is ``person``, a green one ``door``, anything else the
-background; every other class has a large negative bias. Test helpers only (needs the
+background; every other class has a large negative bias. With ``depth_channel`` the input
+has a fourth channel, depth in metres, and a pixel farther than 2.5 m (and neither red nor
+green) is a ``chair``. Test helpers only (needs the
 ``onnx`` package, a dev dependency).
 """
 
@@ -30,6 +32,7 @@ def write_tiny_seg(
     output_name: str = "logits",
     out_channels: int | None = None,
     metadata: dict[str, str | None] | None = None,
+    depth_channel: bool = False,
 ) -> Path:
     """Write the model to ``path``; arguments let tests break one part of the contract."""
     import onnx
@@ -38,7 +41,8 @@ def write_tiny_seg(
     names = list(classes) if classes is not None else kg_classes()
     c = out_channels if out_channels is not None else len(names)
     w, h = input_wh
-    weight = np.zeros((c, 3, 1, 1), np.float32)
+    cin = 4 if depth_channel else 3
+    weight = np.zeros((c, cin, 1, 1), np.float32)
     bias = np.full((c,), -100.0, np.float32)
     bias[0] = 0.0
     for name, channel in (("person", 0), ("door", 1)):
@@ -46,10 +50,15 @@ def write_tiny_seg(
             k = names.index(name)
             weight[k, channel, 0, 0] = 10.0
             bias[k] = -5.0
+    if depth_channel and "chair" in names and names.index("chair") < c:
+        k = names.index("chair")
+        weight[k, :3, 0, 0] = -100.0
+        weight[k, 3, 0, 0] = 10.0
+        bias[k] = -25.0
     graph = helper.make_graph(
         [helper.make_node("Conv", [input_name, "W", "B"], [output_name], kernel_shape=[1, 1])],
         "tiny_seg",
-        [helper.make_tensor_value_info(input_name, TensorProto.FLOAT, [1, 3, h, w])],
+        [helper.make_tensor_value_info(input_name, TensorProto.FLOAT, [1, cin, h, w])],
         [helper.make_tensor_value_info(output_name, TensorProto.FLOAT, [1, c, h, w])],
         initializer=[numpy_helper.from_array(weight, "W"), numpy_helper.from_array(bias, "B")],
     )
