@@ -133,7 +133,7 @@ class SensorSimulator:
         rgb = np.clip(rgb_f + 0.5, 0, 255).astype(np.uint8)
 
         depth_true = out.depth
-        depth = self._depth_noise(depth_true, out.material, rng)
+        depth = depth_noise(depth_true, out.material, rig, self.dropout, rng)
 
         th = self.rig.thermal
         T_world_th = T_world_rgb @ self.T_rgb_thermal
@@ -155,11 +155,6 @@ class SensorSimulator:
             rig.thermal_netd_k
         )
         return SensorFrame(rgb, depth, out.instance.copy(), temp_noisy.astype(np.float32), depth_true)
-
-    def _depth_noise(
-        self, z: NDArray[np.float32], material: NDArray[np.uint16], rng: np.random.Generator
-    ) -> NDArray[np.float32]:
-        return depth_noise(z, material, self.rig, self.dropout, rng)
 
 
 def depth_dropout_table() -> NDArray[np.float32]:

@@ -335,17 +335,14 @@ class OnnxSegmenter:
             GeometryError: a malformed image or depth; no depth for an RGB-D network.
         """
         image = _check_bgr(bgr)
-        if depth_m is None and self._contract.depth_input:
-            raise GeometryError(f"{self._what} is an RGB-D network; it needs the frame's depth image")
-        x = self._contract.preprocess(image, depth_m)
+        x = self._contract.preprocess(image, depth_m)  # refuses an RGB-D network without depth
         (logits,) = self._session.run([OUTPUT_NAME], {INPUT_NAME: x})
         return self._contract.postprocess(logits, image.shape[:2], self._what)
 
     def segment(self, bgr: U8, depth_m: F32 | None) -> Segmentation:
         started = time.perf_counter()
-        image = _check_bgr(bgr)
-        depth = _check_depth(depth_m, image.shape[:2])
-        classes, confidence = self.classify(image, depth if depth_m is not None else None)
+        classes, confidence = self.classify(bgr, depth_m)
+        depth = _check_depth(depth_m, classes.shape)
         instances = instances_from_classes(
             classes,
             depth,

@@ -62,6 +62,7 @@ EVAL_SEED_MIN: Final = 1000
 IGNORE_INDEX: Final = 255
 _VIEW_TRIES: Final = 4
 _DEPTH_STREAM: Final = 5000  # frame i's depth noise: stream 5000 + i (RGB uses 1000 + i)
+_DEPTH_DROPOUT: Final = sensors.depth_dropout_table()
 CACHE_LAYOUT: Final = 2  # 2: samples carry depth; part of the cache key, not of the worlds' seeds
 _SURFACE_CLASSES: Final = ("desk", "cabinet", "cart", "bed", "sink")
 _PROP_CLASSES: Final = ("wheelchair", "cart", "iv_pole", "chair", "wheelchair", "iv_pole")
@@ -540,7 +541,7 @@ def _render(
         )
     else:
         inst = out.instance
-    depth = sensors.depth_noise(out.depth, out.material, rig, sensors.depth_dropout_table(), depth_rng)
+    depth = sensors.depth_noise(out.depth, out.material, rig, _DEPTH_DROPOUT, depth_rng)
     depth_mm = np.round(depth[::sc, ::sc] * 1000.0).clip(0, 65535).astype(np.uint16)
     return rgb, inst, depth_mm
 
