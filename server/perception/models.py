@@ -110,12 +110,18 @@ class PerceptionConfig:
     joins a row of chairs into one region. Not for classes flush with a wall (doors, wall
     monitors). On held-out seed-1002 worlds the share of measurements on a real object went
     from 80.6 % to 90.1 % (chairs on ward_chairs: 67 of 170 to 455 of 552)."""
-    split_classes: tuple[str, ...] = ("chair",)
-    """Segmentation network: classes whose instances as wide as two or more objects are cut
-    into side-by-side pieces (``instances.split_side_by_side``, needs the camera, so it runs
-    where instances are measured). Touching chairs in a row stay one region after trimming."""
-    split_width_m: float = 0.6
-    """Typical width of one object of ``split_classes``, metres (a chair: 0.45-0.6 m)."""
+    split_width_m: tuple[tuple[str, float], ...] = (("chair", 0.6), ("door", 1.4))
+    """Segmentation network: ``[class, width]`` pairs. An instance of the class as wide as two
+    or more objects of ``width`` metres is cut into side-by-side pieces
+    (``instances.split_side_by_side``, needs the camera, so it runs where instances are
+    measured). Touching chairs in a row stay one region after trimming (a chair: 0.45-0.6 m);
+    the network's mask runs over the 0.4 m of wall between two neighbouring doors (a door
+    leaf is at most 1.3 m, so a door region of 2.1 m or more holds two)."""
+    stack_gap_m: tuple[tuple[str, float], ...] = (("chair", 0.1), ("iv_pole", 1.0))
+    """Segmentation network: ``[class, gap]`` pairs. Pieces of the class one above the other
+    with at most ``gap`` metres between them are joined (``instances.merge_stacked``): a
+    chair's open back and its seat; an IV pole's bag and its base, the thin pole between
+    them unsegmented."""
     score_threshold: float = 0.3
     """YOLOX: smallest detection score used."""
     nms_iou: float = 0.45
@@ -136,8 +142,10 @@ class PerceptionConfig:
             raise ConfigError(f"PerceptionConfig: min_pixels must be >= 1, got {self.min_pixels}")
         if self.depth_jump_m <= 0 or self.depth_jump_relative < 0:
             raise ConfigError("PerceptionConfig: need depth_jump_m > 0 and depth_jump_relative >= 0")
-        if not self.split_width_m > 0:
-            raise ConfigError(f"PerceptionConfig: split_width_m must be > 0, got {self.split_width_m}")
+        for key in ("split_width_m", "stack_gap_m"):
+            for name, value in getattr(self, key):
+                if not value > 0:
+                    raise ConfigError(f"PerceptionConfig: {key} of {name!r} must be > 0, got {value}")
         if self.detector_cluster_gap_m < 0:
             raise ConfigError(
                 f"PerceptionConfig: detector_cluster_gap_m must be >= 0, got {self.detector_cluster_gap_m}"
@@ -158,16 +166,20 @@ def measure_config_for(config: PerceptionConfig, spec: str) -> MeasureConfig:
 
 def split_instances(instances: Sequence[Instance], depth_m: NDArray[np.float32], camera: PinholeCamera,
                     config: PerceptionConfig, spec: str) -> list[Instance]:
-    """``config.split_classes`` instances of the segmentation network (``model`` specs) cut into
-    side-by-side objects (:func:`~wardmap.server.perception.instances.split_side_by_side`), then
-    pieces one above the other joined (:func:`~wardmap.server.perception.instances.merge_stacked`:
-    a chair's open back and its seat); other segmenters' instances are returned unchanged (a
-    detector boxes each chair)."""
-    if not spec.strip().startswith("model") or not config.split_classes:
-        return list(instances)
-    pieces = split_side_by_side(instances, depth_m, camera, classes=config.split_classes,
-                                width_m=config.split_width_m, min_pixels=config.min_pixels)
-    return merge_stacked(pieces, depth_m, camera, classes=config.split_classes)
+    """The segmentation network's (``model`` specs) instances of the ``split_width_m`` classes cut
+    into side-by-side objects (:func:`~wardmap.server.perception.instances.split_side_by_side`),
+    then pieces of the ``stack_gap_m`` classes one above the other joined
+    (:func:`~wardmap.server.perception.instances.merge_stacked`: a chair's open back and its
+    seat); other segmenters' instances are returned unchanged (a detector boxes each chair)."""
+    out = list(instances)
+    if not spec.strip().startswith("model"):
+        return out
+    for name, width in config.split_width_m:
+        out = split_side_by_side(out, depth_m, camera, classes=(name,), width_m=width,
+                                 min_pixels=config.min_pixels)
+    for name, gap in config.stack_gap_m:
+        out = merge_stacked(out, depth_m, camera, classes=(name,), max_gap_m=gap)
+    return out
 
 
 def load_perception_config(path: str | Path | None) -> PerceptionConfig:

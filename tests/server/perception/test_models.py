@@ -10,6 +10,7 @@ from types import ModuleType
 import numpy as np
 import pytest
 
+from wardmap.server.perception.instances import box_of_mask
 from wardmap.server.perception.models import (
     OnnxSegmenter,
     PerceptionConfig,
@@ -18,7 +19,10 @@ from wardmap.server.perception.models import (
     make_segmenter,
     measure_config_for,
     packaged_model_path,
+    split_instances,
 )
+from wardmap.server.perception.types import Instance
+from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.config import to_mapping
 from wardmap.shared.errors import ConfigError, GeometryError
 
@@ -195,6 +199,12 @@ def test_perception_config_toml(tmp_path: Path) -> None:
     bad.write_text("[perception]\nsplit_width_m = 0\n")
     with pytest.raises(ConfigError, match="split_width_m"):
         load_perception_config(bad)
+    bad.write_text('[perception]\nsplit_width_m = [["door", 0]]\n')
+    with pytest.raises(ConfigError, match="split_width_m of 'door'"):
+        load_perception_config(bad)
+    bad.write_text('[perception]\nstack_gap_m = [["iv_pole"]]\n')
+    with pytest.raises(ConfigError, match="stack_gap_m"):
+        load_perception_config(bad)
 
 
 @pytest.mark.skipif(not (YOLOX.is_file() and TUM.is_dir()), reason="needs ../shared (YOLOX, TUM excerpt)")
@@ -217,3 +227,33 @@ def test_yolox_finds_the_monitor_on_a_real_tum_frame() -> None:
     index = seg.class_names.index("wall_monitor")
     assert np.all(out.class_map[monitors[0].mask] == index)
     assert np.all(out.confidence[monitors[0].mask] == pytest.approx(monitors[0].confidence))
+
+
+def test_split_instances_cuts_door_pairs_and_joins_iv_pole_parts() -> None:
+    """Default config, 3 m away (1 px = 3 cm): one door mask 2.7 m wide (two doors and the wall
+    between) becomes two pieces; a single door (1.2 m) stays whole; an IV pole's bag 0.8 m above
+    its base joins it, while two chair pieces as far apart stay two; a detector's instances are
+    returned as they are."""
+    camera = PinholeCamera(400, 300, 100.0, 100.0, 200.0, 150.0)
+    depth = np.full((300, 400), 3.0, np.float32)
+
+    def inst(cat: str, rows: slice, cols: slice) -> Instance:
+        m = np.zeros((300, 400), bool)
+        m[rows, cols] = True
+        return Instance(cat, 0.9, m, box_of_mask(m))
+
+    cfg = PerceptionConfig()
+    pair = inst("door", slice(40, 110), slice(100, 190))
+    pieces = split_instances([pair], depth, camera, cfg, "model")
+    assert len(pieces) == 2 and all(p.category == "door" for p in pieces)
+    widths = sorted(float(p.box_xyxy[2] - p.box_xyxy[0]) * 0.03 for p in pieces)
+    assert widths[0] >= 1.0 and widths[1] <= 1.7, widths
+    single = inst("door", slice(40, 110), slice(100, 140))
+    assert split_instances([single], depth, camera, cfg, "model") == [single]
+    upper, lower = (slice(230, 243), slice(195, 205)), (slice(270, 280), slice(190, 210))
+    bag, base = inst("iv_pole", *upper), inst("iv_pole", *lower)
+    (pole,) = split_instances([base, bag], depth, camera, cfg, "model")
+    assert np.array_equal(pole.mask, base.mask | bag.mask)
+    back, seat = inst("chair", *upper), inst("chair", *lower)
+    assert len(split_instances([seat, back], depth, camera, cfg, "model")) == 2
+    assert split_instances([pair, base, bag], depth, camera, cfg, "yolox:x.onnx") == [pair, base, bag]
