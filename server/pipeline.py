@@ -424,31 +424,31 @@ class MapPipeline:
     def _new_associator(self) -> None:
         # The database holds every measurement; the live associator only each landmark's recent ones.
         self._associator = Associator(replace(self.association, keep_measurements=False))
-        # Landmarks only ever gain measurements (appended): per landmark, how many are already
-        # taken for writing as observations, and the running sum of their colour histograms.
-        self._written: dict[int, int] = {}
+        # Per landmark, the running sum of its measurements' colour histograms.
         self._hist_sum: dict[int, NDArray[np.float64]] = {}
+        # Landmarks the associator merged into another, in order, waiting to be written.
+        self._merges: list[tuple[int, int]] = []
         self._open_stream: dict[str, str] = {}  # robot -> its session being associated
         self._last_seen: dict[str, float] = {}  # stream -> monotonic time of its last keyframe
 
     def _collect(self, changes: Iterable[LandmarkChange], touched: dict[int, Landmark],
                  new: dict[int, list[ObjectMeasurement]]) -> None:
-        """Take the measurements each change added (right after the update that made it: the
-        associator drops a landmark's older measurements at its next update) and add their
-        colour histograms to the landmark's running sum."""
+        """Take the measurements each change added and add their colour histograms to the
+        landmark's running sum; note merged landmarks (:meth:`_write_landmarks` deletes them)."""
         bins = self._measure_config.hist_bins
         for change in changes:
             lm = change.landmark
-            added = lm.n_measurements - self._written.get(lm.id, 0)
-            if added > len(lm.measurements):  # cannot happen: pruning waits for the next update
-                raise WardmapError(f"landmark {lm.id}: {added} new measurements, {len(lm.measurements)} held")
-            fresh = lm.measurements[len(lm.measurements) - added:] if added > 0 else ()
-            hists = [np.asarray(m.color_hist, np.float64) for m in fresh
+            if change.kind == "merged":
+                gone = self._hist_sum.pop(lm.id, None)
+                if gone is not None:
+                    self._hist_sum[change.into] = self._hist_sum.get(change.into, 0.0) + gone
+                self._merges.append((lm.id, change.into))
+                continue
+            hists = [np.asarray(m.color_hist, np.float64) for m in change.added
                      if np.shape(m.color_hist) == (bins[0] * bins[1] * bins[2],)]
             if hists:
                 self._hist_sum[lm.id] = self._hist_sum.get(lm.id, 0.0) + np.sum(hists, axis=0)
-            new.setdefault(lm.id, []).extend(fresh)
-            self._written[lm.id] = lm.n_measurements
+            new.setdefault(lm.id, []).extend(change.added)
             touched[lm.id] = lm
 
     def _write_landmarks(self, landmarks: Iterable[Landmark],
@@ -466,6 +466,10 @@ class MapPipeline:
             observations.extend(obs)
         if states:
             self.objects.upsert(states, observations)
+        merges, self._merges = self._merges, []
+        for gone, into in merges:
+            # After the upsert: ``into`` may be new. ``gone`` exists: it was written when created.
+            self.objects.delete(gone, merged_into=into)
 
     # ------------------------------------------------------------------ storage
 

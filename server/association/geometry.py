@@ -157,7 +157,7 @@ def world_extents(T_world_object: F64, size: F64) -> F64:
 
 
 def partial_view_slack(residual_p: F64, extents_q: F64, extents_r: F64, factor: float,
-                       class_extent: F64 | None = None) -> F64:
+                       class_extent: F64 | None = None, *, both_partial: bool = True) -> F64:
     """Position residuals (Q, R, 3) shrunk by the partial-view slack ``factor * |E_q - E_r| / 2`` per axis.
 
     A partly seen object is measured as a smaller box whose centre moves towards the seen
@@ -166,12 +166,18 @@ def partial_view_slack(residual_p: F64, extents_q: F64, extents_r: F64, factor: 
     identical objects have equal extents and keep their whole residual.
 
     With ``class_extent`` (3,), the largest world-axis extent an object of the class can
-    have, two views that are both partial (e.g. a bed seen through two doors) may lie up to
-    ``S - (E_q + E_r) / 2`` apart per axis, which is the larger slack when neither box
-    contains the other; for two full views (``E = S``) it adds nothing.
+    have, extents are first clipped to it: a view larger than any object of its class (a
+    mask that joined two chairs) holds more than one object and earns no more slack than a
+    full view. With ``both_partial``, two views that are both partial (e.g. a bed seen
+    through two doors) may then lie up to ``S - (E_q + E_r) / 2`` apart per axis, which is
+    the larger slack when neither box contains the other; for two full views (``E = S``) it
+    adds nothing.
     """
-    slack = factor * np.abs(extents_q[:, None, :] - extents_r[None, :, :]) / 2.0
     if class_extent is not None:
-        both = np.asarray(class_extent)[None, None, :] - (extents_q[:, None, :] + extents_r[None, :, :]) / 2.0
+        bound = np.asarray(class_extent, dtype=np.float64)
+        extents_q, extents_r = np.minimum(extents_q, bound), np.minimum(extents_r, bound)
+    slack = factor * np.abs(extents_q[:, None, :] - extents_r[None, :, :]) / 2.0
+    if class_extent is not None and both_partial:
+        both = bound[None, None, :] - (extents_q[:, None, :] + extents_r[None, :, :]) / 2.0
         slack = np.maximum(slack, factor * np.maximum(both, 0.0))
     return np.asarray(np.sign(residual_p) * np.maximum(np.abs(residual_p) - slack, 0.0), dtype=np.float64)

@@ -18,7 +18,7 @@ tracks; every track of the group becomes a group-level landmark ``O^G_{n,i}``.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -171,7 +171,8 @@ class _Track:
     last_partial: bool
 
 
-def _cost(track: _Track, m: ObjectMeasurement, partial: bool, view: KeyframeView, cfg: MotConfig) -> float:
+def _cost(track: _Track, m: ObjectMeasurement, partial: bool, view: KeyframeView, cfg: MotConfig,
+          class_extent: F64 | None) -> float:
     last = track.last
     if last.category != m.category:
         return _FORBIDDEN
@@ -182,7 +183,8 @@ def _cost(track: _Track, m: ObjectMeasurement, partial: bool, view: KeyframeView
     residual = (m.T_world_object[:3, 3] - centre)[None, None]
     if cfg.size_slack > 0:
         residual = partial_view_slack(residual, world_extents(m.T_world_object, m.size)[None],
-                                      world_extents(last.T_world_object, last.size)[None], cfg.size_slack)
+                                      world_extents(last.T_world_object, last.size)[None], cfg.size_slack,
+                                      class_extent)
     dist = float(np.linalg.norm(residual))
     gate = cfg.max_distance_partial_m if partial or track.last_partial else cfg.max_distance_m
     if dist > gate:
@@ -194,12 +196,19 @@ def _cost(track: _Track, m: ObjectMeasurement, partial: bool, view: KeyframeView
             + cfg.weight_appearance * (1.0 - app))
 
 
-def track_group(keyframes: Sequence[KeyframeView], config: MotConfig | None = None) -> list[GroupLandmark]:
+def track_group(
+    keyframes: Sequence[KeyframeView],
+    config: MotConfig | None = None,
+    class_extent: Callable[[str], F64 | None] | None = None,
+) -> list[GroupLandmark]:
     """Track the measurements of one keyframe group into group-level landmarks.
 
     Args:
         keyframes: the group's keyframes in time order.
         config: cost weights and gates.
+        class_extent: class name -> the largest world-axis extent (3,) of an object of the
+            class, or None; the partial-view slack clips extents to it
+            (:func:`~wardmap.server.association.geometry.partial_view_slack`).
 
     Returns:
         One :class:`GroupLandmark` per track, ordered by first appearance; every
@@ -213,8 +222,9 @@ def track_group(keyframes: Sequence[KeyframeView], config: MotConfig | None = No
         partial = [is_truncated(m.box_xyxy, view.camera, cfg.border_px) for m in view.measurements]
         matched: dict[int, int] = {}
         if tracks and n:
-            cost = np.array([[_cost(t, m, partial[c], view, cfg) for c, m in enumerate(view.measurements)]
-                             for t in tracks])
+            bounds = [None if class_extent is None else class_extent(m.category) for m in view.measurements]
+            cost = np.array([[_cost(t, m, partial[c], view, cfg, bounds[c])
+                              for c, m in enumerate(view.measurements)] for t in tracks])
             rows, cols = linear_sum_assignment(cost)
             for r, c in zip(rows.tolist(), cols.tolist(), strict=True):
                 if cost[r, c] <= cfg.max_cost:

@@ -64,13 +64,20 @@ class Landmark:
 
 @dataclass(frozen=True, eq=False)
 class LandmarkChange:
-    """What one :meth:`Associator.add_keyframe` call did to one landmark.
+    """What one :meth:`Associator.add_keyframe` or :meth:`Associator.flush` call did to one landmark.
 
     Attributes:
-        kind: ``"created"`` (a new landmark) or ``"updated"`` (new measurements, maybe a
-            new pose).
-        landmark: a snapshot of the landmark after the change.
+        kind: ``"created"`` (a new landmark), ``"updated"`` (new measurements, maybe a new
+            pose) or ``"merged"`` (it was found to be part of landmark ``into``, which took all
+            its measurements; it no longer exists).
+        landmark: a snapshot of the landmark after the change (for ``merged``: its last state).
+        added: the measurements that entered the map with this change: given to the
+            associator in this call, or held by a landmark created in this call and merged
+            into this one (``merged`` changes add none).
+        into: for ``merged``: the id of the landmark that absorbed it (0 otherwise).
     """
 
-    kind: Literal["created", "updated"]
+    kind: Literal["created", "updated", "merged"]
     landmark: Landmark
+    added: tuple[ObjectMeasurement, ...] = ()
+    into: int = 0

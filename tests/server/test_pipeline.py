@@ -90,6 +90,8 @@ def _run(path: Path, keyframes: list[tuple[KeyframeMsg, bytes]], close_idle_s: f
             n_obs = int(conn.execute("SELECT COUNT(*) FROM observations").fetchone()[0])
             assert n_obs == LAST["associated"]
             assert conn.execute("SELECT COALESCE(SUM(n_observations), 0) FROM objects").fetchone()[0] == n_obs
+            # Landmarks merged into others are gone from the map too.
+            assert conn.execute("SELECT COUNT(*) FROM objects").fetchone()[0] == LAST["landmarks"]
         assert all(c is not None and 0 <= c <= 255 for row in colours for c in row)
         return objects.categories(), n_meas, counters.replayed
 

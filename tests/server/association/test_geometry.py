@@ -62,6 +62,14 @@ def test_partial_view_slack() -> None:
     np.testing.assert_allclose(partial_view_slack(far, a[None], b[None], 1.0, bound), [[[0.1, 0.0, 0.0]]])
     np.testing.assert_allclose(partial_view_slack(r, full[None], full[None], 1.0, np.array([2.0, 2.0, 1.0])),
                                r - np.array([[[0.5, 0.0, 0.0]]]))
+    # A view larger than the bound (one mask over two doors, 2.7 m wide) is clipped to it: a
+    # single door 0.77 m to its side keeps all but (1.3 - 1.16) / 2 of the residual.
+    door_bound = np.array([1.3, 1.3, 2.3])
+    two, one = np.array([2.7, 0.06, 2.2]), np.array([1.16, 0.06, 2.2])
+    side = np.array([[[0.77, 0.0, 0.0]]])
+    np.testing.assert_allclose(partial_view_slack(side, one[None], two[None], 1.0), [[[0.0, 0.0, 0.0]]])
+    np.testing.assert_allclose(partial_view_slack(side, one[None], two[None], 1.0, door_bound),
+                               [[[0.70, 0.0, 0.0]]], atol=1e-9)
 
 
 def test_grid_query_matches_brute_force() -> None:
