@@ -1,17 +1,20 @@
-"""Landmarks that turn out to be one object are merged (``AssociationConfig.merge_inside``), and
-the server's object map follows: the absorbed object is deleted, its observations moved."""
+"""Landmarks that turn out to be one object are merged (``AssociationConfig.merge_inside``, and
+``merge_across`` for a class confusion), and the server's object map follows: the absorbed
+object is deleted, its observations moved."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from wardmap.server.association.associator import AssociationConfig, Associator
 from wardmap.server.association.types import LandmarkChange
 from wardmap.server.objectmap import ObjectMap
 from wardmap.server.pipeline import MapPipeline, _MappedKeyframe
 from wardmap.server.store import SqliteKeyframeStore
+from wardmap.shared.knowledge import KnowledgeGraph
 
 from .conftest import CAMERA, MeasurementFactory, camera_looking_along_y, object_pose
 
@@ -32,6 +35,23 @@ def _keyframes(make: MeasurementFactory) -> list[tuple[list, np.ndarray]]:
                   make(object_pose(0.5, 3.0, 0.45), T, size=PIECE, **key)]
         else:
             ms = [make(object_pose(0.3, 3.0, 0.45), T, size=WIDE, **key)]
+        out.append((ms, T))
+    return out
+
+
+def _inside_other_class(make: MeasurementFactory, big: tuple[str, np.ndarray],
+                        small: tuple[str, np.ndarray], small_at: float) -> list[tuple[list, np.ndarray]]:
+    """One object of class ``big[0]`` measured whole in 12 keyframes; in each of the first 6 a
+    second measurement, of class ``small[0]``, lies inside it ``small_at`` m along x (the network
+    calling part of the object by another class, or a small object on it)."""
+    out = []
+    for i in range(12):
+        T = camera_looking_along_y(0.3 + 0.02 * i, y=-1.0)
+        key = dict(keyframe=f"r1/s1/{i}", stamp=1.0 + i)
+        ms = [make(object_pose(0.3, 3.0, big[1][2] / 2), T, size=big[1], category=big[0], gt=1, **key)]
+        if i < 6:
+            ms.append(make(object_pose(0.3 + small_at, 3.0, small[1][2] / 2), T, size=small[1],
+                           category=small[0], gt=1, **key))
         out.append((ms, T))
     return out
 
@@ -92,3 +112,69 @@ def test_the_object_map_follows_a_merge(tmp_path: Path, make_measurement: Measur
             rows = conn.execute("SELECT object_id, COUNT(*) FROM observations GROUP BY object_id").fetchall()
         assert rows == [(survivor.id, survivor.n_measurements)]
         assert page.hits[0].record.n_observations == survivor.n_measurements
+
+
+BED = np.array([2.0, 0.9, 0.6])
+
+
+def test_a_class_confusion_inside_a_landmark_is_merged_into_it(make_measurement: MeasurementFactory) -> None:
+    """The foot of a bed measured as a cart in some keyframes: one landmark, a bed, with all of
+    its measurements (two with ``merge_across`` off)."""
+    scene = _inside_other_class(make_measurement, ("bed", BED), ("cart", np.array([0.6, 0.7, 0.55])), 0.6)
+    apart = Associator(AssociationConfig(merge_across=0.0))
+    _run(apart, scene)
+    assert sorted(lm.category for lm in apart.landmarks()) == ["bed", "cart"]
+    assoc = Associator(AssociationConfig())
+    changes = _run(assoc, scene)
+    (bed,) = assoc.landmarks()
+    assert bed.category == "bed" and bed.n_measurements == 18
+    assert sorted({m.category for m in bed.measurements}) == ["bed", "cart"]
+    # Merged in the call that created it, so the cart was never reported; nothing is lost.
+    assert sorted(id(m) for c in changes for m in c.added) == sorted(id(m) for ms, _ in scene for m in ms)
+
+
+def test_classes_the_knowledge_graph_relates_are_not_merged(make_measurement: MeasurementFactory) -> None:
+    """A cup on a cart (``cup placed_on cart``) lies inside the cart's box and stays an object of
+    its own; with a knowledge graph that lacks that fact it would be merged."""
+    scene = _inside_other_class(make_measurement, ("cart", np.array([0.8, 0.6, 1.0])),
+                                ("cup", np.array([0.1, 0.1, 0.12])), 0.1)
+    assoc = Associator(AssociationConfig())
+    _run(assoc, scene)
+    assert sorted(lm.category for lm in assoc.landmarks()) == ["cart", "cup"]
+    kg = KnowledgeGraph.load()
+    unrelated = KnowledgeGraph([c for c in kg.classes], [r for r in kg.relations() if r.subject != "cup"],
+                               {p: p for p in kg.predicates})
+    blind = Associator(AssociationConfig(), knowledge=unrelated)
+    _run(blind, scene)
+    assert [lm.category for lm in blind.landmarks()] == ["cart"]
+
+
+def test_merge_shares_outside_0_1_are_rejected() -> None:
+    for key in ("merge_inside", "merge_across"):
+        for bad in (-0.1, 1.5):
+            with pytest.raises(ValueError, match=key):
+                AssociationConfig(**{key: bad})
+
+
+def test_a_confusion_is_merged_where_the_landmark_was_seen_in_parts(
+        make_measurement: MeasurementFactory) -> None:
+    """A bed seen mostly as its foot half, now and then as its head half: its box (the foot
+    half's pose, the median size) misses the head end, the hull of its measurements holds the
+    whole bed, and a "cart" at the head end is merged into it (a cart landmark with boxes only)."""
+    make = make_measurement
+    half = np.array([1.0, 0.9, 0.6])
+    cart = np.array([0.4, 0.7, 0.55])
+    scene = []
+    for i in range(12):
+        T = camera_looking_along_y(0.3 + 0.02 * i, y=-1.0)
+        key = dict(keyframe=f"r1/s1/{i}", stamp=1.0 + i)
+        x = -0.2 if i % 3 == 0 else 0.8
+        ms = [make(object_pose(x, 3.0, 0.3), T, size=half, category="bed", gt=1, **key)]
+        if i % 3 == 0:
+            ms.append(make(object_pose(-0.1, 3.0, 0.3), T, size=cart, category="cart", gt=1, **key))
+        scene.append((ms, T))
+    assoc = Associator(AssociationConfig())
+    _run(assoc, scene)
+    landmarks = assoc.landmarks()
+    assert {lm.category for lm in landmarks} == {"bed"}
+    assert sum(lm.n_measurements for lm in landmarks) == 16
