@@ -26,8 +26,9 @@ class Landmark:
     Attributes:
         id: landmark id, unique within one :class:`~wardmap.server.association.associator.Associator`
             (ids start at 1 and are never reused).
-        category: knowledge-graph class name: the class of its measurements, except those
-            of a landmark of another class merged into it (``AssociationConfig.merge_across``).
+        category: knowledge-graph class name: the class of its measurements; after a merge
+            across classes (``AssociationConfig.merge_across``) the class most of them were
+            measured as.
         T_world_object: (4, 4) float64 pose; for ``hierarchical`` the measurement pose
             chosen by paper 000 Eq. 4-6, for ``per_keyframe_hdp`` the first measurement's
             pose (HDP-SLAM), for ``nearest`` the pose of the measurement nearest the mean.

@@ -56,6 +56,20 @@ def _inside_other_class(make: MeasurementFactory, big: tuple[str, np.ndarray],
     return out
 
 
+def _map_scene(store: SqliteKeyframeStore,
+               scene: list) -> tuple[MapPipeline, ObjectMap, set[tuple[int, str]]]:
+    """Run the server's mapping stage over ``scene`` (one session); returns the pipeline, its
+    object map and every (object id, category) the map held after some keyframe."""
+    objects = ObjectMap(store)
+    pipe = MapPipeline(store, objects)
+    seen: set[tuple[int, str]] = set()
+    for ms, T in scene:
+        pipe._associate([_MappedKeyframe("r1/s1", T, CAMERA, ms)])
+        seen |= {(h.record.object_id, h.record.category) for h in objects.query().hits}
+    pipe._close(["r1/s1"])
+    return pipe, objects, seen
+
+
 def _run(assoc: Associator, scene: list) -> list[LandmarkChange]:
     changes = [c for ms, T in scene for c in assoc.add_keyframe(ms, T, CAMERA)]
     return changes + assoc.flush()
@@ -95,19 +109,12 @@ def test_identical_neighbours_are_not_merged(make_measurement: MeasurementFactor
 
 def test_the_object_map_follows_a_merge(tmp_path: Path, make_measurement: MeasurementFactory) -> None:
     """The mapping stage deletes the absorbed object and moves its observations to the survivor."""
-    scene = _keyframes(make_measurement)
     with SqliteKeyframeStore.open(tmp_path / "map.db") as store:
-        objects = ObjectMap(store)
-        pipe = MapPipeline(store, objects)
-        seen: set[int] = set()
-        for ms, T in scene:
-            pipe._associate([_MappedKeyframe("r1/s1", T, CAMERA, ms)])
-            seen |= {h.record.object_id for h in objects.query().hits}
-        pipe._close(["r1/s1"])
+        pipe, objects, seen = _map_scene(store, _keyframes(make_measurement))
         (survivor,) = pipe._associator.landmarks()
         page = objects.query()
         assert [h.record.object_id for h in page.hits] == [survivor.id]
-        assert len(seen) == 2  # the piece was an object of its own before the merge
+        assert len({oid for oid, _ in seen}) == 2  # the piece was an object of its own before the merge
         with store.reading("test") as conn:
             rows = conn.execute("SELECT object_id, COUNT(*) FROM observations GROUP BY object_id").fetchall()
         assert rows == [(survivor.id, survivor.n_measurements)]
@@ -115,6 +122,7 @@ def test_the_object_map_follows_a_merge(tmp_path: Path, make_measurement: Measur
 
 
 BED = np.array([2.0, 0.9, 0.6])
+FOOT = np.array([0.6, 0.8, 0.55])
 
 
 def test_a_class_confusion_inside_a_landmark_is_merged_into_it(make_measurement: MeasurementFactory) -> None:
@@ -178,3 +186,27 @@ def test_a_confusion_is_merged_where_the_landmark_was_seen_in_parts(
     landmarks = assoc.landmarks()
     assert {lm.category for lm in landmarks} == {"bed"}
     assert sum(lm.n_measurements for lm in landmarks) == 16
+
+
+def test_the_object_map_follows_a_merge_across_classes(tmp_path: Path,
+                                                       make_measurement: MeasurementFactory) -> None:
+    """A bed's foot seen alone first and called a cart is a cart object; once the whole bed is
+    measured more often than the foot, the map holds one object, a bed, whose observations still
+    say which were measured as a cart."""
+    scene = []
+    for i in range(16):
+        T = camera_looking_along_y(0.3 + 0.02 * i, y=-1.0)
+        key = dict(keyframe=f"r1/s1/{i}", stamp=1.0 + i, gt=1)
+        if i < 6:
+            m = make_measurement(object_pose(0.9, 3.0, 0.3), T, size=FOOT, category="cart", **key)
+        else:
+            m = make_measurement(object_pose(0.3, 3.0, 0.3), T, size=BED, category="bed", **key)
+        scene.append(([m], T))
+    with SqliteKeyframeStore.open(tmp_path / "map.db") as store:
+        _, objects, seen = _map_scene(store, scene)
+        assert {category for _, category in seen} == {"bed", "cart"}
+        (bed,) = objects.query().hits
+        assert bed.record.category == "bed" and bed.record.n_observations == 16
+        detail = objects.get(bed.record.object_id)
+        assert detail is not None
+        assert sorted(o.category for o in detail.observations) == ["bed"] * 10 + ["cart"] * 6
