@@ -423,7 +423,7 @@ class MapPipeline:
 
     def _new_associator(self) -> None:
         # The database holds every measurement; the live associator only each landmark's recent ones.
-        self._associator = Associator(replace(self.association, keep_measurements=False))
+        self._associator = Associator(replace(self.association, keep_measurements=False), self._kg)
         # Per landmark, the running sum of its measurements' colour histograms.
         self._hist_sum: dict[int, NDArray[np.float64]] = {}
         # Landmarks the associator merged into another, in order, waiting to be written.

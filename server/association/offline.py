@@ -262,10 +262,13 @@ def measure_dataset(
 
 
 def associate(
-    datasets: Sequence[DatasetMeasurements], config: AssociationConfig | None = None
+    datasets: Sequence[DatasetMeasurements], config: AssociationConfig | None = None,
+    knowledge: KnowledgeGraph | None = None,
 ) -> list[Landmark]:
-    """Run one :class:`Associator` over the keyframes of the data sets, in order; returns the landmarks."""
-    assoc = Associator(config)
+    """Run one :class:`Associator` over the keyframes of the data sets, in order; returns the
+    landmarks. ``knowledge``: the graph whose related classes are never merged (default: the
+    packaged one)."""
+    assoc = Associator(config, knowledge)
     for ds in datasets:
         for kf in ds.keyframes:
             assoc.add_keyframe(kf.measurements, kf.T_world_camera, ds.camera, stream=ds.name)
@@ -376,7 +379,7 @@ def run_map(
                         config=map_cfg, measure_config=measure_cfg, knowledge=kg, progress=progress)
         for k, ds in enumerate(datasets)
     ]
-    landmarks = associate(measured, assoc_cfg)
+    landmarks = associate(measured, assoc_cfg, kg)
     doc = landmarks_document(landmarks, method=assoc_cfg.method, measurements=measurements,
                              datasets=measured, config=assoc_cfg, hist_bins=measure_cfg.hist_bins)
     try:
