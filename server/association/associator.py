@@ -86,7 +86,7 @@ class AssociationConfig:
     this many measurements (``keep_measurements`` says whether the older ones stay in memory).
     Eq. 4-6 compares every pair, so without a bound a robot that passes the same objects all
     day would slow association down without end (bench/association_revisits.py, a route
-    driven 8 times: 99.6 ms per keyframe on the eighth pass and growing, against 16.0 ms with
+    driven 8 times: 102.8 ms per keyframe on the eighth pass and growing, against 16.9 ms with
     the bound). Beyond the paper."""
     merge_inside: float = 0.8
     """``hierarchical``: after each group, two landmarks of one class are merged when this share
