@@ -445,13 +445,15 @@ class Associator:
             box, hull = self._bounds(lm), self._hull(lm)
             for oid in sorted(self._grid.query(lm.centre, radius)):
                 other = self._landmarks[oid]
+                if oid == lm.id:
+                    continue
                 if other.category == lm.category:
                     share, (lo, hi), (olo, ohi) = cfg.merge_inside, box, self._bounds(other)
-                elif frozenset((lm.category, other.category)) in self._together:
+                elif frozenset((lm.category, other.category)) in self._together or cfg.merge_across <= 0:
                     continue
                 else:
                     share, (lo, hi), (olo, ohi) = cfg.merge_across, hull, self._hull(other)
-                if oid == lm.id or share <= 0:
+                if share <= 0:
                     continue
                 inside = float(np.prod(np.clip(np.minimum(hi, ohi) - np.maximum(lo, olo), 0.0, None)))
                 if inside < share * min(float(np.prod(hi - lo)), float(np.prod(ohi - olo))):
