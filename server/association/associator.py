@@ -225,6 +225,9 @@ class Associator:
         self._extent: dict[int, F64] = {}  # measurement id -> world-axis extents (metres)
         radius = cfg.nearest.max_distance_m if cfg.method == "nearest" else cfg.hdp.candidate_radius_m
         self._grid = SpatialGrid(radius)
+        # Merging looks this far: the largest candidate search radius of any class.
+        self._merge_radius = max([cfg.hdp.candidate_radius_m]
+                                 + [cfg.hdp.search_radius(name) for name, _, _ in cfg.hdp.class_size_m])
         self._poses_cache: dict[int, tuple[int, F64]] = {}  # id -> (measurements, recent poses)
         self._grown: set[int] = set()  # landmarks that gained measurements since the last _prune
         # In the current call: landmark -> measurements added; merged landmark -> (its last state
@@ -431,28 +434,28 @@ class Associator:
             lo_m, hi_m = np.maximum(lo_m, lm.centre - bound / 2.0), np.minimum(hi_m, lm.centre + bound / 2.0)
         return np.minimum(lo, lo_m), np.maximum(hi, hi_m)
 
-    def _merge_inside(self, lids: list[int], changed: dict[int, str]) -> None:
+    def _merge_overlapping(self, lids: list[int], changed: dict[int, str]) -> None:
         """Merge each of ``lids`` with a landmark whose box holds ``merge_inside`` of the smaller
         one's (for another class: whose hull holds ``merge_across`` of the smaller hull; see
         :class:`AssociationConfig`); repeated for the landmark that grew."""
         cfg = self.config
-        radius = max([cfg.hdp.candidate_radius_m] + [float(w) for _, w, _ in cfg.hdp.class_size_m])
         queue = list(lids)
         while queue:
             lm = self._landmarks.get(queue.pop())
             if lm is None:
                 continue
-            box, hull = self._bounds(lm), self._hull(lm)
-            for oid in sorted(self._grid.query(lm.centre, radius)):
+            box, hull = self._bounds(lm), None
+            for oid in sorted(self._grid.query(lm.centre, self._merge_radius)):
                 other = self._landmarks[oid]
                 if oid == lm.id:
                     continue
                 if other.category == lm.category:
                     share, (lo, hi), (olo, ohi) = cfg.merge_inside, box, self._bounds(other)
-                elif frozenset((lm.category, other.category)) in self._together or cfg.merge_across <= 0:
-                    continue
-                else:
+                elif cfg.merge_across > 0 and frozenset((lm.category, other.category)) not in self._together:
+                    hull = hull or self._hull(lm)
                     share, (lo, hi), (olo, ohi) = cfg.merge_across, hull, self._hull(other)
+                else:
+                    continue
                 if share <= 0:
                     continue
                 inside = float(np.prod(np.clip(np.minimum(hi, ohi) - np.maximum(lo, olo), 0.0, None)))
@@ -586,6 +589,6 @@ class Associator:
         for lm in touched.values():
             self._update_pose(lm)
         if cfg.method == "hierarchical" and (cfg.merge_inside > 0 or cfg.merge_across > 0):
-            self._merge_inside(list(touched), changed)
+            self._merge_overlapping(list(touched), changed)
         log.debug("group %d: %d group landmarks -> %d landmarks touched (%d new)", group_no, len(items),
                   len(touched), len(new_ids))
