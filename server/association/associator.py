@@ -6,7 +6,9 @@ Methods (``AssociationConfig.method``):
   (Sec. III-A, Fig. 3); inside a group the measurements are tracked into group
   landmarks (:mod:`.mot`); when a group is complete its landmarks are associated to the
   global landmarks by HDP Gibbs sampling with the Eq. 2-3 GMM likelihood (:mod:`.hdp`);
-  each changed landmark's pose is refined by Eq. 4-6 (:mod:`.refine`); a changed landmark
+  each changed landmark's pose is refined by Eq. 4-6 (:mod:`.refine`); the group's
+  measurements of classes seen whole move to the landmark with the nearest refined centre
+  (``nearest_centre``, ours); a changed landmark
   whose box mostly lies inside (or holds) another of its class is merged with it
   (``merge_inside``, ours), and one half inside a landmark of another class, unless the
   knowledge graph says the two classes are found together (``merge_across``, ours).
@@ -86,7 +88,7 @@ class AssociationConfig:
     this many measurements (``keep_measurements`` says whether the older ones stay in memory).
     Eq. 4-6 compares every pair, so without a bound a robot that passes the same objects all
     day would slow association down without end (bench/association_revisits.py, a route
-    driven 8 times: 102.8 ms per keyframe on the eighth pass and growing, against 16.9 ms with
+    driven 8 times: 101.3 ms per keyframe on the eighth pass and growing, against 17.8 ms with
     the bound). Beyond the paper."""
     merge_inside: float = 0.8
     """``hierarchical``: after each group, two landmarks of one class are merged when this share
@@ -110,6 +112,14 @@ class AssociationConfig:
     bed once the bed has more measurements). Beyond the paper; on the
     held-out seed-1002 worlds (model measurements) it took the landmarks too many from 58 to
     38 at the same accuracy, and no pair it merged held two objects."""
+    nearest_centre: bool = True
+    """``hierarchical``: after each group, a measurement of the group of a class seen whole (a
+    horizontal size bound under ``HdpConfig.parts_min_m``, or none: chairs, IV poles, cups)
+    moves to the landmark of its class whose refined centre (Eq. 4-6) is nearest to it. A track
+    of the in-group tracker follows a mask that slides along a row of identical chairs, and
+    the whole track goes to one landmark; the refined centres, held by many measurements, do
+    not slide. Large classes (beds, doors) are seen in parts, whose centres lie far from the
+    object's, and keep the association's choice. Beyond the paper."""
     keep_measurements: bool = True
     """Keep every measurement of a landmark in memory (the offline runner writes them all to
     landmarks.json). False: only the most recent ``max_history`` (plus the first, for
@@ -159,6 +169,25 @@ class _LandmarkState:
         self.keyframe_mids.setdefault(keyframe, set()).add(mid)
         while len(self.keyframe_mids) > history:
             del self.keyframe_mids[next(iter(self.keyframe_mids))]
+
+    def remove(self, mid: int) -> ObjectMeasurement:
+        """Take measurement ``mid`` out (it must be here); returns it."""
+        k = self.mids.index(mid)
+        m = self.measurements.pop(k)
+        del self.mids[k]
+        self.count -= 1
+        self.classes[m.category] -= 1
+        if not self.classes[m.category]:
+            del self.classes[m.category]
+        self.confidence_sum -= float(m.confidence)
+        for frame, mids in list(self.keyframe_mids.items()):
+            mids.discard(mid)
+            if not mids:
+                del self.keyframe_mids[frame]
+        if mid == self.first_mid:
+            self.first, self.first_mid = ((self.measurements[0], self.mids[0]) if self.mids
+                                          else (None, -1))
+        return m
 
     def prune(self, history: int) -> list[int]:
         """Keep only the most recent ``history`` measurements; returns the dropped ids."""
@@ -223,6 +252,7 @@ class Associator:
         self._owner: dict[int, int] = {}  # measurement id -> landmark id
         self._sigma: dict[int, float] = {}  # measurement id -> HDP position sigma (metres)
         self._extent: dict[int, F64] = {}  # measurement id -> world-axis extents (metres)
+        self._box: dict[int, tuple[F64, F64]] = {}  # measurement id -> world-axis box corners (metres)
         radius = cfg.nearest.max_distance_m if cfg.method == "nearest" else cfg.hdp.candidate_radius_m
         self._grid = SpatialGrid(radius)
         # Merging looks this far: the largest candidate search radius of any class.
@@ -276,6 +306,8 @@ class Associator:
             partial = is_truncated(m.box_xyxy, camera, hdp.border_px)
             self._sigma[mid] = hdp.sigma_position_partial_m if partial else hdp.sigma_position_m
             self._extent[mid] = world_extents(np.asarray(m.T_world_object), np.asarray(m.size))
+            centre = np.asarray(m.T_world_object, dtype=np.float64)[:3, 3]
+            self._box[mid] = (centre - self._extent[mid] / 2.0, centre + self._extent[mid] / 2.0)
         st = self._streams.get(stream)
         if st is None:
             st = self._streams[stream] = _Stream(KeyframeGrouper(*self._group_shape))
@@ -358,7 +390,7 @@ class Associator:
                 lm = self._landmarks[lid]
                 for old in lm.prune(self.config.max_history):
                     if old != lm.first_mid:  # per_keyframe_hdp's topic is the first measurement
-                        del self._owner[old], self._sigma[old], self._extent[old]
+                        del self._owner[old], self._sigma[old], self._extent[old], self._box[old]
         self._grown.clear()
 
     def _mark(self, lid: int, changed: dict[int, str]) -> None:
@@ -414,6 +446,37 @@ class Associator:
             self._mark(lm.id, changed)
             touched.append(lm)
         for lm in touched:
+            self._update_pose(lm)
+
+    def _to_nearest_centre(self, added: list[tuple[int, ObjectMeasurement, int]],
+                           touched: dict[int, _LandmarkState], changed: dict[int, str]) -> None:
+        """Move each measurement of ``added`` (id, measurement, keyframe: what this group added)
+        of a class seen whole to the landmark of its class with the nearest centre
+        (``AssociationConfig.nearest_centre``). No landmark is left empty: the measurement at
+        its centre stays."""
+        hdp = self.config.hdp
+        moves: list[tuple[int, int, _LandmarkState, _LandmarkState]] = []
+        for mid, m, keyframe in added:
+            if hdp.seen_in_parts(m.category):
+                continue
+            owner = self._landmarks[self._owner[mid]]
+            p = m.T_world_object[:3, 3]
+            best, best_d = owner, float(np.linalg.norm(owner.centre - p))
+            for lid in self._grid.query(p, min(hdp.search_radius(m.category), best_d)):
+                lm = self._landmarks[lid]
+                d = float(np.linalg.norm(lm.centre - p))
+                if lm.category == m.category and d < best_d:
+                    best, best_d = lm, d
+            if best is not owner:
+                moves.append((mid, keyframe, owner, best))
+        for mid, keyframe, src, dst in moves:
+            m = src.remove(mid)
+            self._fresh[src.id].remove(m)
+            self._add(dst, mid, m, keyframe)
+            self._mark(dst.id, changed)
+            touched[dst.id] = dst
+        for lm in {x.id: x for _, _, a, b in moves for x in (a, b)}.values():
+            self._poses_cache.pop(lm.id, None)  # same count, other measurements
             self._update_pose(lm)
 
     def _bounds(self, lm: _LandmarkState) -> tuple[F64, F64]:
@@ -565,9 +628,11 @@ class Associator:
                 cands.append(topic_cache[lid])
             candidates.append(cands)
         rng = np.random.default_rng([cfg.seed, group_no])
-        assignment = gibbs_associate(items, candidates, cfg.hdp, rng=rng, likelihood=likelihood)
+        boxes = self._box if cfg.method == "hierarchical" else None  # HDP-SLAM: one per keyframe
+        assignment = gibbs_associate(items, candidates, cfg.hdp, rng=rng, likelihood=likelihood, boxes=boxes)
         new_ids: dict[int, _LandmarkState] = {}
         touched: dict[int, _LandmarkState] = {}
+        added: list[tuple[int, ObjectMeasurement, int]] = []
         for it, ms, target in zip(items, measurements, assignment, strict=True):
             fresh = [(mid, m, k) for mid, m, k in zip(it.mids, ms, it.keyframes, strict=True)
                      if mid not in self._owner]
@@ -583,11 +648,14 @@ class Associator:
             lm.tables += 1
             for mid, m, k in fresh:
                 self._add(lm, mid, m, k)
+            added += fresh
             if fresh:
                 self._mark(lm.id, changed)
                 touched[lm.id] = lm
         for lm in touched.values():
             self._update_pose(lm)
+        if cfg.method == "hierarchical" and cfg.nearest_centre:
+            self._to_nearest_centre(added, touched, changed)
         if cfg.method == "hierarchical" and (cfg.merge_inside > 0 or cfg.merge_across > 0):
             self._merge_overlapping(list(touched), changed)
         log.debug("group %d: %d group landmarks -> %d landmarks touched (%d new)", group_no, len(items),

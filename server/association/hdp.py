@@ -13,7 +13,8 @@ overlapping groups) has its weight multiplied by ``overlap_boost`` (paper: 1.5).
 
 Constraints: one keyframe never holds two measurements of one landmark, so a group
 landmark cannot join a landmark (or share a new landmark with another group landmark)
-that has a different measurement in one of its keyframes. Candidates are the nearby,
+that has a different measurement in one of its keyframes, unless (``join_fragments``) the
+two fit in one object's box of their class, fragments of one object. Candidates are the nearby,
 co-visible landmarks of the same class (chosen by the caller with a spatial index).
 
 Only the new group's assignments are sampled (online HDP, as in HDP-SLAM); assignments
@@ -25,7 +26,7 @@ from __future__ import annotations
 
 import math
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -99,6 +100,12 @@ class HdpConfig:
     oracle measurements it cost 0.3 points on two sequences and, with perturbed poses, 6.6
     points on ward_chairs; with model measurements the tuning worlds (seed 1002) scored the
     same accuracy either way."""
+    join_fragments: bool = True
+    """Two different measurements of one keyframe stop a landmark (or two group landmarks) from
+    holding both, unless their joint box fits within the class's size bound: then they may be
+    fragments of one object (a chair's back cut off its seat by an occluder) and the
+    constraint does not apply. False: every keyframe holds at most one measurement of a
+    landmark, as in the paper. Beyond the paper."""
 
     def __post_init__(self) -> None:
         if not (self.concentration > 0 and self.sigma_position_m > 0 and self.sigma_angle_rad > 0
@@ -226,10 +233,30 @@ def gmm_log_density(
     return np.asarray(logsumexp(log_phi, axis=1), dtype=np.float64)
 
 
-def _conflict(kf_a: dict[int, frozenset[int]], kf_b: dict[int, frozenset[int]]) -> bool:
-    """True when some keyframe holds different measurements of the two sides."""
+Boxes = Mapping[int, tuple[F64, F64]]
+"""Measurement id -> its world-axis box (lower and upper corner, (3,) each, metres)."""
+
+
+def _fragments(mids: frozenset[int], boxes: Boxes, bound: F64) -> bool:
+    """True when the joint box of measurements ``mids`` fits within ``bound`` (3,) metres."""
+    if any(mid not in boxes for mid in mids):
+        return False
+    lo = np.min([boxes[mid][0] for mid in mids], axis=0)
+    hi = np.max([boxes[mid][1] for mid in mids], axis=0)
+    return bool(np.all(hi - lo <= bound))
+
+
+def _conflict(kf_a: dict[int, frozenset[int]], kf_b: dict[int, frozenset[int]],
+              boxes: Boxes | None = None, bound: F64 | None = None) -> bool:
+    """True when some keyframe holds different measurements of the two sides (with ``boxes`` and
+    a class ``bound``: measurements that do not fit in one object's box together)."""
     small, large = (kf_a, kf_b) if len(kf_a) <= len(kf_b) else (kf_b, kf_a)
-    return any(k in large and small[k] != large[k] for k in small)
+    for k in small:
+        if k not in large or small[k] == large[k]:
+            continue
+        if boxes is None or bound is None or not _fragments(small[k] | large[k], boxes, bound):
+            return True
+    return False
 
 
 def _keyframe_mids(item: HdpItem) -> dict[int, frozenset[int]]:
@@ -246,6 +273,7 @@ def gibbs_associate(
     *,
     rng: np.random.Generator,
     likelihood: Likelihood = "gmm",
+    boxes: Boxes | None = None,
 ) -> list[int]:
     """Assign a group's landmarks to existing or new global landmarks by Gibbs sampling.
 
@@ -256,6 +284,9 @@ def gibbs_associate(
         rng: the seeded generator to draw from.
         likelihood: ``gmm`` (paper 000 Eq. 2-3, max over the item's measurements) or
             ``first_pose`` (HDP-SLAM: one Gaussian at the landmark's first pose).
+        boxes: world boxes of the measurements in the items' and candidates' keyframes; with
+            ``join_fragments``, measurements of one keyframe that fit in one object's box do
+            not conflict. None: every keyframe holds at most one measurement of a landmark.
 
     Returns:
         One entry per item: an existing landmark id (> 0), or ``-k`` (k = 1, 2, ...) for
@@ -278,13 +309,15 @@ def gibbs_associate(
     for cands in candidates:
         for t in cands:
             topics[t.id] = t
+    boxes = boxes if cfg.join_fragments else None
+    bounds = [cfg.class_extent(it.category) for it in items]
     # Allowed existing topics per item: same class, no keyframe conflict.
     allowed: list[list[int]] = []
     for i, it in enumerate(items):
-        allowed.append([t.id for t in candidates[i]
-                        if t.category == it.category and not _conflict(kf[i], t.keyframe_mids)])
+        allowed.append([t.id for t in candidates[i] if t.category == it.category
+                        and not _conflict(kf[i], t.keyframe_mids, boxes, bounds[i])])
     item_conflict = np.array(
-        [[a != b and (items[a].category != items[b].category or any(k in kf[b] for k in kf[a]))
+        [[a != b and (items[a].category != items[b].category or _conflict(kf[a], kf[b], boxes, bounds[a]))
           for b in range(n)] for a in range(n)], dtype=bool)
     # Component log-sums: per item i, per source -> (K_i,) log sum_z phi.
     first_pose = likelihood == "first_pose"

@@ -76,3 +76,24 @@ def test_new_landmarks_are_shared_by_compatible_items() -> None:
     """Two items of one new object from different keyframes form one new landmark (-1)."""
     items = [_item(5.0, kf=1, mid=1), _item(5.02, kf=2, mid=2)]
     assert gibbs_associate(items, [[], []], rng=np.random.default_rng(0)) == [-1, -1]
+
+
+def _box(x: float, width: float, y: float = 3.0) -> tuple[np.ndarray, np.ndarray]:
+    return np.array([x - width / 2, y - 0.25, 0.0]), np.array([x + width / 2, y + 0.25, 0.9])
+
+
+def test_fragments_of_one_keyframe_may_share_a_landmark() -> None:
+    """A chair's seat (landmark 5's measurement 5000 in keyframe 10) and its back (the item, also
+    keyframe 10) fit in one chair's box: with boxes the item joins 5; a neighbouring chair of that
+    keyframe 0.55 m away does not fit with the seat and stays excluded; without boxes, or with
+    ``join_fragments`` off, both are excluded."""
+    topic = _topic(5, [0.0], kf0=10)
+    back, neighbour = _item(0.05, kf=10, mid=1), _item(0.55, kf=10, mid=2)
+    boxes = {5000: _box(0.0, 0.45), 1: _box(0.05, 0.4), 2: _box(0.55, 0.45)}
+    rng = np.random.default_rng
+    assert gibbs_associate([back], [[topic]], rng=rng(3), boxes=boxes) == [5]
+    assert gibbs_associate([neighbour], [[topic]], HdpConfig(sigma_position_m=0.5), rng=rng(3),
+                           boxes=boxes) == [-1]
+    assert gibbs_associate([back], [[topic]], rng=rng(3)) == [-1]
+    strict = HdpConfig(join_fragments=False)
+    assert gibbs_associate([back], [[topic]], strict, rng=rng(3), boxes=boxes) == [-1]

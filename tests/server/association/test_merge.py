@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from wardmap.server.association.associator import AssociationConfig, Associator
+from wardmap.server.association.hdp import HdpConfig
 from wardmap.server.association.types import LandmarkChange
 from wardmap.server.objectmap import ObjectMap
 from wardmap.server.pipeline import MapPipeline, _MappedKeyframe
@@ -56,12 +57,12 @@ def _inside_other_class(make: MeasurementFactory, big: tuple[str, np.ndarray],
     return out
 
 
-def _map_scene(store: SqliteKeyframeStore,
-               scene: list) -> tuple[MapPipeline, ObjectMap, set[tuple[int, str]]]:
+def _map_scene(store: SqliteKeyframeStore, scene: list, association: AssociationConfig | None = None,
+               ) -> tuple[MapPipeline, ObjectMap, set[tuple[int, str]]]:
     """Run the server's mapping stage over ``scene`` (one session); returns the pipeline, its
     object map and every (object id, category) the map held after some keyframe."""
     objects = ObjectMap(store)
-    pipe = MapPipeline(store, objects)
+    pipe = MapPipeline(store, objects, association=association)
     seen: set[tuple[int, str]] = set()
     for ms, T in scene:
         pipe._associate([_MappedKeyframe("r1/s1", T, CAMERA, ms)])
@@ -76,11 +77,14 @@ def _run(assoc: Associator, scene: list) -> list[LandmarkChange]:
 
 
 def test_a_landmark_grown_over_another_absorbs_it(make_measurement: MeasurementFactory) -> None:
+    """With one measurement per keyframe and landmark (``join_fragments`` off) the two parts
+    start as two landmarks, and merging joins them."""
     scene = _keyframes(make_measurement)
-    apart = Associator(AssociationConfig(merge_inside=0.0))
+    strict = HdpConfig(join_fragments=False)
+    apart = Associator(AssociationConfig(merge_inside=0.0, hdp=strict))
     _run(apart, scene)
     assert len(apart.landmarks()) == 2
-    assoc = Associator(AssociationConfig())
+    assoc = Associator(AssociationConfig(hdp=strict))
     changes = _run(assoc, scene)
     (one,) = assoc.landmarks()
     assert one.n_measurements == sum(len(ms) for ms, _ in scene)  # nothing lost
@@ -92,6 +96,19 @@ def test_a_landmark_grown_over_another_absorbs_it(make_measurement: MeasurementF
     assert sorted(added) == sorted(id(m) for ms, _ in scene for m in ms)
     # Two keyframes' measurements of one object now share a landmark.
     assert len({m.keyframe for m in one.measurements}) < len(one.measurements)
+
+
+def test_fragments_of_one_keyframe_join_one_landmark(make_measurement: MeasurementFactory) -> None:
+    """The same scene with ``join_fragments`` (default): the left part and the piece fit in one
+    cart's box, so the association puts them in one landmark from the first group, no merge
+    needed; with ``merge_inside`` off as well it is still one landmark."""
+    scene = _keyframes(make_measurement)
+    for cfg in (AssociationConfig(), AssociationConfig(merge_inside=0.0)):
+        assoc = Associator(cfg)
+        changes = _run(assoc, scene)
+        (one,) = assoc.landmarks()
+        assert one.n_measurements == sum(len(ms) for ms, _ in scene)
+        assert not [c for c in changes if c.kind == "merged"]
 
 
 def test_identical_neighbours_are_not_merged(make_measurement: MeasurementFactory) -> None:
@@ -110,7 +127,8 @@ def test_identical_neighbours_are_not_merged(make_measurement: MeasurementFactor
 def test_the_object_map_follows_a_merge(tmp_path: Path, make_measurement: MeasurementFactory) -> None:
     """The mapping stage deletes the absorbed object and moves its observations to the survivor."""
     with SqliteKeyframeStore.open(tmp_path / "map.db") as store:
-        pipe, objects, seen = _map_scene(store, _keyframes(make_measurement))
+        strict = AssociationConfig(hdp=HdpConfig(join_fragments=False))  # two objects, then a merge
+        pipe, objects, seen = _map_scene(store, _keyframes(make_measurement), strict)
         (survivor,) = pipe._associator.landmarks()
         page = objects.query()
         assert [h.record.object_id for h in page.hits] == [survivor.id]

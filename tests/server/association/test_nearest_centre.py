@@ -1,0 +1,66 @@
+"""After each group, measurements of classes seen whole move to the landmark with the nearest
+refined centre (``AssociationConfig.nearest_centre``)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import pytest
+
+import wardmap.server.association.associator as associator_module
+from wardmap.server.association.associator import AssociationConfig, Associator
+from wardmap.server.association.mot import GroupLandmark, KeyframeView, track_group
+
+from .conftest import CAMERA, MeasurementFactory, camera_looking_along_y, object_pose
+
+
+def _sliding_tracks(views: Sequence[KeyframeView], *args: object, **kwargs: object) -> list[GroupLandmark]:
+    """The real tracker, except that from keyframe 8 on its two chair tracks swap chairs halfway
+    through each group, as a track does when a mask slides along a row of chairs."""
+    tracks = track_group(views, *args, **kwargs)  # type: ignore[arg-type]
+    if views[0].index < 8 or len(tracks) != 2:
+        return tracks
+    half = {v.index for v in views[len(views) // 2:]}
+    out = [GroupLandmark("chair"), GroupLandmark("chair")]
+    for t, track in enumerate(tracks):
+        for mid, m, k in zip(track.mids, track.measurements, track.keyframes, strict=True):
+            out[(t + (k in half)) % 2].add(mid, m, k)
+    for g in out:
+        order = np.argsort(g.keyframes, kind="stable")
+        g.mids[:] = [g.mids[i] for i in order]
+        g.measurements[:] = [g.measurements[i] for i in order]
+        g.keyframes[:] = [g.keyframes[i] for i in order]
+    return out
+
+
+@pytest.mark.parametrize("on", [True, False])
+def test_a_sliding_track_is_pulled_back_to_its_chairs(
+        on: bool, make_measurement: MeasurementFactory, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Two chairs 0.55 m apart, each measured in 20 keyframes; from keyframe 8 the tracker hands
+    each group half of the other chair's measurements. With ``nearest_centre`` both landmarks
+    hold only their own chair, and every measurement enters the map once; without it the
+    landmarks mix the chairs."""
+    monkeypatch.setattr(associator_module, "track_group", _sliding_tracks)
+    assoc = Associator(AssociationConfig(nearest_centre=on))
+    changes = []
+    scene = []
+    for i in range(20):
+        T = camera_looking_along_y(0.27 + 0.005 * i)
+        key = dict(keyframe=f"r1/s1/{i}", stamp=float(i))
+        ms = [make_measurement(object_pose(0.0, 3.0), T, gt=1, **key),
+              make_measurement(object_pose(0.55, 3.0), T, gt=2, **key)]
+        scene += ms
+        changes += assoc.add_keyframe(ms, T, CAMERA)
+    changes += assoc.flush()
+    landmarks = assoc.landmarks()
+    assert sum(lm.n_measurements for lm in landmarks) == 40
+    mixed = [lm.id for lm in landmarks if len(set(lm.gt_instances)) > 1]
+    if on:
+        assert len(landmarks) == 2 and not mixed
+        for lm in landmarks:
+            assert len(lm.measurements) == 20
+    else:
+        assert mixed
+    added = sorted(id(m) for c in changes if c.kind != "merged" for m in c.added)
+    assert added == sorted(id(m) for m in scene)
