@@ -4,6 +4,7 @@ refined centre (``AssociationConfig.nearest_centre``)."""
 from __future__ import annotations
 
 from collections.abc import Sequence
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,6 +12,9 @@ import pytest
 import wardmap.server.association.associator as associator_module
 from wardmap.server.association.associator import AssociationConfig, Associator
 from wardmap.server.association.mot import GroupLandmark, KeyframeView, track_group
+from wardmap.server.objectmap import ObjectMap
+from wardmap.server.pipeline import MapPipeline, _MappedKeyframe
+from wardmap.server.store import SqliteKeyframeStore
 
 from .conftest import CAMERA, MeasurementFactory, camera_looking_along_y, object_pose
 
@@ -18,7 +22,7 @@ from .conftest import CAMERA, MeasurementFactory, camera_looking_along_y, object
 def _sliding_tracks(views: Sequence[KeyframeView], *args: object, **kwargs: object) -> list[GroupLandmark]:
     """The real tracker, except that from keyframe 8 on its two chair tracks swap chairs halfway
     through each group, as a track does when a mask slides along a row of chairs."""
-    tracks = track_group(views, *args, **kwargs)  # type: ignore[arg-type]
+    tracks = track_group(views, *args, **kwargs)
     if views[0].index < 8 or len(tracks) != 2:
         return tracks
     half = {v.index for v in views[len(views) // 2:]}
@@ -64,3 +68,27 @@ def test_a_sliding_track_is_pulled_back_to_its_chairs(
         assert mixed
     added = sorted(id(m) for c in changes if c.kind != "merged" for m in c.added)
     assert added == sorted(id(m) for m in scene)
+
+
+def test_the_object_map_follows_the_moves(tmp_path: Path, make_measurement: MeasurementFactory,
+                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    """Through the server's mapping stage with the sliding tracker: two objects, each with its
+    own chair's 20 observations in the database."""
+    monkeypatch.setattr(associator_module, "track_group", _sliding_tracks)
+    with SqliteKeyframeStore.open(tmp_path / "map.db") as store:
+        objects = ObjectMap(store)
+        pipe = MapPipeline(store, objects)
+        for i in range(20):
+            T = camera_looking_along_y(0.27 + 0.005 * i)
+            key = dict(keyframe=f"r1/s1/{i}", stamp=1.0 + i)
+            ms = [make_measurement(object_pose(0.0, 3.0), T, gt=1, **key),
+                  make_measurement(object_pose(0.55, 3.0), T, gt=2, **key)]
+            pipe._associate([_MappedKeyframe("r1/s1", T, CAMERA, ms)])
+        pipe._close(["r1/s1"])
+        landmarks = {lm.id: lm for lm in pipe._associator.landmarks()}
+        assert len(landmarks) == 2 and all(len(set(lm.gt_instances)) == 1 for lm in landmarks.values())
+        with store.reading("test") as conn:
+            rows = conn.execute("SELECT object_id, COUNT(*) FROM observations GROUP BY object_id").fetchall()
+        assert sorted(rows) == sorted((lid, 20) for lid in landmarks)
+        centres = {h.record.object_id: h.record for h in objects.query().hits}
+        assert set(centres) == set(landmarks)
