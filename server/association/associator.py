@@ -170,8 +170,9 @@ class _LandmarkState:
         while len(self.keyframe_mids) > history:
             del self.keyframe_mids[next(iter(self.keyframe_mids))]
 
-    def remove(self, mid: int) -> ObjectMeasurement:
-        """Take measurement ``mid`` out (it must be here); returns it."""
+    def remove(self, mid: int, keyframe: int) -> ObjectMeasurement:
+        """Take measurement ``mid`` of ``keyframe`` out (it must be here, and not the only one);
+        returns it."""
         k = self.mids.index(mid)
         m = self.measurements.pop(k)
         del self.mids[k]
@@ -180,13 +181,12 @@ class _LandmarkState:
         if not self.classes[m.category]:
             del self.classes[m.category]
         self.confidence_sum -= float(m.confidence)
-        for frame, mids in list(self.keyframe_mids.items()):
-            mids.discard(mid)
-            if not mids:
-                del self.keyframe_mids[frame]
+        frame = self.keyframe_mids[keyframe]
+        frame.discard(mid)
+        if not frame:
+            del self.keyframe_mids[keyframe]
         if mid == self.first_mid:
-            self.first, self.first_mid = ((self.measurements[0], self.mids[0]) if self.mids
-                                          else (None, -1))
+            self.first, self.first_mid = self.measurements[0], self.mids[0]
         return m
 
     def prune(self, history: int) -> list[int]:
@@ -470,7 +470,7 @@ class Associator:
             if best is not owner:
                 moves.append((mid, keyframe, owner, best))
         for mid, keyframe, src, dst in moves:
-            m = src.remove(mid)
+            m = src.remove(mid, keyframe)
             self._fresh[src.id].remove(m)
             self._add(dst, mid, m, keyframe)
             self._mark(dst.id, changed)
@@ -488,10 +488,8 @@ class Associator:
         """World-axis box holding its box and the boxes of its recent measurements, clipped to its
         class's size bound about its centre (lower and upper corner, (3,) each), metres."""
         lo, hi = self._bounds(lm)
-        mids = lm.mids[-self.config.max_history:]
-        centres = np.stack([m.T_world_object[:3, 3] for m in lm.measurements[-len(mids):]])
-        half = np.stack([self._extent[mid] for mid in mids]) / 2.0
-        lo_m, hi_m = np.min(centres - half, axis=0), np.max(centres + half, axis=0)
+        boxes = [self._box[mid] for mid in lm.mids[-self.config.max_history:]]
+        lo_m, hi_m = np.min([b[0] for b in boxes], axis=0), np.max([b[1] for b in boxes], axis=0)
         bound = self.config.hdp.class_extent(lm.category)
         if bound is not None:
             lo_m, hi_m = np.maximum(lo_m, lm.centre - bound / 2.0), np.minimum(hi_m, lm.centre + bound / 2.0)
