@@ -2,7 +2,7 @@
 
 Every session is a client with shared memory and multicast scouting off, connected to the
 router by its tcp endpoint on 127.0.0.1; the tests synchronise on the router's ready line,
-zenoh matching/liveliness events and threading events, never on sleeps.
+zenoh matching/liveliness events, probe samples and threading events, never on sleeps.
 """
 
 from __future__ import annotations
@@ -37,6 +37,7 @@ pytestmark = [pytest.mark.integration, pytest.mark.timeout(60)]
 
 READY_TIMEOUT_S = 15.0
 EVENT_TIMEOUT_S = 10.0
+PROBE = b"probe"  # not a test payload: those start with a 4-byte index and are 50 KB
 
 
 def _router_cmd(endpoint: str) -> list[str]:
@@ -76,9 +77,14 @@ def test_keyframes_through_router_in_order_then_sigterm(router: tuple[subprocess
     received: list[tuple[str, bytes]] = []
     all_in = threading.Event()
     matched = threading.Event()
+    probed = threading.Event()
 
     def on_sample(sample: Any) -> None:  # zenoh delivers callbacks one at a time per subscriber
-        received.append((str(sample.key_expr), sample.payload.to_bytes()))
+        payload = sample.payload.to_bytes()
+        if payload == PROBE:
+            probed.set()
+            return
+        received.append((str(sample.key_expr), payload))
         if len(received) >= n:
             all_in.set()
 
@@ -100,6 +106,13 @@ def test_keyframes_through_router_in_order_then_sigterm(router: tuple[subprocess
             if publisher.matching_status:
                 matched.set()
             assert matched.wait(EVENT_TIMEOUT_S), "publisher never matched the subscriber via the router"
+        # Matching can come before the router's route to the subscriber is in place (seen once in
+        # CI: matched, then 0 of 200 arrived). Probe until one sample makes the whole trip.
+        for _ in range(int(EVENT_TIMEOUT_S / 0.05)):
+            publisher.put(PROBE)
+            if probed.wait(0.05):
+                break
+        assert probed.is_set(), "no probe sample reached the subscriber via the router"
         for payload in payloads:
             publisher.put(payload)
         assert all_in.wait(EVENT_TIMEOUT_S), f"only {len(received)} of {n} samples arrived"
