@@ -46,6 +46,7 @@ from wardmap.server.perception.measure import MeasureConfig, measure_instances
 from wardmap.server.perception.models import (
     OnnxSegmenter,
     PerceptionConfig,
+    drop_floating,
     make_segmenter,
     measure_config_for,
     packaged_model_path,
@@ -280,6 +281,7 @@ def main() -> int:
         assert isinstance(seg, OnnxSegmenter)
         model = seg
     oracle, learned = Scores(), Scores()
+    floating = 0
     confusion = np.zeros((len(names), len(names)), np.int64)
     net_ms: list[float] = []
     seg_ms: list[float] = []
@@ -312,6 +314,11 @@ def main() -> int:
                                      minlength=len(names) ** 2).reshape(len(names), len(names))
             # As the server does: touching chairs in one mask are cut apart before measuring.
             cut = split_instances(out.instances, frame.depth_m, cam, PerceptionConfig(), "model")
+            T_base_rgb = reader.calibration.T_base_rgb  # the base sits on the floor
+            floor = None if T_base_rgb is None else \
+                float((frame.T_world_camera @ np.linalg.inv(T_base_rgb))[2, 3])
+            cut, n = drop_floating(cut, frame.depth_m, cam, PerceptionConfig(), frame.T_world_camera, floor)
+            floating += n
             ms, skipped = measure(reader, frame, attach_gt_instances(cut, frame.labels))
             learned.skipped += skipped
             for m in ms:
@@ -362,7 +369,8 @@ def main() -> int:
             header,
             *learned.rows("network"),
             f"\nNetwork instances: {learned.unmatched} measurement(s) on no ground-truth object (< 50% of "
-            f"the mask), {learned.skipped} skipped.\n",
+            f"the mask), {learned.skipped} skipped, {floating} left out for floating above the floor "
+            "(`floor_gap_m`).\n",
         ]
     if TUM.is_dir() and args.yolox.is_file():
         parts += tum_monitor(args.yolox)

@@ -495,6 +495,9 @@ def _pipeline_metrics(c: PipelineCounters) -> str:
         ("wardmap_mapping_idle_sessions_closed_total", "counter",
          "Sessions whose last keyframe group was mapped because they went quiet (close_idle_s).",
          [("", c.closed_idle)]),
+        ("wardmap_mapping_floating_left_out_total", "counter",
+         "Instances perception left out for floating above the floor (perception.floor_gap_m).",
+         [("", c.floating)]),
     ]
     out = []
     for name, kind, help_text, samples in rows:

@@ -63,6 +63,7 @@ from wardmap.server.perception.measure import mean_rgb, measure_instances
 from wardmap.server.perception.models import (
     PerceptionConfig,
     Segmenter,
+    drop_floating,
     make_segmenter,
     measure_config_for,
     split_instances,
@@ -141,6 +142,8 @@ class PipelineCounters:
         last_error: the latest of them, ``Type: message`` (empty when none).
         closed_idle: sessions whose last keyframe group this process associated because they
             went quiet (``close_idle_s``).
+        floating: instances left out for floating above the floor
+            (``PerceptionConfig.floor_gap_m``; keyframes with ``T_odom_base``).
     """
 
     processed: int
@@ -154,6 +157,7 @@ class PipelineCounters:
     restarts: int = 0
     last_error: str = ""
     closed_idle: int = 0
+    floating: int = 0
 
 
 @dataclass
@@ -167,6 +171,7 @@ class _Counts:
     restarts: int = 0
     last_error: str = ""
     closed_idle: int = 0
+    floating: int = 0
 
 
 class MapPipeline:
@@ -240,7 +245,7 @@ class MapPipeline:
             c = self._counts
             return PipelineCounters(c.processed, c.measurements, c.mapped, c.unanchored, c.replayed,
                                     self._backlog, dict(c.failures), len(self._associator.landmarks()),
-                                    c.restarts, c.last_error, c.closed_idle)
+                                    c.restarts, c.last_error, c.closed_idle, c.floating)
 
     def wait_idle(self, timeout_s: float) -> bool:
         """Block until every stored keyframe is measured, associated and on the object map (tests,
@@ -356,6 +361,12 @@ class MapPipeline:
                                     self.perception.segmenter)
         instances = [i for i in instances if i.category not in self._moving]
         T_map_camera = map_pose(msg)
+        instances, floating = drop_floating(instances, depth, camera, self.perception, T_map_camera,
+                                            floor_height(msg))
+        if floating:
+            log.debug("keyframe %s: %d instance(s) float above the floor, left out", key, floating)
+            with self._lock:
+                self._counts.floating += floating
         return measure_instances(
             instances, bgr=bgr, depth_m=depth, camera=camera, T_world_camera=T_map_camera,
             keyframe=key, stamp=msg.stamp, config=self._measure_config,
@@ -657,6 +668,15 @@ def decode_images(msg: KeyframeMsg) -> tuple[NDArray[np.uint8], NDArray[np.float
     if s > 1:
         depth = np.repeat(np.repeat(depth, s, axis=0), s, axis=1)
     return np.ascontiguousarray(bgr, np.uint8), np.ascontiguousarray(depth, np.float32), camera
+
+
+def floor_height(msg: KeyframeMsg) -> float | None:
+    """Height (m) of the floor in the map frame: that of the robot base, whose frame sits on the
+    floor (``T_odom_base``); None for keyframes without a base (a hand-held camera)."""
+    if msg.T_odom_base is None:
+        return None
+    T_map_odom = msg.T_map_odom if msg.T_map_odom is not None else np.eye(4)
+    return float((T_map_odom @ msg.T_odom_base)[2, 3])
 
 
 def map_pose(msg: KeyframeMsg) -> F64:

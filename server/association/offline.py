@@ -34,7 +34,7 @@ from wardmap.server.association.associator import METHODS, AssociationConfig, As
 from wardmap.server.association.types import Landmark
 from wardmap.server.perception.instances import attach_gt_instances, id_to_class, oracle_instances
 from wardmap.server.perception.measure import MeasureConfig, mean_rgb, measure_instances
-from wardmap.server.perception.models import PerceptionConfig, split_instances
+from wardmap.server.perception.models import PerceptionConfig, drop_floating, split_instances
 from wardmap.server.perception.types import Instance, ObjectMeasurement
 from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.config import load_config, to_mapping
@@ -105,6 +105,8 @@ class DatasetMeasurements:
         frames_without_pose: frames left out because the trajectory does not cover them.
         moving_left_out: measurements of ``moving`` classes left out.
         gt_classes: ground-truth instance id -> class (``objects.json``), or None.
+        floating_left_out: network instances left out for floating above the floor
+            (``PerceptionConfig.floor_gap_m``; only data sets with a ``[base]`` calibration).
     """
 
     name: str
@@ -114,6 +116,7 @@ class DatasetMeasurements:
     frames_without_pose: int
     moving_left_out: int
     gt_classes: dict[int, str] | None
+    floating_left_out: int = 0
 
 
 def select_keyframes(
@@ -230,7 +233,9 @@ def measure_dataset(
     camera = reader.calibration.rgb
     mcfg = measure_config or MeasureConfig()
     keyframes: list[KeyframeMeasurements] = []
-    moving = 0
+    moving = floating = 0
+    T_base_rgb = reader.calibration.T_base_rgb
+    T_rgb_base = None if T_base_rgb is None else np.linalg.inv(T_base_rgb)  # the base sits on the floor
     for done, i in enumerate(chosen):
         frame = reader.frame(i)
         T = frame_poses[i]
@@ -245,6 +250,9 @@ def measure_dataset(
         else:
             instances = split_instances(segment(bgr, frame.depth_m), frame.depth_m, camera, perception,
                                         "model")
+            floor_z = None if T_rgb_base is None else float((T @ T_rgb_base)[2, 3])
+            instances, n_floating = drop_floating(instances, frame.depth_m, camera, perception, T, floor_z)
+            floating += n_floating
             if frame.labels is not None:
                 instances = attach_gt_instances(instances, frame.labels)
         kept = [inst for inst in instances if not kg.is_moving(inst.category)]
@@ -256,9 +264,10 @@ def measure_dataset(
                                                                           for m in ms)))
         if progress is not None:
             progress(name, done + 1, len(chosen))
-    log.info("%s: %d frames, %d keyframes, %d measurements (%d moving left out)", name, len(reader),
-             len(keyframes), sum(len(k.measurements) for k in keyframes), moving)
-    return DatasetMeasurements(name, camera, keyframes, len(reader), without_pose, moving, gt_classes)
+    log.info("%s: %d frames, %d keyframes, %d measurements (%d moving, %d floating left out)", name,
+             len(reader), len(keyframes), sum(len(k.measurements) for k in keyframes), moving, floating)
+    return DatasetMeasurements(name, camera, keyframes, len(reader), without_pose, moving, gt_classes,
+                               floating)
 
 
 def associate(
@@ -312,7 +321,8 @@ def landmarks_document(
         "measurements": measurements,
         "datasets": [
             {"name": ds.name, "frames": ds.frames, "keyframes": len(ds.keyframes),
-             "frames_without_pose": ds.frames_without_pose, "moving_left_out": ds.moving_left_out}
+             "frames_without_pose": ds.frames_without_pose, "moving_left_out": ds.moving_left_out,
+             "floating_left_out": ds.floating_left_out}
             for ds in datasets
         ],
         "config": to_mapping(config),

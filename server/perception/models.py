@@ -46,6 +46,7 @@ from numpy.typing import NDArray
 
 from wardmap.server.perception.instances import (
     box_of_mask,
+    floating_above_floor,
     instances_from_classes,
     merge_stacked,
     split_side_by_side,
@@ -66,6 +67,7 @@ __all__ = [
     "Segmentation",
     "Segmenter",
     "YoloxDetector",
+    "drop_floating",
     "load_perception_config",
     "make_segmenter",
     "measure_config_for",
@@ -125,6 +127,17 @@ class PerceptionConfig:
     with at most ``gap`` metres between them are joined (``instances.merge_stacked``): a
     chair's open back and its seat; an IV pole's bag and its base, the thin pole between
     them unsegmented."""
+    floor_gap_m: tuple[tuple[str, float], ...] = (("chair", 0.6),)
+    """``[class, gap]`` pairs of floor-standing classes. An instance of the class whose lowest
+    point is more than ``gap`` metres above the floor, with the wall or floor in plain view
+    right below it, is not that object and is left out (``instances.floating_above_floor``;
+    every segmenter). Only where the floor is known: keyframes of a robot base
+    (``T_odom_base``), data sets with a ``[base]`` calibration. The network takes the red
+    fire extinguishers on the simulator's walls for red chairs: on the tuning worlds (seed
+    1002) 36 of the 68 chair measurements on no object floated, against 2 of 1,773 on a
+    chair, and association accuracy went 96.58 -> 97.43 % with 8 fewer landmarks. Doors,
+    cabinets, IV poles and wheelchairs are not in it: true ones float too often (a door
+    whose lower part is cut off, an IV pole whose thin lower pole is missed)."""
     score_threshold: float = 0.3
     """YOLOX: smallest detection score used."""
     nms_iou: float = 0.45
@@ -145,7 +158,7 @@ class PerceptionConfig:
             raise ConfigError(f"PerceptionConfig: min_pixels must be >= 1, got {self.min_pixels}")
         if self.depth_jump_m <= 0 or self.depth_jump_relative < 0:
             raise ConfigError("PerceptionConfig: need depth_jump_m > 0 and depth_jump_relative >= 0")
-        for key in ("split_width_m", "stack_gap_m"):
+        for key in ("split_width_m", "stack_gap_m", "floor_gap_m"):
             for name, value in getattr(self, key):
                 if not value > 0:
                     raise ConfigError(f"PerceptionConfig: {key} of {name!r} must be > 0, got {value}")
@@ -183,6 +196,21 @@ def split_instances(instances: Sequence[Instance], depth_m: NDArray[np.float32],
     for name, gap in config.stack_gap_m:
         out = merge_stacked(out, depth_m, camera, classes=(name,), max_gap_m=gap)
     return out
+
+
+def drop_floating(instances: Sequence[Instance], depth_m: NDArray[np.float32], camera: PinholeCamera,
+                  config: PerceptionConfig, T_world_camera: NDArray[np.float64],
+                  floor_z_m: float | None) -> tuple[list[Instance], int]:
+    """``instances`` without those of the ``floor_gap_m`` classes that float above the floor
+    (:func:`~wardmap.server.perception.instances.floating_above_floor`), and how many were
+    left out. ``floor_z_m``: the floor's height in the frame of ``T_world_camera`` (world z
+    up), metres; None (floor unknown: a hand-held camera) keeps every instance."""
+    if floor_z_m is None or not config.floor_gap_m or not instances:
+        return list(instances), 0
+    flags = floating_above_floor(instances, depth_m, camera, T_world_camera, floor_z_m=floor_z_m,
+                                 max_gap_m=dict(config.floor_gap_m))
+    kept = [inst for inst, floats in zip(instances, flags, strict=True) if not floats]
+    return kept, len(instances) - len(kept)
 
 
 def load_perception_config(path: str | Path | None) -> PerceptionConfig:

@@ -14,7 +14,13 @@ import pytest
 from wardmap.server.association.associator import AssociationConfig
 from wardmap.server.objectmap import ObjectMap
 from wardmap.server.perception.models import PerceptionConfig
-from wardmap.server.pipeline import MapPipeline, PipelineConfig, pack_measurement, unpack_measurement
+from wardmap.server.pipeline import (
+    MapPipeline,
+    PipelineConfig,
+    PipelineCounters,
+    pack_measurement,
+    unpack_measurement,
+)
 from wardmap.server.store import SqliteKeyframeStore
 from wardmap.shared import wire
 from wardmap.shared.wire import Intrinsics, KeyframeMsg, Keypoints, PackedRaster, encode
@@ -278,6 +284,18 @@ def test_measurement_blob_round_trip(anchored: list) -> None:
         assert a.dtype == b.dtype and np.array_equal(a, b), name
 
 
+def _counters_when_idle(store: SqliteKeyframeStore, config: PipelineConfig, segmenter: object
+                        ) -> PipelineCounters:
+    """Run the stage with ``segmenter`` over the stored keyframes until idle; its counters."""
+    pipe = MapPipeline(store, ObjectMap(store), config=config, segmenter=segmenter)
+    pipe.start()
+    try:
+        assert pipe.wait_idle(30.0)
+        return pipe.counters()
+    finally:
+        pipe.stop()
+
+
 class _Flaky:
     """A segmenter (no instances) that raises an unexpected error on the given call numbers."""
 
@@ -305,15 +323,8 @@ def test_unexpected_errors_restart_with_backoff(
     with SqliteKeyframeStore.open(tmp_path / "map.db") as store:
         for msg, payload in anchored[:4]:
             store.insert(msg, payload, time.time())
-        seg = _Flaky(failing)
         cfg = PipelineConfig(poll_s=0.02, retry_s=0.01, max_retry_s=0.05, max_attempts=3)
-        pipe = MapPipeline(store, ObjectMap(store), config=cfg, segmenter=seg)
-        pipe.start()
-        try:
-            assert pipe.wait_idle(30.0)
-            c = pipe.counters()
-        finally:
-            pipe.stop()
+        c = _counters_when_idle(store, cfg, _Flaky(failing))
     assert c.restarts == len(failing) and "RuntimeError: bug on call" in c.last_error
     assert c.processed == processed
     assert c.failures == ({"internal: RuntimeError": 1} if skipped else {})
@@ -327,3 +338,63 @@ def test_bad_pipeline_config_is_rejected(kwargs: dict) -> None:
 
     with pytest.raises(ConfigError):
         PipelineConfig(**kwargs)
+
+
+class _WallChair:
+    """A segmenter that finds one 'chair' 0.7-1.2 m up the wall (a fire extinguisher)."""
+
+    def __call__(self, bgr: np.ndarray, depth_m: np.ndarray | None) -> list:
+        from wardmap.server.perception.instances import box_of_mask
+        from wardmap.server.perception.types import Instance
+
+        mask = np.zeros(bgr.shape[:2], bool)
+        mask[104:152, 148:168] = True
+        return [Instance("chair", 0.9, mask, box_of_mask(mask))]
+
+
+def test_a_chair_floating_above_the_floor_is_left_out_and_counted(tmp_path: Path) -> None:
+    """A keyframe of a robot base (floor known) loses the chair on the wall and counts it in
+    /metrics' counters; a hand-held camera's keyframe (no base, floor unknown) keeps it."""
+    from wardmap.shared.camera import PinholeCamera
+
+    camera = PinholeCamera(320, 240, 262.5, 262.5, 159.5, 119.5)
+    rows = (np.arange(240) - camera.cy) / camera.fy
+    with np.errstate(divide="ignore"):
+        depth = np.minimum(np.where(rows > 0, 1.05 / rows, np.inf), 3.0)[:, None] * np.ones((1, 320))
+    depth[104:152, 148:168] = 2.9  # 10 cm in front of the wall 3 m ahead, floor below 212
+    T_odom_camera = np.eye(4)
+    T_odom_camera[:3, :3] = [[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]  # level, along +x
+    T_odom_camera[2, 3] = 1.05
+    ok, jpg = cv2.imencode(".jpg", np.full((240, 320, 3), 128, np.uint8))
+    assert ok
+    empty = Keypoints(np.zeros((0, 2), np.float32), np.zeros(0, np.int16), np.zeros(0, np.float32),
+                      np.zeros(0, np.float32), np.zeros((0, 32), np.uint8))
+
+    def keyframe(session: str, T_odom_base: np.ndarray | None) -> tuple[KeyframeMsg, bytes]:
+        msg = KeyframeMsg(robot_id="r1", session_id=session, seq=0, stamp=1.0, T_odom_camera=T_odom_camera,
+                          pose_source="rgb", keypoints=empty, rgb_jpeg=jpg.tobytes(),
+                          depth=PackedRaster(*wire.encode_depth(depth[::4, ::4].astype(np.float32))),
+                          intrinsics=Intrinsics.from_camera(camera, 5000.0), T_odom_base=T_odom_base)
+        return msg, encode(msg)
+
+    counts = []
+    for kf in (keyframe("base", np.eye(4)), keyframe("handheld", None)):
+        with SqliteKeyframeStore.open(tmp_path / f"{kf[0].session_id}.db") as store:
+            store.insert(kf[0], kf[1], time.time())
+            c = _counters_when_idle(store, PipelineConfig(poll_s=0.02), _WallChair())
+            with store.reading("test") as conn:
+                stored = int(conn.execute("SELECT COUNT(*) FROM measurements").fetchone()[0])
+        counts.append((c.processed, c.floating, c.measurements, stored))
+    assert counts == [(1, 1, 0, 0), (1, 0, 1, 1)]
+
+
+def test_mapping_counters_in_prometheus_text() -> None:
+    from wardmap.server.api import _pipeline_metrics
+
+    text = _pipeline_metrics(PipelineCounters(5, 7, 4, 1, 0, 2, {"GeometryError": 1}, 3, closed_idle=1,
+                                              floating=6))
+    samples = dict(line.rsplit(" ", 1) for line in text.splitlines() if line and not line.startswith("#"))
+    assert samples["wardmap_mapping_floating_left_out_total"] == "6"
+    assert samples["wardmap_mapping_keyframes_total"] == "5" and samples["wardmap_mapping_backlog"] == "2"
+    assert samples['wardmap_mapping_failures_total{reason="GeometryError"}'] == "1"
+    assert "# TYPE wardmap_mapping_floating_left_out_total counter" in text

@@ -10,6 +10,7 @@ import pytest
 from wardmap.server.perception.instances import (
     attach_gt_instances,
     box_of_mask,
+    floating_above_floor,
     gt_instance_of,
     id_to_class,
     instances_from_classes,
@@ -410,6 +411,84 @@ def test_chair_back_above_its_seat_is_joined_to_it() -> None:
     assert len(merge_stacked([seats[0], side], depth, camera, classes=("chair",))) == 2
     with pytest.raises(GeometryError):
         merge_stacked(seats, depth, camera, classes=("chair",), min_overlap=0.0)
+
+
+def corridor_depth(wall_m: float = 3.0) -> np.ndarray:
+    """Depth (H, W) of a camera 1.05 m above the floor looking level at a wall ``wall_m`` ahead:
+    the wall, and the floor in the rows whose ray meets it first."""
+    rows = (np.arange(CAMERA.height) - CAMERA.cy) / CAMERA.fy
+    with np.errstate(divide="ignore"):
+        floor = np.where(rows > 0, 1.05 / rows, np.inf)
+    depth = np.minimum(floor, wall_m)[:, None] * np.ones((1, CAMERA.width))
+    return depth.astype(np.float32)
+
+
+T_LEVEL = look_at(np.array([0.0, 0.0, 1.05]), np.array([3.0, 0.0, 1.05]))
+
+
+def box_instance(category: str, rows: slice, cols: slice) -> Instance:
+    m = np.zeros((CAMERA.height, CAMERA.width), bool)
+    m[rows, cols] = True
+    return Instance(category, 0.9, m, box_of_mask(m))
+
+
+def test_a_chair_floating_on_the_wall_is_flagged() -> None:
+    """A 'chair' 0.7-1.2 m up the wall, 10 cm in front of it, with the wall right below (a fire
+    extinguisher the network took for a chair) floats; the same mask with a cart in front
+    below it, a chair standing on the floor, a mask running down near the floor without depth
+    on its lower part, a mask reaching the image's bottom rows and a door do not."""
+    depth = corridor_depth()
+    rows, cols = slice(106, 152), slice(150, 166)  # 0.7-1.2 m high at 2.9 m
+    depth[rows, cols] = 2.9
+    extinguisher = box_instance("chair", rows, cols)
+    on_floor = box_instance("chair", slice(136, 230), slice(60, 111))
+    standing = depth.copy()
+    standing[136:230, 60:111] = 2.5  # 0.9 m tall chair at 2.5 m, its legs on the floor
+    gaps = {"chair": 0.6}
+
+    def flags(instances: list[Instance], d: np.ndarray, **kw: object) -> list[bool]:
+        return floating_above_floor(instances, d, CAMERA, T_LEVEL, floor_z_m=0.0, max_gap_m=gaps, **kw)
+
+    assert flags([extinguisher, box_instance("door", rows, cols)], depth) == [True, False]
+    assert flags([on_floor], standing) == [False]
+    occluded = depth.copy()
+    occluded[152:212, 140:176] = 2.0  # a cart in front, below it
+    assert flags([extinguisher], occluded) == [False]
+    legs = depth.copy()
+    legs[152:201, cols] = 0.0  # down to 0.16 m at 2.9 m, no depth there; the wall below
+    assert flags([box_instance("chair", slice(106, 201), cols)], legs) == [False]
+    # Cut by the image's bottom edge (0.75 m above a floor 1 m lower): it may go on below.
+    bottom = depth.copy()
+    bottom[106:, cols] = 2.9
+    low = floating_above_floor([box_instance("chair", slice(106, CAMERA.height - 2), cols)], bottom, CAMERA,
+                               T_LEVEL, floor_z_m=-1.0, max_gap_m=gaps)
+    assert low == [False]
+    assert floating_above_floor([box_instance("chair", slice(106, CAMERA.height - 10), cols)], bottom,
+                                CAMERA, T_LEVEL, floor_z_m=-1.0, max_gap_m=gaps) == [True]
+    # The same wall patch with the floor 0.2 m higher, or a larger gap, does not float either.
+    assert floating_above_floor([extinguisher], depth, CAMERA, T_LEVEL, floor_z_m=0.2,
+                                max_gap_m=gaps) == [False]
+    assert floating_above_floor([extinguisher], depth, CAMERA, T_LEVEL, floor_z_m=0.0,
+                                max_gap_m={"chair": 0.8}) == [False]
+    with pytest.raises(GeometryError):
+        floating_above_floor([extinguisher], depth, CAMERA, np.eye(3), floor_z_m=0.0, max_gap_m=gaps)
+    with pytest.raises(GeometryError):
+        flags([extinguisher], depth, open_fraction=0.0)
+
+
+def test_drop_floating_needs_a_known_floor() -> None:
+    from wardmap.server.perception.models import PerceptionConfig, drop_floating
+
+    depth = corridor_depth()
+    depth[106:152, 150:166] = 2.9
+    extinguisher = box_instance("chair", slice(106, 152), slice(150, 166))
+    cfg = PerceptionConfig()
+    assert drop_floating([extinguisher], depth, CAMERA, cfg, T_LEVEL, 0.0) == ([], 1)
+    assert drop_floating([extinguisher], depth, CAMERA, cfg, T_LEVEL, None) == ([extinguisher], 0)
+    off = PerceptionConfig(floor_gap_m=())
+    assert drop_floating([extinguisher], depth, CAMERA, off, T_LEVEL, 0.0) == ([extinguisher], 0)
+    with pytest.raises(ConfigError, match="floor_gap_m"):
+        PerceptionConfig(floor_gap_m=(("chair", -0.1),))
 
 
 def test_no_planes_without_depth_around() -> None:
