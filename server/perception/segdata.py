@@ -23,6 +23,7 @@ seeds >= 1000, so no world is shared.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import logging
@@ -32,6 +33,7 @@ import zlib
 from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
+from importlib import resources
 from pathlib import Path
 from typing import Final
 
@@ -278,10 +280,25 @@ def class_names(kg: KnowledgeGraph) -> tuple[str, ...]:
     return ("background", *kg.names)
 
 
+@functools.cache
+def generator_digest() -> str:
+    """Hex digest of what renders the samples: the simulator package's modules, this module and
+    the packaged knowledge graph (file names and bytes). Part of the cache key, so a change to
+    the simulator (a new wall decoration, another texture) renders the data anew instead of
+    training on samples of the old code."""
+    h = hashlib.sha256()
+    sim_dir = Path(models.__file__).resolve().parent
+    for path in [*sorted(sim_dir.glob("*.py")), Path(__file__).resolve()]:
+        h.update(path.name.encode() + b"\0" + path.read_bytes() + b"\0")
+    h.update(resources.files("wardmap.shared.data").joinpath("knowledge_graph.toml").read_bytes())
+    return h.hexdigest()[:16]
+
+
 def config_hash(cfg: SegDataConfig) -> str:
-    """Hex digest of the data config and the generator version (the cache key)."""
+    """Hex digest of the data config, the data version and :func:`generator_digest` (the cache key)."""
     blob = json.dumps(
-        {"version": DATA_VERSION, "layout": CACHE_LAYOUT, "config": to_mapping(cfg)}, sort_keys=True
+        {"version": DATA_VERSION, "layout": CACHE_LAYOUT, "generator": generator_digest(),
+         "config": to_mapping(cfg)}, sort_keys=True
     )
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 

@@ -158,6 +158,16 @@ def test_cache_is_reused(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Non
     assert second.generation_s == pytest.approx(first.generation_s) and first.generation_s > 0
 
 
+def test_cache_key_follows_the_generator_code(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Samples rendered by older simulator code are not reused: the generator's digest is in the key."""
+    cfg = SegDataConfig(scenarios=("aisle_slow_1",), seeds=(2,), frames_per_world=2)
+    digest = segdata.generator_digest()
+    assert len(digest) == 16 and digest == segdata.generator_digest()
+    key = segdata.config_hash(cfg)
+    monkeypatch.setattr(segdata, "generator_digest", lambda: "0" * 16)
+    assert segdata.config_hash(cfg) != key
+
+
 def test_seed_split_is_enforced() -> None:
     """Training worlds must use seeds < 1000 and validation worlds seeds >= 1000."""
     with pytest.raises(ConfigError, match="training seeds"):
