@@ -25,7 +25,12 @@ stage replays every stored measurement of anchored sessions through a fresh asso
 perception is re-run) and upserts the landmarks; then it continues after its cursor. The
 replay reads ``mapped_keyframes`` and ``measurements`` in chunks of ``REPLAY_CHUNK``
 keyframes, never the keyframe payloads (a store from before schema v4 has them read once, one
-at a time, to fill ``mapped_keyframes``).
+at a time, to fill ``mapped_keyframes``). The stage checkpoints its association state (the
+pickled associator, colour sums and open sessions, with the cursor and the idle closures at
+it; table ``association_checkpoint``) when it stops and every ``checkpoint_s`` at a settled
+point; a restart starts from a checkpoint of the same association code and settings and
+replays only the keyframes after it (association costs 7-8 ms per keyframe on the benchmark
+sequences, so a full replay grows with the store's history; docs/ARCHITECTURE.md).
 
 Backlog: ``backlog`` = stored keyframes not yet processed, exported on ``/metrics``.
 A keyframe whose perception fails (corrupt image, model error) is counted by reason, logged,
@@ -41,14 +46,19 @@ the map. Nothing is committed twice: measurements and the cursor move in one tra
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import json
 import logging
 import math
+import pickle
 import threading
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field, replace
+from importlib import resources
+from pathlib import Path
 from typing import Any, Final
 
 import cv2
@@ -73,7 +83,7 @@ from wardmap.server.store import SqliteKeyframeStore, pose_blob, pose_from_blob
 from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.config import to_mapping
 from wardmap.shared.errors import ConfigError, WardmapError, WireError
-from wardmap.shared.knowledge import KnowledgeGraph
+from wardmap.shared.knowledge import PACKAGED_FILE, KnowledgeGraph
 from wardmap.shared.wire import KeyframeMsg, decode_depth, decode_keyframe
 
 log = logging.getLogger(__name__)
@@ -84,6 +94,8 @@ MAX_FAILURE_REASON: Final = 120
 _INSERT_MAPPED: Final = ("INSERT OR REPLACE INTO mapped_keyframes (robot_id, session_id, seq, T_map_camera, "
                          "camera) VALUES (?, ?, ?, ?, ?)")
 REPLAY_CHUNK: Final = 500
+CHECKPOINT_FORMAT: Final = 1
+"""Bumped when the checkpoint's contents change shape (part of its key)."""
 """Keyframes read per step of the replay at start (bounds its memory besides the associator's)."""
 
 
@@ -102,6 +114,9 @@ class PipelineConfig:
             has its last, incomplete keyframe group associated, so what a robot saw before
             it parked or shut down reaches the map; a later keyframe of the session starts a
             new group. 0 = only when the robot starts a new session.
+        checkpoint_s: the association state is saved at most this often while keyframes
+            come (seconds) and when the stage stops, so a restart replays only what came
+            after it; 0 = never (every restart replays every stored measurement).
     """
 
     enabled: bool = True
@@ -111,6 +126,7 @@ class PipelineConfig:
     max_retry_s: float = 60.0
     max_attempts: int = 3
     close_idle_s: float = 60.0
+    checkpoint_s: float = 600.0
 
     def __post_init__(self) -> None:
         if not self.poll_s > 0:
@@ -123,6 +139,8 @@ class PipelineConfig:
             raise ConfigError(f"pipeline.max_attempts must be >= 1, got {self.max_attempts}")
         if not (math.isfinite(self.close_idle_s) and self.close_idle_s >= 0):
             raise ConfigError(f"pipeline.close_idle_s must be >= 0 (0 = never), got {self.close_idle_s}")
+        if not (math.isfinite(self.checkpoint_s) and self.checkpoint_s >= 0):
+            raise ConfigError(f"pipeline.checkpoint_s must be >= 0 (0 = never), got {self.checkpoint_s}")
 
 
 @dataclass(frozen=True)
@@ -266,15 +284,20 @@ class MapPipeline:
     def _main(self) -> None:
         delay = self.cfg.retry_s
         failing: tuple[int, int] | None = None  # (cursor, consecutive failures there)
+        settled = True  # the associator holds exactly the keyframes up to the cursor
         while not self._stop.is_set():
             try:
                 done = self._round()
                 self._settle()
                 self._close_idle()  # also while other robots keep the stage busy
+                settled = True
+                if time.monotonic() - self._checkpoint_at >= self.cfg.checkpoint_s:
+                    self._checkpoint()
                 if done == 0:
                     self._stop.wait(self.cfg.poll_s)
                 delay, failing = self.cfg.retry_s, None
             except Exception as exc:  # any bug: log, back off, recover
+                settled = False
                 text = f"{type(exc).__name__}: {exc}"[:MAX_FAILURE_REASON]
                 with self._lock:
                     self._counts.restarts += 1
@@ -292,12 +315,15 @@ class MapPipeline:
                     self._new_associator()
                     self._replay()
                     self._settle()
+                    settled = True
                 except Exception:  # e.g. the database is still unreadable
                     log.exception("mapping stage: recovery failed; retrying")
             except BaseException as exc:  # reported by wait_idle and logged; ingest keeps running
                 self._error = exc
                 log.exception("mapping stage stopped")
                 return
+        if settled:
+            self._checkpoint()
 
     def _skip_after(self, cursor: int, reason: str) -> None:
         """Mark the first keyframe after ``cursor`` processed with no measurements, counted as ``reason``."""
@@ -441,6 +467,8 @@ class MapPipeline:
         self._merges: list[tuple[int, int]] = []
         self._open_stream: dict[str, str] = {}  # robot -> its session being associated
         self._last_seen: dict[str, float] = {}  # stream -> monotonic time of its last keyframe
+        self._checkpointed: tuple[int, int] | None = None  # (cursor, closures there) of the last one
+        self._checkpoint_at = time.monotonic()
 
     def _collect(self, changes: Iterable[LandmarkChange], touched: dict[int, Landmark],
                  new: dict[int, list[ObjectMeasurement]]) -> None:
@@ -532,15 +560,18 @@ class MapPipeline:
         if cursor == 0:
             return
         self._backfill(cursor)
+        start, applied = self._restore(cursor)
         with self.store.reading("mapping: closed sessions") as conn:
             closures: dict[int, list[str]] = {}
             for at, robot_id, session_id in conn.execute(
-                "SELECT at_rowid, robot_id, session_id FROM closed_sessions WHERE at_rowid <= ? "
-                "ORDER BY at_rowid, robot_id, session_id", (cursor,)
+                "SELECT at_rowid, robot_id, session_id FROM closed_sessions WHERE at_rowid >= ? AND "
+                "at_rowid <= ? ORDER BY at_rowid, robot_id, session_id", (start, cursor)
             ):
-                closures.setdefault(int(at), []).append(f"{robot_id}/{session_id}")
+                stream = f"{robot_id}/{session_id}"
+                if not (at == start and stream in applied):
+                    closures.setdefault(int(at), []).append(stream)
         counts = [0, 0]  # keyframes, measurements
-        after = 0
+        after = start
         for end in [*sorted(closures), cursor]:
             self._replay_range(after, end, counts)
             if self._stop.is_set():
@@ -552,6 +583,80 @@ class MapPipeline:
             self._counts.replayed = replayed
             self._counts.mapped = 0
         log.info("mapping stage: replayed %d measurements of %d keyframes", replayed, keyframes)
+
+    def _checkpoint_key(self) -> str:
+        """What a checkpoint is valid for: its format, the association code and settings."""
+        return json.dumps({"format": CHECKPOINT_FORMAT, "code": _association_code(),
+                           "association": to_mapping(self.association),
+                           "hist_bins": list(self._measure_config.hist_bins)}, sort_keys=True)
+
+    def _checkpoint(self) -> None:
+        """Save the association state at the current cursor, which it must match (a settled
+        stage). Skipped when nothing changed since the last one or ``checkpoint_s`` is 0; a
+        failure (a full disk) is logged, and a later restart replays from an older one."""
+        if self.cfg.checkpoint_s <= 0:
+            return
+        self._checkpoint_at = time.monotonic()
+        try:
+            cursor = self._cursor()
+            with self.store.reading("mapping: closures at the cursor") as conn:
+                closed = sorted(f"{r}/{s}" for r, s in conn.execute(
+                    "SELECT robot_id, session_id FROM closed_sessions WHERE at_rowid = ?", (cursor,)))
+            if (cursor, len(closed)) == self._checkpointed:
+                return
+            state = pickle.dumps({"associator": self._associator, "hist_sum": self._hist_sum,
+                                  "open_stream": self._open_stream, "closed_at_cursor": closed},
+                                 protocol=pickle.HIGHEST_PROTOCOL)
+            with self.store.writing("mapping: association checkpoint") as conn:
+                conn.execute(
+                    "INSERT INTO association_checkpoint (id, last_rowid, config_key, state, written_s) "
+                    "VALUES (1, ?, ?, ?, ?) ON CONFLICT(id) DO UPDATE SET "
+                    "last_rowid = excluded.last_rowid, config_key = excluded.config_key, "
+                    "state = excluded.state, written_s = excluded.written_s",
+                    (cursor, self._checkpoint_key(), state, time.time()))
+            self._checkpointed = (cursor, len(closed))
+            log.info("mapping stage: association checkpoint at keyframe %d (%d landmarks, %.1f MB)", cursor,
+                     len(self._associator.landmarks()), len(state) / 1e6)
+        except Exception:
+            log.exception("mapping stage: association checkpoint not written")
+
+    def _restore(self, cursor: int) -> tuple[int, set[str]]:
+        """Load the association checkpoint if it is usable: ``(its cursor, the closures at that
+        cursor it holds)``; ``(0, set())`` (replay everything) when there is none, it was made
+        by other association code or settings, lies beyond ``cursor`` or cannot be read."""
+        if self.cfg.checkpoint_s <= 0:
+            return 0, set()
+        with self.store.reading("mapping: association checkpoint") as conn:
+            row = conn.execute(
+                "SELECT last_rowid, config_key, state FROM association_checkpoint WHERE id = 1").fetchone()
+        if row is None:
+            return 0, set()
+        at, key, blob = int(row[0]), str(row[1]), bytes(row[2])
+        if key != self._checkpoint_key():
+            log.info("mapping stage: the association checkpoint is of other code or settings; replaying all")
+            return 0, set()
+        if at > cursor:
+            log.warning("mapping stage: the association checkpoint (keyframe %d) lies beyond the cursor "
+                        "(%d); replaying all", at, cursor)
+            return 0, set()
+        try:
+            state = pickle.loads(blob)  # the server's own file (docs/ARCHITECTURE.md)
+            associator, hist_sum, open_stream = state["associator"], state["hist_sum"], state["open_stream"]
+            applied = set(state["closed_at_cursor"])
+            if not (isinstance(associator, Associator) and isinstance(hist_sum, dict)
+                    and isinstance(open_stream, dict)):
+                raise TypeError("unexpected contents")
+        except Exception as exc:  # any unpickling error: the full replay is always correct
+            log.warning("mapping stage: the association checkpoint cannot be read (%s: %s); replaying all",
+                        type(exc).__name__, exc)
+            return 0, set()
+        self._associator, self._hist_sum, self._open_stream = associator, hist_sum, open_stream
+        now = time.monotonic()
+        self._last_seen = {stream: now for stream in open_stream.values()}
+        self._checkpointed = (at, len(applied))
+        log.info("mapping stage: association restored from its checkpoint at keyframe %d (%d landmarks)", at,
+                 len(associator.landmarks()))
+        return at, applied
 
     def _replay_range(self, after: int, end: int, counts: list[int]) -> None:
         """Replay the keyframes with ``after < rowid <= end`` (see :meth:`_replay`)."""
@@ -668,6 +773,19 @@ def decode_images(msg: KeyframeMsg) -> tuple[NDArray[np.uint8], NDArray[np.float
     if s > 1:
         depth = np.repeat(np.repeat(depth, s, axis=0), s, axis=1)
     return np.ascontiguousarray(bgr, np.uint8), np.ascontiguousarray(depth, np.float32), camera
+
+
+@functools.cache
+def _association_code() -> str:
+    """Digest of the code whose state a checkpoint holds (the association package, this module)
+    and of the packaged knowledge graph: a checkpoint of other code is not used."""
+    import wardmap.server.association as association
+
+    h = hashlib.sha256()
+    for path in [*sorted(Path(association.__file__).resolve().parent.glob("*.py")), Path(__file__).resolve()]:
+        h.update(path.name.encode() + b"\0" + path.read_bytes() + b"\0")
+    h.update(resources.files("wardmap.shared.data").joinpath(PACKAGED_FILE).read_bytes())
+    return h.hexdigest()[:16]
 
 
 def floor_height(msg: KeyframeMsg) -> float | None:

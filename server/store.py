@@ -186,6 +186,16 @@ MIGRATIONS: Final[tuple[sqlitedb.Migration, ...]] = (
             at_rowid INTEGER NOT NULL,
             PRIMARY KEY (at_rowid, robot_id, session_id)) WITHOUT ROWID""",
     ),
+    # v6: the mapping stage's association state at a settled cursor (pickled; one row), so a
+    # restart replays only the keyframes after it (server/pipeline.py, "Restart").
+    (
+        """CREATE TABLE association_checkpoint (
+            id INTEGER PRIMARY KEY CHECK (id = 1),
+            last_rowid INTEGER NOT NULL,
+            config_key TEXT NOT NULL,
+            state BLOB NOT NULL,
+            written_s REAL NOT NULL)""",
+    ),
 )
 
 InsertResult: TypeAlias = Literal["stored", "duplicate"]

@@ -30,6 +30,7 @@ pytestmark = pytest.mark.skipif(not MODEL.is_file(), reason="the packaged segmen
 
 FRAMES = (0, 8, 16, 24, 32, 40, 48, 56)
 LAST: dict[str, int] = {}
+HIST_SUMS: dict[int, np.ndarray] = {}  # the last run's per-landmark colour histogram sums
 
 
 def _keyframes(anchored: bool) -> list[tuple[KeyframeMsg, bytes]]:
@@ -58,15 +59,17 @@ def _keyframes(anchored: bool) -> list[tuple[KeyframeMsg, bytes]]:
 
 
 def _run(path: Path, keyframes: list[tuple[KeyframeMsg, bytes]], close_idle_s: float = 0.0,
-         closures: int = 0, association: AssociationConfig | None = None) -> tuple[dict[str, int], int, int]:
+         closures: int = 0, association: AssociationConfig | None = None,
+         checkpoint_s: float = 0.0) -> tuple[dict[str, int], int, int]:
     """Run the stage until idle (and until it closed ``closures`` idle sessions); every object it
     wrote has a mean colour. Returns the map's categories, the stored measurements and the
-    measurements replayed at start; ``LAST`` gets the associator's landmark count."""
+    measurements replayed at start; ``LAST`` gets the associator's landmark count. Checkpoints
+    are off unless ``checkpoint_s`` is given (these tests are about the full replay)."""
     with SqliteKeyframeStore.open(path) as store:
         for msg, payload in keyframes:
             store.insert(msg, payload, time.time())
         objects = ObjectMap(store)
-        config = PipelineConfig(poll_s=0.05, close_idle_s=close_idle_s)
+        config = PipelineConfig(poll_s=0.05, close_idle_s=close_idle_s, checkpoint_s=checkpoint_s)
         pipe = MapPipeline(store, objects, config=config, perception=PerceptionConfig(),
                            association=association)
         pipe.start()
@@ -83,6 +86,8 @@ def _run(path: Path, keyframes: list[tuple[KeyframeMsg, bytes]], close_idle_s: f
             LAST["associated"] = sum(lm.n_measurements for lm in landmarks)
             LAST["held"] = max((len(lm.measurements) for lm in landmarks), default=0)
             LAST["most"] = max((lm.n_measurements for lm in landmarks), default=0)
+            HIST_SUMS.clear()
+            HIST_SUMS.update({k: np.asarray(v).copy() for k, v in pipe._hist_sum.items()})
             # Long-lived association state holds no masks or 3D points (memory).
             held = [m for lm in landmarks for m in lm.measurements]
             assert all(m.mask.size == 0 and len(m.points_camera) == 0 for m in held)
@@ -119,6 +124,83 @@ def test_keyframes_become_objects_and_a_restart_replays(tmp_path: Path, anchored
     categories2, n_meas2, replayed2 = _run(db, [])
     assert n_meas2 == n_meas and replayed2 == n_meas
     assert categories2 == categories
+
+
+def _objects(path: Path) -> list[tuple]:
+    """The object map's rows (id, category, rounded pose and size, observations, colour)."""
+    with SqliteKeyframeStore.open(path) as store, store.reading("test") as conn:
+        cols = [r[1] for r in conn.execute("PRAGMA table_info(objects)")]
+        rows = conn.execute("SELECT * FROM objects ORDER BY object_id").fetchall()
+    out = []
+    for row in rows:
+        d = dict(zip(cols, row, strict=True))
+        out.append(tuple(round(v, 6) if isinstance(v, float) else v for k, v in sorted(d.items())
+                         if not k.endswith("_s")))
+    return out
+
+
+def test_a_restart_resumes_from_the_association_checkpoint(tmp_path: Path, anchored: list) -> None:
+    """The stage saves its association state when it stops; a restart loads it and replays only
+    the keyframes after it, and the map ends as if it had never stopped. A checkpoint of other
+    settings, a corrupt one, or none (``checkpoint_s = 0``) means a full replay."""
+    ref = tmp_path / "ref.db"
+    _, n_ref, _ = _run(ref, anchored)
+    expected = _objects(ref)
+    hist_sums = dict(HIST_SUMS)
+    assert expected and hist_sums
+
+    def same_state() -> bool:
+        return _objects(db) == expected and HIST_SUMS.keys() == hist_sums.keys() and all(
+            np.allclose(HIST_SUMS[k], v) for k, v in hist_sums.items())
+
+    db = tmp_path / "map.db"
+    _, _, replayed = _run(db, anchored[:4], checkpoint_s=600.0)
+    assert replayed == 0
+    with SqliteKeyframeStore.open(db) as store, store.reading("test") as conn:
+        at_4 = conn.execute("SELECT last_rowid, state FROM association_checkpoint").fetchone()
+    assert at_4[0] == 4
+    _, n_all, replayed = _run(db, anchored[4:], checkpoint_s=600.0)  # 4 new keyframes in the backlog
+    assert replayed == 0 and n_all == n_ref and same_state()
+    _, _, replayed = _run(db, [], checkpoint_s=600.0)  # stopped at keyframe 8: nothing to replay
+    assert replayed == 0 and same_state()
+
+    def set_checkpoint(last_rowid: int, state: bytes) -> None:
+        with SqliteKeyframeStore.open(db) as store, store.writing("test") as conn:
+            conn.execute("UPDATE association_checkpoint SET last_rowid = ?, state = ?", (last_rowid, state))
+
+    set_checkpoint(*at_4)  # as if the stage had crashed after keyframe 4
+    _, _, replayed = _run(db, [], checkpoint_s=600.0)
+    assert 0 < replayed < n_ref and same_state()
+    set_checkpoint(8, b"\x00\xff")  # unreadable
+    _, _, replayed = _run(db, [], checkpoint_s=600.0)
+    assert replayed == n_ref and same_state()
+    _, _, replayed = _run(db, [])  # checkpoints off
+    assert replayed == n_ref and same_state()
+    _, _, replayed = _run(db, [], association=AssociationConfig(group_size=5), checkpoint_s=600.0)
+    assert replayed == n_ref  # a checkpoint of other settings is not used
+
+
+def test_a_closure_stored_after_the_checkpoint_is_replayed(tmp_path: Path, anchored: list) -> None:
+    """A session closed at the checkpoint's cursor after the checkpoint was written (the stage
+    then crashed) is closed on restart, as a full replay closes it; one the checkpoint already
+    holds changes nothing on the next restart."""
+    import shutil
+
+    db = tmp_path / "map.db"
+    _run(db, anchored[:4], checkpoint_s=600.0)
+    with SqliteKeyframeStore.open(db) as store, store.writing("test") as conn:
+        conn.execute("INSERT INTO closed_sessions (robot_id, session_id, at_rowid) VALUES ('r1', 's1', 4)")
+    full = tmp_path / "full.db"
+    shutil.copy(db, full)
+    _, _, replayed_full = _run(full, [])
+    _, _, replayed = _run(db, [], checkpoint_s=600.0)
+    assert replayed == 0 < replayed_full
+    assert _objects(db) == _objects(full)
+    with SqliteKeyframeStore.open(db) as store, store.reading("test") as conn:
+        assert conn.execute("SELECT COUNT(*) FROM closed_sessions").fetchone()[0] == 1
+    before = _objects(db)
+    _, _, replayed = _run(db, [], checkpoint_s=600.0)  # the new checkpoint holds the closure
+    assert replayed == 0 and _objects(db) == before
 
 
 def test_replay_reads_no_keyframe_payload_and_backfills_old_stores(tmp_path: Path, anchored: list) -> None:
