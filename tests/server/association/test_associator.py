@@ -8,6 +8,7 @@ import pytest
 from wardmap.server.association.associator import AssociationConfig, Associator
 from wardmap.server.association.evaluate import score_landmarks
 from wardmap.server.association.types import LandmarkChange
+from wardmap.server.perception.types import ObjectMeasurement
 from wardmap.shared.config import from_mapping
 from wardmap.shared.errors import ConfigError, GeometryError
 
@@ -111,17 +112,25 @@ def test_hierarchical_is_deterministic(make_measurement: MeasurementFactory) -> 
 def test_bounded_memory_associates_the_same(make_measurement: MeasurementFactory, method: str) -> None:
     """keep_measurements off (the server): the same landmarks, poses, sizes and confidences as
     keeping everything, with at most max_history measurements held per landmark (plus what one
-    update adds), every update's changes still carrying the measurements it added, and
-    n_measurements counting them all."""
+    update adds), without their appearance, every update's changes still carrying the
+    measurements it added as given, and n_measurements counting them all."""
     scene = _scene(make_measurement, n_keyframes=30, seed=2)
+    given = {id(m) for ms, _ in scene for m in ms}
+    assert all(m.color_hist.size for ms, _ in scene for m in ms)
     full, _ = _run(AssociationConfig(method=method, max_history=4), scene)  # type: ignore[arg-type]
     cfg = AssociationConfig(method=method, max_history=4, keep_measurements=False)  # type: ignore[arg-type]
     bounded = Associator(cfg)
-    seen: dict[int, list[int]] = {}
+    seen: dict[int, list[tuple]] = {}
+
+    def key(m: ObjectMeasurement) -> tuple:  # held copies lose their appearance, not these
+        return (m.keyframe, tuple(m.box_xyxy), m.category)
+
     for ms, T in [*scene, ([], None)]:
         changes = bounded.add_keyframe(ms, T, CAMERA) if T is not None else bounded.flush()
         for c in changes:
-            held = [id(m) for m in c.landmark.measurements]
+            assert all(id(m) in given for m in c.added)  # as given, with their appearance
+            held = [key(m) for m in c.landmark.measurements]
+            assert all(m.color_hist.size == 0 and m.descriptors.size == 0 for m in c.landmark.measurements)
             old = seen.setdefault(c.landmark.id, [])
             added = c.landmark.n_measurements - len(old)
             assert 0 < added <= len(held)  # the update's new measurements are all there
@@ -133,7 +142,7 @@ def test_bounded_memory_associates_the_same(make_measurement: MeasurementFactory
         np.testing.assert_array_equal(x.size, y.size)
         assert x.confidence == pytest.approx(y.confidence)
         assert y.n_measurements == x.n_measurements == len(x.measurements)
-        assert seen[y.id] == [id(m) for m in x.measurements]  # every measurement was handed out once
+        assert seen[y.id] == [key(m) for m in x.measurements]  # every measurement was handed out once
     assert max(len(lm.measurements) for lm in b) < max(lm.n_measurements for lm in b)
     assert len(bounded._owner) < len(full._owner)
 
