@@ -4,9 +4,11 @@ A hospital robot passes the same objects many times a day, so each landmark keep
 measurements. This feeds one data set's keyframes (oracle or model measurements, ground-truth
 poses) to one :class:`Associator` ``--passes`` times, each pass a new robot session, and
 prints per pass: milliseconds per keyframe, landmarks, the most measurements one landmark has
-had, and the measurements the associator holds in memory (as on the server:
-``keep_measurements`` off). The landmark count should stay at the first pass's, and time and
-memory should level off once landmarks have ``AssociationConfig.max_history`` measurements.
+had, the measurements the associator holds in memory (as on the server:
+``keep_measurements`` off), and the size of its pickled state with the time to write and read
+it (the mapping stage's association checkpoint, server/pipeline.py). The landmark count should
+stay at the first pass's, and time and memory should level off once landmarks have
+``AssociationConfig.max_history`` measurements.
 
     python bench/association_revisits.py [--data out/bench_data] [--sequence aisle_slow_2]
         [--seed 1001] [--passes 8] [--measurements oracle|model] [--max-history N [N ...]]
@@ -23,6 +25,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse
+import pickle
 import sys
 import time
 from pathlib import Path
@@ -60,7 +63,7 @@ def main() -> int:
         generate(args.sequence, args.seed, folder, overwrite=True)
     ds = measure_dataset(folder, measurements=args.measurements)
     keyframes = [(for_association(kf.measurements), kf.T_world_camera) for kf in ds.keyframes]
-    results: dict[int, list[tuple[float, int, int, int]]] = {}
+    results: dict[int, list[tuple[float, int, int, int, float, float, float]]] = {}
     for history in args.max_history:
         assoc = Associator(AssociationConfig(max_history=history, keep_measurements=False))
         results[history] = []
@@ -73,11 +76,18 @@ def main() -> int:
             lms = assoc.landmarks()
             most = max((lm.n_measurements for lm in lms), default=0)
             held = sum(len(lm.measurements) for lm in lms)
-            results[history].append((ms, len(lms), most, held))
+            t0 = time.perf_counter()
+            state = pickle.dumps(assoc, protocol=pickle.HIGHEST_PROTOCOL)
+            t1 = time.perf_counter()
+            pickle.loads(state)
+            t2 = time.perf_counter()
+            results[history].append((ms, len(lms), most, held, len(state) / 1e6, 1e3 * (t1 - t0),
+                                     1e3 * (t2 - t1)))
             print(f"max_history {history}, pass {p + 1}: {ms:.1f} ms/keyframe, {len(lms)} landmarks, "
-                  f"at most {most} measurements, {held} held", file=sys.stderr)
-    heads = " | ".join(f"ms/keyframe, landmarks, measurements held (max_history {h})"
-                       for h in args.max_history)
+                  f"at most {most} measurements, {held} held, state {len(state) / 1e6:.2f} MB",
+                  file=sys.stderr)
+    heads = " | ".join(f"ms/keyframe, landmarks, measurements held; state MB, write / read ms "
+                       f"(max_history {h})" for h in args.max_history)
     lines = [
         "## Association on a route driven again and again (issue 6)\n",
         f"Command: `python bench/association_revisits.py --sequence {args.sequence} --seed {args.seed} "
@@ -90,8 +100,8 @@ def main() -> int:
         "|---|---|" + "---|" * len(args.max_history),
     ]
     for p in range(args.passes):
-        cells = " | ".join(f"{results[h][p][0]:.1f}, {results[h][p][1]}, {results[h][p][3]}"
-                           for h in args.max_history)
+        cells = " | ".join(f"{r[0]:.1f}, {r[1]}, {r[3]}; {r[4]:.2f}, {r[5]:.0f} / {r[6]:.0f}"
+                           for r in (results[h][p] for h in args.max_history))
         lines.append(f"| {p + 1} | {results[args.max_history[0]][p][2]} | {cells} |")
     text = "\n".join(lines)
     publish(text, args.write, "association_revisits")

@@ -47,6 +47,7 @@ from wardmap.server.perception.models import (
     OnnxSegmenter,
     PerceptionConfig,
     drop_floating,
+    floor_under,
     make_segmenter,
     measure_config_for,
     packaged_model_path,
@@ -314,9 +315,8 @@ def main() -> int:
                                      minlength=len(names) ** 2).reshape(len(names), len(names))
             # As the server does: touching chairs in one mask are cut apart before measuring.
             cut = split_instances(out.instances, frame.depth_m, cam, PerceptionConfig(), "model")
-            T_base_rgb = reader.calibration.T_base_rgb  # the base sits on the floor
-            floor = None if T_base_rgb is None else \
-                float((frame.T_world_camera @ np.linalg.inv(T_base_rgb))[2, 3])
+            T_base_rgb = reader.calibration.T_base_rgb
+            floor = None if T_base_rgb is None else floor_under(frame.T_world_camera, T_base_rgb)
             cut, n = drop_floating(cut, frame.depth_m, cam, PerceptionConfig(), frame.T_world_camera, floor)
             floating += n
             ms, skipped = measure(reader, frame, attach_gt_instances(cut, frame.labels))

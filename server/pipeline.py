@@ -47,7 +47,6 @@ the map. Nothing is committed twice: measurements and the cursor move in one tra
 from __future__ import annotations
 
 import functools
-import hashlib
 import json
 import logging
 import math
@@ -57,7 +56,6 @@ import time
 from collections import Counter
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field, replace
-from importlib import resources
 from pathlib import Path
 from typing import Any, Final
 
@@ -68,6 +66,7 @@ from numpy.typing import NDArray
 
 from wardmap.server.association.associator import AssociationConfig, Associator
 from wardmap.server.association.types import Landmark, LandmarkChange
+from wardmap.server.codedigest import code_digest
 from wardmap.server.objectmap import ObjectMap, from_landmark
 from wardmap.server.perception.measure import mean_rgb, measure_instances
 from wardmap.server.perception.models import (
@@ -83,7 +82,7 @@ from wardmap.server.store import SqliteKeyframeStore, pose_blob, pose_from_blob
 from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.config import to_mapping
 from wardmap.shared.errors import ConfigError, WardmapError, WireError
-from wardmap.shared.knowledge import PACKAGED_FILE, KnowledgeGraph
+from wardmap.shared.knowledge import KnowledgeGraph
 from wardmap.shared.wire import KeyframeMsg, decode_depth, decode_keyframe
 
 log = logging.getLogger(__name__)
@@ -781,11 +780,8 @@ def _association_code() -> str:
     and of the packaged knowledge graph: a checkpoint of other code is not used."""
     import wardmap.server.association as association
 
-    h = hashlib.sha256()
-    for path in [*sorted(Path(association.__file__).resolve().parent.glob("*.py")), Path(__file__).resolve()]:
-        h.update(path.name.encode() + b"\0" + path.read_bytes() + b"\0")
-    h.update(resources.files("wardmap.shared.data").joinpath(PACKAGED_FILE).read_bytes())
-    return h.hexdigest()[:16]
+    return code_digest([*sorted(Path(association.__file__).resolve().parent.glob("*.py")),
+                        Path(__file__).resolve()])
 
 
 def floor_height(msg: KeyframeMsg) -> float | None:

@@ -380,8 +380,9 @@ class Associator:
     def _add(self, lm: _LandmarkState, mid: int, m: ObjectMeasurement, keyframe: int) -> None:
         """Give measurement ``mid`` to ``lm``. Without ``keep_measurements`` the landmark keeps it
         without its appearance (ORB descriptors, colour histogram): only the in-group tracker
-        compares appearance, on the keyframes' own measurements, and the two were 7.4 of a
-        measurement's 8 kB. The change still reports ``m`` as given."""
+        compares appearance, on the keyframes' own measurements, and the two were 1.7 of a
+        measurement's 3.0 kB (pickled, mean over ward_chairs at seed 1001, masks and points
+        already dropped by the server). The change still reports ``m`` as given."""
         self._owner[mid] = lm.id
         kept = m if self.config.keep_measurements else \
             dataclasses.replace(m, descriptors=_NO_DESCRIPTORS, color_hist=_NO_HISTOGRAM)

@@ -34,7 +34,7 @@ from wardmap.server.association.associator import METHODS, AssociationConfig, As
 from wardmap.server.association.types import Landmark
 from wardmap.server.perception.instances import attach_gt_instances, id_to_class, oracle_instances
 from wardmap.server.perception.measure import MeasureConfig, mean_rgb, measure_instances
-from wardmap.server.perception.models import PerceptionConfig, drop_floating, split_instances
+from wardmap.server.perception.models import PerceptionConfig, drop_floating, floor_under, split_instances
 from wardmap.server.perception.types import Instance, ObjectMeasurement
 from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.config import load_config, to_mapping
@@ -235,7 +235,6 @@ def measure_dataset(
     keyframes: list[KeyframeMeasurements] = []
     moving = floating = 0
     T_base_rgb = reader.calibration.T_base_rgb
-    T_rgb_base = None if T_base_rgb is None else np.linalg.inv(T_base_rgb)  # the base sits on the floor
     for done, i in enumerate(chosen):
         frame = reader.frame(i)
         T = frame_poses[i]
@@ -250,7 +249,7 @@ def measure_dataset(
         else:
             instances = split_instances(segment(bgr, frame.depth_m), frame.depth_m, camera, perception,
                                         "model")
-            floor_z = None if T_rgb_base is None else float((T @ T_rgb_base)[2, 3])
+            floor_z = None if T_base_rgb is None else floor_under(T, T_base_rgb)
             instances, n_floating = drop_floating(instances, frame.depth_m, camera, perception, T, floor_z)
             floating += n_floating
             if frame.labels is not None:

@@ -68,6 +68,7 @@ __all__ = [
     "Segmenter",
     "YoloxDetector",
     "drop_floating",
+    "floor_under",
     "load_perception_config",
     "make_segmenter",
     "measure_config_for",
@@ -196,6 +197,13 @@ def split_instances(instances: Sequence[Instance], depth_m: NDArray[np.float32],
     for name, gap in config.stack_gap_m:
         out = merge_stacked(out, depth_m, camera, classes=(name,), max_gap_m=gap)
     return out
+
+
+def floor_under(T_world_camera: NDArray[np.float64], T_base_camera: NDArray[np.float64]) -> float:
+    """Height (metres, world z) of the floor under a camera on a robot base whose frame sits on
+    the floor (``T_base_camera``: the camera in the base frame): the ``floor_z_m`` of
+    :func:`drop_floating`."""
+    return float((np.asarray(T_world_camera) @ np.linalg.inv(T_base_camera))[2, 3])
 
 
 def drop_floating(instances: Sequence[Instance], depth_m: NDArray[np.float32], camera: PinholeCamera,

@@ -33,7 +33,6 @@ import zlib
 from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
-from importlib import resources
 from pathlib import Path
 from typing import Final
 
@@ -41,6 +40,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from wardmap.server.codedigest import code_digest
 from wardmap.shared.config import to_mapping
 from wardmap.shared.errors import WardmapError
 from wardmap.shared.knowledge import KnowledgeGraph
@@ -286,12 +286,8 @@ def generator_digest() -> str:
     the packaged knowledge graph (file names and bytes). Part of the cache key, so a change to
     the simulator (a new wall decoration, another texture) renders the data anew instead of
     training on samples of the old code."""
-    h = hashlib.sha256()
     sim_dir = Path(models.__file__).resolve().parent
-    for path in [*sorted(sim_dir.glob("*.py")), Path(__file__).resolve()]:
-        h.update(path.name.encode() + b"\0" + path.read_bytes() + b"\0")
-    h.update(resources.files("wardmap.shared.data").joinpath("knowledge_graph.toml").read_bytes())
-    return h.hexdigest()[:16]
+    return code_digest([*sorted(sim_dir.glob("*.py")), Path(__file__).resolve()])
 
 
 def config_hash(cfg: SegDataConfig) -> str:

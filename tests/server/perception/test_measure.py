@@ -477,12 +477,17 @@ def test_a_chair_floating_on_the_wall_is_flagged() -> None:
 
 
 def test_drop_floating_needs_a_known_floor() -> None:
-    from wardmap.server.perception.models import PerceptionConfig, drop_floating
+    from wardmap.server.perception.models import PerceptionConfig, drop_floating, floor_under
 
     depth = corridor_depth()
     depth[106:152, 150:166] = 2.9
     extinguisher = box_instance("chair", slice(106, 152), slice(150, 166))
     cfg = PerceptionConfig()
+    T_base_camera = T_LEVEL.copy()  # its base at the world origin, on the floor
+    raised = T_LEVEL.copy()
+    raised[2, 3] += 0.4  # the same robot on a floor 0.4 m higher
+    assert floor_under(T_LEVEL, T_base_camera) == pytest.approx(0.0)
+    assert floor_under(raised, T_base_camera) == pytest.approx(0.4)
     assert drop_floating([extinguisher], depth, CAMERA, cfg, T_LEVEL, 0.0) == ([], 1)
     assert drop_floating([extinguisher], depth, CAMERA, cfg, T_LEVEL, None) == ([extinguisher], 0)
     off = PerceptionConfig(floor_gap_m=())
