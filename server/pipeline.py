@@ -29,8 +29,8 @@ at a time, to fill ``mapped_keyframes``). The stage checkpoints its association 
 pickled associator, colour sums and open sessions, with the cursor and the idle closures at
 it; table ``association_checkpoint``) when it stops and every ``checkpoint_s`` at a settled
 point; a restart starts from a checkpoint of the same association code and settings and
-replays only the keyframes after it (association costs 7-8 ms per keyframe on the benchmark
-sequences, so a full replay grows with the store's history; docs/ARCHITECTURE.md).
+replays only the keyframes after it (association costs 7-19 ms per keyframe,
+bench/association_revisits.py, so a full replay grows with the store's history).
 
 Backlog: ``backlog`` = stored keyframes not yet processed, exported on ``/metrics``.
 A keyframe whose perception fails (corrupt image, model error) is counted by reason, logged,
