@@ -96,6 +96,12 @@ class PerceptionConfig:
     """Segmenter spec: ``model``, ``model:PATH``, ``yolox:PATH`` or a path (module docstring)."""
     threads: int = 1
     """CPU threads of the network (onnxruntime ``intra_op_num_threads``)."""
+    flip_average: bool = True
+    """Segmentation network: run it on the image and on its mirror image and average the two
+    logit maps (test-time augmentation; twice the network time). The network was trained on
+    flipped crops, so both views are as good and their errors partly cancel. Shipped model,
+    benchmark frames (seed 1001): mIoU 67.5 -> 69.1 %, every class up; validation worlds
+    (seed 1000): 62.5 -> 63.6 %, frames on robot trajectories 68.8 -> 70.8 %."""
     min_pixels: int = 400
     """Instances with fewer pixels are left out."""
     depth_jump_m: float = 0.15
@@ -329,8 +335,12 @@ class OnnxSegmenter:
         depth_jump_relative: float = PerceptionConfig.depth_jump_relative,
         min_confidence: float = PerceptionConfig.min_confidence,
         trim_classes: Sequence[str] = PerceptionConfig.trim_classes,
+        flip_average: bool = PerceptionConfig.flip_average,
     ) -> None:
         """Open and check the model.
+
+        ``flip_average``: average the logits of the image and of its mirror image
+        (:attr:`PerceptionConfig.flip_average`).
 
         Raises:
             ConfigError: missing file, not ONNX, wrong input/output names or shapes,
@@ -360,9 +370,11 @@ class OnnxSegmenter:
         if unknown:
             raise ConfigError(f"{what}: trim_classes names classes the model does not have: {unknown}")
         self._trim_classes = tuple(self._class_names.index(c) for c in trim_classes)
+        self._flip_average = bool(flip_average)
         w, h = self._input_wh
-        log.info("segmentation model %s: %d classes, input %dx%d %s, %d thread(s)",
-                 self.path, len(self._class_names), w, h, "RGB-D" if self.depth_input else "RGB", threads)
+        log.info("segmentation model %s: %d classes, input %dx%d %s, %d thread(s)%s",
+                 self.path, len(self._class_names), w, h, "RGB-D" if self.depth_input else "RGB", threads,
+                 ", flip-averaged" if self._flip_average else "")
 
     @property
     def class_names(self) -> tuple[str, ...]:
@@ -380,7 +392,8 @@ class OnnxSegmenter:
 
     def classify(self, bgr: U8, depth_m: F32 | None = None) -> tuple[U8, F32]:
         """Per-pixel classes uint8 (H, W) and softmax confidence float32 (H, W) of a BGR image
-        (and its (H, W) depth in metres, which an RGB-D network needs).
+        (and its (H, W) depth in metres, which an RGB-D network needs). With ``flip_average``
+        the logits are the mean of the image's and of its mirror image's (mirrored back).
 
         Raises:
             GeometryError: a malformed image or depth; no depth for an RGB-D network.
@@ -388,6 +401,10 @@ class OnnxSegmenter:
         image = _check_bgr(bgr)
         x = self._contract.preprocess(image, depth_m)  # refuses an RGB-D network without depth
         (logits,) = self._session.run([OUTPUT_NAME], {INPUT_NAME: x})
+        if self._flip_average:
+            (mirrored,) = self._session.run([OUTPUT_NAME], {INPUT_NAME: np.ascontiguousarray(x[..., ::-1])})
+            back = np.asarray(mirrored, np.float32)[..., ::-1]
+            logits = (np.asarray(logits, np.float32) + back) * np.float32(0.5)
         return self._contract.postprocess(logits, image.shape[:2], self._what)
 
     def segment(self, bgr: U8, depth_m: F32 | None) -> Segmentation:
@@ -587,4 +604,5 @@ def make_segmenter(
         depth_jump_relative=cfg.depth_jump_relative,
         min_confidence=cfg.min_confidence,
         trim_classes=cfg.trim_classes,
+        flip_average=cfg.flip_average,
     )

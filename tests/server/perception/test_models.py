@@ -101,6 +101,25 @@ def test_rgbd_network_takes_the_depth_image(tmp_path: Path) -> None:
     assert not OnnxSegmenter(tiny.write_tiny_seg(tmp_path / "rgb.onnx")).depth_input
 
 
+def test_flip_average_mirrors_the_logits_back(tmp_path: Path) -> None:
+    """flip_average: the mean of the logits of the image and of its mirror image, mirrored back
+    (the tiny model's person logit has a -8..+8 ramp from left to right, which cancels)."""
+    path = tiny.write_tiny_seg(tmp_path / "r.onnx", input_wh=(64, 48), ramp=8.0)
+    bgr = np.zeros((48, 64, 3), np.uint8)
+    bgr[:, :, 2] = 255  # red everywhere: person logit 5 + ramp, background 0
+    person = tiny.kg_classes().index("person")
+    one_pass = OnnxSegmenter(path, flip_average=False)
+    classes, _ = one_pass.classify(bgr)
+    assert np.all(classes[:, :12] == 0) and np.all(classes[:, -12:] == person)  # the ramp shows
+    both = OnnxSegmenter(path, flip_average=True)
+    classes, confidence = both.classify(bgr)
+    assert np.all(classes == person)
+    assert np.allclose(confidence, 1 / (1 + math.exp(-5)), rtol=1e-4)  # ramp averaged away
+    one_pass_default = make_segmenter(str(path), PerceptionConfig(flip_average=False))
+    assert one_pass_default.segment(bgr, None).class_map[0, 0] == 0
+    assert np.all(make_segmenter(str(path)).segment(bgr, None).class_map == person)  # the default averages
+
+
 def test_missing_model_fails_at_start_up(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match=r"not found: .*nope\.onnx"):
         OnnxSegmenter(tmp_path / "nope.onnx")

@@ -4,7 +4,8 @@ The network is one 1x1 convolution: per pixel, ``logits = W @ rgb + b``. With th
 weights a red pixel (RGB 0..1) is ``person``, a green one ``door``, anything else the
 background; every other class has a large negative bias. With ``depth_channel`` the input
 has a fourth channel, depth in metres, and a pixel farther than 2.5 m (and neither red nor
-green) is a ``chair``. Test helpers only (needs the
+green) is a ``chair``. With ``ramp`` the person logit also gets a left-to-right ramp from
+``-ramp`` to ``+ramp`` (a network that is not mirror-symmetric). Test helpers only (needs the
 ``onnx`` package, a dev dependency).
 """
 
@@ -33,6 +34,7 @@ def write_tiny_seg(
     out_channels: int | None = None,
     metadata: dict[str, str | None] | None = None,
     depth_channel: bool = False,
+    ramp: float = 0.0,
 ) -> Path:
     """Write the model to ``path``; arguments let tests break one part of the contract."""
     import onnx
@@ -55,12 +57,22 @@ def write_tiny_seg(
         weight[k, :3, 0, 0] = -100.0
         weight[k, 3, 0, 0] = 10.0
         bias[k] = -25.0
+    offset = np.zeros((1, c, 1, w), np.float32)
+    if ramp and "person" in names and names.index("person") < c:
+        offset[0, names.index("person"), 0] = np.linspace(-ramp, ramp, w, dtype=np.float32)
     graph = helper.make_graph(
-        [helper.make_node("Conv", [input_name, "W", "B"], [output_name], kernel_shape=[1, 1])],
+        [
+            helper.make_node("Conv", [input_name, "W", "B"], ["conv"], kernel_shape=[1, 1]),
+            helper.make_node("Add", ["conv", "R"], [output_name]),
+        ],
         "tiny_seg",
         [helper.make_tensor_value_info(input_name, TensorProto.FLOAT, [1, cin, h, w])],
         [helper.make_tensor_value_info(output_name, TensorProto.FLOAT, [1, c, h, w])],
-        initializer=[numpy_helper.from_array(weight, "W"), numpy_helper.from_array(bias, "B")],
+        initializer=[
+            numpy_helper.from_array(weight, "W"),
+            numpy_helper.from_array(bias, "B"),
+            numpy_helper.from_array(offset, "R"),
+        ],
     )
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
     model.ir_version = 8
