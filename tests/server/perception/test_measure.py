@@ -21,6 +21,7 @@ from wardmap.server.perception.instances import (
 )
 from wardmap.server.perception.measure import (
     MeasureConfig,
+    densest_window,
     mean_rgb,
     measure_instances,
     measure_instances_report,
@@ -122,6 +123,48 @@ def test_outliers_are_removed() -> None:
     check_box(m, tol_centre=0.05, tol_yaw_deg=3.0, tol_size=0.08)
     # Without outlier removal the far points would stretch the box by metres.
     assert m.size.max() < 1.0
+
+
+def test_densest_window() -> None:
+    """The width-wide interval holding the most points; a sparse tail beyond it is left out."""
+    rng = np.random.default_rng(5)
+    dense = rng.uniform(0.0, 1.0, 900)
+    tail = rng.uniform(1.0, 2.5, 60)
+    keep = densest_window(np.r_[dense, tail], 1.2)
+    assert keep[:900].all() and keep[900:].sum() < 20
+    assert densest_window(np.array([0.0, 0.1, 5.0]), 1.0).tolist() == [True, True, False]
+    assert densest_window(np.array([3.0]), 1.0).tolist() == [True]
+
+
+def test_a_door_mask_bleeding_along_the_wall_is_cut_to_the_widest_door() -> None:
+    """A 1.0 m door in a wall seen at a grazing angle; its mask also holds a band of the wall
+    1.2 m beyond its near edge. With the door's width bound (1.3 m) the box keeps the door and
+    at most the 0.3 m of slack: its centre moves by at most half of that towards the band."""
+    T_world_wall = yaw_transform(0.0, 3.0, 0.0, z=1.25)  # wall along world x, face at y = 2.95
+    depth, hit = render_box(T_WORLD_WALL_CAM, T_world_wall, np.array([8.0, 0.1, 2.5]))
+    world = (CAMERA.pixel_rays() * depth[..., None]) @ T_WORLD_WALL_CAM[:3, :3].T + T_WORLD_WALL_CAM[:3, 3]
+    x, z = world[..., 0], world[..., 2]
+    door = hit & (np.abs(x - 2.0) <= 0.5) & (z <= 2.1)
+    band = hit & (x >= 0.3) & (x < 1.5) & (np.abs(z - 1.0) <= 0.15)
+    assert door.sum() > 10000 and band.sum() > 3000
+
+    def centre_and_width(max_width_m: tuple) -> tuple[float, float]:
+        inst = Instance("door", 0.9, door | band, np.array([0.0, 0.0, 1.0, 1.0]))
+        (m,) = measure_instances([inst], bgr=BGR, depth_m=depth, camera=CAMERA,
+                                 T_world_camera=T_WORLD_WALL_CAM, keyframe="test/1", stamp=1.0,
+                                 config=MeasureConfig(max_width_m=max_width_m))
+        return float(m.T_world_object[0, 3]), float(m.size[0])
+
+    x_free, w_free = centre_and_width(())
+    assert x_free < 1.7 and w_free > 1.6  # the band stretches the box along the wall
+    x_cut, w_cut = centre_and_width((("door", 1.3), ("cabinet", 0.5)))
+    assert abs(x_cut - 2.0) <= 0.15 + 0.07 and 1.0 - 0.05 <= w_cut <= 1.3
+    assert centre_and_width((("cabinet", 0.5),))[0] == pytest.approx(x_free)  # other classes only
+    with pytest.raises(ConfigError, match="max_width_m"):
+        MeasureConfig(max_width_m=(("door", 0.0),))
+
+
+T_WORLD_WALL_CAM = look_at(np.array([0.0, 1.0, 1.2]), np.array([2.5, 2.95, 1.0]))
 
 
 def test_square_footprint_yaw_is_modulo_90_and_x_is_the_longer_side() -> None:
