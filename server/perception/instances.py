@@ -65,6 +65,7 @@ def split_side_by_side(
     classes: Sequence[str],
     width_m: float,
     min_pixels: int,
+    one_object_share: float = 0.8,
 ) -> list[Instance]:
     """Instances of ``classes`` as wide as two or more such objects, cut into side-by-side pieces.
 
@@ -73,9 +74,10 @@ def split_side_by_side(
     camera's horizontal x-z plane (metres; distortion ignored) and spread along their first
     principal axis; an extent (2-98 % quantiles) of k * ``width_m`` (k >= 2, rounded) is cut
     into k pieces, each cut at the sparsest 2 cm bin within ``width_m / 4`` of its even
-    position (the gap between two chairs). Pixels without depth belong to no piece. A piece
-    keeps the class and confidence; pieces under ``min_pixels`` are dropped, and an instance
-    with fewer than two pieces left stays whole.
+    position (the gap between two chairs); not when one ``width_m``-wide window holds
+    ``one_object_share`` of the pixels (one object and a thin spill beyond it). Pixels
+    without depth belong to no piece. A piece keeps the class and confidence; pieces under
+    ``min_pixels`` are dropped, and an instance with fewer than two pieces left stays whole.
 
     Args:
         instances: instances of one colour image (H, W).
@@ -84,6 +86,12 @@ def split_side_by_side(
         classes: class names to split.
         width_m: typical width of one object of those classes, metres (> 0).
         min_pixels: fewest pixels of a piece.
+        one_object_share: an instance is not cut when a ``width_m``-wide window along the
+            axis holds at least this share of its pixels with depth: one object, with a thin
+            spill beyond it (a door's mask run along the flush wall at a grazing view), which
+            the measurement's widest-object bound handles better than a cut through the object.
+            Seed-1002 worlds with 0.8 against none: association accuracy 97.47 -> 97.75 %, door
+            centroid median 11.1 -> 10.3 cm; seed 1003 door 17.7 cm both ways.
 
     Returns:
         The instances in order, split ones replaced by their pieces (left to right along
@@ -91,9 +99,13 @@ def split_side_by_side(
     """
     if width_m <= 0:
         raise GeometryError(f"split_side_by_side: width_m must be > 0, got {width_m}")
+    if not 0.0 < one_object_share <= 1.0:
+        raise GeometryError(
+            f"split_side_by_side: one_object_share must lie in (0, 1], got {one_object_share}"
+        )
     out: list[Instance] = []
     for inst in instances:
-        pieces = (_side_by_side(inst.mask, depth_m, camera, width_m, min_pixels)
+        pieces = (_side_by_side(inst.mask, depth_m, camera, width_m, min_pixels, one_object_share)
                   if inst.category in classes else [])
         if len(pieces) < 2:
             out.append(inst)
@@ -289,8 +301,17 @@ def principal_direction(xy: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.asarray(vecs[:, -1], dtype=np.float64)
 
 
+def densest_window(along: NDArray[np.float64], width: float) -> NDArray[np.bool_]:
+    """Points (N,) of coordinates ``along`` (metres) inside the ``width``-wide interval that
+    holds the most of them (the first such interval when several tie)."""
+    x = np.sort(along)
+    ends = np.searchsorted(x, x + width, side="right")  # window [x[i], x[i] + width]
+    start = int(np.argmax(ends - np.arange(x.size)))
+    return np.asarray((along >= x[start]) & (along <= x[start] + width), dtype=bool)
+
+
 def _side_by_side(mask: Mask, depth: NDArray[np.float32], camera: PinholeCamera, width_m: float,
-                  min_pixels: int) -> list[Mask]:
+                  min_pixels: int, one_object_share: float) -> list[Mask]:
     v, u = np.nonzero(mask)
     z = depth[v, u].astype(np.float64)
     ok = np.isfinite(z) & (z > 0)
@@ -301,7 +322,7 @@ def _side_by_side(mask: Mask, depth: NDArray[np.float32], camera: PinholeCamera,
     along = (xz - xz.mean(axis=0)) @ principal_direction(xz)
     lo, hi = (float(q) for q in np.quantile(along, [0.02, 0.98]))
     k = int((hi - lo) / width_m + 0.5)
-    if k < 2:
+    if k < 2 or densest_window(along, width_m).sum() >= one_object_share * along.size:
         return []
     edges = np.arange(lo, hi + 0.02, 0.02)
     counts = np.histogram(along, edges)[0]

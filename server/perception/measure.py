@@ -44,7 +44,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from wardmap.server.perception.instances import principal_direction, ring_around
+from wardmap.server.perception.instances import densest_window, principal_direction, ring_around
 from wardmap.server.perception.types import Instance, ObjectMeasurement
 from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.errors import ConfigError, GeometryError
@@ -319,15 +319,6 @@ def _gravity_box(points_g: F64, cfg: MeasureConfig) -> tuple[float, F64, F64, st
     centre_xy = R @ ((lo[:2] + hi[:2]) / 2)
     size = hi - lo
     return yaw, np.array([centre_xy[0], centre_xy[1], (lo[2] + hi[2]) / 2]), size, source
-
-
-def densest_window(along: F64, width: float) -> NDArray[np.bool_]:
-    """Points (N,) of coordinates ``along`` (metres) inside the ``width``-wide interval that
-    holds the most of them (the first such interval when several tie)."""
-    x = np.sort(along)
-    ends = np.searchsorted(x, x + width, side="right")  # window [x[i], x[i] + width]
-    start = int(np.argmax(ends - np.arange(x.size)))
-    return np.asarray((along >= x[start]) & (along <= x[start] + width), dtype=bool)
 
 
 def mean_rgb(

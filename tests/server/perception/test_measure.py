@@ -10,6 +10,7 @@ import pytest
 from wardmap.server.perception.instances import (
     attach_gt_instances,
     box_of_mask,
+    densest_window,
     floating_above_floor,
     gt_instance_of,
     id_to_class,
@@ -21,7 +22,6 @@ from wardmap.server.perception.instances import (
 )
 from wardmap.server.perception.measure import (
     MeasureConfig,
-    densest_window,
     mean_rgb,
     measure_instances,
     measure_instances_report,
@@ -420,6 +420,31 @@ def test_touching_chairs_in_one_mask_are_split_at_the_gap() -> None:
         assert split_side_by_side([inst], d, camera, classes=classes, width_m=0.5, min_pixels=50) == [inst]
     with pytest.raises(GeometryError):
         split_side_by_side([joined], depth, camera, classes=("chair",), width_m=0.0, min_pixels=50)
+
+
+def test_one_door_with_a_thin_spill_along_the_wall_is_not_cut() -> None:
+    """A 1.2 m door 2 m away (60 columns of 2 cm, 60 rows) whose mask spills 1.2 m further
+    along the wall in an 8-row band is 2.4 m wide, two doors' worth at 1.4 m each; but a 1.4 m
+    window holds 90 % of its pixels, so it stays whole. Two doors under one mask are cut."""
+    camera = PinholeCamera(200, 100, 100.0, 100.0, 100.0, 50.0)
+    depth = np.full((100, 200), 2.0, np.float32)
+    spill = np.zeros((100, 200), bool)
+    spill[20:80, 30:90] = True
+    spill[50:58, 90:150] = True
+    door = Instance("door", 0.9, spill, box_of_mask(spill))
+    assert split_side_by_side([door], depth, camera, classes=("door",), width_m=1.4, min_pixels=50) == [door]
+    cut = split_side_by_side([door], depth, camera, classes=("door",), width_m=1.4, min_pixels=50,
+                             one_object_share=1.0)
+    assert len(cut) == 2  # without the share test the spill makes it two doors
+    pair = np.zeros((100, 200), bool)
+    pair[20:80, 30:90] = True
+    pair[20:80, 110:170] = True
+    pair[20:80, 90:110] = True  # the network's mask over the wall between them
+    two = Instance("door", 0.9, pair, box_of_mask(pair))
+    assert len(split_side_by_side([two], depth, camera, classes=("door",), width_m=1.4, min_pixels=50)) == 2
+    with pytest.raises(GeometryError, match="one_object_share"):
+        split_side_by_side([door], depth, camera, classes=("door",), width_m=1.4, min_pixels=50,
+                           one_object_share=0.0)
 
 
 def test_chair_back_above_its_seat_is_joined_to_it() -> None:
