@@ -93,9 +93,9 @@ MAX_FAILURE_REASON: Final = 120
 _INSERT_MAPPED: Final = ("INSERT OR REPLACE INTO mapped_keyframes (robot_id, session_id, seq, T_map_camera, "
                          "camera) VALUES (?, ?, ?, ?, ?)")
 REPLAY_CHUNK: Final = 500
+"""Keyframes read per step of the replay at start (bounds its memory besides the associator's)."""
 CHECKPOINT_FORMAT: Final = 1
 """Bumped when the checkpoint's contents change shape (part of its key)."""
-"""Keyframes read per step of the replay at start (bounds its memory besides the associator's)."""
 
 
 @dataclass(frozen=True)

@@ -40,6 +40,7 @@ from wardmap.server.association.geometry import (
     pose_residuals,
     symmetry_rotations,
 )
+from wardmap.server.perception.types import CLASS_SIZE_M
 
 __all__ = ["HdpConfig", "HdpItem", "HdpTopic", "gibbs_associate", "gmm_log_density"]
 
@@ -82,11 +83,7 @@ class HdpConfig:
     objects are biased, so the landmark's box may fall just outside)."""
     symmetry: Symmetry = "quarter_turn"
     """Box symmetry about z used when comparing orientations."""
-    class_size_m: tuple[tuple[str, float, float], ...] = (
-        ("bed", 2.3, 1.1), ("door", 1.3, 2.3), ("cabinet", 1.3, 2.1), ("desk", 1.8, 0.9),
-        ("cart", 1.2, 1.2), ("wheelchair", 1.2, 1.1), ("sink", 0.9, 1.1), ("wall_monitor", 1.1, 0.8),
-        ("chair", 0.6, 1.1), ("iv_pole", 0.7, 2.2),
-    )
+    class_size_m: tuple[tuple[str, float, float], ...] = CLASS_SIZE_M
     """Largest horizontal extent and height (metres) of a class (``geometry.partial_view_slack``,
     here and in the in-group tracker): a measurement larger than this holds more than one object
     and gets no more partial-view slack than a full view; two partial views of one object may

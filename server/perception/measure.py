@@ -45,7 +45,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from wardmap.server.perception.instances import densest_window, principal_direction, ring_around
-from wardmap.server.perception.types import Instance, ObjectMeasurement
+from wardmap.server.perception.types import CLASS_SIZE_M, Instance, ObjectMeasurement
 from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.errors import ConfigError, GeometryError
 from wardmap.shared.se3 import check_transform, inverse, yaw_rotation
@@ -61,6 +61,8 @@ _RANSAC_SCORE_POINTS = 800
 """Points each RANSAC hypothesis is scored on (a seeded random subset)."""
 _ORB_MARGIN_PX = 32
 """Image kept around a mask for ORB: its 31 px patch and edge threshold need context."""
+_STATIC_BOUNDED = ("door", "cabinet", "bed", "desk", "sink", "wall_monitor")
+"""Classes whose measured width is bounded by default (``MeasureConfig.max_width_m``)."""
 
 
 @dataclass(frozen=True)
@@ -95,11 +97,11 @@ class MeasureConfig:
     extent_quantile: float = 0.0
     """The box spans this quantile to ``1 - extent_quantile`` of the points along each axis
     (0 = min/max); a few surviving outliers then cannot stretch it."""
-    max_width_m: tuple[tuple[str, float], ...] = (
-        ("door", 1.3), ("cabinet", 1.3), ("bed", 2.3), ("desk", 1.8), ("sink", 0.9), ("wall_monitor", 1.1),
+    max_width_m: tuple[tuple[str, float], ...] = tuple(
+        (name, horizontal) for name, horizontal, _ in CLASS_SIZE_M if name in _STATIC_BOUNDED
     )
     """``[class, width]`` pairs: the widest an object of the class can be, metres (the static
-    classes, with the association's ``HdpConfig.class_size_m`` bounds). When the points of an
+    classes' horizontal bounds in ``types.CLASS_SIZE_M``). When the points of an
     instance of the class span more than that along the box's x axis, only the points inside
     the ``width``-wide window holding the most of them are kept (:func:`densest_window`) and
     the box is fitted to those; its centre can still lie up to half the slack (bound minus the

@@ -14,7 +14,16 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["Instance", "ObjectMeasurement"]
+__all__ = ["CLASS_SIZE_M", "Instance", "ObjectMeasurement"]
+
+CLASS_SIZE_M: tuple[tuple[str, float, float], ...] = (
+    ("bed", 2.3, 1.1), ("door", 1.3, 2.3), ("cabinet", 1.3, 2.1), ("desk", 1.8, 0.9),
+    ("cart", 1.2, 1.2), ("wheelchair", 1.2, 1.1), ("sink", 0.9, 1.1), ("wall_monitor", 1.1, 0.8),
+    ("chair", 0.6, 1.1), ("iv_pole", 0.7, 2.2),
+)
+"""``(class, largest horizontal extent, height)`` of an object of the class, metres: the
+defaults of the association's ``HdpConfig.class_size_m`` and of the measurement's
+``MeasureConfig.max_width_m`` (one table, so the two cannot drift apart)."""
 
 
 @dataclass(frozen=True, eq=False)
