@@ -83,3 +83,66 @@ def test_built_wheel_imports_every_module(tmp_path: Path) -> None:
     subprocess.run(
         [sys.executable, "-c", script, str(tmp_path / "site")], check=True, env=env, cwd=tmp_path, timeout=120
     )
+
+
+TRAIN_ONLY = {"torch", "onnx"}
+"""Distributions of the ``train`` extra: the commands that need them say so when missing."""
+
+
+def _requirement_names(reqs: list[str]) -> set[str]:
+    import re
+
+    return {re.split(r"[\s<>=!~;\[(]", r, maxsplit=1)[0].lower().replace("_", "-") for r in reqs}
+
+
+def _closure(names: set[str]) -> set[str]:
+    """``names`` and every distribution they require, transitively (installed ones only)."""
+    from importlib import metadata
+
+    seen: set[str] = set()
+    todo = list(names)
+    while todo:
+        name = todo.pop()
+        if name in seen:
+            continue
+        seen.add(name)
+        try:
+            reqs = metadata.requires(name) or []
+        except metadata.PackageNotFoundError:
+            continue
+        todo.extend(_requirement_names([r for r in reqs if "extra ==" not in r]))
+    return seen
+
+
+def test_every_third_party_import_is_a_declared_dependency() -> None:
+    """A plain ``pip install .`` must run every command: each third-party module the code
+    imports (at the top or inside a function) comes from a core dependency or one of theirs;
+    only the training modules may use the ``train`` extra. (httpx, used by ``wardmap demo``,
+    once sat in the ``dev`` extra only and the demo failed after a plain install.)"""
+    import ast
+    import tomllib
+    from importlib import metadata
+
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    allowed = _closure(_requirement_names(project["dependencies"]))
+    dist_of = {
+        m: [d.lower().replace("_", "-") for d in ds] for m, ds in metadata.packages_distributions().items()
+    }
+    missing = []
+    for pkg in PACKAGES:
+        for f in sorted((ROOT / pkg).rglob("*.py")):
+            for node in ast.walk(ast.parse(f.read_text(), str(f))):
+                if isinstance(node, ast.Import):
+                    tops = [a.name.split(".")[0] for a in node.names]
+                elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                    tops = [node.module.split(".")[0]]
+                else:
+                    continue
+                for top in tops:
+                    if top in sys.stdlib_module_names or top in ("wardmap", "__future__"):
+                        continue
+                    dists = set(dist_of.get(top, [top]))
+                    if dists & allowed or (dists & TRAIN_ONLY and "perception" in f.parts):
+                        continue
+                    missing.append(f"{f.relative_to(ROOT)}:{node.lineno} imports {top} ({sorted(dists)})")
+    assert not missing, "not a core dependency:\n" + "\n".join(missing)
