@@ -126,7 +126,8 @@ def table(rows: dict[str, tuple[DatasetMeasurements, dict[str, Result]]], title:
         lines.append(
             f"| {name} | {len(ds.keyframes)} | {h.measurements} | {100 * on_object(ds):.1f} | {h.gt_objects} "
             + " ".join(f"| {100 * s[m].accuracy:.2f}" for m in ORDER)
-            + " " + " ".join(f"| {s[m].landmarks}" for m in ORDER)
+            + " " + " ".join(f"| {s[m].landmarks}" + (f" (+{s[m].unconfirmed})" if s[m].unconfirmed else "")
+                             for m in ORDER)
             + f" | {'yes' if win else 'no'} | {ms} |"
         )
     n = len(rows)
@@ -189,7 +190,9 @@ def main() -> int:
         f"Command: `python bench/association.py --seed {args.seed} --write BENCHMARKS.md`  ",
         f"Machine: {machine()}; commit {git_rev()}. Ground-truth camera poses; keyframes every 0.1 m "
         "or 10 deg; default `AssociationConfig` (M = 6, j = 2); HDP-SLAM = `per_keyframe_hdp`. "
-        "Object_GT = distinct non-moving objects with at least one measurement. On an object = "
+        "Object_GT = distinct non-moving objects with at least one measurement. Objects = confirmed "
+        "landmarks, the map's objects (same rule for every method; \"(+n)\": n landmarks kept but "
+        "not confirmed, docs/association.md, Confirmation). On an object = "
         "share of measurements whose mask is mostly on a ground-truth object (the ceiling of the "
         "accuracy). ms/keyframe = association only (measuring excluded).",
         "",

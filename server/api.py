@@ -130,6 +130,10 @@ class ObjectOut(BaseModel):
     first_seen_s: float
     last_seen_s: float
     robots: list[str]
+    confirmed: bool = True
+    """False while association has not confirmed the object: a standing class (bed, cabinet,
+    cart, chair, desk, wheelchair) seen only in flat slivers at the side of the view; listed
+    only with ``include_unconfirmed=true`` (docs/association.md, Confirmation)."""
     distance_m: float | None = None
     """Distance of the centre from ``near`` (only when ``near`` was given)."""
 
@@ -199,7 +203,8 @@ def object_json(record: ObjectRecord, distance_m: float | None = None) -> dict[s
         "bounds_max": list(record.bounds_max),
         "color_rgb": None if record.color_rgb is None else list(record.color_rgb),
         "n_observations": record.n_observations, "first_seen_s": record.first_seen_s,
-        "last_seen_s": record.last_seen_s, "robots": list(record.robots), "distance_m": distance_m,
+        "last_seen_s": record.last_seen_s, "robots": list(record.robots), "confirmed": record.confirmed,
+        "distance_m": distance_m,
     }
 
 
@@ -391,11 +396,15 @@ def create_app(
         robot: Annotated[str | None, Query(max_length=64, description="seen by this robot")] = None,
         limit: Annotated[int, Query(ge=1, le=MAX_LIMIT)] = DEFAULT_LIMIT,
         offset: Annotated[int, Query(ge=0, le=MAX_OFFSET)] = 0,
+        include_unconfirmed: Annotated[
+            bool, Query(description="also objects association has not confirmed (`confirmed` false)")
+        ] = False,
     ) -> JSONResponse:
         """Objects matching every filter; nearest centre first when `near` is given, else by id."""
         try:
             centre = None if near is None else parse_near(near)
-            page = objects.find(ObjectQuery(category, centre, radius, min_confidence, robot, limit, offset))
+            page = objects.find(ObjectQuery(category, centre, radius, min_confidence, robot, limit, offset,
+                                            include_unconfirmed))
         except ObjectMapError as exc:
             raise HTTPException(422, str(exc)) from exc
         return JSONResponse({
@@ -440,9 +449,12 @@ def create_app(
         )
 
     @app.get("/v1/categories", response_model=CategoryList)
-    def categories(objects: ObjectMapDep) -> CategoryList:
-        """Every knowledge-graph class with its number of objects in the map."""
-        counts = objects.categories()
+    def categories(
+        objects: ObjectMapDep,
+        include_unconfirmed: Annotated[bool, Query(description="also count unconfirmed objects")] = False,
+    ) -> CategoryList:
+        """Every knowledge-graph class with its number of (confirmed) objects in the map."""
+        counts = objects.categories(include_unconfirmed)
         out = []
         for name, n in counts.items():
             try:
@@ -453,10 +465,16 @@ def create_app(
         return CategoryList(categories=out, total=sum(counts.values()))
 
     @app.get("/metrics", response_class=PlainTextResponse)
-    def metrics(store: StoreDep, ingest: IngestDep, request: Request) -> str:
+    def metrics(store: StoreDep, ingest: IngestDep, objects: ObjectMapDep, request: Request) -> str:
         counters = ingest.counters() if ingest is not None else None
         pipeline: MapPipeline | None = getattr(request.app.state, "pipeline", None)
         text = _prometheus(counters, store.rejections(), store.stats().robots)
+        text += (
+            "# HELP wardmap_map_objects Objects in the map; confirmed=\"false\": kept, left out of queries.\n"
+            "# TYPE wardmap_map_objects gauge\n"
+            f'wardmap_map_objects{{confirmed="true"}} {objects.count(unconfirmed=False)}\n'
+            f'wardmap_map_objects{{confirmed="false"}} {objects.count(unconfirmed=True)}\n'
+        )
         return text + (_pipeline_metrics(pipeline.counters()) if pipeline is not None else "")
 
     return app

@@ -96,6 +96,7 @@ def _object(record: ObjectRecord, distance_m: float | None = None) -> dict[str, 
         "first_seen_s": record.first_seen_s,
         "last_seen_s": record.last_seen_s,
         "robots": list(record.robots),
+        "confirmed": record.confirmed,
     }
     if record.color_rgb is not None:
         out["color_rgb"] = list(record.color_rgb)

@@ -100,6 +100,8 @@ class ObjectState:
             the box centre).
         size: (3,) float64 box extent along the object's x, y, z, metres (>= 0).
         color_rgb: mean colour, 0..255 per channel, or None when unknown.
+        confirmed: False for a landmark association has not confirmed
+            (``Landmark.confirmed``); queries leave it out unless asked.
     """
 
     object_id: int
@@ -108,6 +110,7 @@ class ObjectState:
     T_world_object: NDArray[np.float64]
     size: NDArray[np.float64]
     color_rgb: Vec3 | None = None
+    confirmed: bool = True
 
 
 @dataclass(frozen=True, eq=False)
@@ -161,6 +164,7 @@ class ObjectRecord:
         first_seen_s, last_seen_s: server seconds when the object was created or first
             observed (the earlier) and when it was last observed (its creation if never).
         robots: robots with an observation of it, sorted.
+        confirmed: as in :class:`ObjectState`.
     """
 
     object_id: int
@@ -178,6 +182,7 @@ class ObjectRecord:
     first_seen_s: float
     last_seen_s: float
     robots: tuple[str, ...]
+    confirmed: bool = True
 
 
 @dataclass(frozen=True, eq=False)
@@ -259,6 +264,8 @@ class ObjectQuery:
         robot: only objects some observation of this robot supports.
         limit: page size, 1..:data:`MAX_LIMIT`.
         offset: results to skip, 0..:data:`MAX_OFFSET`.
+        include_unconfirmed: also objects association has not confirmed
+            (:attr:`ObjectState.confirmed`); by default only confirmed ones.
     """
 
     category: str | None = None
@@ -268,6 +275,7 @@ class ObjectQuery:
     robot: str | None = None
     limit: int = DEFAULT_LIMIT
     offset: int = 0
+    include_unconfirmed: bool = False
 
     def __post_init__(self) -> None:
         if self.category is not None and (not isinstance(self.category, str) or not self.category):
@@ -292,14 +300,16 @@ class ObjectQuery:
             raise ObjectMapError(f"limit must be an int in [1, {MAX_LIMIT}], got {self.limit!r:.80}")
         if not _is_int(self.offset) or not 0 <= self.offset <= MAX_OFFSET:
             raise ObjectMapError(f"offset must be an int in [0, {MAX_OFFSET}], got {self.offset!r:.80}")
+        if not isinstance(self.include_unconfirmed, bool):
+            raise ObjectMapError(f"include_unconfirmed must be a bool, got {self.include_unconfirmed!r:.80}")
 
     @classmethod
     def from_params(cls, params: Iterable[tuple[str, str]]) -> ObjectQuery:
         """Parse text parameters (a URL query or a zenoh selector's parameters).
 
         Keys: ``category``, ``near`` (``x,y,z``), ``radius``, ``min_confidence``, ``robot``,
-        ``limit``, ``offset``; each at most once. Raises ObjectMapError naming the first
-        bad, unknown or repeated key.
+        ``limit``, ``offset``, ``include_unconfirmed`` (``true`` or ``false``); each at most
+        once. Raises ObjectMapError naming the first bad, unknown or repeated key.
         """
         seen: dict[str, str] = {}
         for key, value in params:
@@ -317,10 +327,20 @@ class ObjectQuery:
             robot=seen.get("robot"),
             limit=_parse_int(seen, "limit", DEFAULT_LIMIT),
             offset=_parse_int(seen, "offset", 0),
+            include_unconfirmed=_parse_bool(seen, "include_unconfirmed"),
         )
 
 
-_PARAM_KEYS: Final = ("category", "near", "radius", "min_confidence", "robot", "limit", "offset")
+_PARAM_KEYS: Final = (
+    "category", "near", "radius", "min_confidence", "robot", "limit", "offset", "include_unconfirmed",
+)
+
+
+def _parse_bool(params: Mapping[str, str], key: str) -> bool:
+    value = params.get(key, "false")
+    if value not in ("true", "false"):
+        raise ObjectMapError(f"{key} must be true or false, got {value[:40]!r}")
+    return value == "true"
 
 
 def _parse_float(params: Mapping[str, str], key: str) -> float | None:
@@ -372,6 +392,7 @@ def from_landmark(
     size: ArrayLike,
     measurements: Iterable[MeasurementLike] = (),
     color_rgb: Vec3 | None = None,
+    confirmed: bool = True,
 ) -> tuple[ObjectState, list[Observation]]:
     """Map an association landmark (plain fields) onto the map's input types.
 
@@ -384,7 +405,7 @@ def from_landmark(
     """
     state = ObjectState(
         object_id, category, confidence, np.asarray(T_world_object, np.float64),
-        np.asarray(size, np.float64), color_rgb,
+        np.asarray(size, np.float64), color_rgb, confirmed,
     )
     observations = []
     for m in measurements:
@@ -405,7 +426,7 @@ _OBJECT_COLUMNS: Final = (
     "o.object_id, o.category, o.confidence, o.T_world_object, o.x, o.y, o.z, o.yaw, "
     "o.qx, o.qy, o.qz, o.qw, o.size_x, o.size_y, o.size_z, "
     "o.min_x, o.min_y, o.min_z, o.max_x, o.max_y, o.max_z, "
-    "o.color_r, o.color_g, o.color_b, o.n_observations, o.first_seen_s, o.last_seen_s"
+    "o.color_r, o.color_g, o.color_b, o.n_observations, o.first_seen_s, o.last_seen_s, o.confirmed"
 )
 _OBS_COLUMNS: Final = (
     "observation_id, added_s, object_id, robot_id, session_id, seq, stamp, category, confidence, "
@@ -509,11 +530,11 @@ class ObjectMap:
                 conn.executemany(
                     "INSERT INTO objects (object_id, category, confidence, T_world_object, x, y, z, yaw, "
                     "qx, qy, qz, qw, size_x, size_y, size_z, min_x, min_y, min_z, max_x, max_y, max_z, "
-                    "color_r, color_g, color_b, n_observations, first_seen_s, last_seen_s) VALUES "
-                    "(:object_id, :category, :confidence, :T, :x, :y, :z, :yaw, :qx, :qy, :qz, :qw, "
+                    "color_r, color_g, color_b, n_observations, first_seen_s, last_seen_s, confirmed) "
+                    "VALUES (:object_id, :category, :confidence, :T, :x, :y, :z, :yaw, :qx, :qy, :qz, :qw, "
                     ":size_x, :size_y, :size_z, "
                     ":min_x, :min_y, :min_z, :max_x, :max_y, :max_z, :color_r, :color_g, :color_b, "
-                    "0, :now, :now) "
+                    "0, :now, :now, :confirmed) "
                     "ON CONFLICT (object_id) DO UPDATE SET category = excluded.category, "
                     "confidence = excluded.confidence, T_world_object = excluded.T_world_object, "
                     "x = excluded.x, y = excluded.y, z = excluded.z, yaw = excluded.yaw, "
@@ -521,7 +542,8 @@ class ObjectMap:
                     "size_x = excluded.size_x, size_y = excluded.size_y, size_z = excluded.size_z, "
                     "min_x = excluded.min_x, min_y = excluded.min_y, min_z = excluded.min_z, "
                     "max_x = excluded.max_x, max_y = excluded.max_y, max_z = excluded.max_z, "
-                    "color_r = excluded.color_r, color_g = excluded.color_g, color_b = excluded.color_b",
+                    "color_r = excluded.color_r, color_g = excluded.color_g, color_b = excluded.color_b, "
+                    "confirmed = excluded.confirmed",
                     obj_rows,
                 )
                 conn.executemany(
@@ -628,9 +650,11 @@ class ObjectMap:
         robot: str | None = None,
         limit: int = DEFAULT_LIMIT,
         offset: int = 0,
+        include_unconfirmed: bool = False,
     ) -> ObjectPage:
         """Shorthand for ``find(ObjectQuery(...))``; ``radius`` in metres."""
-        return self.find(ObjectQuery(category, near, radius, min_confidence, robot, limit, offset))
+        return self.find(ObjectQuery(category, near, radius, min_confidence, robot, limit, offset,
+                                     include_unconfirmed))
 
     def find(self, q: ObjectQuery) -> ObjectPage:
         """Objects matching every filter of ``q``, ``q.limit`` per page from ``q.offset``.
@@ -671,6 +695,8 @@ class ObjectMap:
         if q.category is not None:
             where.append("o.category = :category")
             params["category"] = q.category
+        if not q.include_unconfirmed:
+            where.append("o.confirmed = 1")
         if q.min_confidence is not None:
             where.append("o.confidence >= :min_confidence")
             params["min_confidence"] = float(q.min_confidence)
@@ -691,7 +717,7 @@ class ObjectMap:
         hits = [
             ObjectHit(
                 _record(r, robots.get(int(r[0]), ())),
-                None if q.near is None else math.sqrt(max(float(r[27]), 0.0)),
+                None if q.near is None else math.sqrt(max(float(r[28]), 0.0)),
             )
             for r in page
         ]
@@ -735,19 +761,22 @@ class ObjectMap:
         keyframes = [KeyframeRef(str(r[0]), str(r[1]), int(r[2]), float(r[3]), bool(r[4])) for r in kf_rows]
         return ObjectDetail(records[oid], observations, keyframes)
 
-    def categories(self) -> dict[str, int]:
-        """Number of stored objects per knowledge-graph class (every class, in index order)."""
+    def categories(self, include_unconfirmed: bool = False) -> dict[str, int]:
+        """Number of stored objects per knowledge-graph class (every class, in index order);
+        confirmed ones only unless ``include_unconfirmed``."""
+        where = "" if include_unconfirmed else " WHERE confirmed = 1"
         with self._store.reading("object map categories") as conn:
-            rows = conn.execute("SELECT category, COUNT(*) FROM objects GROUP BY category").fetchall()
+            rows = conn.execute(f"SELECT category, COUNT(*) FROM objects{where} GROUP BY category").fetchall()
         counts = {str(r[0]): int(r[1]) for r in rows}
         out = {name: counts.pop(name, 0) for name in self._kg.names}
         out.update(sorted(counts.items()))  # classes of an older knowledge graph stay visible
         return out
 
-    def count(self) -> int:
-        """Number of stored objects."""
+    def count(self, *, unconfirmed: bool | None = None) -> int:
+        """Number of stored objects; with ``unconfirmed`` True or False, of those (not) confirmed."""
+        where = "" if unconfirmed is None else f" WHERE confirmed = {0 if unconfirmed else 1}"
         with self._store.reading("object map count") as conn:
-            return int(conn.execute("SELECT COUNT(*) FROM objects").fetchone()[0])
+            return int(conn.execute(f"SELECT COUNT(*) FROM objects{where}").fetchone()[0])
 
     # ------------------------------------------------------------------ internals
 
@@ -775,6 +804,7 @@ class ObjectMap:
             "size_x": size[0], "size_y": size[1], "size_z": size[2],
             "min_x": lo[0], "min_y": lo[1], "min_z": lo[2], "max_x": hi[0], "max_y": hi[1], "max_z": hi[2],
             "color_r": None, "color_g": None, "color_b": None,
+            "confirmed": _check_bool(obj.confirmed, f"{where}.confirmed"),
         }
         if obj.color_rgb is not None:
             rgb = np.asarray(obj.color_rgb, dtype=np.float64)
@@ -894,6 +924,12 @@ def _check_id(value: object, where: str) -> int:
     return int(value)  # type: ignore[call-overload]  # checked int above
 
 
+def _check_bool(value: object, where: str) -> int:
+    if not isinstance(value, bool | np.bool_):
+        raise ObjectMapError(f"{where}: expected a bool, got {value!r:.80}")
+    return int(value)
+
+
 def _check_unit(value: object, where: str) -> float:
     if not _is_finite(value) or not 0 <= float(value) <= 1:  # type: ignore[arg-type]  # checked number
         raise ObjectMapError(f"{where}: expected a number in [0, 1], got {value!r:.80}")
@@ -935,7 +971,7 @@ def _record(r: Sequence[Any], robots: tuple[str, ...]) -> ObjectRecord:
         bounds_min=(float(r[15]), float(r[16]), float(r[17])),
         bounds_max=(float(r[18]), float(r[19]), float(r[20])),
         color_rgb=color, n_observations=int(r[24]), first_seen_s=float(r[25]), last_seen_s=float(r[26]),
-        robots=robots,
+        robots=robots, confirmed=bool(r[27]),
     )
 
 

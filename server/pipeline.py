@@ -499,7 +499,7 @@ class MapPipeline:
             total = self._hist_sum.get(lm.id)
             colour = None if total is None else mean_rgb([total], bins)
             state, obs = from_landmark(lm.id, lm.category, lm.confidence, lm.T_world_object, lm.size,
-                                       new.get(lm.id, []), colour)
+                                       new.get(lm.id, []), colour, lm.confirmed)
             states.append(state)
             observations.extend(obs)
         if states:

@@ -15,7 +15,7 @@ Payloads are msgpack maps with ``schema`` and ``version``:
 An object map has ``object_id``, ``category``, ``confidence``, ``T_world_object``
 (``{"t": [x, y, z], "q_xyzw": [...]}``, metres, the wire convention of ``shared/wire.py``),
 ``yaw`` (rad), ``size``, ``bounds_min``, ``bounds_max`` (metres), ``n_observations``,
-``first_seen_s``, ``last_seen_s``, ``robots``, and optionally ``color_rgb`` and
+``first_seen_s``, ``last_seen_s``, ``robots``, ``confirmed`` (bool), and optionally ``color_rgb`` and
 ``distance_m``. docs/map_api.md has the full field list.
 """
 

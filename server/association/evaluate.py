@@ -3,8 +3,10 @@
 - Association accuracy: each landmark takes the ground-truth object most of its
   measurements belong to; accuracy = share of all measurements whose landmark's object is
   their own object. Measurements on no object (``gt_instance`` None) count as errors.
-- Object count: the number of landmarks, against the ground-truth count = the number of
-  distinct non-moving objects with at least one measurement.
+- Object count: the number of confirmed landmarks (:attr:`Landmark.confirmed`: what the
+  map's queries return), against the ground-truth count = the number of distinct
+  non-moving objects with at least one measurement. The accuracy scores every landmark,
+  confirmed or not.
 """
 
 from __future__ import annotations
@@ -26,8 +28,9 @@ class AssociationScore:
         accuracy: share of measurements whose landmark's majority object is their own, in [0, 1].
         measurements: number of measurements scored.
         correct: number of correctly associated measurements.
-        landmarks: number of landmarks.
+        landmarks: number of confirmed landmarks (the map's objects).
         gt_objects: distinct non-moving ground-truth objects with at least one measurement.
+        unconfirmed: number of landmarks not confirmed (not counted in ``landmarks``).
     """
 
     accuracy: float
@@ -35,6 +38,7 @@ class AssociationScore:
     correct: int
     landmarks: int
     gt_objects: int
+    unconfirmed: int = 0
 
 
 def score_landmarks(
@@ -64,4 +68,6 @@ def score_landmarks(
                     correct += 1
     if gt_classes is not None:
         measured = {i for i in measured if gt_classes.get(i) not in moving_classes}
-    return AssociationScore(correct / total if total else 0.0, total, correct, len(landmarks), len(measured))
+    unconfirmed = sum(not lm.confirmed for lm in landmarks)
+    return AssociationScore(correct / total if total else 0.0, total, correct, len(landmarks) - unconfirmed,
+                            len(measured), unconfirmed)

@@ -18,6 +18,7 @@ from wardmap.shared.se3 import inverse, yaw_rotation
 __all__ = [
     "Symmetry",
     "box_iou",
+    "cut_at_side",
     "is_truncated",
     "pairwise_angles",
     "partial_view_slack",
@@ -148,6 +149,14 @@ def is_truncated(box_xyxy: F64, camera: PinholeCamera, border_px: float) -> bool
     x1, y1, x2, y2 = (float(v) for v in box_xyxy)
     return x1 <= border_px or y1 <= border_px or x2 >= camera.width - border_px \
         or y2 >= camera.height - border_px
+
+
+def cut_at_side(box_xyxy: F64, camera: PinholeCamera, border_px: float) -> bool:
+    """True when a pixel box (4,) reaches within ``border_px`` of the left or right image border:
+    the object may go on beyond the side of the view (the top and bottom borders cut most
+    doors and most objects close by, and say less)."""
+    x1, x2 = float(box_xyxy[0]), float(box_xyxy[2])
+    return x1 <= border_px or x2 >= camera.width - border_px
 
 
 def world_extents(T_world_object: F64, size: F64) -> F64:

@@ -329,6 +329,7 @@ def landmarks_document(
             {
                 "id": lm.id,
                 "class": lm.category,
+                "confirmed": lm.confirmed,
                 "confidence": round(lm.confidence, 6),
                 "T_world_object": np.round(lm.T_world_object, 6).tolist(),
                 "size": [round(float(v), 6) for v in lm.size],

@@ -39,6 +39,9 @@ class Landmark:
             with ``AssociationConfig.keep_measurements`` off, only the most recent
             ``max_history`` of them.
         n_measurements: how many measurements it has had in all (0: ``len(measurements)``).
+        confirmed: False while it is of a class of ``AssociationConfig.confirm_classes`` and
+            every measurement it has had is a flat view cut by the side of the image (likely a
+            wall taken for an object): kept, but left out of the map's queries by default.
     """
 
     id: int
@@ -48,6 +51,7 @@ class Landmark:
     confidence: float
     measurements: tuple[ObjectMeasurement, ...]
     n_measurements: int = 0
+    confirmed: bool = True
 
     def __post_init__(self) -> None:
         if self.n_measurements == 0:

@@ -202,8 +202,40 @@ def test_categories(client: TestClient) -> None:
 def test_openapi_documents_the_object_routes(client: TestClient) -> None:
     spec = client.get("/openapi.json").json()
     params = {p["name"] for p in spec["paths"]["/v1/objects"]["get"]["parameters"]}
-    assert params == {"category", "near", "radius", "min_confidence", "robot", "limit", "offset"}
+    assert params == {
+        "category", "near", "radius", "min_confidence", "robot", "limit", "offset", "include_unconfirmed",
+    }
     assert {"200", "422"} <= set(spec["paths"]["/v1/objects"]["get"]["responses"])
     assert {"200", "404", "422"} <= set(spec["paths"]["/v1/objects/{object_id}"]["get"]["responses"])
     assert "/v1/categories" in spec["paths"]
     assert "distance_m" in spec["components"]["schemas"]["ObjectOut"]["properties"]
+    assert "confirmed" in spec["components"]["schemas"]["ObjectOut"]["properties"]
+
+
+def test_unconfirmed_objects_only_when_asked(tmp_path: Path) -> None:
+    """An unconfirmed object (a flat sliver association has not confirmed) is left out of the list,
+    the radius query and the category counts unless ``include_unconfirmed=true``; the detail
+    route and /metrics still show it; a bad flag is a 422."""
+    url = f"sqlite:///{tmp_path / 'map.db'}"
+    with open_store(url) as store:
+        ObjectMap(store).upsert([
+            ObjectState(1, "cabinet", 0.9, yaw_transform(0.0, 0.0, 0.0, 0.5), np.array([0.8, 0.5, 1.7])),
+            ObjectState(2, "cabinet", 0.7, yaw_transform(1.0, 0.0, 0.0, 0.5), np.array([0.3, 0.02, 0.6]),
+                        confirmed=False),
+        ])
+    with TestClient(create_app(url)) as c:
+        assert _ids(c.get("/v1/objects")) == [1]
+        assert _ids(c.get("/v1/objects", params={"near": "1,0,0.5", "radius": 2})) == [1]
+        resp = c.get("/v1/objects", params={"near": "1,0,0.5", "radius": 2, "include_unconfirmed": "true"})
+        assert _ids(resp) == [2, 1]
+        assert [o["confirmed"] for o in resp.json()["objects"]] == [False, True]
+        counts = {k["name"]: k["count"] for k in c.get("/v1/categories").json()["categories"]}
+        assert counts["cabinet"] == 1
+        every = c.get("/v1/categories", params={"include_unconfirmed": "true"}).json()
+        assert {k["name"]: k["count"] for k in every["categories"]}["cabinet"] == 2 and every["total"] == 2
+        assert c.get("/v1/objects/2").json()["object"]["confirmed"] is False
+        metrics = c.get("/metrics").text
+        assert 'wardmap_map_objects{confirmed="true"} 1' in metrics
+        assert 'wardmap_map_objects{confirmed="false"} 1' in metrics
+        bad = c.get("/v1/objects", params={"include_unconfirmed": "maybe"})
+        assert bad.status_code == 422 and bad.json()["detail"][0]["loc"] == ["query", "include_unconfirmed"]

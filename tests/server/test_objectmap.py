@@ -13,6 +13,7 @@ import sqlite3
 import threading
 from collections.abc import Iterator
 from contextlib import closing
+from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -30,7 +31,14 @@ from wardmap.server.objectmap import (
     from_landmark,
     parse_near,
 )
-from wardmap.server.store import APPLICATION_ID, MIGRATIONS, SqliteKeyframeStore, StoreError, open_store
+from wardmap.server.store import (
+    APPLICATION_ID,
+    MIGRATIONS,
+    SqliteKeyframeStore,
+    StoreError,
+    open_store,
+    pose_blob,
+)
 from wardmap.shared import sqlitedb
 from wardmap.shared.knowledge import KnowledgeGraph
 from wardmap.shared.se3 import yaw_transform
@@ -428,6 +436,7 @@ def test_query_from_text_parameters() -> None:
     )
     assert q == ObjectQuery("door", (1.0, 2.5, -3.0), 3.0, 0.5, "r1", 5, 10)
     assert ObjectQuery.from_params([]) == ObjectQuery()
+    assert ObjectQuery.from_params([("include_unconfirmed", "true")]).include_unconfirmed
     for params, match in [
         ([("near", "1,2")], "near must be three finite numbers"),
         ([("near", "a,b,c")], "near must be"),
@@ -436,6 +445,7 @@ def test_query_from_text_parameters() -> None:
         ([("colour", "red")], "unknown parameter 'colour'"),
         ([("limit", "1"), ("limit", "2")], "given twice"),
         ([("radius", "2")], "radius needs near"),
+        ([("include_unconfirmed", "yes")], "include_unconfirmed must be true or false"),
     ]:
         with pytest.raises(ObjectMapError, match=match):
             ObjectQuery.from_params(params)
@@ -545,8 +555,54 @@ def test_v1_store_migrates_to_the_object_map(tmp_path: Path) -> None:
         assert raw.execute("PRAGMA user_version").fetchone()[0] == 1
         assert raw.execute("SELECT name FROM sqlite_master WHERE name = 'objects'").fetchone() is None
     with open_store(f"sqlite:///{path}") as store:
-        assert store.stats().schema_version == len(MIGRATIONS) == 6
+        assert store.stats().schema_version == len(MIGRATIONS) == 7
         assert [(r.robot_id, r.keyframes) for r in store.robots()] == [("r1", 0)]
         om = ObjectMap(store, knowledge=KG, clock=Clock())
         om.upsert([_obj(1, 0, 0)])
         assert _ids(om.query(near=(0, 0, 0), radius=1.0)) == [1]
+
+
+# --------------------------------------------------------------------------- confirmation
+
+
+def test_unconfirmed_objects_are_kept_but_left_out_of_queries_unless_asked(om: ObjectMap) -> None:
+    """An object stored with ``confirmed=False`` is in the map (get, count) but every query, the
+    radius query included, and the category counts leave it out unless asked; once association
+    confirms it, an upsert brings it back to every query."""
+    cabinet = replace(_obj(2, 1.0, 0.0, category="cabinet"), confirmed=False)
+    om.upsert([_obj(1, 0.0, 0.0, category="cabinet"), cabinet])
+    assert _ids(om.query()) == [1]
+    assert _ids(om.query(category="cabinet", near=(1.0, 0.0, 0.5), radius=2.0)) == [1]
+    assert _ids(om.query(near=(1.0, 0.0, 0.5), radius=2.0, include_unconfirmed=True)) == [2, 1]
+    assert _ids(om.find(ObjectQuery.from_params([("include_unconfirmed", "true")]))) == [1, 2]
+    assert om.categories()["cabinet"] == 1 and om.categories(include_unconfirmed=True)["cabinet"] == 2
+    assert (om.count(), om.count(unconfirmed=True), om.count(unconfirmed=False)) == (2, 1, 1)
+    detail = om.get(2)
+    assert detail is not None and detail.record.confirmed is False
+    (change,) = om.upsert([replace(cabinet, confirmed=True)])
+    assert change.record.confirmed is True
+    assert _ids(om.query()) == [1, 2]
+    with pytest.raises(ObjectMapError, match=r"objects\[0\].confirmed: expected a bool"):
+        om.upsert([replace(cabinet, confirmed=1)])  # type: ignore[arg-type]
+
+
+def test_v6_store_migrates_with_its_objects_confirmed(tmp_path: Path) -> None:
+    """An object written at schema v6 (no ``confirmed`` column) opens at the latest version as a
+    confirmed object: the map shows what it showed before."""
+    path = tmp_path / "v6.db"
+    v6 = sqlitedb.SqliteKind("keyframe store", APPLICATION_ID, MIGRATIONS[:6], StoreError)
+    conn = sqlitedb.connect(path, v6)
+    sqlitedb.check_and_migrate(conn, path, v6)
+    T = pose_blob(np.eye(4))
+    conn.execute(
+        "INSERT INTO objects VALUES (7, 'door', 0.9, ?, 0, 0, 1, 0, 0, 0, 0, 1, 1, 0.1, 2, "
+        "-0.5, -0.05, 0, 0.5, 0.05, 2, NULL, NULL, NULL, 0, 1.0, 1.0)",
+        (T,),
+    )
+    conn.execute("INSERT INTO objects_rtree VALUES (7, -0.5, 0.5, -0.05, 0.05, 0, 2)")
+    conn.close()
+    with open_store(f"sqlite:///{path}") as store:
+        assert store.stats().schema_version == len(MIGRATIONS)
+        om = ObjectMap(store, knowledge=KG, clock=Clock())
+        assert _ids(om.query(near=(0, 0, 1), radius=1.0)) == [7]
+        assert om.query().hits[0].record.confirmed is True

@@ -191,3 +191,48 @@ def test_interleaved_streams_share_landmarks(make_measurement: MeasurementFactor
     score = score_landmarks(assoc.landmarks())
     assert score.accuracy == 1.0 and score.landmarks == 6
     assert score.measurements == sum(len(ms) for ms, _ in a + b)
+
+
+@pytest.mark.parametrize("method", ["hierarchical", "per_keyframe_hdp", "nearest"])
+def test_flat_slivers_at_the_side_of_the_view_stay_unconfirmed(make_measurement: MeasurementFactory,
+                                                               method: str) -> None:
+    """A "cabinet" seen only as a flat sliver cut by the left image border (a wall taken for a
+    cabinet) is kept but not confirmed, and not counted as an object; a door seen the same way,
+    or a cabinet cut by the border with depth, is confirmed; a whole view confirms the sliver's
+    landmark."""
+    from dataclasses import replace
+
+    T = camera_looking_along_y(0.0)
+    flat, deep = np.array([0.3, 0.02, 0.6]), np.array([0.8, 0.45, 1.7])
+    cut = np.array([0.0, 180.0, 40.0, 420.0])  # touches the left border of the 640 px image
+
+    def seen(x: float, category: str, size: np.ndarray, k: int, box: np.ndarray | None = cut):
+        m = make_measurement(object_pose(x, 3.0), T, category=category, size=size, gt=None,
+                             keyframe=f"kf{k}", stamp=float(k))
+        return m if box is None else replace(m, box_xyxy=box)
+
+    def landmarks(keyframes: list[list[ObjectMeasurement]]) -> dict[str, bool]:
+        assoc = Associator(AssociationConfig(method=method))  # type: ignore[arg-type]
+        for ms in keyframes:
+            assoc.add_keyframe(ms, T, CAMERA)
+        assoc.flush()
+        return {lm.category: lm.confirmed for lm in assoc.landmarks()}
+
+    slivers = [[seen(-1.0, "cabinet", flat, k), seen(0.0, "door", flat, k), seen(1.0, "cart", deep, k)]
+               for k in range(3)]
+    assert landmarks(slivers) == {"cabinet": False, "door": True, "cart": True}
+    whole = [seen(-1.0, "cabinet", flat, 3, box=None)]
+    assert landmarks([*slivers, whole])["cabinet"] is True
+    assoc = Associator(AssociationConfig(method=method))  # type: ignore[arg-type]
+    for ms in slivers:
+        assoc.add_keyframe(ms, T, CAMERA)
+    assoc.flush()
+    score = score_landmarks(assoc.landmarks())
+    assert (score.landmarks, score.unconfirmed) == (2, 1)
+
+
+def test_confirmation_config_is_checked() -> None:
+    with pytest.raises(ConfigError, match="flat_m"):
+        from_mapping(AssociationConfig, {"flat_m": -0.1})
+    with pytest.raises(ValueError, match="confirm_classes: not knowledge-graph classes: unicorn"):
+        Associator(AssociationConfig(confirm_classes=("cabinet", "unicorn")))
