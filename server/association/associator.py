@@ -174,7 +174,7 @@ class _LandmarkState:
     T_world_object: F64 = field(default_factory=lambda: np.eye(4))
     size: F64 = field(default_factory=lambda: np.zeros(3))
     centre: F64 = field(default_factory=lambda: np.zeros(3))  # grid position
-    solid: int = 0  # measurements held that show a standing object (``confirm_classes``)
+    solid: int = 0  # its measurements (ever, less those moved out) that show a standing object
 
     def add(self, mid: int, m: ObjectMeasurement, keyframe: int, history: int) -> None:
         """Append a measurement; keep ``keyframe_mids`` to the last ``history`` keyframes

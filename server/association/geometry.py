@@ -146,9 +146,8 @@ def is_truncated(box_xyxy: F64, camera: PinholeCamera, border_px: float) -> bool
     Such a measurement sees only part of its object, so its centre is biased towards the
     visible part (``server/perception/measure.py``).
     """
-    x1, y1, x2, y2 = (float(v) for v in box_xyxy)
-    return x1 <= border_px or y1 <= border_px or x2 >= camera.width - border_px \
-        or y2 >= camera.height - border_px
+    y1, y2 = float(box_xyxy[1]), float(box_xyxy[3])
+    return cut_at_side(box_xyxy, camera, border_px) or y1 <= border_px or y2 >= camera.height - border_px
 
 
 def cut_at_side(box_xyxy: F64, camera: PinholeCamera, border_px: float) -> bool:

@@ -40,7 +40,7 @@ class Landmark:
             ``max_history`` of them.
         n_measurements: how many measurements it has had in all (0: ``len(measurements)``).
         confirmed: False while it is of a class of ``AssociationConfig.confirm_classes`` and
-            every measurement it has had is a flat view cut by the side of the image (likely a
+            every measurement associated with it is a flat view cut by the side of the image (likely a
             wall taken for an object): kept, but left out of the map's queries by default.
     """
 
