@@ -46,6 +46,10 @@ __all__ = ["create_app"]
 
 IngestFactory = Callable[[KeyframeStore], Ingest]
 
+Flag = Literal["true", "false"]
+"""A query flag: the two words the Zenoh queryable's parser takes too (``ObjectQuery.from_params``),
+so a robot and an HTTP client cannot get different answers from one query string."""
+
 
 class Service(Protocol):
     """A component the lifespan starts after the store opened and stops before it closes."""
@@ -397,14 +401,14 @@ def create_app(
         limit: Annotated[int, Query(ge=1, le=MAX_LIMIT)] = DEFAULT_LIMIT,
         offset: Annotated[int, Query(ge=0, le=MAX_OFFSET)] = 0,
         include_unconfirmed: Annotated[
-            bool, Query(description="also objects association has not confirmed (`confirmed` false)")
-        ] = False,
+            Flag, Query(description="also objects association has not confirmed (`confirmed` false)")
+        ] = "false",
     ) -> JSONResponse:
         """Objects matching every filter; nearest centre first when `near` is given, else by id."""
         try:
             centre = None if near is None else parse_near(near)
             page = objects.find(ObjectQuery(category, centre, radius, min_confidence, robot, limit, offset,
-                                            include_unconfirmed))
+                                            include_unconfirmed == "true"))
         except ObjectMapError as exc:
             raise HTTPException(422, str(exc)) from exc
         return JSONResponse({
@@ -451,10 +455,10 @@ def create_app(
     @app.get("/v1/categories", response_model=CategoryList)
     def categories(
         objects: ObjectMapDep,
-        include_unconfirmed: Annotated[bool, Query(description="also count unconfirmed objects")] = False,
+        include_unconfirmed: Annotated[Flag, Query(description="also count unconfirmed objects")] = "false",
     ) -> CategoryList:
         """Every knowledge-graph class with its number of (confirmed) objects in the map."""
-        counts = objects.categories(include_unconfirmed)
+        counts = objects.categories(include_unconfirmed == "true")
         out = []
         for name, n in counts.items():
             try:

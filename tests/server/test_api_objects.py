@@ -229,7 +229,8 @@ def test_unconfirmed_objects_only_when_asked(tmp_path: Path) -> None:
         resp = c.get("/v1/objects", params={"near": "1,0,0.5", "radius": 2, "include_unconfirmed": "true"})
         assert _ids(resp) == [2, 1]
         assert [o["confirmed"] for o in resp.json()["objects"]] == [False, True]
-        counts = {k["name"]: k["count"] for k in c.get("/v1/categories").json()["categories"]}
+        listed = c.get("/v1/categories").json()
+        counts = {k["name"]: k["count"] for k in listed["categories"]}
         assert counts["cabinet"] == 1
         every = c.get("/v1/categories", params={"include_unconfirmed": "true"}).json()
         assert {k["name"]: k["count"] for k in every["categories"]}["cabinet"] == 2 and every["total"] == 2
@@ -237,5 +238,9 @@ def test_unconfirmed_objects_only_when_asked(tmp_path: Path) -> None:
         metrics = c.get("/metrics").text
         assert 'wardmap_map_objects{confirmed="true"} 1' in metrics
         assert 'wardmap_map_objects{confirmed="false"} 1' in metrics
-        bad = c.get("/v1/objects", params={"include_unconfirmed": "maybe"})
-        assert bad.status_code == 422 and bad.json()["detail"][0]["loc"] == ["query", "include_unconfirmed"]
+        for word in ("maybe", "1", "yes", "True"):  # the Zenoh parser's words only: true, false
+            for path in ("/v1/objects", "/v1/categories"):
+                bad = c.get(path, params={"include_unconfirmed": word})
+                assert bad.status_code == 422, (path, word)
+                assert bad.json()["detail"][0]["loc"] == ["query", "include_unconfirmed"]
+        assert c.get("/v1/categories", params={"include_unconfirmed": "false"}).json() == listed
