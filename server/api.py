@@ -520,6 +520,9 @@ def _pipeline_metrics(c: PipelineCounters) -> str:
         ("wardmap_mapping_floating_left_out_total", "counter",
          "Instances perception left out for floating above the floor (perception.floor_gap_m).",
          [("", c.floating)]),
+        ("wardmap_mapping_beyond_range_total", "counter",
+         "Stored measurements association left out for lying beyond association.max_range_m.",
+         [("", c.beyond_range)]),
     ]
     out = []
     for name, kind, help_text, samples in rows:

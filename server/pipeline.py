@@ -161,6 +161,8 @@ class PipelineCounters:
             went quiet (``close_idle_s``).
         floating: instances left out for floating above the floor
             (``PerceptionConfig.floor_gap_m``; keyframes with ``T_odom_base``).
+        beyond_range: stored measurements association left out for lying farther than
+            ``AssociationConfig.max_range_m`` from their camera.
     """
 
     processed: int
@@ -175,6 +177,7 @@ class PipelineCounters:
     last_error: str = ""
     closed_idle: int = 0
     floating: int = 0
+    beyond_range: int = 0
 
 
 @dataclass
@@ -189,6 +192,7 @@ class _Counts:
     last_error: str = ""
     closed_idle: int = 0
     floating: int = 0
+    beyond_range: int = 0
 
 
 class MapPipeline:
@@ -262,7 +266,7 @@ class MapPipeline:
             c = self._counts
             return PipelineCounters(c.processed, c.measurements, c.mapped, c.unanchored, c.replayed,
                                     self._backlog, dict(c.failures), len(self._associator.landmarks()),
-                                    c.restarts, c.last_error, c.closed_idle, c.floating)
+                                    c.restarts, c.last_error, c.closed_idle, c.floating, c.beyond_range)
 
     def wait_idle(self, timeout_s: float) -> bool:
         """Block until every stored keyframe is measured, associated and on the object map (tests,
@@ -410,12 +414,14 @@ class MapPipeline:
                 self._collect(self._associator.flush(previous), touched, new)
             self._open_stream[robot] = kf.stream
             self._last_seen[kf.stream] = time.monotonic()
+            far = self._associator.beyond_range
             changes = self._associator.add_keyframe(
                 for_association(kf.measurements), kf.T_map_camera, kf.camera, stream=kf.stream
             )
             self._collect(changes, touched, new)
             with self._lock:
                 self._counts.mapped += 1
+                self._counts.beyond_range += self._associator.beyond_range - far
         self._write_landmarks(touched.values(), new)
 
     def _close_idle(self) -> None:

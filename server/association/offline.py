@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from wardmap.server.association.associator import METHODS, AssociationConfig, Associator, Method
+from wardmap.server.association.associator import METHODS, AssociationConfig, Associator, Method, beyond_range
 from wardmap.server.association.types import Landmark
 from wardmap.server.perception.instances import attach_gt_instances, id_to_class, oracle_instances
 from wardmap.server.perception.measure import MeasureConfig, mean_rgb, measure_instances
@@ -321,7 +321,9 @@ def landmarks_document(
         "datasets": [
             {"name": ds.name, "frames": ds.frames, "keyframes": len(ds.keyframes),
              "frames_without_pose": ds.frames_without_pose, "moving_left_out": ds.moving_left_out,
-             "floating_left_out": ds.floating_left_out}
+             "floating_left_out": ds.floating_left_out,
+             "beyond_range": sum(beyond_range(m, config.max_range_m) for kf in ds.keyframes
+                                 for m in kf.measurements)}
             for ds in datasets
         ],
         "config": to_mapping(config),

@@ -73,15 +73,6 @@ class MeasureConfig:
     """Depth below this is ignored (sensor minimum range)."""
     max_depth_m: float = 8.0
     """Depth beyond this is ignored (noise grows with depth squared)."""
-    max_range_m: float = 6.0
-    """Instances whose measured centre lies farther than this along the camera axis are skipped
-    (set it to ``max_depth_m`` or more to measure everything). Far views are the noisiest and
-    the most often wrong: a far wall corner taken for a cabinet, two far doors at a grazing view
-    in one mask. An object is measured once the robot comes nearer. Model measurements of the
-    association worlds, all classes (pickled, /tmp script; counts are objects with a measurement
-    left): on the tuning worlds (seeds 1002 and 1003, 14 sequences) landmark count equal to that
-    ground truth 3 -> 5 and association better than both baselines 3 -> 10 with 6.0 (7.0: 3 and 5,
-    6.5: 5 and 7, 5.5: 6 and 7); accuracy over seeds 1001-1003 97.4 -> 98.4 %."""
     erode_px: int = 1
     """Mask erosion radius in pixels before back-projection (mixed depth at borders)."""
     min_points: int = 50
@@ -146,8 +137,6 @@ class MeasureConfig:
     def __post_init__(self) -> None:
         if not 0 < self.min_depth_m < self.max_depth_m:
             raise ConfigError("MeasureConfig: need 0 < min_depth_m < max_depth_m")
-        if not self.max_range_m > self.min_depth_m:
-            raise ConfigError(f"MeasureConfig: max_range_m must be > min_depth_m, got {self.max_range_m}")
         if not 0.0 <= self.min_depth_fraction <= 1.0:
             raise ConfigError(
                 f"MeasureConfig: min_depth_fraction must lie in 0..1, got {self.min_depth_fraction}"
@@ -413,8 +402,7 @@ def measure_instances_report(
 
     Returns:
         A :class:`MeasureReport` with the measurements and, for each skipped instance
-        (too little depth, flush with its wall, too few valid depth points after outlier
-        removal, or farther than ``max_range_m``), its index and the reason.
+        (too few valid depth points after outlier removal), its index and the reason.
     """
     cfg = config or MeasureConfig()
     image = np.asarray(bgr)
@@ -499,11 +487,6 @@ def measure_instances_report(
         T_world_object[:3, :3] = R_wg @ yaw_rotation(yaw)
         T_world_object[:3, 3] = R_wg @ centre_g
         T_camera_object = T_cw @ T_world_object
-        if T_camera_object[2, 3] > cfg.max_range_m:
-            reason = f"centre {T_camera_object[2, 3]:.2f} m away > max_range_m {cfg.max_range_m:g}"
-            report.skipped.append((index, reason))
-            log.debug("measure %s: skip instance %d (%s): %s", keyframe, index, inst.category, reason)
-            continue
         hist, descriptors = _appearance(image, inst.mask, cfg)
         log.debug("measure %s: %s yaw from %s, %d points", keyframe, inst.category, source, len(points_c))
         report.measurements.append(

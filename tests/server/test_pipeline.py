@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
-from wardmap.server.association.associator import AssociationConfig
+from wardmap.server.association.associator import AssociationConfig, beyond_range
 from wardmap.server.objectmap import ObjectMap
 from wardmap.server.perception.models import PerceptionConfig
 from wardmap.server.pipeline import (
@@ -83,6 +83,7 @@ def _run(path: Path, keyframes: list[tuple[KeyframeMsg, bytes]], close_idle_s: f
             assert counters.closed_idle == closures
             landmarks = pipe._associator.landmarks()
             LAST["landmarks"] = len(landmarks)
+            LAST["beyond_range"] = counters.beyond_range
             LAST["associated"] = sum(lm.n_measurements for lm in landmarks)
             LAST["held"] = max((len(lm.measurements) for lm in landmarks), default=0)
             LAST["most"] = max((lm.n_measurements for lm in landmarks), default=0)
@@ -226,12 +227,15 @@ def test_replay_reads_no_keyframe_payload_and_backfills_old_stores(tmp_path: Pat
 
 
 def _session_observations(db: Path, session: str) -> tuple[int, int]:
-    """(observations, anchored measurements) of one session in the store ``db``."""
+    """(observations, anchored measurements within association's ``max_range_m``) of one session
+    in the store ``db``; the farther ones are stored but never mapped."""
+    max_range = AssociationConfig().max_range_m
     with SqliteKeyframeStore.open(db) as store, store.reading("test") as conn:
         n_obs = conn.execute("SELECT COUNT(*) FROM observations WHERE session_id = ?",
                              (session,)).fetchone()[0]
-        n_meas = conn.execute("SELECT COUNT(*) FROM measurements WHERE session_id = ? AND anchored = 1",
-                              (session,)).fetchone()[0]
+        blobs = conn.execute("SELECT payload FROM measurements WHERE session_id = ? AND anchored = 1",
+                             (session,)).fetchall()
+    n_meas = sum(not beyond_range(unpack_measurement(bytes(b)), max_range) for (b,) in blobs)
     return int(n_obs), int(n_meas)
 
 
@@ -265,13 +269,14 @@ def test_an_idle_session_is_closed_and_replayed(tmp_path: Path, anchored: list) 
         rows = conn.execute("SELECT robot_id, session_id, at_rowid FROM closed_sessions").fetchall()
     assert [tuple(r) for r in rows] == [("r1", "s1", 7)]
     _, _, replayed = _run(db, [], close_idle_s=0.0)  # replay alone repeats the closure
-    assert replayed == n_meas and LAST["landmarks"] == landmarks
+    assert replayed == n_meas + LAST["beyond_range"] and LAST["landmarks"] == landmarks
     assert _session_observations(db, "s1") == (n_meas, n_meas)
     _run(db, later, close_idle_s=0.3, closures=1)  # the session resumes, then goes quiet again
     n_obs, n_meas = _session_observations(db, "s1")
     assert n_obs == n_meas
     _, _, replayed = _run(db, [], close_idle_s=0.0)
-    assert replayed == n_meas and _session_observations(db, "s1") == (n_meas, n_meas)
+    assert LAST["beyond_range"] > 0  # the scene has objects farther than max_range_m: stored, not mapped
+    assert replayed == n_meas + LAST["beyond_range"] and _session_observations(db, "s1") == (n_meas, n_meas)
 
 
 def test_a_session_waiting_in_the_backlog_is_not_idle(tmp_path: Path, anchored: list) -> None:
@@ -474,9 +479,10 @@ def test_mapping_counters_in_prometheus_text() -> None:
     from wardmap.server.api import _pipeline_metrics
 
     text = _pipeline_metrics(PipelineCounters(5, 7, 4, 1, 0, 2, {"GeometryError": 1}, 3, closed_idle=1,
-                                              floating=6))
+                                              floating=6, beyond_range=9))
     samples = dict(line.rsplit(" ", 1) for line in text.splitlines() if line and not line.startswith("#"))
     assert samples["wardmap_mapping_floating_left_out_total"] == "6"
+    assert samples["wardmap_mapping_beyond_range_total"] == "9"
     assert samples["wardmap_mapping_keyframes_total"] == "5" and samples["wardmap_mapping_backlog"] == "2"
     assert samples['wardmap_mapping_failures_total{reason="GeometryError"}'] == "1"
     assert "# TYPE wardmap_mapping_floating_left_out_total counter" in text

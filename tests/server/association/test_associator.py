@@ -231,8 +231,30 @@ def test_flat_slivers_at_the_side_of_the_view_stay_unconfirmed(make_measurement:
     assert (score.landmarks, score.unconfirmed) == (2, 1)
 
 
+@pytest.mark.parametrize("method", ["hierarchical", "per_keyframe_hdp", "nearest"])
+def test_measurements_beyond_max_range_are_counted_not_associated(make_measurement: MeasurementFactory,
+                                                                  method: str) -> None:
+    """A chair 6.5 m ahead of the camera is left out of every landmark and counted in
+    ``beyond_range``; one 5.5 m ahead is associated; with ``max_range_m`` 7 m both are."""
+    T = camera_looking_along_y(0.0)
+    scene = [[make_measurement(object_pose(-1.0, 5.5), T, gt=1, keyframe=f"kf{k}", stamp=float(k)),
+              make_measurement(object_pose(1.0, 6.5), T, gt=2, keyframe=f"kf{k}", stamp=float(k))]
+             for k in range(3)]
+    for max_range, kept, far in ((None, {1}, 3), (7.0, {1, 2}, 0)):
+        cfg = AssociationConfig(method=method) if max_range is None else \
+            AssociationConfig(method=method, max_range_m=max_range)  # type: ignore[arg-type]
+        assoc = Associator(cfg)
+        for ms in scene:
+            assoc.add_keyframe(ms, T, CAMERA)
+        assoc.flush()
+        assert {m.gt_instance for lm in assoc.landmarks() for m in lm.measurements} == kept
+        assert assoc.beyond_range == far
+
+
 def test_confirmation_config_is_checked() -> None:
     with pytest.raises(ConfigError, match="flat_m"):
         from_mapping(AssociationConfig, {"flat_m": -0.1})
+    with pytest.raises(ConfigError, match="max_range_m"):
+        from_mapping(AssociationConfig, {"max_range_m": 0.0})
     with pytest.raises(ValueError, match="confirm_classes: not knowledge-graph classes: unicorn"):
         Associator(AssociationConfig(confirm_classes=("cabinet", "unicorn")))

@@ -281,29 +281,6 @@ def test_gravity_other_than_minus_z() -> None:
     np.testing.assert_allclose(m.size, BOX_SIZE, atol=0.05)
 
 
-def test_instances_beyond_max_range_are_skipped_with_a_reason() -> None:
-    """The same box seen from 6.5 m along the view axis: skipped under the default max_range_m 6 m,
-    measured (centre within 5 cm) when the range is 7 m; one seen from 5.5 m is measured."""
-    target = T_WORLD_BOX[:3, 3]
-    away = T_WORLD_CAM[:3, 3] - target
-    away /= np.linalg.norm(away)
-    for dist, measured in ((6.5, False), (5.5, True)):
-        T_cam = look_at(target + dist * away, target)
-        depth, mask = render_box(T_cam, T_WORLD_BOX, BOX_SIZE)
-        assert mask.sum() > 200
-        report = measure_instances_report([Instance("cabinet", 1.0, mask, np.zeros(4))], bgr=BGR,
-                                          depth_m=depth, camera=CAMERA, T_world_camera=T_cam,
-                                          keyframe="k", stamp=0.0)
-        assert len(report.measurements) == int(measured), dist
-        if not measured:
-            assert report.skipped[0][0] == 0 and "max_range_m 6" in report.skipped[0][1]
-            (m,) = measure_instances_report(
-                [Instance("cabinet", 1.0, mask, np.zeros(4))], bgr=BGR, depth_m=depth, camera=CAMERA,
-                T_world_camera=T_cam, keyframe="k", stamp=0.0, config=MeasureConfig(max_range_m=7.0),
-            ).measurements
-            assert np.linalg.norm(m.T_world_object[:3, 3] - target) < 0.05
-
-
 def test_bad_inputs_raise() -> None:
     depth, mask = render_box(T_WORLD_CAM, T_WORLD_BOX, BOX_SIZE)
     with pytest.raises(GeometryError, match="depth"):
@@ -312,8 +289,6 @@ def test_bad_inputs_raise() -> None:
         measure_one(mask[:10], depth)
     with pytest.raises(ConfigError, match="min_depth_m"):
         MeasureConfig(min_depth_m=3.0, max_depth_m=1.0)
-    with pytest.raises(ConfigError, match="max_range_m"):
-        MeasureConfig(max_range_m=0.1)
 
 
 # ---------------------------------------------------------------------------- instances
