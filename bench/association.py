@@ -190,7 +190,8 @@ def main() -> int:
         f"Command: `python bench/association.py --seed {args.seed} --write BENCHMARKS.md`  ",
         f"Machine: {machine()}; commit {git_rev()}. Ground-truth camera poses; keyframes every 0.1 m "
         "or 10 deg; default `AssociationConfig` (M = 6, j = 2); HDP-SLAM = `per_keyframe_hdp`. "
-        "Object_GT = distinct non-moving objects with at least one measurement. Objects = confirmed "
+        "Object_GT = distinct non-moving objects with at least one associated measurement "
+        "(within `max_range_m`, 6 m). Objects = confirmed "
         "landmarks, the map's objects (same rule for every method; \"(+n)\": n landmarks kept but "
         "not confirmed, docs/association.md, Confirmation). On an object = "
         "share of measurements whose mask is mostly on a ground-truth object (the ceiling of the "
