@@ -13,6 +13,7 @@ from wardmap.server.association.evaluate import score_landmarks
 from wardmap.server.association.offline import (
     MapConfig,
     associate,
+    landmarks_document,
     measure_dataset,
     run_map,
     select_keyframes,
@@ -84,6 +85,20 @@ def test_methods_share_the_measurements(small: Path) -> None:
         score = score_landmarks(associate([ds], AssociationConfig(method=method)), ds.gt_classes, ("person",))
         assert score.measurements == total
         assert 0.0 <= score.accuracy <= 1.0
+
+
+def test_measurements_beyond_range_are_counted_in_landmarks_json(small: Path) -> None:
+    """With a range that cuts the data set's measurements in two, landmarks.json counts the far
+    ones per data set and the landmarks hold the rest: none is unaccounted for."""
+    every_frame = MapConfig(keyframe_min_translation_m=0.0, keyframe_min_rotation_deg=0.0)
+    ds = measure_dataset(small, config=every_frame)
+    depths = [float(m.T_camera_object[2, 3]) for k in ds.keyframes for m in k.measurements]
+    cfg = AssociationConfig(max_range_m=float(np.median(depths)))
+    landmarks = associate([ds], cfg)
+    doc = landmarks_document(landmarks, method=cfg.method, measurements="oracle", datasets=[ds], config=cfg)
+    far = doc["datasets"][0]["beyond_range"]
+    assert 0 < far < len(depths)
+    assert far + sum(len(lm["measurements"]) for lm in doc["landmarks"]) == len(depths)
 
 
 def test_errors(small: Path, tmp_path: Path) -> None:
