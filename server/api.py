@@ -35,6 +35,7 @@ from wardmap.server.objectmap import (
     ObjectRecord,
     parse_near,
 )
+from wardmap.server.perception.measure import SKIP_KINDS
 from wardmap.server.pipeline import MapPipeline, PipelineCounters, PipelineFactory
 from wardmap.server.store import MAX_PAGE, KeyframeStore, StoreError, open_store
 from wardmap.shared.errors import KnowledgeGraphError, WardmapError
@@ -523,6 +524,10 @@ def _pipeline_metrics(c: PipelineCounters) -> str:
         ("wardmap_mapping_beyond_range_total", "counter",
          "Stored measurements association left out for lying beyond association.max_range_m.",
          [("", c.beyond_range)]),
+        ("wardmap_mapping_instances_skipped_total", "counter",
+         "Instances perception found but could not measure (stored keyframes), by kind.",
+         [(f'{{kind="{k}"}}', c.skipped.get(k, 0))
+          for k in (*SKIP_KINDS, *sorted(set(c.skipped) - set(SKIP_KINDS)))]),
     ]
     out = []
     for name, kind, help_text, samples in rows:

@@ -68,7 +68,7 @@ from wardmap.server.association.associator import AssociationConfig, Associator
 from wardmap.server.association.types import Landmark, LandmarkChange
 from wardmap.server.codedigest import code_digest
 from wardmap.server.objectmap import ObjectMap, from_landmark
-from wardmap.server.perception.measure import mean_rgb, measure_instances
+from wardmap.server.perception.measure import mean_rgb, measure_instances_report
 from wardmap.server.perception.models import (
     PerceptionConfig,
     Segmenter,
@@ -163,6 +163,8 @@ class PipelineCounters:
             (``PerceptionConfig.floor_gap_m``; keyframes with ``T_odom_base``).
         beyond_range: stored measurements association left out for lying farther than
             ``AssociationConfig.max_range_m`` from their camera.
+        skipped: instances perception found but could not measure, by kind
+            (:data:`~wardmap.server.perception.measure.SKIP_KINDS`).
     """
 
     processed: int
@@ -178,6 +180,7 @@ class PipelineCounters:
     closed_idle: int = 0
     floating: int = 0
     beyond_range: int = 0
+    skipped: dict[str, int] = field(default_factory=dict)
 
 
 @dataclass
@@ -193,6 +196,7 @@ class _Counts:
     closed_idle: int = 0
     floating: int = 0
     beyond_range: int = 0
+    skipped: Counter[str] = field(default_factory=Counter)
 
 
 class MapPipeline:
@@ -266,7 +270,8 @@ class MapPipeline:
             c = self._counts
             return PipelineCounters(c.processed, c.measurements, c.mapped, c.unanchored, c.replayed,
                                     self._backlog, dict(c.failures), len(self._associator.landmarks()),
-                                    c.restarts, c.last_error, c.closed_idle, c.floating, c.beyond_range)
+                                    c.restarts, c.last_error, c.closed_idle, c.floating, c.beyond_range,
+                                    dict(c.skipped))
 
     def wait_idle(self, timeout_s: float) -> bool:
         """Block until every stored keyframe is measured, associated and on the object map (tests,
@@ -396,10 +401,14 @@ class MapPipeline:
             log.debug("keyframe %s: %d instance(s) float above the floor, left out", key, floating)
             with self._lock:
                 self._counts.floating += floating
-        return measure_instances(
+        report = measure_instances_report(
             instances, bgr=bgr, depth_m=depth, camera=camera, T_world_camera=T_map_camera,
             keyframe=key, stamp=msg.stamp, config=self._measure_config,
         )
+        if report.skipped:
+            with self._lock:
+                self._counts.skipped.update(skip.kind for skip in report.skipped)
+        return report.measurements
 
     def _associate(self, keyframes: Iterable[_MappedKeyframe]) -> None:
         touched: dict[int, Landmark] = {}

@@ -21,8 +21,9 @@ import dataclasses
 import json
 import logging
 import math
+from collections import Counter
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
@@ -33,7 +34,7 @@ from numpy.typing import NDArray
 from wardmap.server.association.associator import METHODS, AssociationConfig, Associator, Method, beyond_range
 from wardmap.server.association.types import Landmark
 from wardmap.server.perception.instances import attach_gt_instances, id_to_class, oracle_instances
-from wardmap.server.perception.measure import MeasureConfig, mean_rgb, measure_instances
+from wardmap.server.perception.measure import SKIP_KINDS, MeasureConfig, mean_rgb, measure_instances_report
 from wardmap.server.perception.models import PerceptionConfig, drop_floating, floor_under, split_instances
 from wardmap.server.perception.types import Instance, ObjectMeasurement
 from wardmap.shared.camera import PinholeCamera
@@ -107,6 +108,8 @@ class DatasetMeasurements:
         gt_classes: ground-truth instance id -> class (``objects.json``), or None.
         floating_left_out: network instances left out for floating above the floor
             (``PerceptionConfig.floor_gap_m``; only data sets with a ``[base]`` calibration).
+        skipped: instances found but not measured, by kind
+            (:data:`~wardmap.server.perception.measure.SKIP_KINDS`).
     """
 
     name: str
@@ -117,6 +120,7 @@ class DatasetMeasurements:
     moving_left_out: int
     gt_classes: dict[int, str] | None
     floating_left_out: int = 0
+    skipped: dict[str, int] = field(default_factory=dict)
 
 
 def select_keyframes(
@@ -234,6 +238,7 @@ def measure_dataset(
     mcfg = measure_config or MeasureConfig()
     keyframes: list[KeyframeMeasurements] = []
     moving = floating = 0
+    skipped: Counter[str] = Counter()
     T_base_rgb = reader.calibration.T_base_rgb
     for done, i in enumerate(chosen):
         frame = reader.frame(i)
@@ -257,16 +262,19 @@ def measure_dataset(
         kept = [inst for inst in instances if not kg.is_moving(inst.category)]
         moving += len(instances) - len(kept)
         key = f"{name}/{frame.stamp:.6f}"
-        ms = measure_instances(kept, bgr=bgr, depth_m=frame.depth_m, camera=camera, T_world_camera=T,
-                               keyframe=key, stamp=frame.stamp, config=mcfg)
+        report = measure_instances_report(kept, bgr=bgr, depth_m=frame.depth_m, camera=camera,
+                                          T_world_camera=T, keyframe=key, stamp=frame.stamp, config=mcfg)
+        ms = report.measurements
+        skipped.update(skip.kind for skip in report.skipped)
         keyframes.append(KeyframeMeasurements(key, frame.stamp, T, tuple(_slim(m, cfg.keep_points)
                                                                           for m in ms)))
         if progress is not None:
             progress(name, done + 1, len(chosen))
-    log.info("%s: %d frames, %d keyframes, %d measurements (%d moving, %d floating left out)", name,
-             len(reader), len(keyframes), sum(len(k.measurements) for k in keyframes), moving, floating)
+    log.info("%s: %d frames, %d keyframes, %d measurements (%d moving, %d floating left out, "
+             "%d not measurable)", name, len(reader), len(keyframes),
+             sum(len(k.measurements) for k in keyframes), moving, floating, sum(skipped.values()))
     return DatasetMeasurements(name, camera, keyframes, len(reader), without_pose, moving, gt_classes,
-                               floating)
+                               floating, dict(skipped))
 
 
 def associate(
@@ -322,6 +330,7 @@ def landmarks_document(
             {"name": ds.name, "frames": ds.frames, "keyframes": len(ds.keyframes),
              "frames_without_pose": ds.frames_without_pose, "moving_left_out": ds.moving_left_out,
              "floating_left_out": ds.floating_left_out,
+             "skipped": {k: ds.skipped.get(k, 0) for k in SKIP_KINDS},
              "beyond_range": sum(beyond_range(m, config.max_range_m) for kf in ds.keyframes
                                  for m in kf.measurements)}
             for ds in datasets

@@ -36,6 +36,7 @@ import logging
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Final, NamedTuple
 
 import cv2
 import numpy as np
@@ -50,7 +51,15 @@ from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.errors import ConfigError, GeometryError
 from wardmap.shared.se3 import check_transform, inverse, yaw_rotation
 
-__all__ = ["MeasureConfig", "MeasureReport", "mean_rgb", "measure_instances", "measure_instances_report"]
+__all__ = [
+    "SKIP_KINDS",
+    "MeasureConfig",
+    "MeasureReport",
+    "Skip",
+    "mean_rgb",
+    "measure_instances",
+    "measure_instances_report",
+]
 
 log = logging.getLogger(__name__)
 
@@ -163,17 +172,34 @@ class MeasureConfig:
             raise ConfigError("MeasureConfig: hist_bins needs three positive counts; orb_features >= 0")
 
 
+SKIP_KINDS: Final = ("empty_mask", "little_depth", "flush", "few_points")
+"""Why an instance is not measured: an empty mask; valid depth on less than
+``min_depth_fraction`` of the mask; a raised class flush with its surroundings; fewer than
+``min_points`` points left after outlier removal."""
+
+
+class Skip(NamedTuple):
+    """An instance :func:`measure_instances_report` did not measure."""
+
+    instance: int
+    """Its index in the input instances."""
+    kind: str
+    """One of :data:`SKIP_KINDS` (a metric label)."""
+    reason: str
+    """The same for a person, with the numbers."""
+
+
 @dataclass(frozen=True)
 class MeasureReport:
     """Result of :func:`measure_instances_report`.
 
     Attributes:
         measurements: one per measured instance, in input order.
-        skipped: ``(index into the input, reason)`` for each instance not measured.
+        skipped: a :class:`Skip` for each instance not measured, in input order.
     """
 
     measurements: list[ObjectMeasurement]
-    skipped: list[tuple[int, str]] = field(default_factory=list)
+    skipped: list[Skip] = field(default_factory=list)
 
 
 def _gravity_rotation(gravity_world: ArrayLike) -> F64:
@@ -401,8 +427,8 @@ def measure_instances_report(
     """Measure every instance of one keyframe; see :func:`measure_instances` for the arguments.
 
     Returns:
-        A :class:`MeasureReport` with the measurements and, for each skipped instance
-        (too few valid depth points after outlier removal), its index and the reason.
+        A :class:`MeasureReport` with the measurements and, for each instance not measured,
+        a :class:`Skip` (its index, kind from :data:`SKIP_KINDS`, reason).
     """
     cfg = config or MeasureConfig()
     image = np.asarray(bgr)
@@ -435,7 +461,7 @@ def measure_instances_report(
         rows = np.flatnonzero(inst.mask.any(axis=1))
         cols = np.flatnonzero(inst.mask.any(axis=0))
         if rows.size == 0:
-            report.skipped.append((index, "empty mask: 0 points < min_points"))
+            report.skipped.append(Skip(index, "empty_mask", "empty mask: 0 points < min_points"))
             log.debug("measure %s: skip instance %d (%s): empty mask", keyframe, index, inst.category)
             continue
         # Work in the mask's bounding window (plus the erosion margin), not the whole image.
@@ -448,7 +474,7 @@ def measure_instances_report(
             share = float(np.count_nonzero((d >= cfg.min_depth_m) & (d <= cfg.max_depth_m))) / max(d.size, 1)
             if share < cfg.min_depth_fraction:
                 reason = f"depth on {100 * share:.0f} % of the mask < {100 * cfg.min_depth_fraction:.0f} %"
-                report.skipped.append((index, reason))
+                report.skipped.append(Skip(index, "little_depth", reason))
                 log.debug("measure %s: skip instance %d (%s): %s", keyframe, index, inst.category, reason)
                 continue
         if cfg.flush_tolerance_m > 0 and inst.category in cfg.raised_classes:
@@ -456,7 +482,7 @@ def measure_instances_report(
             if relief is not None and abs(relief) < cfg.flush_tolerance_m:
                 reason = (f"flush with its surroundings ({100 * relief:+.1f} cm, a {inst.category} "
                           f"stands out more than {100 * cfg.flush_tolerance_m:.0f} cm)")
-                report.skipped.append((index, reason))
+                report.skipped.append(Skip(index, "flush", reason))
                 log.debug("measure %s: skip instance %d (%s): %s", keyframe, index, inst.category, reason)
                 continue
         if kernel is not None:
@@ -470,7 +496,7 @@ def measure_instances_report(
                 points_c = points_c[_largest_cluster(points_c, cfg.cluster_gap_m)]
         if points_c.shape[0] < cfg.min_points:
             reason = f"{points_c.shape[0]} valid depth points < min_points {cfg.min_points}"
-            report.skipped.append((index, reason))
+            report.skipped.append(Skip(index, "few_points", reason))
             log.debug("measure %s: skip instance %d (%s): %s", keyframe, index, inst.category, reason)
             continue
         points_g = points_c @ T_gc[:3, :3].T + T_gc[:3, 3]

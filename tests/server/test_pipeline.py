@@ -475,6 +475,49 @@ def test_a_chair_floating_above_the_floor_is_left_out_and_counted(tmp_path: Path
     assert counts == [(1, 1, 0, 0), (1, 0, 1, 1)]
 
 
+class _ChairAndHole(_WallChair):
+    """The wall chair, and a 'cabinet' where the depth image has a hole."""
+
+    def __call__(self, bgr: np.ndarray, depth_m: np.ndarray | None) -> list:
+        from wardmap.server.perception.instances import box_of_mask
+        from wardmap.server.perception.types import Instance
+
+        hole = np.zeros(bgr.shape[:2], bool)
+        hole[20:60, 20:80] = True
+        return [*super().__call__(bgr, depth_m), Instance("cabinet", 0.9, hole, box_of_mask(hole))]
+
+
+def test_instances_perception_cannot_measure_are_counted_by_kind(tmp_path: Path) -> None:
+    """An instance on a depth hole is not measured: no measurement, one 'little_depth' skip in the
+    counters and in /metrics (every kind has its line); the chair beside it is measured."""
+    from wardmap.server.api import _pipeline_metrics
+    from wardmap.server.perception.measure import SKIP_KINDS
+    from wardmap.shared.camera import PinholeCamera
+
+    camera = PinholeCamera(320, 240, 262.5, 262.5, 159.5, 119.5)
+    depth = np.full((240, 320), 3.0, np.float32)
+    depth[104:152, 148:168] = 2.9
+    depth[16:64, 16:84] = 0.0
+    ok, jpg = cv2.imencode(".jpg", np.full((240, 320, 3), 128, np.uint8))
+    assert ok
+    empty = Keypoints(np.zeros((0, 2), np.float32), np.zeros(0, np.int16), np.zeros(0, np.float32),
+                      np.zeros(0, np.float32), np.zeros((0, 32), np.uint8))
+    msg = KeyframeMsg(robot_id="r1", session_id="s", seq=0, stamp=1.0, T_odom_camera=np.eye(4),
+                      pose_source="rgb", keypoints=empty, rgb_jpeg=jpg.tobytes(),
+                      depth=PackedRaster(*wire.encode_depth(depth[::4, ::4])),
+                      intrinsics=Intrinsics.from_camera(camera, 5000.0))
+    with SqliteKeyframeStore.open(tmp_path / "m.db") as store:
+        store.insert(msg, encode(msg), time.time())
+        c = _counters_when_idle(store, PipelineConfig(poll_s=0.02), _ChairAndHole())
+    assert (c.processed, c.measurements, c.skipped) == (1, 1, {"little_depth": 1})
+    text = _pipeline_metrics(c)
+    samples = dict(line.rsplit(" ", 1) for line in text.splitlines() if not line.startswith("#"))
+    name = "wardmap_mapping_instances_skipped_total"
+    skipped = {k: v for k, v in samples.items() if k.startswith(name)}
+    assert skipped == {f'{name}{{kind="{k}"}}': "1" if k == "little_depth" else "0" for k in SKIP_KINDS}
+    assert f"# TYPE {name} counter" in text
+
+
 def test_mapping_counters_in_prometheus_text() -> None:
     from wardmap.server.api import _pipeline_metrics
 

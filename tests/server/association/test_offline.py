@@ -101,6 +101,31 @@ def test_measurements_beyond_range_are_counted_in_landmarks_json(small: Path) ->
     assert far + sum(len(lm["measurements"]) for lm in doc["landmarks"]) == len(depths)
 
 
+def test_instances_not_measured_are_counted_by_kind(small: Path) -> None:
+    """Every oracle instance of a kept class is either measured or counted as skipped, by kind,
+    in the data set and in landmarks.json (far objects have no depth: some are skipped)."""
+    from wardmap.server.perception.instances import oracle_instances
+    from wardmap.server.perception.measure import SKIP_KINDS
+    from wardmap.shared.dataset import DatasetReader
+    from wardmap.shared.knowledge import KnowledgeGraph
+
+    cfg = MapConfig(keyframe_min_translation_m=0.0, keyframe_min_rotation_deg=0.0)
+    ds = measure_dataset(small, config=cfg)
+    assert ds.gt_classes is not None
+    kg = KnowledgeGraph.load()
+    reader = DatasetReader(small)
+    found = sum(1 for i in range(len(reader))
+                for inst in oracle_instances(reader.frame(i).labels, ds.gt_classes, min_pixels=cfg.min_pixels)
+                if not kg.is_moving(inst.category))
+    measured = sum(len(k.measurements) for k in ds.keyframes)
+    assert sum(ds.skipped.values()) > 0 and set(ds.skipped) <= set(SKIP_KINDS)
+    assert found == measured + sum(ds.skipped.values())
+    acfg = AssociationConfig()
+    doc = landmarks_document(associate([ds], acfg), method=acfg.method, measurements="oracle", datasets=[ds],
+                             config=acfg)
+    assert doc["datasets"][0]["skipped"] == {k: ds.skipped.get(k, 0) for k in SKIP_KINDS}
+
+
 def test_errors(small: Path, tmp_path: Path) -> None:
     """Missing data set, a poses file that covers no frame, --poses count mismatch."""
     with pytest.raises(DatasetError, match="not found"):

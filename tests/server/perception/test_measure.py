@@ -196,13 +196,17 @@ def test_empty_and_depthless_masks_are_skipped_with_a_reason() -> None:
     depth, mask = render_box(T_WORLD_CAM, T_WORLD_BOX, BOX_SIZE)
     empty = np.zeros_like(mask)
     no_depth = ~mask & (np.arange(CAMERA.width)[None, :] < 20)
-    insts = [Instance("cabinet", 1.0, m, np.zeros(4)) for m in (empty, mask, no_depth)]
+    rows, cols = np.nonzero(mask)
+    speck = np.zeros_like(mask)
+    speck[rows[0], cols[0]] = True  # depth on all of it, but one point < min_points
+    insts = [Instance("cabinet", 1.0, m, np.zeros(4)) for m in (empty, mask, no_depth, speck)]
     report = measure_instances_report(insts, bgr=BGR, depth_m=depth, camera=CAMERA,
                                       T_world_camera=T_WORLD_CAM, keyframe="k", stamp=0.0)
     assert len(report.measurements) == 1
-    assert [i for i, _ in report.skipped] == [0, 2]
-    assert "min_points" in report.skipped[0][1]
-    assert "depth on 0 % of the mask" in report.skipped[1][1]
+    assert [(s.instance, s.kind) for s in report.skipped] == [(0, "empty_mask"), (2, "little_depth"),
+                                                           (3, "few_points")]
+    assert "min_points" in report.skipped[0].reason
+    assert "depth on 0 % of the mask" in report.skipped[1].reason
 
 
 def test_masks_mostly_without_depth_are_skipped() -> None:
@@ -214,7 +218,8 @@ def test_masks_mostly_without_depth_are_skipped() -> None:
     holes[mask & (rng.random(mask.shape) < 0.9)] = 0.0
     report = measure_instances_report([Instance("cabinet", 1.0, mask, np.zeros(4))], bgr=BGR, depth_m=holes,
                                       camera=CAMERA, T_world_camera=T_WORLD_CAM, keyframe="k", stamp=0.0)
-    assert not report.measurements and "< 25 %" in report.skipped[0][1]
+    assert not report.measurements and "< 25 %" in report.skipped[0].reason
+    assert report.skipped[0].kind == "little_depth"
     assert len(measure_one(mask, holes, config=MeasureConfig(min_depth_fraction=0.0))) == 1
 
 
@@ -232,7 +237,8 @@ def test_a_monitor_flush_with_the_wall_is_a_picture() -> None:
                                         camera=CAMERA, T_world_camera=T_WORLD_CAM, keyframe="k", stamp=0.0)
     assert len(report(0.06).measurements) == 1
     poster = report(0.01)
-    assert not poster.measurements and "flush with its surroundings" in poster.skipped[0][1]
+    assert not poster.measurements and "flush with its surroundings" in poster.skipped[0].reason
+    assert poster.skipped[0].kind == "flush"
     assert len(report(0.01, "cabinet").measurements) == 1
     off = MeasureConfig(flush_tolerance_m=0.0)
     depth = np.where(rect, 2.99, wall).astype(np.float32)
