@@ -526,8 +526,7 @@ def _pipeline_metrics(c: PipelineCounters) -> str:
          [("", c.beyond_range)]),
         ("wardmap_mapping_instances_skipped_total", "counter",
          "Instances perception found but could not measure (stored keyframes), by kind.",
-         [(f'{{kind="{k}"}}', c.skipped.get(k, 0))
-          for k in (*SKIP_KINDS, *sorted(set(c.skipped) - set(SKIP_KINDS)))]),
+         [(f'{{kind="{k}"}}', c.skipped.get(k, 0)) for k in SKIP_KINDS]),
     ]
     out = []
     for name, kind, help_text, samples in rows:

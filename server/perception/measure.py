@@ -36,7 +36,7 @@ import logging
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Final, NamedTuple
+from typing import Final, Literal, NamedTuple, get_args
 
 import cv2
 import numpy as np
@@ -56,6 +56,7 @@ __all__ = [
     "MeasureConfig",
     "MeasureReport",
     "Skip",
+    "SkipKind",
     "mean_rgb",
     "measure_instances",
     "measure_instances_report",
@@ -172,7 +173,8 @@ class MeasureConfig:
             raise ConfigError("MeasureConfig: hist_bins needs three positive counts; orb_features >= 0")
 
 
-SKIP_KINDS: Final = ("empty_mask", "little_depth", "flush", "few_points")
+SkipKind = Literal["empty_mask", "little_depth", "flush", "few_points"]
+SKIP_KINDS: Final[tuple[SkipKind, ...]] = get_args(SkipKind)
 """Why an instance is not measured: an empty mask; valid depth on less than
 ``min_depth_fraction`` of the mask; a raised class flush with its surroundings; fewer than
 ``min_points`` points left after outlier removal."""
@@ -183,8 +185,8 @@ class Skip(NamedTuple):
 
     instance: int
     """Its index in the input instances."""
-    kind: str
-    """One of :data:`SKIP_KINDS` (a metric label)."""
+    kind: SkipKind
+    """Why (a metric label)."""
     reason: str
     """The same for a person, with the numbers."""
 
