@@ -427,6 +427,25 @@ def test_bad_pipeline_config_is_rejected(kwargs: dict) -> None:
         PipelineConfig(**kwargs)
 
 
+def _grey_keyframe(depth: np.ndarray, session: str = "s", T_odom_camera: np.ndarray | None = None,
+                   T_odom_base: np.ndarray | None = None) -> tuple[KeyframeMsg, bytes]:
+    """One keyframe of a uniform grey image with ``depth`` (240, 320) metres, seen by a 320x240
+    camera (depth sent at 1/4), no keypoints; returns the message and its payload."""
+    from wardmap.shared.camera import PinholeCamera
+
+    camera = PinholeCamera(320, 240, 262.5, 262.5, 159.5, 119.5)
+    ok, jpg = cv2.imencode(".jpg", np.full((240, 320, 3), 128, np.uint8))
+    assert ok
+    empty = Keypoints(np.zeros((0, 2), np.float32), np.zeros(0, np.int16), np.zeros(0, np.float32),
+                      np.zeros(0, np.float32), np.zeros((0, 32), np.uint8))
+    msg = KeyframeMsg(robot_id="r1", session_id=session, seq=0, stamp=1.0,
+                      T_odom_camera=np.eye(4) if T_odom_camera is None else T_odom_camera,
+                      pose_source="rgb", keypoints=empty, rgb_jpeg=jpg.tobytes(),
+                      depth=PackedRaster(*wire.encode_depth(depth[::4, ::4].astype(np.float32))),
+                      intrinsics=Intrinsics.from_camera(camera, 5000.0), T_odom_base=T_odom_base)
+    return msg, encode(msg)
+
+
 class _WallChair:
     """A segmenter that finds one 'chair' 0.7-1.2 m up the wall (a fire extinguisher)."""
 
@@ -442,30 +461,16 @@ class _WallChair:
 def test_a_chair_floating_above_the_floor_is_left_out_and_counted(tmp_path: Path) -> None:
     """A keyframe of a robot base (floor known) loses the chair on the wall and counts it in
     /metrics' counters; a hand-held camera's keyframe (no base, floor unknown) keeps it."""
-    from wardmap.shared.camera import PinholeCamera
-
-    camera = PinholeCamera(320, 240, 262.5, 262.5, 159.5, 119.5)
-    rows = (np.arange(240) - camera.cy) / camera.fy
+    rows = (np.arange(240) - 119.5) / 262.5  # (v - cy) / fy of the keyframe's camera
     with np.errstate(divide="ignore"):
         depth = np.minimum(np.where(rows > 0, 1.05 / rows, np.inf), 3.0)[:, None] * np.ones((1, 320))
     depth[104:152, 148:168] = 2.9  # 10 cm in front of the wall 3 m ahead, floor below 212
     T_odom_camera = np.eye(4)
     T_odom_camera[:3, :3] = [[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]  # level, along +x
     T_odom_camera[2, 3] = 1.05
-    ok, jpg = cv2.imencode(".jpg", np.full((240, 320, 3), 128, np.uint8))
-    assert ok
-    empty = Keypoints(np.zeros((0, 2), np.float32), np.zeros(0, np.int16), np.zeros(0, np.float32),
-                      np.zeros(0, np.float32), np.zeros((0, 32), np.uint8))
-
-    def keyframe(session: str, T_odom_base: np.ndarray | None) -> tuple[KeyframeMsg, bytes]:
-        msg = KeyframeMsg(robot_id="r1", session_id=session, seq=0, stamp=1.0, T_odom_camera=T_odom_camera,
-                          pose_source="rgb", keypoints=empty, rgb_jpeg=jpg.tobytes(),
-                          depth=PackedRaster(*wire.encode_depth(depth[::4, ::4].astype(np.float32))),
-                          intrinsics=Intrinsics.from_camera(camera, 5000.0), T_odom_base=T_odom_base)
-        return msg, encode(msg)
-
     counts = []
-    for kf in (keyframe("base", np.eye(4)), keyframe("handheld", None)):
+    for kf in (_grey_keyframe(depth, "base", T_odom_camera, np.eye(4)),
+               _grey_keyframe(depth, "handheld", T_odom_camera)):
         with SqliteKeyframeStore.open(tmp_path / f"{kf[0].session_id}.db") as store:
             store.insert(kf[0], kf[1], time.time())
             c = _counters_when_idle(store, PipelineConfig(poll_s=0.02), _WallChair())
@@ -492,22 +497,13 @@ def test_instances_perception_cannot_measure_are_counted_by_kind(tmp_path: Path)
     counters and in /metrics (every kind has its line); the chair beside it is measured."""
     from wardmap.server.api import _pipeline_metrics
     from wardmap.server.perception.measure import SKIP_KINDS
-    from wardmap.shared.camera import PinholeCamera
 
-    camera = PinholeCamera(320, 240, 262.5, 262.5, 159.5, 119.5)
     depth = np.full((240, 320), 3.0, np.float32)
     depth[104:152, 148:168] = 2.9
     depth[16:64, 16:84] = 0.0
-    ok, jpg = cv2.imencode(".jpg", np.full((240, 320, 3), 128, np.uint8))
-    assert ok
-    empty = Keypoints(np.zeros((0, 2), np.float32), np.zeros(0, np.int16), np.zeros(0, np.float32),
-                      np.zeros(0, np.float32), np.zeros((0, 32), np.uint8))
-    msg = KeyframeMsg(robot_id="r1", session_id="s", seq=0, stamp=1.0, T_odom_camera=np.eye(4),
-                      pose_source="rgb", keypoints=empty, rgb_jpeg=jpg.tobytes(),
-                      depth=PackedRaster(*wire.encode_depth(depth[::4, ::4])),
-                      intrinsics=Intrinsics.from_camera(camera, 5000.0))
+    msg, payload = _grey_keyframe(depth)
     with SqliteKeyframeStore.open(tmp_path / "m.db") as store:
-        store.insert(msg, encode(msg), time.time())
+        store.insert(msg, payload, time.time())
         c = _counters_when_idle(store, PipelineConfig(poll_s=0.02), _ChairAndHole())
     assert (c.processed, c.measurements, c.skipped) == (1, 1, {"little_depth": 1})
     text = _pipeline_metrics(c)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -200,8 +202,6 @@ def test_flat_slivers_at_the_side_of_the_view_stay_unconfirmed(make_measurement:
     cabinet) is kept but not confirmed, and not counted as an object; a door seen the same way,
     or a cabinet cut by the border with depth, is confirmed; a whole view confirms the sliver's
     landmark."""
-    from dataclasses import replace
-
     T = camera_looking_along_y(0.0)
     flat, deep = np.array([0.3, 0.02, 0.6]), np.array([0.8, 0.45, 1.7])
     cut = np.array([0.0, 180.0, 40.0, 420.0])  # touches the left border of the 640 px image
@@ -240,9 +240,8 @@ def test_measurements_beyond_max_range_are_counted_not_associated(make_measureme
     scene = [[make_measurement(object_pose(-1.0, 5.5), T, gt=1, keyframe=f"kf{k}", stamp=float(k)),
               make_measurement(object_pose(1.0, 6.5), T, gt=2, keyframe=f"kf{k}", stamp=float(k))]
              for k in range(3)]
-    for max_range, kept, far in ((None, {1}, 3), (7.0, {1, 2}, 0)):
-        cfg = AssociationConfig(method=method) if max_range is None else \
-            AssociationConfig(method=method, max_range_m=max_range)  # type: ignore[arg-type]
+    default = AssociationConfig(method=method)  # type: ignore[arg-type]
+    for cfg, kept, far in ((default, {1}, 3), (replace(default, max_range_m=7.0), {1, 2}, 0)):
         assoc = Associator(cfg)
         for ms in scene:
             assoc.add_keyframe(ms, T, CAMERA)
