@@ -337,8 +337,9 @@ def _mapping_backlog(http: Any) -> int | None:
 
 
 def map_summary(plans: list[RobotPlan], http: Any, timeout_s: float = 120.0) -> str:
-    """Wait for the server's mapping stage to catch up, then the objects on the map and the
-    doors it found against the simulated world's doors (``GET /v1/objects?category=door``)."""
+    """Wait for the server's mapping stage to catch up, then the objects on the map, each checked
+    against the simulated objects of its category, and the doors it found against the simulated
+    world's doors (``GET /v1/objects?category=door``)."""
     import numpy as np
 
     from wardmap.sim.live import LiveRun
@@ -355,11 +356,12 @@ def map_summary(plans: list[RobotPlan], http: Any, timeout_s: float = 120.0) -> 
     r = http.get("/v1/objects", params={"category": "door", "limit": 100})
     r.raise_for_status()
     doors = [o["position"] for o in r.json()["objects"]]
-    world = {}
+    simulated: dict[tuple[str, int, int], tuple[str, Any]] = {}
     for p in plans:
         for o in LiveRun(p.scenario, p.seed, p.sim_robot, frames=1).objects()["objects"]:
-            if o["class"] == "door":
-                world[(p.scenario, p.seed, o["id"])] = np.asarray(o["T_world_object"])[:3, 3]
+            simulated[(p.scenario, p.seed, o["id"])] = (o["class"], np.asarray(o["T_world_object"])[:3, 3])
+    world = {k: xyz for k, (cls, xyz) in simulated.items() if cls == "door"}
+    lines.extend(_map_check(http, simulated))
     lines.append(f"GET /v1/objects?category=door: {len(doors)} doors on the map; the simulated worlds have "
                  f"{len(world)} (a robot maps only the doors it passes)")
     shown = 8
@@ -370,6 +372,38 @@ def map_summary(plans: list[RobotPlan], http: Any, timeout_s: float = 120.0) -> 
     if len(doors) > shown:
         lines.append(f"  ... and {len(doors) - shown} more")
     return "\n".join(lines)
+
+
+def _map_check(http: Any, simulated: dict[tuple[str, int, int], tuple[str, Any]],
+               within_m: float = 0.5) -> list[str]:
+    """Every object on the map against the simulated objects of its class (their start
+    positions; movable ones may have been moved since): how many lie within ``within_m``
+    (horizontal distance, metres), and the others, so a wrong object is seen, not hidden."""
+    import numpy as np
+
+    objects: list[dict[str, Any]] = []
+    offset: int | None = 0
+    while offset is not None:
+        r = http.get("/v1/objects", params={"limit": 500, "offset": offset})
+        r.raise_for_status()
+        body = r.json()
+        objects += body["objects"]
+        offset = body["next_offset"]
+    far = []
+    for o in objects:
+        pos = np.asarray(o["position"], float)
+        d = min((float(np.linalg.norm(pos[:2] - xyz[:2])) for cls, xyz in simulated.values()
+                 if cls == o["category"]), default=float("inf"))
+        if d > within_m:
+            far.append((o, d))
+    lines = [f"CHECK: {len(objects) - len(far)} of {len(objects)} objects on the map lie within {within_m} m "
+             f"of a simulated object of their category"]
+    for o, d in far:
+        x, y, z = o["position"]
+        cat = o["category"]
+        what = f"nearest simulated {cat} {d:.2f} m" if np.isfinite(d) else f"no simulated {cat}"
+        lines.append(f"  not: {o['category']} {o['object_id']} at ({x:.2f}, {y:.2f}, {z:.2f}) m, {what}")
+    return lines
 
 
 def map_pose(plan: RobotPlan) -> str:

@@ -76,6 +76,11 @@ def test_demo_two_robots_exits_cleanly() -> None:
     # the map server's mapping stage ran: the demo asked it for the doors
     assert re.search(r"^MAP: objects by category: ", done.stdout, re.MULTILINE), done.stdout
     assert re.search(r"^GET /v1/objects\?category=door: \d+ doors on the map", done.stdout, re.MULTILINE)
+    check = re.search(r"^CHECK: (\d+) of (\d+) objects on the map lie within 0.5 m", done.stdout, re.M)
+    assert check, done.stdout
+    near, total = int(check[1]), int(check[2])
+    assert total > 0 and near >= 0.8 * total, done.stdout
+    assert len(re.findall(r"^  not: ", done.stdout, re.MULTILINE)) == total - near
 
     # every child the demo started is gone, and its temporary work folder with it
     pids = [int(p) for p in re.findall(r"^demo: .*\(pid (\d+)\):", done.stderr, re.MULTILINE)]
