@@ -402,7 +402,7 @@ def _map_check(http: Any, simulated: dict[tuple[str, int, int], tuple[str, Any]]
         x, y, z = o["position"]
         cat = o["category"]
         what = f"nearest simulated {cat} {d:.2f} m" if np.isfinite(d) else f"no simulated {cat}"
-        lines.append(f"  not: {o['category']} {o['object_id']} at ({x:.2f}, {y:.2f}, {z:.2f}) m, {what}")
+        lines.append(f"  not: {cat} {o['object_id']} at ({x:.2f}, {y:.2f}, {z:.2f}) m, {what}")
     return lines
 
 
