@@ -356,31 +356,34 @@ def map_summary(plans: list[RobotPlan], http: Any, timeout_s: float = 120.0) -> 
     r = http.get("/v1/objects", params={"category": "door", "limit": 100})
     r.raise_for_status()
     doors = [o["position"] for o in r.json()["objects"]]
-    simulated: dict[tuple[str, int, int], tuple[str, Any]] = {}
-    for p in plans:
-        for o in LiveRun(p.scenario, p.seed, p.sim_robot, frames=1).objects()["objects"]:
-            simulated[(p.scenario, p.seed, o["id"])] = (o["class"], np.asarray(o["T_world_object"])[:3, 3])
-    world = {k: xyz for k, (cls, xyz) in simulated.items() if cls == "door"}
+    simulated = [(o["class"], np.asarray(o["T_world_object"])[:3, 3]) for p in plans
+                 for o in LiveRun(p.scenario, p.seed, p.sim_robot, frames=1).objects()["objects"]]
     lines.extend(_map_check(http, simulated))
     lines.append(f"GET /v1/objects?category=door: {len(doors)} doors on the map; the simulated worlds have "
-                 f"{len(world)} (a robot maps only the doors it passes)")
+                 f"{sum(cls == 'door' for cls, _ in simulated)} (a robot maps only the doors it passes)")
     shown = 8
     for pos in doors[:shown]:
-        d = min((float(np.linalg.norm(np.asarray(pos) - w)) for w in world.values()), default=float("nan"))
         lines.append(f"  door at ({pos[0]:.2f}, {pos[1]:.2f}, {pos[2]:.2f}) m: "
-                     f"nearest simulated door {d:.2f} m")
+                     f"nearest simulated door {_nearest(pos, 'door', simulated):.2f} m")
     if len(doors) > shown:
         lines.append(f"  ... and {len(doors) - shown} more")
     return "\n".join(lines)
 
 
-def _map_check(http: Any, simulated: dict[tuple[str, int, int], tuple[str, Any]],
-               within_m: float = 0.5) -> list[str]:
+def _nearest(position: Any, category: str, simulated: list[tuple[str, Any]]) -> float:
+    """Horizontal distance (metres) from ``position`` (3,) to the nearest simulated object of
+    ``category`` (``simulated``: (class, (3,) position) pairs); inf when there is none."""
+    import numpy as np
+
+    xy = np.asarray(position, float)[:2]
+    return min((float(np.linalg.norm(xy - xyz[:2])) for cls, xyz in simulated if cls == category),
+               default=float("inf"))
+
+
+def _map_check(http: Any, simulated: list[tuple[str, Any]], within_m: float = 0.5) -> list[str]:
     """Every object on the map against the simulated objects of its class (their start
     positions; movable ones may have been moved since): how many lie within ``within_m``
     (horizontal distance, metres), and the others, so a wrong object is seen, not hidden."""
-    import numpy as np
-
     objects: list[dict[str, Any]] = []
     offset: int | None = 0
     while offset is not None:
@@ -389,19 +392,13 @@ def _map_check(http: Any, simulated: dict[tuple[str, int, int], tuple[str, Any]]
         body = r.json()
         objects += body["objects"]
         offset = body["next_offset"]
-    far = []
-    for o in objects:
-        pos = np.asarray(o["position"], float)
-        d = min((float(np.linalg.norm(pos[:2] - xyz[:2])) for cls, xyz in simulated.values()
-                 if cls == o["category"]), default=float("inf"))
-        if d > within_m:
-            far.append((o, d))
+    far = [(o, d) for o in objects if (d := _nearest(o["position"], o["category"], simulated)) > within_m]
     lines = [f"CHECK: {len(objects) - len(far)} of {len(objects)} objects on the map lie within {within_m} m "
              f"of a simulated object of their category"]
     for o, d in far:
         x, y, z = o["position"]
         cat = o["category"]
-        what = f"nearest simulated {cat} {d:.2f} m" if np.isfinite(d) else f"no simulated {cat}"
+        what = f"nearest simulated {cat} {d:.2f} m" if math.isfinite(d) else f"no simulated {cat}"
         lines.append(f"  not: {cat} {o['object_id']} at ({x:.2f}, {y:.2f}, {z:.2f}) m, {what}")
     return lines
 
