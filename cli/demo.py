@@ -356,7 +356,9 @@ def map_summary(plans: list[RobotPlan], http: Any, timeout_s: float = 120.0) -> 
     r = http.get("/v1/objects", params={"category": "door", "limit": 100})
     r.raise_for_status()
     doors = [o["position"] for o in r.json()["objects"]]
-    simulated = [(o["class"], np.asarray(o["T_world_object"])[:3, 3]) for p in plans
+    # Robots of one scenario and seed share its world: each object once.
+    worlds = {(p.scenario, p.seed): p for p in plans}.values()
+    simulated = [(o["class"], np.asarray(o["T_world_object"])[:3, 3]) for p in worlds
                  for o in LiveRun(p.scenario, p.seed, p.sim_robot, frames=1).objects()["objects"]]
     lines.extend(_map_check(http, simulated))
     lines.append(f"GET /v1/objects?category=door: {len(doors)} doors on the map; the simulated worlds have "

@@ -75,7 +75,13 @@ def test_demo_two_robots_exits_cleanly() -> None:
     assert "map server: http://127.0.0.1:" in done.stdout
     # the map server's mapping stage ran: the demo asked it for the doors
     assert re.search(r"^MAP: objects by category: ", done.stdout, re.MULTILINE), done.stdout
-    assert re.search(r"^GET /v1/objects\?category=door: \d+ doors on the map", done.stdout, re.MULTILINE)
+    doors = re.search(r"^GET /v1/objects\?category=door: \d+ doors on the map; the simulated worlds have "
+                      r"(\d+)", done.stdout, re.MULTILINE)
+    assert doors, done.stdout
+    from wardmap.sim.live import LiveRun  # both robots drive the one two_robots world (seed 0)
+
+    world = LiveRun("two_robots", 0, "robot_0", frames=1).objects()["objects"]
+    assert int(doors[1]) == sum(o["class"] == "door" for o in world), done.stdout
     check = re.search(r"^CHECK: (\d+) of (\d+) objects on the map lie within 0.5 m", done.stdout, re.M)
     assert check, done.stdout
     near, total = int(check[1]), int(check[2])
