@@ -9,6 +9,7 @@ import pytest
 
 from wardmap.server.association.associator import AssociationConfig, Associator
 from wardmap.server.association.evaluate import score_landmarks
+from wardmap.server.association.geometry import cut_at_side
 from wardmap.server.association.types import LandmarkChange
 from wardmap.server.perception.types import ObjectMeasurement
 from wardmap.shared.config import from_mapping
@@ -232,6 +233,53 @@ def test_flat_slivers_at_the_side_of_the_view_stay_unconfirmed(make_measurement:
 
 
 @pytest.mark.parametrize("method", ["hierarchical", "per_keyframe_hdp", "nearest"])
+def test_a_whole_view_narrower_than_any_object_of_its_class_does_not_confirm(
+        make_measurement: MeasurementFactory, method: str) -> None:
+    """A "door" 0.28 m wide and a "bed" 0.2 m wide, both clear of the image borders (a door frame,
+    a strip of wall), stay unconfirmed; a real door and bed beside them are confirmed; with
+    ``min_width_m`` empty all four are."""
+    T = camera_looking_along_y(0.0)
+    kinds = [(-2.5, "door", np.array([0.28, 0.05, 1.1]), 1), (-1.4, "door", np.array([0.95, 0.05, 2.1]), 2),
+             (0.0, "bed", np.array([0.2, 0.05, 0.75]), 3), (1.8, "bed", np.array([2.0, 0.95, 0.6]), 4)]
+    scene = [[make_measurement(object_pose(x, 5.5, size[2] / 2), T, category=cat, size=size, gt=gt,
+                               keyframe=f"kf{k}", stamp=float(k)) for x, cat, size, gt in kinds]
+             for k in range(3)]
+    for ms in scene:
+        assert not any(cut_at_side(m.box_xyxy, CAMERA, 3.0) for m in ms)
+
+    def confirmed(cfg: AssociationConfig) -> dict[int, bool]:
+        assoc = Associator(cfg)
+        for ms in scene:
+            assoc.add_keyframe(ms, T, CAMERA)
+        assoc.flush()
+        return {lm.gt_instances[0]: lm.confirmed for lm in assoc.landmarks()}
+
+    default = AssociationConfig(method=method)  # type: ignore[arg-type]
+    assert confirmed(default) == {1: False, 2: True, 3: False, 4: True}
+    assert confirmed(replace(default, min_width_m=())) == {1: True, 2: True, 3: True, 4: True}
+
+
+@pytest.mark.parametrize("method", ["hierarchical", "per_keyframe_hdp", "nearest"])
+def test_a_view_wider_than_any_object_of_its_class_does_not_confirm(
+        make_measurement: MeasurementFactory, method: str) -> None:
+    """A "chair" 0.69 m wide (the seats of two chairs; chairs are at most 0.6 m,
+    ``HdpConfig.class_size_m``) stays unconfirmed, whole or cut by the border; a chair beside
+    it is confirmed."""
+    T = camera_looking_along_y(0.0)
+    wide, chair = np.array([0.69, 0.31, 0.14]), np.array([0.46, 0.46, 0.93])
+    scene = [[make_measurement(object_pose(-0.8, 3.0, 0.4), T, size=wide, gt=1, keyframe=f"kf{k}",
+                               stamp=float(k)),
+              make_measurement(object_pose(0.8, 3.0), T, size=chair, gt=2, keyframe=f"kf{k}", stamp=float(k))]
+             for k in range(3)]
+    scene[2][0] = replace(scene[2][0], box_xyxy=np.array([0.0, 300.0, 120.0, 420.0]))  # cut, 31 cm deep
+    assoc = Associator(AssociationConfig(method=method))  # type: ignore[arg-type]
+    for ms in scene:
+        assoc.add_keyframe(ms, T, CAMERA)
+    assoc.flush()
+    assert {lm.gt_instances[0]: lm.confirmed for lm in assoc.landmarks()} == {1: False, 2: True}
+
+
+@pytest.mark.parametrize("method", ["hierarchical", "per_keyframe_hdp", "nearest"])
 def test_measurements_beyond_max_range_are_counted_not_associated(make_measurement: MeasurementFactory,
                                                                   method: str) -> None:
     """A chair 6.5 m ahead of the camera is left out of every landmark and counted in
@@ -257,3 +305,9 @@ def test_confirmation_config_is_checked() -> None:
         from_mapping(AssociationConfig, {"max_range_m": 0.0})
     with pytest.raises(ValueError, match="confirm_classes: not knowledge-graph classes: unicorn"):
         Associator(AssociationConfig(confirm_classes=("cabinet", "unicorn")))
+    with pytest.raises(ValueError, match="min_width_m: not knowledge-graph classes: unicorn"):
+        Associator(AssociationConfig(min_width_m=(("door", 0.5), ("unicorn", 0.3))))
+    with pytest.raises(ConfigError, match="min_width_m entries"):
+        from_mapping(AssociationConfig, {"min_width_m": [["door", -0.5]]})
+    with pytest.raises(ConfigError, match="min_width_m lists a class twice"):
+        from_mapping(AssociationConfig, {"min_width_m": [["door", 0.5], ["door", 0.6]]})

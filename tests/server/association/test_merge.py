@@ -60,13 +60,15 @@ def _inside_other_class(make: MeasurementFactory, big: tuple[str, np.ndarray],
 def _map_scene(store: SqliteKeyframeStore, scene: list, association: AssociationConfig | None = None,
                ) -> tuple[MapPipeline, ObjectMap, set[tuple[int, str]]]:
     """Run the server's mapping stage over ``scene`` (one session); returns the pipeline, its
-    object map and every (object id, category) the map held after some keyframe."""
+    object map and every (object id, category) the map held after some keyframe, confirmed or
+    not (a 0.2 m piece of a cart is narrower than any cart: ``AssociationConfig.min_width_m``)."""
     objects = ObjectMap(store)
     pipe = MapPipeline(store, objects, association=association)
     seen: set[tuple[int, str]] = set()
     for ms, T in scene:
         pipe._associate([_MappedKeyframe("r1/s1", T, CAMERA, ms)])
-        seen |= {(h.record.object_id, h.record.category) for h in objects.query().hits}
+        page = objects.query(include_unconfirmed=True)
+        seen |= {(h.record.object_id, h.record.category) for h in page.hits}
     pipe._close(["r1/s1"])
     return pipe, objects, seen
 
