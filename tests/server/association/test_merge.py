@@ -177,6 +177,18 @@ def test_classes_the_knowledge_graph_relates_are_not_merged(make_measurement: Me
     assert [lm.category for lm in blind.landmarks()] == ["cart"]
 
 
+def test_a_merge_across_classes_must_leave_an_object_of_the_surviving_class(
+        make_measurement: MeasurementFactory) -> None:
+    """An IV pole standing in front of a sink: their hulls overlap, but a sink 1.9 m tall would
+    be taller than any sink (``HdpConfig.class_size_m``), so the two stay apart."""
+    scene = _inside_other_class(make_measurement, ("sink", np.array([0.55, 0.45, 0.95])),
+                                ("iv_pole", np.array([0.5, 0.5, 1.9])), 0.1)
+    assoc = Associator(AssociationConfig())
+    _run(assoc, scene)
+    apart = sorted((lm.category, lm.n_measurements) for lm in assoc.landmarks())
+    assert apart == [("iv_pole", 6), ("sink", 12)]
+
+
 def test_merge_shares_outside_0_1_are_rejected() -> None:
     for key in ("merge_inside", "merge_across"):
         for bad in (-0.1, 1.5):
