@@ -199,24 +199,6 @@ class AssociationConfig:
         (``confirm_classes`` and ``min_width_m``)."""
         return frozenset(self.confirm_classes) | {name for name, _ in self.min_width_m}
 
-    def shows_object(self, m: ObjectMeasurement, cut: bool) -> bool:
-        """True when measurement ``m`` confirms a landmark (``confirm_classes``, ``min_width_m``).
-
-        Args:
-            m: the measurement; its own class decides.
-            cut: its box reaches the left or right image border (:func:`cut_at_side`).
-        """
-        category, width = m.category, float(max(m.size[0], m.size[1]))
-        if category not in self.checked_classes():
-            return True
-        bound = self.hdp.class_extent(category)
-        if bound is not None and width > float(bound[0]):
-            return False  # wider than any object of the class: parts of several
-        if cut:
-            return category not in self.confirm_classes or float(m.size[1]) > self.flat_m
-        least = dict(self.min_width_m).get(category)
-        return least is None or width >= least
-
 
 _FIT_TOL_M = 1e-3  # hulls are clipped to their class's bound: leave room for rounding
 
@@ -338,6 +320,7 @@ class Associator:
             if unknown:
                 raise ValueError(f"{key}: not knowledge-graph classes: {', '.join(unknown)}")
         self._checked = cfg.checked_classes()
+        self._min_width = dict(cfg.min_width_m)
         self._together = {frozenset((r.subject, r.object)) for r in kg.relations()}
         self._group_shape = (cfg.group_size, cfg.group_overlap) if cfg.method == "hierarchical" else (1, 0)
         self._streams: dict[str, _Stream] = {}
@@ -350,7 +333,7 @@ class Associator:
         self._sigma: dict[int, float] = {}  # measurement id -> HDP position sigma (metres)
         self._extent: dict[int, F64] = {}  # measurement id -> world-axis extents (metres)
         self._box: dict[int, tuple[F64, F64]] = {}  # measurement id -> world-axis box corners (metres)
-        self._solid: dict[int, bool] = {}  # measurement id -> confirms its landmark (shows_object)
+        self._solid: dict[int, bool] = {}  # measurement id -> confirms its landmark (_shows_object)
         radius = cfg.nearest.max_distance_m if cfg.method == "nearest" else cfg.hdp.candidate_radius_m
         self._grid = SpatialGrid(radius)
         # Merging looks this far: the largest candidate search radius of any class.
@@ -410,7 +393,7 @@ class Associator:
         for mid, m in zip(mids, measurements, strict=True):
             partial = is_truncated(m.box_xyxy, camera, hdp.border_px)
             self._sigma[mid] = hdp.sigma_position_partial_m if partial else hdp.sigma_position_m
-            self._solid[mid] = self.config.shows_object(m, cut_at_side(m.box_xyxy, camera, hdp.border_px))
+            self._solid[mid] = self._shows_object(m, cut_at_side(m.box_xyxy, camera, hdp.border_px))
             self._extent[mid] = world_extents(np.asarray(m.T_world_object), np.asarray(m.size))
             centre = np.asarray(m.T_world_object, dtype=np.float64)[:3, 3]
             self._box[mid] = (centre - self._extent[mid] / 2.0, centre + self._extent[mid] / 2.0)
@@ -609,6 +592,20 @@ class Associator:
         if bound is not None:
             lo_m, hi_m = np.maximum(lo_m, lm.centre - bound / 2.0), np.minimum(hi_m, lm.centre + bound / 2.0)
         return np.minimum(lo, lo_m), np.maximum(hi, hi_m)
+
+    def _shows_object(self, m: ObjectMeasurement, cut: bool) -> bool:
+        """True when measurement ``m`` confirms a landmark (``confirm_classes``, ``min_width_m``);
+        ``cut``: its box reaches the left or right image border (:func:`cut_at_side`)."""
+        cfg, category, width = self.config, m.category, float(max(m.size[0], m.size[1]))
+        if category not in self._checked:
+            return True
+        bound = cfg.hdp.class_extent(category)
+        if bound is not None and width > float(bound[0]):
+            return False  # wider than any object of the class: parts of several
+        if cut:
+            return category not in cfg.confirm_classes or float(m.size[1]) > cfg.flat_m
+        least = self._min_width.get(category)
+        return least is None or width >= least
 
     def _fits(self, category: str, a: tuple[F64, F64], b: tuple[F64, F64]) -> bool:
         """True when the world-axis box holding boxes ``a`` and ``b`` fits the size bound of

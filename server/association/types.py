@@ -40,10 +40,10 @@ class Landmark:
             ``max_history`` of them.
         n_measurements: how many measurements it has had in all (0: ``len(measurements)``).
         confirmed: False while it is of a class of ``AssociationConfig.confirm_classes`` or
-            ``min_width_m`` and no measurement associated with it shows such an object
-            (:meth:`AssociationConfig.shows_object`: every view a flat sliver cut by the side
-            of the image, narrower than the class when whole, or wider than it; likely a wall or
-            a door frame taken for an object): kept, but left out of the map's queries by default.
+            ``min_width_m`` and no measurement associated with it shows such an object (every
+            view a flat sliver cut by the side of the image, narrower than the class when
+            whole, or wider than it; likely a wall or a door frame taken for an object): kept,
+            but left out of the map's queries by default.
     """
 
     id: int
