@@ -48,7 +48,13 @@ from wardmap.shared.detection import (
 )
 from wardmap.shared.errors import ConfigError, DatasetError, KnowledgeGraphError
 from wardmap.shared.knowledge import KnowledgeGraph
-from wardmap.shared.segmentation import INPUT_NAME, OUTPUT_NAME, SegContract, is_segmentation_model
+from wardmap.shared.segmentation import (
+    INPUT_NAME,
+    OUTPUT_NAME,
+    PlacementRule,
+    SegContract,
+    is_segmentation_model,
+)
 
 __all__ = [
     "LABEL_SOURCES",
@@ -284,9 +290,10 @@ class OnnxDetectorLabels:
 class OnnxSegmentationLabels:
     """The ``onnx:PATH`` source with a wardmap segmentation network (:mod:`wardmap.shared.segmentation`).
 
-    Each frame: rgb -> the network's input size -> per-pixel argmax, resized back (nearest).
-    The network's class indices are the knowledge graph's (checked at start-up), so its class
-    map is the label image; it has no instances.
+    Each frame: rgb -> the network's input size -> per-pixel argmax, with the knowledge
+    graph's placement check, resized back (class boundaries from the bilinearly upsampled
+    logits; ``SegContract.decode``). The network's class indices are the knowledge
+    graph's (checked at start-up), so its class map is the label image; it has no instances.
     """
 
     def __init__(self, session: Any, kg: KnowledgeGraph, *, name: str) -> None:
@@ -305,13 +312,14 @@ class OnnxSegmentationLabels:
             kg,
             name,
         )
+        self._placement = PlacementRule.from_knowledge(kg, self._contract.class_names)
 
     def labels(self, frame: Frame) -> LabelResult:
         started = time.perf_counter()
         bgr = np.ascontiguousarray(frame.rgb[..., ::-1])
         x = self._contract.preprocess(bgr, frame.depth_m)  # an RGB-D network also takes the depth
         (logits,) = self._session.run([OUTPUT_NAME], {INPUT_NAME: x})
-        classes, _ = self._contract.postprocess(logits, bgr.shape[:2], self.name)
+        classes = self._contract.decode(logits, bgr.shape[:2], self.name, placement=self._placement).classes
         elapsed_ms = (time.perf_counter() - started) * 1e3
         return LabelResult(class_image=classes, instance_image=None, inference_ms=elapsed_ms)
 

@@ -57,9 +57,15 @@ def test_segment_writes_one_class_png_per_frame(sim_data: Path, tmp_path: Path) 
         small = cv2.resize(rgb, (64, 48), interpolation=cv2.INTER_AREA).astype(np.float32) / 255
         logits = np.stack([np.zeros_like(small[..., 0]), 10 * small[..., 0] - 5, 10 * small[..., 1] - 5])
         expect = np.array([0, 1, 9])[np.argmax(logits, axis=0)]
-        got = classes_img[::10, ::10]  # nearest upsampling by 10 repeats each model pixel
-        assert np.mean(got == expect) > 0.999
-        assert len(np.unique(got)) >= 2  # the check is not all background
+        # Each model pixel covers 10 x 10 image pixels. Class boundaries are refined from the
+        # bilinear logits (SegContract.decode), so compare model pixels away from a boundary,
+        # whose whole block keeps their class.
+        kernel = np.ones((3, 3), np.uint8)
+        inner = cv2.erode(expect.astype(np.uint8), kernel) == cv2.dilate(expect.astype(np.uint8), kernel)
+        blocks = np.kron(inner, np.ones((10, 10), bool))
+        assert inner.mean() > 0.5
+        assert np.mean(classes_img[blocks] == np.kron(expect, np.ones((10, 10), int))[blocks]) > 0.999
+        assert len(np.unique(classes_img[blocks])) >= 2  # the check is not all background
 
 
 def test_segment_bad_input_gives_one_line(sim_data: Path, tmp_path: Path) -> None:

@@ -7,6 +7,7 @@ import math
 from pathlib import Path
 from types import ModuleType
 
+import cv2
 import numpy as np
 import pytest
 
@@ -58,7 +59,7 @@ def scene() -> tuple[np.ndarray, np.ndarray]:
 
 def test_class_mapping_of_the_onnx_contract(tmp_path: Path) -> None:
     """Logit channel i is the i-th knowledge-graph class; RGB order, resize and softmax are right."""
-    seg = OnnxSegmenter(tiny.write_tiny_seg(tmp_path / "m.onnx"), kg=None, min_pixels=10)
+    seg = OnnxSegmenter(tiny.write_tiny_seg(tmp_path / "m.onnx"), kg=None, min_pixels=10, refine_edges=False)
     names = seg.class_names
     assert names == tuple(tiny.kg_classes()) and names[0] == "background"
     bgr, depth = scene()
@@ -76,6 +77,27 @@ def test_class_mapping_of_the_onnx_contract(tmp_path: Path) -> None:
     blue = np.zeros_like(bgr)
     blue[..., 0] = 255
     assert not seg.segment(blue, None).class_map.any()
+
+
+def test_refined_edges_move_only_boundary_pixels(tmp_path: Path) -> None:
+    """refine_edges (the default): the 32 x 24 network's class boundaries are taken from its
+    bilinearly upsampled logits. The tiny model's grey background has person logit -1.5
+    against 0, so the person block grows by a pixel where the red cells' +5 outweighs it;
+    pixels away from a boundary keep their class. Instances come from the nearest cells' map."""
+    path = tiny.write_tiny_seg(tmp_path / "m.onnx")
+    bgr, depth = scene()
+    coarse = OnnxSegmenter(path, refine_edges=False).segment(bgr, depth).class_map
+    fine = make_segmenter(str(path)).segment(bgr, depth).class_map
+    changed = fine != coarse
+    assert changed.any()
+    near_edge = cv2.dilate(cv2.Canny(coarse * 50, 1, 1), np.ones((5, 5), np.uint8)) > 0
+    assert not (changed & ~near_edge).any()
+    assert np.all(fine[8:24, 4:20] == tiny.kg_classes().index("person"))
+    # Instances keep the nearest cells' classes: the 16 x 16 person block, not the grown one.
+    instances = OnnxSegmenter(path, min_pixels=10).segment(bgr, depth).instances
+    person = [i for i in instances if i.category == "person"]
+    assert len(person) == 1 and int(person[0].mask.sum()) == 16 * 16
+    assert int((fine == tiny.kg_classes().index("person")).sum()) > 16 * 16
 
 
 def test_rgbd_network_takes_the_depth_image(tmp_path: Path) -> None:
