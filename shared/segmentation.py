@@ -24,7 +24,7 @@ from __future__ import annotations
 import json
 import re
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Final, NamedTuple
 
 import cv2
@@ -228,6 +228,18 @@ class PlacementRule:
 
     supports: Mapping[int, frozenset[int]]
     ring_px: int = 3
+    _allowed: dict[int, NDArray[np.bool_]] = field(init=False, repr=False, compare=False)
+    _kernel: U8 = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        # Per checked class: a lookup over every uint8 class index, True where it may touch.
+        allowed = {}
+        for c, ok in self.supports.items():
+            table = np.zeros(256, bool)
+            table[list(ok)] = True
+            allowed[c] = table
+        object.__setattr__(self, "_allowed", allowed)
+        object.__setattr__(self, "_kernel", np.ones((2 * self.ring_px + 1,) * 2, np.uint8))
 
     @staticmethod
     def from_knowledge(kg: KnowledgeGraph, class_names: Sequence[str], ring_px: int = 3) -> PlacementRule:
@@ -258,25 +270,18 @@ class PlacementRule:
         """
         if classes is None:
             classes, _ = argmax_classes(scores)
-        if not self.supports:
-            return scores, classes
-        checked = np.array(sorted(self.supports), dtype=np.int64)
-        kernel = np.ones((2 * self.ring_px + 1,) * 2, np.uint8)
         out = scores
-        for _ in range(len(checked) + 1):
+        for _ in range(len(self._allowed) + 1):
             vetoed = False
-            for c in checked.tolist():
+            for c, table in self._allowed.items():
                 here = (classes == c).astype(np.uint8)
                 if not here.any():
                     continue
                 n, regions = cv2.connectedComponents(here, connectivity=8)
-                allowed = np.zeros(len(scores), bool)
-                allowed[list(self.supports[c])] = True
                 for k in range(1, n):
                     region = regions == k
-                    ring = cv2.dilate(region.astype(np.uint8), kernel).astype(bool) & ~region
-                    around = classes[ring]
-                    if allowed[around].any():
+                    ring = cv2.dilate(region.astype(np.uint8), self._kernel).astype(bool) & ~region
+                    if table[classes[ring]].any():
                         continue
                     if out is scores:
                         out = scores.copy()
