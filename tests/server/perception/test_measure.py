@@ -26,6 +26,7 @@ from wardmap.server.perception.measure import (
     measure_instances,
     measure_instances_report,
 )
+from wardmap.server.perception.models import PerceptionConfig
 from wardmap.server.perception.types import Instance
 from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.errors import ConfigError, DatasetError, GeometryError
@@ -363,6 +364,28 @@ def _wall_and_floor(h: int = 120, w: int = 200) -> np.ndarray:
     wall = 1.0 / (1 / 3.0 - 0.0006 * u)  # 3 m at the left edge, farther to the right
     floor = 1.0 / (1 / 3.0 + 0.01 * (v - 90) - 0.0006 * u)
     return np.where(v < 90, wall, floor).astype(np.float32)
+
+
+def test_default_trim_takes_a_cabinets_spill_off_the_wall_and_leaves_doors_alone() -> None:
+    """A cabinet 10 cm nearer than the slanted wall around it (less than a depth jump), its
+    mask running 12 px onto the wall beside it (a corridor wall at a grazing view): untrimmed,
+    the spill is part of the instance; the default ``trim_classes`` hold cabinet, not door,
+    and trimming leaves the cabinet without the spill."""
+    names = ["background", "person", "cabinet", "door"]
+    trim = tuple(names.index(c) for c in PerceptionConfig().trim_classes if c in names)
+    assert trim == (2,)
+    depth = _wall_and_floor()
+    depth += np.random.default_rng(1).normal(0.0, 0.003, depth.shape).astype(np.float32)
+    cabinet = np.zeros(depth.shape, bool)
+    cabinet[20:80, 100:140] = True
+    depth[cabinet] -= 0.1
+    classes = np.zeros(depth.shape, np.uint8)
+    classes[20:80, 100:152] = 2
+    (whole,) = instances_from_classes(classes, depth, names, min_pixels=100)
+    assert np.array_equal(whole.mask, classes == 2)
+    (inst,) = instances_from_classes(classes, depth, names, min_pixels=100, trim_classes=trim)
+    assert (inst.mask & cabinet).sum() > 0.95 * cabinet.sum()
+    assert (inst.mask & ~cabinet).sum() < 0.1 * (classes.astype(bool) & ~cabinet).sum()
 
 
 def test_bleed_onto_the_wall_joining_two_chairs_is_trimmed() -> None:
