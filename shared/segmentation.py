@@ -172,9 +172,9 @@ class SegContract:
         classes, top = argmax_classes(s)
         if placement is not None:
             vetoed, classes = placement.apply(s, classes)
-            if vetoed is not s:
+            if vetoed is not s:  # apply's classes are the argmax of the vetoed scores
                 s = vetoed
-                classes, top = argmax_classes(s)
+                top = np.take_along_axis(s, classes[None].astype(np.intp), axis=0)[0]
         # softmax of the chosen class; a class vetoed by the placement check has -inf and adds nothing
         exp = s - top[None]
         np.exp(exp, out=exp)

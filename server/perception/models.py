@@ -134,12 +134,12 @@ class PerceptionConfig:
     measurements on a real object went from 80.6 % to 90.1 % (chairs on ward_chairs: 67 of 170
     to 455 of 552). Cabinets: seen along a corridor wall, their masks run onto the wall beside
     them; trimmed, the cabinet centroid median on seeds 1001 / 1002 / 1003 went 23.5 / 20.6 /
-    15.1 -> 17.8 / 14.5 / 11.3 cm, association unchanged but for one count in 35 sequences.
-    Not for classes flush with a wall (doors, wall monitors): trimming doors too (kept whole
-    when trimming left under half, pieces kept as one instance) brought the door centroid to
-    7.8 / 8.3 / 8.0 cm, but the
+    15.1 -> 17.8 / 14.5 / 11.3 cm; over 35 association sequences counts equal to ground truth
+    went 21 -> 20 and better than both baselines stayed 23. Not for classes flush with a wall
+    (doors, wall monitors): trimming doors too (kept whole when trimming left under half,
+    pieces kept as one instance) brought the door centroid to 7.8 / 8.3 / 8.0 cm, but the
     masks of two neighbouring doors then came apart in some keyframes and not in others, and
-    association counts equal to ground truth fell from 21 to 17 of 35 (docs/perception.md)."""
+    counts equal fell 21 -> 17 (docs/perception.md)."""
     split_width_m: tuple[tuple[str, float], ...] = (("chair", 0.5), ("door", 1.4))
     """Segmentation network: ``[class, width]`` pairs. An instance of the class as wide as two
     or more objects of ``width`` metres is cut into side-by-side pieces
