@@ -47,6 +47,7 @@ from wardmap.server.perception.models import (
     OnnxSegmenter,
     PerceptionConfig,
     drop_floating,
+    drop_wall_pieces,
     floor_under,
     make_segmenter,
     measure_config_for,
@@ -282,7 +283,7 @@ def main() -> int:
         assert isinstance(seg, OnnxSegmenter)
         model = seg
     oracle, learned = Scores(), Scores()
-    floating = 0
+    floating = walls = 0
     confusion = np.zeros((len(names), len(names)), np.int64)
     net_ms: list[float] = []
     seg_ms: list[float] = []
@@ -317,8 +318,11 @@ def main() -> int:
             cut = split_instances(out.instances, frame.depth_m, cam, PerceptionConfig(), "model")
             T_base_rgb = reader.calibration.T_base_rgb
             floor = None if T_base_rgb is None else floor_under(frame.T_world_camera, T_base_rgb)
-            cut, n = drop_floating(cut, frame.depth_m, cam, PerceptionConfig(), frame.T_world_camera, floor)
+            T_wc = frame.T_world_camera
+            cut, n = drop_floating(cut, frame.depth_m, cam, PerceptionConfig(), T_wc, floor)
             floating += n
+            cut, n = drop_wall_pieces(cut, frame.depth_m, cam, PerceptionConfig(), T_wc, floor)
+            walls += n
             ms, skipped = measure(reader, frame, attach_gt_instances(cut, frame.labels))
             learned.skipped += skipped
             for m in ms:
@@ -370,7 +374,7 @@ def main() -> int:
             *learned.rows("network"),
             f"\nNetwork instances: {learned.unmatched} measurement(s) on no ground-truth object (< 50% of "
             f"the mask), {learned.skipped} skipped, {floating} left out for floating above the floor "
-            "(`floor_gap_m`).\n",
+            f"(`floor_gap_m`), {walls} for lying on a surface taller than their class (`max_top_m`).\n",
         ]
     if TUM.is_dir() and args.yolox.is_file():
         parts += tum_monitor(args.yolox)

@@ -521,6 +521,10 @@ def _pipeline_metrics(c: PipelineCounters) -> str:
         ("wardmap_mapping_floating_left_out_total", "counter",
          "Instances perception left out for floating above the floor (perception.floor_gap_m).",
          [("", c.floating)]),
+        ("wardmap_mapping_wall_pieces_left_out_total", "counter",
+         "Instances perception left out for lying on a surface taller than any object of their class "
+         "(perception.max_top_m).",
+         [("", c.wall_pieces)]),
         ("wardmap_mapping_beyond_range_total", "counter",
          "Stored measurements association left out for lying beyond association.max_range_m.",
          [("", c.beyond_range)]),

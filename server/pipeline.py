@@ -73,6 +73,7 @@ from wardmap.server.perception.models import (
     PerceptionConfig,
     Segmenter,
     drop_floating,
+    drop_wall_pieces,
     make_segmenter,
     measure_config_for,
     split_instances,
@@ -161,6 +162,8 @@ class PipelineCounters:
             went quiet (``close_idle_s``).
         floating: instances left out for floating above the floor
             (``PerceptionConfig.floor_gap_m``; keyframes with ``T_odom_base``).
+        wall_pieces: instances left out for lying on a surface taller than any object of
+            their class (``PerceptionConfig.max_top_m``; keyframes with ``T_odom_base``).
         beyond_range: stored measurements association left out for lying farther than
             ``AssociationConfig.max_range_m`` from their camera.
         skipped: instances perception found but could not measure, by kind
@@ -181,6 +184,7 @@ class PipelineCounters:
     floating: int = 0
     beyond_range: int = 0
     skipped: dict[str, int] = field(default_factory=dict)
+    wall_pieces: int = 0
 
 
 @dataclass
@@ -197,6 +201,7 @@ class _Counts:
     floating: int = 0
     beyond_range: int = 0
     skipped: Counter[str] = field(default_factory=Counter)
+    wall_pieces: int = 0
 
 
 class MapPipeline:
@@ -271,7 +276,7 @@ class MapPipeline:
             return PipelineCounters(c.processed, c.measurements, c.mapped, c.unanchored, c.replayed,
                                     self._backlog, dict(c.failures), len(self._associator.landmarks()),
                                     c.restarts, c.last_error, c.closed_idle, c.floating, c.beyond_range,
-                                    dict(c.skipped))
+                                    dict(c.skipped), c.wall_pieces)
 
     def wait_idle(self, timeout_s: float) -> bool:
         """Block until every stored keyframe is measured, associated and on the object map (tests,
@@ -397,10 +402,14 @@ class MapPipeline:
         T_map_camera = map_pose(msg)
         instances, floating = drop_floating(instances, depth, camera, self.perception, T_map_camera,
                                             floor_height(msg))
-        if floating:
-            log.debug("keyframe %s: %d instance(s) float above the floor, left out", key, floating)
+        instances, walls = drop_wall_pieces(instances, depth, camera, self.perception, T_map_camera,
+                                            floor_height(msg))
+        if floating or walls:
+            log.debug("keyframe %s: %d instance(s) float above the floor, %d lie on a taller surface; "
+                      "left out", key, floating, walls)
             with self._lock:
                 self._counts.floating += floating
+                self._counts.wall_pieces += walls
         report = measure_instances_report(
             instances, bgr=bgr, depth_m=depth, camera=camera, T_world_camera=T_map_camera,
             keyframe=key, stamp=msg.stamp, config=self._measure_config,

@@ -35,7 +35,13 @@ from wardmap.server.association.associator import METHODS, AssociationConfig, As
 from wardmap.server.association.types import Landmark
 from wardmap.server.perception.instances import attach_gt_instances, id_to_class, oracle_instances
 from wardmap.server.perception.measure import SKIP_KINDS, MeasureConfig, mean_rgb, measure_instances_report
-from wardmap.server.perception.models import PerceptionConfig, drop_floating, floor_under, split_instances
+from wardmap.server.perception.models import (
+    PerceptionConfig,
+    drop_floating,
+    drop_wall_pieces,
+    floor_under,
+    split_instances,
+)
 from wardmap.server.perception.types import Instance, ObjectMeasurement
 from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.config import load_config, to_mapping
@@ -108,6 +114,8 @@ class DatasetMeasurements:
         gt_classes: ground-truth instance id -> class (``objects.json``), or None.
         floating_left_out: network instances left out for floating above the floor
             (``PerceptionConfig.floor_gap_m``; only data sets with a ``[base]`` calibration).
+        wall_pieces_left_out: network instances left out for lying on a surface taller than
+            any object of their class (``PerceptionConfig.max_top_m``; the same data sets).
         skipped: instances found but not measured, by kind
             (:data:`~wardmap.server.perception.measure.SKIP_KINDS`).
     """
@@ -121,6 +129,7 @@ class DatasetMeasurements:
     gt_classes: dict[int, str] | None
     floating_left_out: int = 0
     skipped: dict[str, int] = field(default_factory=dict)
+    wall_pieces_left_out: int = 0
 
 
 def select_keyframes(
@@ -237,7 +246,7 @@ def measure_dataset(
     camera = reader.calibration.rgb
     mcfg = measure_config or MeasureConfig()
     keyframes: list[KeyframeMeasurements] = []
-    moving = floating = 0
+    moving = floating = walls = 0
     skipped: Counter[str] = Counter()
     T_base_rgb = reader.calibration.T_base_rgb
     for done, i in enumerate(chosen):
@@ -256,7 +265,9 @@ def measure_dataset(
                                         "model")
             floor_z = None if T_base_rgb is None else floor_under(T, T_base_rgb)
             instances, n_floating = drop_floating(instances, frame.depth_m, camera, perception, T, floor_z)
+            instances, n_walls = drop_wall_pieces(instances, frame.depth_m, camera, perception, T, floor_z)
             floating += n_floating
+            walls += n_walls
             if frame.labels is not None:
                 instances = attach_gt_instances(instances, frame.labels)
         kept = [inst for inst in instances if not kg.is_moving(inst.category)]
@@ -270,11 +281,11 @@ def measure_dataset(
                                                                           for m in ms)))
         if progress is not None:
             progress(name, done + 1, len(chosen))
-    log.info("%s: %d frames, %d keyframes, %d measurements (%d moving, %d floating left out, "
-             "%d not measurable)", name, len(reader), len(keyframes),
-             sum(len(k.measurements) for k in keyframes), moving, floating, sum(skipped.values()))
+    log.info("%s: %d frames, %d keyframes, %d measurements (%d moving, %d floating and %d wall pieces "
+             "left out, %d not measurable)", name, len(reader), len(keyframes),
+             sum(len(k.measurements) for k in keyframes), moving, floating, walls, sum(skipped.values()))
     return DatasetMeasurements(name, camera, keyframes, len(reader), without_pose, moving, gt_classes,
-                               floating, dict(skipped))
+                               floating, dict(skipped), walls)
 
 
 def associate(
@@ -330,6 +341,7 @@ def landmarks_document(
             {"name": ds.name, "frames": ds.frames, "keyframes": len(ds.keyframes),
              "frames_without_pose": ds.frames_without_pose, "moving_left_out": ds.moving_left_out,
              "floating_left_out": ds.floating_left_out,
+             "wall_pieces_left_out": ds.wall_pieces_left_out,
              "skipped": {k: ds.skipped.get(k, 0) for k in SKIP_KINDS},
              "beyond_range": sum(beyond_range(m, config.max_range_m) for kf in ds.keyframes
                                  for m in kf.measurements)}

@@ -15,6 +15,9 @@
   chair's open back above its seat) joined again.
 - :func:`floating_above_floor`: instances of floor-standing classes that end in mid-air with
   free space below them (a red fire extinguisher on the wall taken for a chair).
+- :func:`part_of_taller_surface`: instances of floor-standing classes whose pixels lie on a
+  surface that rises, unbroken, higher than any object of the class (a strip of corridor wall
+  at the image border taken for a cabinet).
 - :func:`attach_gt_instances`: the simulator id most of each mask covers, for scoring
   model or detector instances against ground truth.
 
@@ -47,6 +50,7 @@ __all__ = [
     "merge_stacked",
     "off_background_planes",
     "oracle_instances",
+    "part_of_taller_surface",
     "principal_direction",
     "ring_around",
     "split_side_by_side",
@@ -196,6 +200,23 @@ def merge_stacked(
     return out
 
 
+def _height_above_floor(T_world_camera: ArrayLike, up: ArrayLike, floor_z_m: float,
+                        who: str) -> tuple[NDArray[np.float64], float]:
+    """``(h_axis, h_zero)``: the height above the floor of camera-frame points p (N, 3), metres,
+    is ``p @ h_axis + h_zero`` (``up . (R p + t) - floor_z_m``).
+
+    Raises:
+        GeometryError: not a (4, 4) pose or not a (3,) non-zero up vector (``who`` names the caller).
+    """
+    T = np.asarray(T_world_camera, dtype=np.float64)
+    u = np.asarray(up, dtype=np.float64).reshape(-1)
+    if T.shape != (4, 4) or u.shape != (3,) or not np.linalg.norm(u) > 0:
+        raise GeometryError(f"{who}: need a (4, 4) pose and a (3,) non-zero up vector, "
+                            f"got {T.shape}, {u.shape}")
+    u = u / np.linalg.norm(u)
+    return T[:3, :3].T @ u, float(u @ T[:3, 3]) - floor_z_m
+
+
 def floating_above_floor(
     instances: Sequence[Instance],
     depth_m: NDArray[np.float32],
@@ -246,15 +267,7 @@ def floating_above_floor(
     if not (occluder_m >= 0 and 0 <= lo < hi and 0 < open_fraction <= 1):
         raise GeometryError("floating_above_floor: need occluder_m >= 0, 0 <= band_px[0] < band_px[1], "
                             "0 < open_fraction <= 1")
-    T = np.asarray(T_world_camera, dtype=np.float64)
-    u = np.asarray(up, dtype=np.float64).reshape(-1)
-    if T.shape != (4, 4) or u.shape != (3,) or not np.linalg.norm(u) > 0:
-        raise GeometryError("floating_above_floor: need a (4, 4) pose and a (3,) non-zero up vector, "
-                            f"got {T.shape}, {u.shape}")
-    u = u / np.linalg.norm(u)
-    # height above the floor of camera-frame points (N, 3): up . (R p + t) - floor
-    h_axis = T[:3, :3].T @ u
-    h_zero = float(u @ T[:3, 3]) - floor_z_m
+    h_axis, h_zero = _height_above_floor(T_world_camera, up, floor_z_m, "floating_above_floor")
     depth = np.asarray(depth_m, dtype=np.float32)
     H = depth.shape[0]
     out: list[bool] = []
@@ -292,6 +305,131 @@ def floating_above_floor(
         n_known = int(np.sum(known | at_edge))
         out.append(n_known > 0 and n_open >= open_fraction * n_known)
     return out
+
+
+def part_of_taller_surface(
+    instances: Sequence[Instance],
+    depth_m: NDArray[np.float32],
+    camera: PinholeCamera,
+    T_world_camera: ArrayLike,
+    *,
+    floor_z_m: float,
+    max_top_m: Mapping[str, float],
+    up: ArrayLike = (0.0, 0.0, 1.0),
+    margin_m: float = 0.3,
+    step_m: float = 0.05,
+    step_relative: float = 0.02,
+    on_share: float = 0.5,
+    tolerance_m: float = 0.03,
+    tolerance_relative: float = 0.01,
+    max_samples: int = 600,
+    iterations: int = 48,
+    seed: int = 0,
+) -> list[bool]:
+    """Which instances of floor-standing classes are a piece of a taller surface: the surface
+    goes on, unbroken, above the mask's top to higher than any object of the class, and most
+    of the mask lies on that surface's plane.
+
+    A cabinet ends at its top, and above it the camera sees the wall behind, a step away in
+    depth. A "cabinet" that is a strip of corridor wall cut by the image border (the network
+    does this now and then) goes on above its mask up to the ceiling, in one plane with the
+    mask. In each column of the mask the walk starts 2 px inside the mask's top pixel (past
+    the mixed depth at its border) and climbs row by row while the depth changes by at most
+    ``max(step_m, step_relative * z)`` between neighbouring rows; the climb's end is taken at
+    its depth and put in the world. The surface rises too high when the median over columns of
+    that height above the floor exceeds the class's ``max_top_m`` plus ``margin_m``. Then a
+    plane (affine in inverse depth, as in :func:`off_background_planes`) is fitted by RANSAC
+    to the climbed pixels above the mask (at most ``max_samples``, a seeded subset), and the
+    instance is a piece of that surface when at least ``on_share`` of its pixels with depth
+    lie on the plane (within ``max(tolerance_m, tolerance_relative * z)``). A low cabinet
+    against a wall also continues into the wall above it, but only its back edge lies in
+    the wall's plane; so does a cabinet whose mask stops short of its top, but the climb ends
+    at its real top. Doors are no such class: a door is flush with the wall that goes on
+    above it.
+
+    Args:
+        instances: instances of one colour image (H, W).
+        depth_m: float32 (H, W) depth, metres, registered to the colour image; 0 = none.
+        camera: the colour camera.
+        T_world_camera: (4, 4) camera pose in a world frame whose floor is the plane
+            ``up . x = floor_z_m``.
+        floor_z_m: floor height along ``up`` in that frame, metres.
+        max_top_m: class -> height above the floor (metres) that no object of the class
+            reaches; classes not in it are never flagged.
+        up: (3,) world up (``-gravity_world``).
+
+    Returns:
+        One flag per instance, in order (False when fewer than 3 columns have depth at their
+        start, the climb leaves fewer than 50 pixels, or no plane is found).
+    """
+    if not (margin_m >= 0 and step_m > 0 and step_relative >= 0 and 0 < on_share <= 1
+            and tolerance_m > 0 and tolerance_relative >= 0 and max_samples >= 3 and iterations >= 1):
+        raise GeometryError("part_of_taller_surface: need margin_m >= 0, step_m > 0, step_relative >= 0, "
+                            "0 < on_share <= 1, tolerance_m > 0, tolerance_relative >= 0, "
+                            "max_samples >= 3, iterations >= 1")
+    h_axis, h_zero = _height_above_floor(T_world_camera, up, floor_z_m, "part_of_taller_surface")
+    depth = np.asarray(depth_m, dtype=np.float32)
+    out: list[bool] = []
+    for inst in instances:
+        top_m = max_top_m.get(inst.category)
+        out.append(top_m is not None and _on_taller_surface(
+            inst.mask, depth, camera, h_axis, h_zero, top_m + margin_m, step_m, step_relative, on_share,
+            tolerance_m, tolerance_relative, max_samples, iterations, seed))
+    return out
+
+
+def _on_taller_surface(mask: Mask, depth: NDArray[np.float32], camera: PinholeCamera,
+                       h_axis: NDArray[np.float64], h_zero: float, limit_m: float, step_m: float,
+                       step_relative: float, on_share: float, tolerance_m: float, tolerance_relative: float,
+                       max_samples: int, iterations: int, seed: int) -> bool:
+    """:func:`part_of_taller_surface` for one mask; ``limit_m``: the class's top plus the margin."""
+    H = mask.shape[0]
+    cols = np.flatnonzero(mask.any(axis=0))
+    top = np.argmax(mask[:, cols], axis=0)  # first mask row of each column
+    start = np.minimum(top + 2, H - 1)
+    z = depth[start, cols].astype(np.float64)
+    ok = np.isfinite(z) & (z > 0) & (top > 0)  # a mask at the image's top row cannot be climbed
+    cols, top, start, z = cols[ok], top[ok], start[ok], z[ok]
+    if cols.size < 3:
+        return False
+    reach = start.copy()
+    climbing = np.ones(cols.size, dtype=bool)
+    for r in range(int(start.max()) - 1, -1, -1):
+        act = climbing & (r < reach)
+        if not act.any():
+            break
+        zr = depth[r, cols].astype(np.float64)
+        on = act & np.isfinite(zr) & (zr > 0) & (np.abs(zr - z) <= np.maximum(step_m, step_relative * z))
+        climbing[act & ~on] = False
+        reach[on] = r
+        z[on] = zr[on]
+    ends = camera.unproject(np.stack([cols, reach], axis=1), z)
+    if float(np.median(ends @ h_axis + h_zero)) <= limit_m:
+        return False
+    above = [(np.arange(a, t), np.full(t - a, c)) for a, t, c in zip(reach, top, cols, strict=True) if t > a]
+    if not above:
+        return False
+    rr = np.concatenate([a for a, _ in above])
+    cc = np.concatenate([c for _, c in above])
+    if rr.size < 50:
+        return False
+    rng = np.random.default_rng(seed)
+    if rr.size > max_samples:
+        keep = rng.choice(rr.size, size=max_samples, replace=False)
+        rr, cc = rr[keep], cc[keep]
+    zs = depth[rr, cc].astype(np.float64)
+    coef, _ = _fit_inverse_depth_plane(cc.astype(np.float64), rr.astype(np.float64), zs,
+                                       np.maximum(tolerance_m, tolerance_relative * zs), rng, iterations)
+    if coef is None:
+        return False
+    mr, mc = np.nonzero(mask & (depth > 0))
+    if mr.size == 0:
+        return False
+    zm = depth[mr, mc].astype(np.float64)
+    wp = coef[0] * mc + coef[1] * mr + coef[2]
+    on_plane = (wp > 0) & (np.abs(1.0 / np.where(wp > 0, wp, 1.0) - zm)
+                           <= np.maximum(tolerance_m, tolerance_relative * zm))
+    return bool(on_plane.mean() >= on_share)
 
 
 def principal_direction(xy: NDArray[np.float64]) -> NDArray[np.float64]:

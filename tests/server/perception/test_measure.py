@@ -18,6 +18,7 @@ from wardmap.server.perception.instances import (
     merge_stacked,
     off_background_planes,
     oracle_instances,
+    part_of_taller_surface,
     split_side_by_side,
 )
 from wardmap.server.perception.measure import (
@@ -591,6 +592,63 @@ def test_drop_floating_needs_a_known_floor() -> None:
     assert drop_floating([extinguisher], depth, CAMERA, off, T_LEVEL, 0.0) == ([extinguisher], 0)
     with pytest.raises(ConfigError, match="floor_gap_m"):
         PerceptionConfig(floor_gap_m=(("chair", -0.1),))
+
+
+def room_depth(wall_m: float = 4.0, ceiling_m: float = 2.6) -> np.ndarray:
+    """Depth (H, W) of the camera of ``T_LEVEL`` (1.05 m up, looking level) at a wall ``wall_m``
+    ahead, with the floor and a ceiling ``ceiling_m`` high where their rays meet them first."""
+    rows = (np.arange(CAMERA.height) - CAMERA.cy) / CAMERA.fy
+    with np.errstate(divide="ignore"):
+        floor = np.where(rows > 0, 1.05 / rows, np.inf)
+        ceiling = np.where(rows < 0, (ceiling_m - 1.05) / -rows, np.inf)
+    depth = np.minimum(np.minimum(floor, ceiling), wall_m)[:, None] * np.ones((1, CAMERA.width))
+    return depth.astype(np.float32)
+
+
+def test_a_strip_of_wall_taken_for_a_cabinet_is_a_piece_of_a_taller_surface() -> None:
+    """A 'cabinet' at the image's left border that is a strip of the wall 4 m ahead: the wall
+    goes on above it into the ceiling (2.6 m), so it is flagged. A 1.9 m cabinet 0.5 m in
+    front of that wall, its mask cut short of its top, its mask running onto the wall above
+    it, the strip as a door, or with the floor 0.5 m higher are not."""
+    depth = room_depth()
+    top = {}
+
+    def flags(instances: list[Instance], d: np.ndarray, floor_z: float = 0.0, **kw: object) -> list[bool]:
+        return part_of_taller_surface(instances, d, CAMERA, T_LEVEL, floor_z_m=floor_z,
+                                      max_top_m={"cabinet": 2.1}, **kw)
+
+    strip = box_instance("cabinet", slice(130, 200), slice(0, 20))
+    assert flags([strip, box_instance("door", slice(130, 200), slice(0, 20))], depth) == [True, False]
+    assert flags([strip], depth, floor_z=0.5) == [False]  # the ceiling is then 2.1 m up
+    cabinet = depth.copy()
+    cabinet[56:199, 100:160] = 3.5  # 0-1.9 m high at 3.5 m, the wall 0.5 m behind it
+    top["whole"] = box_instance("cabinet", slice(56, 199), slice(100, 160))
+    top["cut short"] = box_instance("cabinet", slice(90, 199), slice(100, 160))
+    top["onto the wall"] = box_instance("cabinet", slice(46, 199), slice(100, 160))
+    assert flags(list(top.values()), cabinet) == [False, False, False]
+    # The same region in the plane of the wall is a piece of it.
+    assert flags([top["whole"]], depth) == [True]
+    with pytest.raises(GeometryError):
+        part_of_taller_surface([strip], depth, CAMERA, np.eye(3), floor_z_m=0.0, max_top_m={"cabinet": 2.1})
+    with pytest.raises(GeometryError):
+        flags([strip], depth, on_share=0.0)
+
+
+def test_drop_wall_pieces_by_default_and_only_with_a_floor() -> None:
+    from wardmap.server.perception.models import PerceptionConfig, drop_wall_pieces
+
+    strip = box_instance("cabinet", slice(130, 200), slice(0, 20))
+    chair = box_instance("chair", slice(150, 199), slice(100, 140))
+    depth = room_depth()
+    depth[150:199, 100:140] = 3.0  # a chair-high box on the floor, 1 m in front of the wall
+    cfg = PerceptionConfig()
+    assert ("cabinet", 2.1) in cfg.max_top_m and "door" not in dict(cfg.max_top_m)
+    assert drop_wall_pieces([strip, chair], depth, CAMERA, cfg, T_LEVEL, 0.0) == ([chair], 1)
+    assert drop_wall_pieces([strip], depth, CAMERA, cfg, T_LEVEL, None) == ([strip], 0)
+    off = PerceptionConfig(max_top_m=())
+    assert drop_wall_pieces([strip], depth, CAMERA, off, T_LEVEL, 0.0) == ([strip], 0)
+    with pytest.raises(ConfigError, match="max_top_m"):
+        PerceptionConfig(max_top_m=(("cabinet", 0.0),))
 
 
 def test_no_planes_without_depth_around() -> None:
