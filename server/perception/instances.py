@@ -342,10 +342,10 @@ def part_of_taller_surface(
     to the climbed pixels above the mask (at most ``max_samples``, a seeded subset), and the
     instance is a piece of that surface when at least ``on_share`` of its pixels with depth
     lie on the plane (within ``max(tolerance_m, tolerance_relative * z)``). A low cabinet
-    against a wall also continues into the wall above it, but only its back edge lies in
-    the wall's plane; so does a cabinet whose mask stops short of its top, but the climb ends
-    at its real top. Doors are no such class: a door is flush with the wall that goes on
-    above it.
+    against a wall goes on into the wall above it too, but only its back edge lies in the
+    wall's plane. A cabinet whose mask stops short of its top is climbed up to its real top,
+    where the step to the wall behind it ends the climb. Doors are no such class: a door is
+    flush with the wall that goes on above it.
 
     Args:
         instances: instances of one colour image (H, W).
