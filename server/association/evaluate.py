@@ -7,6 +7,12 @@
   map's queries return), against the ground-truth count = the number of distinct
   non-moving objects with at least one measurement. The accuracy scores every landmark,
   confirmed or not.
+- Completeness (ours, not in the paper): each ground-truth object takes the landmark that
+  holds most of its measurements; completeness = share of all measurements in their
+  object's landmark. The accuracy is a clustering's purity and the completeness its
+  inverse purity: a method that starts a new landmark whenever in doubt keeps its accuracy
+  high and loses completeness (one object on two landmarks), and merging views of two
+  objects costs accuracy. ``f_measure`` is their harmonic mean.
 """
 
 from __future__ import annotations
@@ -31,6 +37,8 @@ class AssociationScore:
         landmarks: number of confirmed landmarks (the map's objects).
         gt_objects: distinct non-moving ground-truth objects with at least one measurement.
         unconfirmed: number of landmarks not confirmed (not counted in ``landmarks``).
+        completeness: share of measurements in the landmark that holds most of their
+            object's measurements, in [0, 1] (measurements on no object count against it).
     """
 
     accuracy: float
@@ -39,6 +47,13 @@ class AssociationScore:
     landmarks: int
     gt_objects: int
     unconfirmed: int = 0
+    completeness: float = 0.0
+
+    @property
+    def f_measure(self) -> float:
+        """Harmonic mean of ``accuracy`` and ``completeness`` (0 when both are 0)."""
+        total = self.accuracy + self.completeness
+        return 2 * self.accuracy * self.completeness / total if total > 0 else 0.0
 
 
 def score_landmarks(
@@ -56,7 +71,8 @@ def score_landmarks(
     """
     total = correct = 0
     measured: set[int] = set()
-    for lm in landmarks:
+    per_object: dict[int, Counter[int]] = {}  # object id -> landmark index -> measurements
+    for k, lm in enumerate(landmarks):
         ids = lm.gt_instances
         votes = Counter(i for i in ids if i is not None)
         major = votes.most_common(1)[0][0] if votes else None
@@ -64,10 +80,12 @@ def score_landmarks(
             total += 1
             if i is not None:
                 measured.add(i)
+                per_object.setdefault(i, Counter())[k] += 1
                 if i == major:
                     correct += 1
+    complete = sum(max(c.values()) for c in per_object.values())
     if gt_classes is not None:
         measured = {i for i in measured if gt_classes.get(i) not in moving_classes}
     unconfirmed = sum(not lm.confirmed for lm in landmarks)
     return AssociationScore(correct / total if total else 0.0, total, correct, len(landmarks) - unconfirmed,
-                            len(measured), unconfirmed)
+                            len(measured), unconfirmed, complete / total if total else 0.0)

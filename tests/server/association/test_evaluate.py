@@ -1,0 +1,48 @@
+"""Association scores: accuracy (purity), completeness (inverse purity), F-measure, counts."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from wardmap.server.association.evaluate import AssociationScore, score_landmarks
+from wardmap.server.association.types import Landmark
+
+from .conftest import CHAIR_SIZE, MeasurementFactory, camera_looking_along_y, object_pose
+
+
+def _landmarks(make_measurement: MeasurementFactory, groups: list[list[int | None]]) -> list[Landmark]:
+    """One landmark per list, holding one chair measurement per ground-truth id in it."""
+    out = []
+    for k, ids in enumerate(groups):
+        ms = tuple(make_measurement(object_pose(0.0, 3.0), camera_looking_along_y(0.0), gt=i,
+                                    keyframe=f"kf{j}") for j, i in enumerate(ids))
+        out.append(Landmark(k + 1, "chair", object_pose(0.0, 3.0), CHAIR_SIZE.copy(), 1.0, ms))
+    return out
+
+
+def test_splitting_an_object_costs_completeness_and_joining_two_costs_accuracy(
+        make_measurement: MeasurementFactory) -> None:
+    """Objects 1 and 2, four measurements each. Right: both 1. One object split over three
+    landmarks (2 + 1 + 1): accuracy still 1, completeness 6/8. Both objects on one landmark:
+    accuracy 4/8 (the majority's share; a tie takes the object counted first), completeness 1.
+    A measurement on no object is wrong for both."""
+    right = score_landmarks(_landmarks(make_measurement, [[1, 1, 1, 1], [2, 2, 2, 2]]))
+    assert (right.accuracy, right.completeness, right.f_measure) == (1.0, 1.0, 1.0)
+    assert right.landmarks == right.gt_objects == 2
+    split = score_landmarks(_landmarks(make_measurement, [[1, 1], [1], [1], [2, 2, 2, 2]]))
+    assert split.accuracy == 1.0 and split.completeness == pytest.approx(6 / 8)
+    assert split.f_measure == pytest.approx(2 * 0.75 / 1.75)
+    assert split.landmarks == 4
+    joined = score_landmarks(_landmarks(make_measurement, [[1, 1, 1, 1, 2, 2, 2, 2]]))
+    assert joined.accuracy == pytest.approx(0.5) and joined.completeness == 1.0
+    stray = score_landmarks(_landmarks(make_measurement, [[1, 1, 1, None], [2, 2, 2, 2]]))
+    assert stray.accuracy == pytest.approx(7 / 8) and stray.completeness == pytest.approx(7 / 8)
+
+
+def test_empty_scores_are_zero() -> None:
+    """No landmarks: every share 0, and the F-measure of two zeros is 0, not a division error."""
+    score = score_landmarks([])
+    assert (score.accuracy, score.completeness, score.f_measure, score.measurements) == (0.0, 0.0, 0.0, 0)
+    assert AssociationScore(0.0, 0, 0, 0, 0).f_measure == 0.0
+    assert np.isfinite(AssociationScore(1.0, 1, 1, 1, 1, 0, 0.5).f_measure)
