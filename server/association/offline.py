@@ -32,6 +32,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from wardmap.server.association.associator import METHODS, AssociationConfig, Associator, Method, beyond_range
+from wardmap.server.association.evaluate import score_landmarks
 from wardmap.server.association.types import Landmark
 from wardmap.server.perception.instances import attach_gt_instances, id_to_class, oracle_instances
 from wardmap.server.perception.measure import SKIP_KINDS, MeasureConfig, mean_rgb, measure_instances_report
@@ -59,6 +60,7 @@ __all__ = [
     "landmarks_document",
     "measure_dataset",
     "run_map",
+    "score_against_truth",
     "select_keyframes",
 ]
 
@@ -386,7 +388,8 @@ def run_map(
         config_path: TOML file with optional ``[association]``, ``[map]`` and ``[measure]`` tables.
 
     Returns:
-        A summary (counts per data set, number of landmarks, output path).
+        A summary (counts per data set, number of landmarks, output path, and ``score``:
+        :func:`score_against_truth`, or None without ground truth).
 
     Raises:
         ConfigError, DatasetError, WardmapError: bad arguments, config or data.
@@ -427,4 +430,23 @@ def run_map(
         "keyframes": sum(len(ds.keyframes) for ds in measured),
         "method": assoc_cfg.method,
         "out": str(path),
+        "score": score_against_truth(landmarks, measured, kg),
     }
+
+
+def score_against_truth(landmarks: Sequence[Landmark], datasets: Sequence[DatasetMeasurements],
+                        knowledge: KnowledgeGraph) -> dict[str, float | int] | None:
+    """The association scores of ``evaluate.score_landmarks`` (accuracy, completeness, F-measure,
+    confirmed landmarks against ground-truth objects) when every data set has ground truth from
+    one world (their ``objects.json`` agree on every shared id); None otherwise."""
+    gt: dict[int, str] = {}
+    for ds in datasets:
+        if ds.gt_classes is None:
+            return None
+        for i, name in ds.gt_classes.items():
+            if gt.setdefault(i, name) != name:
+                return None
+    s = score_landmarks(landmarks, gt, knowledge.moving_classes())
+    return {"accuracy": round(s.accuracy, 6), "completeness": round(s.completeness, 6),
+            "f_measure": round(s.f_measure, 6), "objects": s.landmarks, "unconfirmed": s.unconfirmed,
+            "gt_objects": s.gt_objects}

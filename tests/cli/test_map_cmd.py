@@ -34,6 +34,11 @@ def test_map_writes_landmarks(small: Path, tmp_path: Path) -> None:
     assert summary["method"] == doc["method"] == "nearest"
     assert summary["landmarks"] == len(doc["landmarks"]) > 0
     assert summary["keyframes"] == 6
+    score = summary["score"]  # oracle measurements of a simulated data set: scored
+    assert 0.0 < score["accuracy"] <= 1.0 and 0.0 < score["completeness"] <= 1.0
+    assert min(score["accuracy"], score["completeness"]) <= score["f_measure"] <= max(score["accuracy"],
+                                                                                   score["completeness"])
+    assert score["objects"] + score["unconfirmed"] == summary["landmarks"] and score["gt_objects"] > 0
 
 
 def test_missing_dataset(tmp_path: Path) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -16,9 +17,11 @@ from wardmap.server.association.offline import (
     landmarks_document,
     measure_dataset,
     run_map,
+    score_against_truth,
     select_keyframes,
 )
 from wardmap.shared.errors import DatasetError, WardmapError
+from wardmap.shared.knowledge import KnowledgeGraph
 from wardmap.shared.se3 import yaw_transform
 from wardmap.sim.runner import generate
 
@@ -73,6 +76,23 @@ def test_oracle_map_of_a_small_sequence(small: Path, config_file: Path, tmp_path
             keys.add(key)
     assert len(gt_ids) == len(doc["landmarks"])
     assert summary["measurements"] == len(keys)
+    assert summary["score"]["accuracy"] == summary["score"]["completeness"] == 1.0
+    assert summary["score"]["objects"] == summary["score"]["gt_objects"] == len(gt_ids)
+
+
+def test_score_only_against_one_world(small: Path) -> None:
+    """The summary's score needs ground truth for every data set, from one world: data sets whose
+    objects.json give one id two classes, or one without ground truth, are not scored."""
+    every_frame = MapConfig(keyframe_min_translation_m=0.0, keyframe_min_rotation_deg=0.0)
+    ds = measure_dataset(small, config=every_frame)
+    kg = KnowledgeGraph.load()
+    landmarks = associate([ds], AssociationConfig())
+    assert score_against_truth(landmarks, [ds, ds], kg) is not None  # the same world twice
+    assert ds.gt_classes is not None
+    renamed = {i: ("bed" if c != "bed" else "door") for i, c in ds.gt_classes.items()}
+    other = dataclasses.replace(ds, gt_classes=renamed)
+    assert score_against_truth(landmarks, [ds, other], kg) is None
+    assert score_against_truth(landmarks, [ds, dataclasses.replace(ds, gt_classes=None)], kg) is None
 
 
 def test_methods_share_the_measurements(small: Path) -> None:
