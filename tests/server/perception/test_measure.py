@@ -169,6 +169,43 @@ def test_a_door_mask_bleeding_along_the_wall_is_cut_to_the_widest_door() -> None
 T_WORLD_WALL_CAM = look_at(np.array([0.0, 1.0, 1.2]), np.array([2.5, 2.95, 1.0]))
 
 
+def test_a_door_cut_by_the_image_border_is_widened_beyond_it() -> None:
+    """A 1.0 m door (x 1.5..2.5 m) whose right part lies beyond the right image border: its
+    visible part's box is centred 0.2-0.3 m left of the door; widened to the door's usual width
+    on the border's side, it is centred on the door. A door in full view, another class, and a
+    mask over both borders are left as measured."""
+    T_world_door = yaw_transform(2.0, 3.0, 0.0, z=1.05)
+    door_size = np.array([1.0, 0.05, 2.1])
+
+    def measure_door(T_world_camera: np.ndarray, widths: tuple) -> tuple[float, float]:
+        depth, hit = render_box(T_world_camera, T_world_door, door_size)
+        inst = Instance("door", 0.9, hit, np.array([0.0, 0.0, 1.0, 1.0]))
+        (m,) = measure_instances([inst], bgr=BGR, depth_m=depth, camera=CAMERA, T_world_camera=T_world_camera,
+                                 keyframe="test/1", stamp=1.0,
+                                 config=MeasureConfig(max_width_m=(), clipped_width_m=widths))
+        return float(m.T_world_object[0, 3]), float(m.size[0])
+
+    cut_right = look_at(np.array([1.0, 0.5, 1.2]), np.array([0.6, 3.0, 1.0]))
+    _, hit = render_box(cut_right, T_world_door, door_size)
+    assert hit[:, -1].any() and not hit[:, 0].any()
+    x_seen, w_seen = measure_door(cut_right, ())
+    assert 0.4 < w_seen < 0.65 and 0.2 < 2.0 - x_seen < 0.3
+    x_wide, w_wide = measure_door(cut_right, (("door", 1.0),))
+    assert abs(x_wide - 2.0) < 0.03 and w_wide == pytest.approx(1.0)
+    # Mirrored: the left part beyond the left border.
+    cut_left = look_at(np.array([3.0, 0.5, 1.2]), np.array([3.4, 3.0, 1.0]))
+    assert abs(measure_door(cut_left, (("door", 1.0),))[0] - 2.0) < 0.03
+    assert measure_door(cut_right, (("cabinet", 1.0),)) == (x_seen, w_seen)
+    in_view = look_at(np.array([2.0, 0.0, 1.2]), np.array([2.0, 3.0, 1.0]))
+    assert measure_door(in_view, (("door", 1.2),)) == pytest.approx(measure_door(in_view, ()))
+    both = look_at(np.array([2.0, 2.6, 1.2]), np.array([2.0, 3.0, 1.2]))
+    _, hit = render_box(both, T_world_door, door_size)
+    assert hit[:, 0].any() and hit[:, -1].any()
+    assert measure_door(both, (("door", 1.5),)) == measure_door(both, ())
+    with pytest.raises(ConfigError, match="clipped_width_m"):
+        MeasureConfig(clipped_width_m=(("door", -1.0),))
+
+
 def test_square_footprint_yaw_is_modulo_90_and_x_is_the_longer_side() -> None:
     """x of the measurement follows the longer horizontal side even if it is the box's y."""
     size = np.array([0.5, 0.9, 0.8])
