@@ -27,7 +27,9 @@ along the longer horizontal extent and the yaw in [-90, 90) deg. Consumers compa
 with ground truth must compare modulo this symmetry (``bench/perception.py``).
 
 Only the visible surface is measured: the box of a partly seen object is smaller than
-the object and its centre moves towards the camera.
+the object and its centre moves towards the camera. Doors cut by the left or right image
+border are the exception: their box is widened to the usual door width beyond that border
+(``MeasureConfig.clipped_width_m``); ``points_camera`` still holds the visible points only.
 """
 
 from __future__ import annotations
