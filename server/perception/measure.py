@@ -117,10 +117,11 @@ class MeasureConfig:
     )
     """``[class, width]`` pairs: the widest an object of the class can be, metres (the static
     classes' horizontal bounds in ``types.CLASS_SIZE_M``, but doors 1.25 m rather than 1.3 m:
-    the window then leaves at most 5 cm of a spill in a 1.16 m door's box; seeds 1001 / 1002 /
-    1003, network instances: static objects 8.1 / 10.0 / 8.6 -> 7.5 / 8.8 / 8.1 cm with
-    ``clipped_width_m``. 1.2 m gave 7.1 / 7.6 / 6.7 cm but cost the association benchmark 3 of
-    the 35 sequences' "better than both" (docs/perception.md)). When the points of an
+    the window then leaves at most 9 cm of a spill in a 1.16 m door's box, its centre at most
+    4.5 cm off; seeds 1001 / 1002 / 1003, network instances: static objects 8.1 / 10.0 / 8.6 ->
+    7.5 / 8.8 / 8.1 cm with ``clipped_width_m``. 1.2 m gave 7.1 / 7.6 / 6.7 cm, but the
+    association benchmark was better than both baselines on 19 of its 35 sequences, against
+    21 with 1.25 m (docs/perception.md)). When the points of an
     instance of the class span more than that along the box's x axis, only the points inside
     the ``width``-wide window holding the most of them are kept (:func:`densest_window`) and
     the box is fitted to those; its centre can still lie up to half the slack (bound minus the
