@@ -13,7 +13,7 @@ measurements with ground-truth poses, and scores them:
 - completeness (inverse purity): each object takes the landmark holding most of its
   measurements; completeness = share of all measurements in their object's landmark. The
   accuracy alone rewards a method that starts a new landmark when in doubt (with model
-  measurements ``nearest`` leaves 22-30 landmarks for 17-22 objects on seed 1001); the
+  measurements ``nearest`` leaves 21-30 landmarks for 17-22 objects on seed 1001); the
   F-measure (harmonic mean of the two) is reported beside it. The goal line keeps the
   issue's rule (accuracy, then count).
 

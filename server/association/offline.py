@@ -236,7 +236,8 @@ def measure_dataset(
         raise DatasetError(f"{reader.root}: --measurements oracle needs labels.txt + labels/ and "
                            "objects.json (a simulated data set)")
     segment = _segmenter(measurements) if measurements == "model" else None
-    perception = PerceptionConfig()
+    mcfg = measure_config or MeasureConfig()
+    perception = PerceptionConfig(measure=mcfg)  # the split uses the usual widths too
     frame_poses = _frame_poses(reader, Path(poses) if poses is not None else None)
     without_pose = sum(1 for T in frame_poses if T is None)
     if without_pose == len(frame_poses):
@@ -246,7 +247,6 @@ def measure_dataset(
         log.warning("%s: %d of %d frames have no pose and are left out", name, without_pose, len(frame_poses))
     chosen = select_keyframes(frame_poses, cfg.keyframe_min_translation_m, cfg.keyframe_min_rotation_deg)
     camera = reader.calibration.rgb
-    mcfg = measure_config or MeasureConfig()
     keyframes: list[KeyframeMeasurements] = []
     moving = floating = walls = 0
     skipped: Counter[str] = Counter()

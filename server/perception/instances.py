@@ -10,7 +10,9 @@
   it; :func:`instances_from_classes` drops them for the classes it is told to trim, which
   splits chairs that the network's bleed onto the wall joined into one region.
 - :func:`split_side_by_side`: an instance as wide as two or more objects of its class (touching
-  chairs in a row) cut into side-by-side pieces at the gaps, using depth and the camera.
+  chairs in a row) cut into side-by-side pieces at the gaps, using depth and the camera;
+  doors also where the mask drops below their common top line, and from the far end when the
+  mask is cut by the image border.
 - :func:`merge_stacked`: pieces of one object that trimming cut apart one above the other (a
   chair's open back above its seat) joined again.
 - :func:`floating_above_floor`: instances of floor-standing classes that end in mid-air with
@@ -35,6 +37,7 @@ from typing import Any
 import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.stats import siegelslopes
 
 from wardmap.server.perception.types import Instance
 from wardmap.shared.camera import PinholeCamera
@@ -60,6 +63,11 @@ log = logging.getLogger(__name__)
 
 Mask = NDArray[np.bool_]
 
+_LEAST_PART: float = 1 / 3
+"""``split_side_by_side`` with a usual width: the least share of that width a piece at a side
+border of the image must span to be cut off and kept (session 31: 1/2 kept fewer real doors,
+docs/perception.md)."""
+
 
 def split_side_by_side(
     instances: Sequence[Instance],
@@ -70,6 +78,7 @@ def split_side_by_side(
     width_m: float,
     min_pixels: int,
     one_object_share: float = 0.8,
+    usual_width_m: float | None = None,
 ) -> list[Instance]:
     """Instances of ``classes`` as wide as two or more such objects, cut into side-by-side pieces.
 
@@ -96,6 +105,13 @@ def split_side_by_side(
             the measurement's widest-object bound handles better than a cut through the object.
             Seed-1002 worlds with 0.8 against none: association accuracy 97.47 -> 97.75 %, door
             centroid median 11.1 -> 10.3 cm; seed 1003 door 17.7 cm both ways.
+        usual_width_m: the usual width of one object (a site's doors, metres; None: the even
+            cut above only). The mask is first cut at its gap columns, where it is a low strip
+            below the objects' common top line (the wall between two doors; see
+            ``_runs_between_gaps``). A run that reaches one side border of the image has only
+            one true end, so the even cut would place its cuts wrongly: it is cut into objects
+            of this width laid from that end, while a third of the width or more is left towards
+            the border (two doors side by side, the nearer one half out of view).
 
     Returns:
         The instances in order, split ones replaced by their pieces (left to right along
@@ -107,11 +123,14 @@ def split_side_by_side(
         raise GeometryError(
             f"split_side_by_side: one_object_share must lie in (0, 1], got {one_object_share}"
         )
+    if usual_width_m is not None and not usual_width_m > 0:
+        raise GeometryError(f"split_side_by_side: usual_width_m must be > 0, got {usual_width_m}")
     out: list[Instance] = []
     for inst in instances:
-        pieces = (_side_by_side(inst.mask, depth_m, camera, width_m, min_pixels, one_object_share)
+        pieces = (_side_by_side(inst.mask, depth_m, camera, width_m, min_pixels, one_object_share,
+                                usual_width_m)
                   if inst.category in classes else [])
-        if len(pieces) < 2:
+        if not pieces:
             out.append(inst)
             continue
         out.extend(dataclasses.replace(inst, mask=p, box_xyxy=box_of_mask(p), gt_instance=None)
@@ -449,15 +468,63 @@ def densest_window(along: NDArray[np.float64], width: float) -> NDArray[np.bool_
 
 
 def _side_by_side(mask: Mask, depth: NDArray[np.float32], camera: PinholeCamera, width_m: float,
-                  min_pixels: int, one_object_share: float) -> list[Mask]:
+                  min_pixels: int, one_object_share: float, usual_width_m: float | None = None) -> list[Mask]:
+    """The pieces of one mask (``split_side_by_side``); [] when it stays whole. With
+    ``usual_width_m``: cut at gaps, then each run cut from its far end when it reaches one side
+    border, else evenly; a run at a side border narrower than ``_LEAST_PART`` of a width is a
+    sliver (a door frame, the side of a cabinet) and is dropped, since its measurement would be
+    widened beyond the border into a door of its own."""
+    if usual_width_m is None:
+        even = _even_pieces(mask, depth, camera, width_m, min_pixels, one_object_share)
+        return even if len(even) >= 2 else []
+    runs, solid = _runs_between_gaps(mask)
+    pieces: list[Mask] = []
+    changed = len(runs) > 1
+    for run in runs:
+        side = _clipped_side(run)
+        cut = (_pieces_from_far_end(run, solid, depth, camera, usual_width_m, side, min_pixels) if side
+               else _even_pieces(run, depth, camera, width_m, min_pixels, one_object_share))
+        if len(cut) >= 2 or (side and cut):
+            pieces.extend(cut)
+            changed = True
+        elif int(run.sum()) >= min_pixels and (
+                len(runs) == 1 or not side or _extent_m(run, depth, camera) >= _LEAST_PART * usual_width_m):
+            pieces.append(run)
+    return pieces if changed and pieces else []
+
+
+def _along_axis(mask: Mask, depth: NDArray[np.float32], camera: PinholeCamera, least: int
+                ) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.float64]] | None:
+    """Rows, columns and positions (metres, centred) along the first principal axis of the
+    mask's pixels with depth, back-projected onto the camera's horizontal x-z plane
+    (distortion ignored); None with fewer than ``least`` such pixels."""
     v, u = np.nonzero(mask)
     z = depth[v, u].astype(np.float64)
     ok = np.isfinite(z) & (z > 0)
-    if int(ok.sum()) < 2 * min_pixels:
-        return []
+    if int(ok.sum()) < max(least, 2):
+        return None
     v, u, z = v[ok], u[ok], z[ok]
     xz = np.stack([(u - camera.cx) * z / camera.fx, z], axis=1)
-    along = (xz - xz.mean(axis=0)) @ principal_direction(xz)
+    return v, u, (xz - xz.mean(axis=0)) @ principal_direction(xz)
+
+
+def _extent_m(mask: Mask, depth: NDArray[np.float32], camera: PinholeCamera) -> float:
+    """Extent (metres, 2-98 % quantiles) of the mask's pixels with depth along their first
+    principal axis on the camera's x-z plane; 0 without two such pixels."""
+    axis = _along_axis(mask, depth, camera, 2)
+    if axis is None:
+        return 0.0
+    lo, hi = np.quantile(axis[2], [0.02, 0.98])
+    return float(hi - lo)
+
+
+def _even_pieces(mask: Mask, depth: NDArray[np.float32], camera: PinholeCamera, width_m: float,
+                 min_pixels: int, one_object_share: float) -> list[Mask]:
+    """``mask`` cut into k pieces of even width along its extent (``split_side_by_side``)."""
+    axis = _along_axis(mask, depth, camera, 2 * min_pixels)
+    if axis is None:
+        return []
+    v, u, along = axis
     lo, hi = (float(q) for q in np.quantile(along, [0.02, 0.98]))
     k = int((hi - lo) / width_m + 0.5)
     if k < 2 or densest_window(along, width_m).sum() >= one_object_share * along.size:
@@ -469,15 +536,115 @@ def _side_by_side(mask: Mask, depth: NDArray[np.float32], camera: PinholeCamera,
     for i in range(1, k):
         near = np.flatnonzero(np.abs(mids - (lo + i * (hi - lo) / k)) <= width_m / 4)
         cuts.append(float(mids[near[np.argmin(counts[near])]]) if near.size else lo + i * (hi - lo) / k)
-    piece = np.searchsorted(np.asarray(cuts), along)
+    return _pieces_at(mask, v, u, along, cuts, min_pixels)
+
+
+def _pieces_at(mask: Mask, v: NDArray[np.intp], u: NDArray[np.intp], along: NDArray[np.float64],
+               cuts: Sequence[float], min_pixels: int) -> list[Mask]:
+    """The pixels ``(v, u)`` grouped by which of the sorted ``cuts`` their ``along`` falls
+    between; groups under ``min_pixels`` are dropped."""
+    piece = np.searchsorted(np.sort(np.asarray(cuts, dtype=np.float64)), along)
     masks = []
-    for i in range(k):
+    for i in range(len(cuts) + 1):
         sel = piece == i
         if int(sel.sum()) >= min_pixels:
             m = np.zeros_like(mask)
             m[v[sel], u[sel]] = True
             masks.append(m)
     return masks
+
+
+def _runs_between_gaps(mask: Mask, min_gap_px: int = 2) -> tuple[list[Mask], NDArray[np.bool_]]:
+    """``mask`` cut at its gap columns, and its solid columns (W,).
+
+    Objects of one class side by side on a wall (doors) share a top line and a bottom line in
+    the image (their tops are at one height on one plane, so the line is straight); a robust
+    line (Siegel's repeated medians) through the columns' first and last mask rows gives both,
+    and the band between them is the objects' height in each column. Where the network's mask
+    runs over the wall between two doors it is a strip along the floor, whose top lies well
+    below the top line: a run of at least ``min_gap_px`` columns whose mask begins more than a
+    fifth of the band below it, with object columns on both sides, is a gap, and its pixels
+    belong to no run. A person or a chair in front of a door hides its lower part and leaves
+    its top: not a gap. A solid column has mask over at least 60 % of the band (an object's
+    column, not the spill beside it).
+    """
+    h, w = mask.shape
+    solid = np.zeros(w, dtype=bool)
+    cols = np.flatnonzero(mask.any(axis=0))
+    if cols.size < 3:
+        solid[cols] = True
+        return [mask], solid
+    top = mask[:, cols].argmax(axis=0).astype(np.float64)
+    bottom = (h - 1 - mask[::-1, cols].argmax(axis=0)).astype(np.float64)
+    top_line = _siegel_line(cols.astype(np.float64), top)
+    band = np.maximum(_siegel_line(cols.astype(np.float64), bottom) - top_line, 1.0)
+    solid[cols] = mask[:, cols].sum(axis=0) >= 0.6 * band
+    low = top > top_line + 0.2 * band
+    gap = np.zeros(cols.size, dtype=bool)
+    k = 0
+    while k < cols.size:
+        end = k
+        while end < cols.size and low[end]:
+            end += 1
+        if 0 < k < end < cols.size and end - k >= min_gap_px:  # object columns on both sides
+            gap[k:end] = True
+        k = max(end, k + 1)
+    kept = np.flatnonzero(~gap)
+    groups = np.split(kept, np.flatnonzero(np.diff(cols[kept]) > 1) + 1)
+    if len(groups) < 2:
+        return [mask], solid
+    return [_columns(mask, int(cols[g[0]]), int(cols[g[-1]]) + 1) for g in groups], solid
+
+
+def _siegel_line(x: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Siegel's repeated-medians line through (x, y), evaluated at x (robust to half outliers)."""
+    fit = siegelslopes(y, x)
+    return np.asarray(fit.intercept + fit.slope * x, dtype=np.float64)
+
+
+def _columns(mask: Mask, u0: int, u1: int) -> Mask:
+    """``mask`` with only the columns ``u0 <= u < u1`` kept."""
+    out = np.zeros_like(mask)
+    out[:, u0:u1] = mask[:, u0:u1]
+    return out
+
+
+def _clipped_side(mask: Mask) -> int:
+    """-1 when ``mask`` reaches the left image border only, +1 the right only, else 0."""
+    left, right = bool(mask[:, 0].any()), bool(mask[:, -1].any())
+    return -1 if left and not right else 1 if right and not left else 0
+
+
+def _pieces_from_far_end(mask: Mask, solid: NDArray[np.bool_], depth: NDArray[np.float32],
+                         camera: PinholeCamera, usual_width_m: float, side: int,
+                         min_pixels: int) -> list[Mask]:
+    """A mask cut by the image border on ``side`` cut into objects ``usual_width_m`` wide laid
+    from its other end (the only end that is an object's end; the 98th percentile of its pixels
+    in ``solid`` columns along the mask's axis, so a spill onto the wall beyond it does not
+    move it), while at least a third of that width is left towards the border; [] when
+    nothing is cut."""
+    axis = _along_axis(mask, depth, camera, 2 * min_pixels)
+    if axis is None:
+        return []
+    v, u, along = axis
+    at_border = u <= u.min() + 2 if side < 0 else u >= u.max() - 2
+    if along[at_border].mean() > along.mean():
+        along = -along  # along grows away from the border
+    in_solid = solid[u]
+    if int(in_solid.sum()) < min_pixels:
+        return []
+    start = float(np.quantile(along, 0.02))
+    end = float(np.quantile(along[in_solid], 0.98))
+    cuts = []
+    while end - usual_width_m - start >= _LEAST_PART * usual_width_m:
+        end -= usual_width_m
+        cuts.append(end)
+    if not cuts:
+        return []
+    rest = along < cuts[-1]
+    if rest.any() and np.ptp(np.quantile(along[rest], [0.02, 0.98])) < _LEAST_PART * usual_width_m:
+        v, u, along = v[~rest], u[~rest], along[~rest]  # a sliver at the border: dropped
+    return _pieces_at(mask, v, u, along, cuts, min_pixels)
 
 
 def box_of_mask(mask: Mask) -> NDArray[np.float64]:

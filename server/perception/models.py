@@ -155,7 +155,10 @@ class PerceptionConfig:
     whose measurement sat between two chairs: on the tuning worlds association accuracy 92.2 ->
     94.6 %, chairs without a landmark of their own 5 -> 1);
     the network's mask runs over the 0.4 m of wall between two neighbouring doors (a door
-    leaf is at most 1.3 m, so a door region of 2.1 m or more holds two)."""
+    leaf is at most 1.3 m, so a door region of 2.1 m or more holds two). A class with a usual
+    width in ``measure.clipped_width_m`` (doors) is first cut at the gaps below its top line and,
+    when its mask reaches a side border of the image, from its far end in steps of that width
+    (``usual_width_m`` of ``split_side_by_side``; docs/perception.md, "Instances")."""
     stack_gap_m: tuple[tuple[str, float], ...] = (("chair", 0.1), ("iv_pole", 1.0))
     """Segmentation network: ``[class, gap]`` pairs. Pieces of the class one above the other
     with at most ``gap`` metres between them are joined (``instances.merge_stacked``): a
@@ -237,9 +240,10 @@ def split_instances(instances: Sequence[Instance], depth_m: NDArray[np.float32],
     out = list(instances)
     if not spec.strip().startswith("model"):
         return out
+    usual = dict(config.measure.clipped_width_m)
     for name, width in config.split_width_m:
         out = split_side_by_side(out, depth_m, camera, classes=(name,), width_m=width,
-                                 min_pixels=config.min_pixels)
+                                 min_pixels=config.min_pixels, usual_width_m=usual.get(name))
     for name, gap in config.stack_gap_m:
         out = merge_stacked(out, depth_m, camera, classes=(name,), max_gap_m=gap)
     return out

@@ -514,6 +514,72 @@ def test_one_door_with_a_thin_spill_along_the_wall_is_not_cut() -> None:
                            one_object_share=0.0)
 
 
+def render_doors_on_a_wall(T_world_camera: np.ndarray, door_x: tuple[float, ...]
+                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Depth (H, W), door index per pixel (0 = wall, k = door k) and world points (H, W, 3) of
+    1.16 x 2.18 m doors centred at ``door_x`` in front of a wall at y = 3.1 m."""
+    depth, _ = render_box(T_world_camera, yaw_transform(6.0, 3.15, 0.0, z=1.25), np.array([14.0, 0.1, 2.5]))
+    label = np.zeros(depth.shape, int)
+    for k, x in enumerate(door_x, 1):
+        d, hit = render_box(T_world_camera, yaw_transform(x, 3.07, 0.0, z=1.09), np.array([1.16, 0.06, 2.18]))
+        near = hit & ((depth == 0) | (d < depth))
+        depth[near], label[near] = d[near], k
+    points = (CAMERA.pixel_rays() * depth[..., None]) @ T_world_camera[:3, :3].T + T_world_camera[:3, 3]
+    return depth, label, points
+
+
+def test_twin_doors_cut_by_the_image_border_are_split_from_their_far_end() -> None:
+    """A corridor wall seen at a grazing angle: doors A and B 8 cm apart, A cut by the left image
+    border, and door C 0.97 m further on. The network's mask covers all three, the 8 cm between
+    A and B, and a 0.3 m strip along the floor between B and C. With the doors' usual width the
+    mask is cut at the strip (its top lies far below the doors' top line) and the run A + B from
+    B's far end, so each piece is on one door and A's piece, widened beyond the border, is
+    measured at A. The even cut alone puts a cut inside B. A door in full view with a person in
+    front of its lower part, and one door cut by the border with a spill, stay whole."""
+    T = look_at(np.array([2.9, 1.6, 1.05]), np.array([10.3, 2.3, 1.05]))
+    door_x = (4.95, 6.19, 8.32)  # A 4.37-5.53, B 5.61-6.77, C 7.74-8.90
+    depth, label, points = render_doors_on_a_wall(T, door_x)
+    assert label[:, 0].max() == 1 and (label == 2).any() and (label == 3).any()
+    x, z = points[..., 0], points[..., 2]
+    wall = (label == 0) & (depth > 0)
+    strip = wall & (x > 6.7) & (x < 7.8) & (z < 0.3)
+    mask = (label > 0) | (wall & (x > 5.5) & (x < 5.65) & (z < 2.18)) | strip
+    joined = Instance("door", 0.9, mask, box_of_mask(mask))
+
+    def split(inst: Instance, usual: float | None) -> list[Instance]:
+        return split_side_by_side([inst], depth, CAMERA, classes=("door",), width_m=1.4, min_pixels=50,
+                                  usual_width_m=usual)
+
+    pieces = sorted(split(joined, 1.2), key=lambda p: p.box_xyxy[0])
+    assert len(pieces) == 3
+    for k, piece in enumerate(pieces, 1):
+        assert np.mean(label[piece.mask] == k) > 0.9, (k, np.bincount(label[piece.mask]))
+        assert not (piece.mask & strip).any()
+    (a,) = measure_instances([pieces[0]], bgr=BGR, depth_m=depth, camera=CAMERA, T_world_camera=T,
+                             keyframe="test/1", stamp=1.0,
+                             config=MeasureConfig(clipped_width_m=(("door", 1.2),)))
+    assert abs(a.T_world_object[0, 3] - door_x[0]) < 0.15
+    even = sorted(split(joined, None), key=lambda p: p.box_xyxy[0])
+    assert np.mean(label[even[0].mask] == 1) < 0.85  # the even cut lies inside door B
+    # A person before the lower part of a door in full view: the door's top is left, no gap.
+    T_front = look_at(np.array([6.19, 0.5, 1.2]), np.array([6.19, 3.0, 1.0]))
+    depth, label, _ = render_doors_on_a_wall(T_front, (6.19,))
+    door = label == 1
+    cols = np.flatnonzero(door.any(axis=0))
+    hidden = door.copy()
+    hidden[np.flatnonzero(door.any(axis=1))[40]:, cols[30]:cols[50]] = False
+    one = Instance("door", 0.9, hidden, box_of_mask(hidden))
+    assert split(one, 1.2) == [one]
+    # One door cut by the border, its mask spilling 0.25 m onto the wall beyond its far end.
+    depth, label, points = render_doors_on_a_wall(T, (5.05,))
+    x, z = points[..., 0], points[..., 2]
+    spill = (label == 0) & (depth > 0) & (x > 5.63) & (x < 5.88) & (z < 2.18)
+    cut_one = Instance("door", 0.9, (label == 1) | spill, box_of_mask((label == 1) | spill))
+    assert split(cut_one, 1.2) == [cut_one]
+    with pytest.raises(GeometryError, match="usual_width_m"):
+        split(joined, 0.0)
+
+
 def test_chair_back_above_its_seat_is_joined_to_it() -> None:
     """Two chairs 2 m away, each cut into an open back (rows 20-39) above its seat (rows 42-79):
     each back joins its own seat; a back over a chair 0.8 m farther, a door, a piece far
