@@ -535,7 +535,8 @@ def test_twin_doors_cut_by_the_image_border_are_split_from_their_far_end() -> No
     mask is cut at the strip (its top lies far below the doors' top line) and the run A + B from
     B's far end, so each piece is on one door and A's piece, widened beyond the border, is
     measured at A. The even cut alone puts a cut inside B. A door in full view with a person in
-    front of its lower part, and one door cut by the border with a spill, stay whole."""
+    front of its lower part, and one door cut by the border with a spill, stay whole; a sliver
+    of a door at the border, beyond a gap, is dropped."""
     T = look_at(np.array([2.9, 1.6, 1.05]), np.array([10.3, 2.3, 1.05]))
     door_x = (4.95, 6.19, 8.32)  # A 4.37-5.53, B 5.61-6.77, C 7.74-8.90
     depth, label, points = render_doors_on_a_wall(T, door_x)
@@ -576,6 +577,15 @@ def test_twin_doors_cut_by_the_image_border_are_split_from_their_far_end() -> No
     spill = (label == 0) & (depth > 0) & (x > 5.63) & (x < 5.88) & (z < 2.18)
     cut_one = Instance("door", 0.9, (label == 1) | spill, box_of_mask((label == 1) | spill))
     assert split(cut_one, 1.2) == [cut_one]
+    # A 0.2 m sliver of a door at the border (the image ends at x = 4.91 m), a floor strip, then
+    # a whole door: the sliver is dropped, not kept as a door to be widened beyond the border.
+    depth, label, points = render_doors_on_a_wall(T, (4.53, 6.38))
+    x, z = points[..., 0], points[..., 2]
+    strip = (label == 0) & (depth > 0) & (x > 5.1) & (x < 5.81) & (z < 0.3)
+    mask = (label > 0) | strip
+    assert label[:, 0].max() == 1 and np.ptp(x[label == 1]) < 0.3  # 0.2 m of door A in view
+    (kept,) = split(Instance("door", 0.9, mask, box_of_mask(mask)), 1.2)
+    assert np.array_equal(kept.mask, label == 2)
     with pytest.raises(GeometryError, match="usual_width_m"):
         split(joined, 0.0)
 
