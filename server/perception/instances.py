@@ -37,6 +37,7 @@ from typing import Any
 import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy import ndimage
 from scipy.stats import siegelslopes
 
 from wardmap.server.perception.types import Instance
@@ -46,6 +47,7 @@ from wardmap.shared.errors import DatasetError, GeometryError
 __all__ = [
     "attach_gt_instances",
     "box_of_mask",
+    "clipped_side",
     "floating_above_floor",
     "gt_instance_of",
     "id_to_class",
@@ -481,7 +483,7 @@ def _side_by_side(mask: Mask, depth: NDArray[np.float32], camera: PinholeCamera,
     pieces: list[Mask] = []
     changed = len(runs) > 1
     for run in runs:
-        side = _clipped_side(run)
+        side = clipped_side(run)
         cut = (_pieces_from_far_end(run, solid, depth, camera, usual_width_m, side, min_pixels) if side
                else _even_pieces(run, depth, camera, width_m, min_pixels, one_object_share))
         if len(cut) >= 2 or (side and cut):
@@ -579,16 +581,12 @@ def _runs_between_gaps(mask: Mask, min_gap_px: int = 2) -> tuple[list[Mask], NDA
     top_line = _siegel_line(cols.astype(np.float64), top)
     band = np.maximum(_siegel_line(cols.astype(np.float64), bottom) - top_line, 1.0)
     solid[cols] = mask[:, cols].sum(axis=0) >= 0.6 * band
-    low = top > top_line + 0.2 * band
+    runs, n_runs = ndimage.label(top > top_line + 0.2 * band)
     gap = np.zeros(cols.size, dtype=bool)
-    k = 0
-    while k < cols.size:
-        end = k
-        while end < cols.size and low[end]:
-            end += 1
-        if 0 < k < end < cols.size and end - k >= min_gap_px:  # object columns on both sides
-            gap[k:end] = True
-        k = max(end, k + 1)
+    for run in ndimage.find_objects(runs, n_runs):
+        i0, i1 = run[0].start, run[0].stop
+        if i0 > 0 and i1 < cols.size and i1 - i0 >= min_gap_px:  # object columns on both sides
+            gap[i0:i1] = True
     kept = np.flatnonzero(~gap)
     groups = np.split(kept, np.flatnonzero(np.diff(cols[kept]) > 1) + 1)
     if len(groups) < 2:
@@ -609,8 +607,9 @@ def _columns(mask: Mask, u0: int, u1: int) -> Mask:
     return out
 
 
-def _clipped_side(mask: Mask) -> int:
-    """-1 when ``mask`` reaches the left image border only, +1 the right only, else 0."""
+def clipped_side(mask: Mask) -> int:
+    """-1 when an (H, W) mask reaches the left image border only, +1 the right only, else 0
+    (neither or both: the object's width is in view, or cannot be placed)."""
     left, right = bool(mask[:, 0].any()), bool(mask[:, -1].any())
     return -1 if left and not right else 1 if right and not left else 0
 

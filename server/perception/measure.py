@@ -47,7 +47,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from wardmap.server.perception.instances import densest_window, principal_direction, ring_around
+from wardmap.server.perception.instances import clipped_side, densest_window, principal_direction, ring_around
 from wardmap.server.perception.types import CLASS_SIZE_M, Instance, ObjectMeasurement
 from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.errors import ConfigError, GeometryError
@@ -384,8 +384,8 @@ def _widen_at_border(centre_g: F64, size: F64, yaw: float, width: float, mask: N
     both borders, an end behind the camera) the box is returned unchanged. ``T_gc`` (4, 4) maps
     camera to gravity frame.
     """
-    left, right = bool(mask[:, 0].any()), bool(mask[:, -1].any())
-    if left == right:
+    side = clipped_side(mask)
+    if not side:
         return centre_g, size
     axis = np.array([math.cos(yaw), math.sin(yaw), 0.0])
     ends_g = centre_g + np.outer([1.0, -1.0], axis * size[0] / 2)  # (2, 3): +x end, -x end
@@ -394,7 +394,7 @@ def _widen_at_border(centre_g: F64, size: F64, yaw: float, width: float, mask: N
     if not in_front.all():
         return centre_g, size
     u = uv[:, 0]
-    toward = 1.0 if (u[0] < u[1]) == left else -1.0  # sign of x towards the clipped end
+    toward = 1.0 if (u[0] < u[1]) == (side < 0) else -1.0  # sign of x towards the clipped end
     widened = size.copy()
     widened[0] = width
     return centre_g + toward * axis * (width - size[0]) / 2, widened
