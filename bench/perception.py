@@ -47,6 +47,7 @@ from wardmap.server.perception.models import (
     OnnxSegmenter,
     PerceptionConfig,
     drop_floating,
+    drop_floor_pieces,
     drop_wall_pieces,
     floor_under,
     make_segmenter,
@@ -283,7 +284,7 @@ def main() -> int:
         assert isinstance(seg, OnnxSegmenter)
         model = seg
     oracle, learned = Scores(), Scores()
-    floating = walls = 0
+    floating = walls = floors = 0
     confusion = np.zeros((len(names), len(names)), np.int64)
     net_ms: list[float] = []
     seg_ms: list[float] = []
@@ -323,6 +324,8 @@ def main() -> int:
             floating += n
             cut, n = drop_wall_pieces(cut, frame.depth_m, cam, PerceptionConfig(), T_wc, floor)
             walls += n
+            cut, n = drop_floor_pieces(cut, frame.depth_m, cam, PerceptionConfig(), T_wc, floor)
+            floors += n
             ms, skipped = measure(reader, frame, attach_gt_instances(cut, frame.labels))
             learned.skipped += skipped
             for m in ms:
@@ -374,7 +377,8 @@ def main() -> int:
             *learned.rows("network"),
             f"\nNetwork instances: {learned.unmatched} measurement(s) on no ground-truth object (< 50% of "
             f"the mask), {learned.skipped} skipped, {floating} left out for floating above the floor "
-            f"(`floor_gap_m`), {walls} for lying on a surface taller than their class (`max_top_m`).\n",
+            f"(`floor_gap_m`), {walls} for lying on a surface taller than their class (`max_top_m`), "
+            f"{floors} for lying flat on the floor (`min_top_m`).\n",
         ]
     if TUM.is_dir() and args.yolox.is_file():
         parts += tum_monitor(args.yolox)

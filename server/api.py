@@ -525,6 +525,10 @@ def _pipeline_metrics(c: PipelineCounters) -> str:
          "Instances perception left out for lying on a surface taller than any object of their class "
          "(perception.max_top_m).",
          [("", c.wall_pieces)]),
+        ("wardmap_mapping_floor_pieces_left_out_total", "counter",
+         "Instances perception left out for lying flat on the floor, lower than any object of their "
+         "class (perception.min_top_m).",
+         [("", c.floor_pieces)]),
         ("wardmap_mapping_beyond_range_total", "counter",
          "Stored measurements association left out for lying beyond association.max_range_m.",
          [("", c.beyond_range)]),

@@ -73,6 +73,7 @@ from wardmap.server.perception.models import (
     PerceptionConfig,
     Segmenter,
     drop_floating,
+    drop_floor_pieces,
     drop_wall_pieces,
     make_segmenter,
     measure_config_for,
@@ -164,6 +165,8 @@ class PipelineCounters:
             (``PerceptionConfig.floor_gap_m``; keyframes with ``T_odom_base``).
         wall_pieces: instances left out for lying on a surface taller than any object of
             their class (``PerceptionConfig.max_top_m``; keyframes with ``T_odom_base``).
+        floor_pieces: instances left out for lying flat on the floor, lower than any object of
+            their class (``PerceptionConfig.min_top_m``; keyframes with ``T_odom_base``).
         beyond_range: stored measurements association left out for lying farther than
             ``AssociationConfig.max_range_m`` from their camera.
         skipped: instances perception found but could not measure, by kind
@@ -185,6 +188,7 @@ class PipelineCounters:
     beyond_range: int = 0
     skipped: dict[str, int] = field(default_factory=dict)
     wall_pieces: int = 0
+    floor_pieces: int = 0
 
 
 @dataclass
@@ -202,6 +206,7 @@ class _Counts:
     beyond_range: int = 0
     skipped: Counter[str] = field(default_factory=Counter)
     wall_pieces: int = 0
+    floor_pieces: int = 0
 
 
 class MapPipeline:
@@ -276,7 +281,7 @@ class MapPipeline:
             return PipelineCounters(c.processed, c.measurements, c.mapped, c.unanchored, c.replayed,
                                     self._backlog, dict(c.failures), len(self._associator.landmarks()),
                                     c.restarts, c.last_error, c.closed_idle, c.floating, c.beyond_range,
-                                    dict(c.skipped), c.wall_pieces)
+                                    dict(c.skipped), c.wall_pieces, c.floor_pieces)
 
     def wait_idle(self, timeout_s: float) -> bool:
         """Block until every stored keyframe is measured, associated and on the object map (tests,
@@ -399,17 +404,17 @@ class MapPipeline:
         instances = split_instances(self._segmenter(bgr, depth), depth, camera, self.perception,
                                     self.perception.segmenter)
         instances = [i for i in instances if i.category not in self._moving]
-        T_map_camera = map_pose(msg)
-        instances, floating = drop_floating(instances, depth, camera, self.perception, T_map_camera,
-                                            floor_height(msg))
-        instances, walls = drop_wall_pieces(instances, depth, camera, self.perception, T_map_camera,
-                                            floor_height(msg))
-        if floating or walls:
-            log.debug("keyframe %s: %d instance(s) float above the floor, %d lie on a taller surface; "
-                      "left out", key, floating, walls)
+        T_map_camera, floor = map_pose(msg), floor_height(msg)
+        instances, floating = drop_floating(instances, depth, camera, self.perception, T_map_camera, floor)
+        instances, walls = drop_wall_pieces(instances, depth, camera, self.perception, T_map_camera, floor)
+        instances, floors = drop_floor_pieces(instances, depth, camera, self.perception, T_map_camera, floor)
+        if floating or walls or floors:
+            log.debug("keyframe %s: %d instance(s) float above the floor, %d lie on a taller surface, "
+                      "%d lie flat on the floor; left out", key, floating, walls, floors)
             with self._lock:
                 self._counts.floating += floating
                 self._counts.wall_pieces += walls
+                self._counts.floor_pieces += floors
         report = measure_instances_report(
             instances, bgr=bgr, depth_m=depth, camera=camera, T_world_camera=T_map_camera,
             keyframe=key, stamp=msg.stamp, config=self._measure_config,

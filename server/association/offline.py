@@ -39,6 +39,7 @@ from wardmap.server.perception.measure import SKIP_KINDS, MeasureConfig, mean_rg
 from wardmap.server.perception.models import (
     PerceptionConfig,
     drop_floating,
+    drop_floor_pieces,
     drop_wall_pieces,
     floor_under,
     split_instances,
@@ -118,6 +119,8 @@ class DatasetMeasurements:
             (``PerceptionConfig.floor_gap_m``; only data sets with a ``[base]`` calibration).
         wall_pieces_left_out: network instances left out for lying on a surface taller than
             any object of their class (``PerceptionConfig.max_top_m``; the same data sets).
+        floor_pieces_left_out: network instances left out for lying flat on the floor, lower
+            than any object of their class (``PerceptionConfig.min_top_m``; the same data sets).
         skipped: instances found but not measured, by kind
             (:data:`~wardmap.server.perception.measure.SKIP_KINDS`).
     """
@@ -132,6 +135,7 @@ class DatasetMeasurements:
     floating_left_out: int = 0
     skipped: dict[str, int] = field(default_factory=dict)
     wall_pieces_left_out: int = 0
+    floor_pieces_left_out: int = 0
 
 
 def select_keyframes(
@@ -248,7 +252,7 @@ def measure_dataset(
     chosen = select_keyframes(frame_poses, cfg.keyframe_min_translation_m, cfg.keyframe_min_rotation_deg)
     camera = reader.calibration.rgb
     keyframes: list[KeyframeMeasurements] = []
-    moving = floating = walls = 0
+    moving = floating = walls = floors = 0
     skipped: Counter[str] = Counter()
     T_base_rgb = reader.calibration.T_base_rgb
     for done, i in enumerate(chosen):
@@ -268,8 +272,10 @@ def measure_dataset(
             floor_z = None if T_base_rgb is None else floor_under(T, T_base_rgb)
             instances, n_floating = drop_floating(instances, frame.depth_m, camera, perception, T, floor_z)
             instances, n_walls = drop_wall_pieces(instances, frame.depth_m, camera, perception, T, floor_z)
+            instances, n_floors = drop_floor_pieces(instances, frame.depth_m, camera, perception, T, floor_z)
             floating += n_floating
             walls += n_walls
+            floors += n_floors
             if frame.labels is not None:
                 instances = attach_gt_instances(instances, frame.labels)
         kept = [inst for inst in instances if not kg.is_moving(inst.category)]
@@ -283,11 +289,12 @@ def measure_dataset(
                                                                           for m in ms)))
         if progress is not None:
             progress(name, done + 1, len(chosen))
-    log.info("%s: %d frames, %d keyframes, %d measurements (%d moving, %d floating and %d wall pieces "
-             "left out, %d not measurable)", name, len(reader), len(keyframes),
-             sum(len(k.measurements) for k in keyframes), moving, floating, walls, sum(skipped.values()))
+    log.info("%s: %d frames, %d keyframes, %d measurements (%d moving, %d floating, %d wall and %d floor "
+             "pieces left out, %d not measurable)", name, len(reader), len(keyframes),
+             sum(len(k.measurements) for k in keyframes), moving, floating, walls, floors,
+             sum(skipped.values()))
     return DatasetMeasurements(name, camera, keyframes, len(reader), without_pose, moving, gt_classes,
-                               floating, dict(skipped), walls)
+                               floating, dict(skipped), walls, floors)
 
 
 def associate(
@@ -344,6 +351,7 @@ def landmarks_document(
              "frames_without_pose": ds.frames_without_pose, "moving_left_out": ds.moving_left_out,
              "floating_left_out": ds.floating_left_out,
              "wall_pieces_left_out": ds.wall_pieces_left_out,
+             "floor_pieces_left_out": ds.floor_pieces_left_out,
              "skipped": {k: ds.skipped.get(k, 0) for k in SKIP_KINDS},
              "beyond_range": sum(beyond_range(m, config.max_range_m) for kf in ds.keyframes
                                  for m in kf.measurements)}

@@ -518,11 +518,12 @@ def test_mapping_counters_in_prometheus_text() -> None:
     from wardmap.server.api import _pipeline_metrics
 
     text = _pipeline_metrics(PipelineCounters(5, 7, 4, 1, 0, 2, {"GeometryError": 1}, 3, closed_idle=1,
-                                              floating=6, beyond_range=9, wall_pieces=4))
+                                              floating=6, beyond_range=9, wall_pieces=4, floor_pieces=8))
     samples = dict(line.rsplit(" ", 1) for line in text.splitlines() if line and not line.startswith("#"))
     assert samples["wardmap_mapping_floating_left_out_total"] == "6"
     assert samples["wardmap_mapping_beyond_range_total"] == "9"
     assert samples["wardmap_mapping_wall_pieces_left_out_total"] == "4"
+    assert samples["wardmap_mapping_floor_pieces_left_out_total"] == "8"
     assert samples["wardmap_mapping_keyframes_total"] == "5" and samples["wardmap_mapping_backlog"] == "2"
     assert samples['wardmap_mapping_failures_total{reason="GeometryError"}'] == "1"
     assert "# TYPE wardmap_mapping_floating_left_out_total counter" in text

@@ -11,6 +11,7 @@ from wardmap.server.perception.instances import (
     attach_gt_instances,
     box_of_mask,
     densest_window,
+    flat_on_floor,
     floating_above_floor,
     gt_instance_of,
     id_to_class,
@@ -762,6 +763,53 @@ def test_drop_wall_pieces_by_default_and_only_with_a_floor() -> None:
     assert drop_wall_pieces([strip], depth, CAMERA, off, T_LEVEL, 0.0) == ([strip], 0)
     with pytest.raises(ConfigError, match="max_top_m"):
         PerceptionConfig(max_top_m=(("cabinet", 0.0),))
+
+
+def test_a_strip_of_floor_taken_for_a_cart_lies_flat_on_the_floor() -> None:
+    """A 'cart' that is a strip of floor 2.5-2.7 m ahead is flagged, also under the nearer front
+    of a bed's footboard; a cart standing there, a strip reaching the image's top rows, a strip
+    without depth and the strip as an IV pole are not."""
+    depth = corridor_depth(wall_m=4.0)
+    rows, cols = slice(222, 230), slice(100, 160)  # floor rows 2.5-2.7 m ahead
+    strip = box_instance("cart", rows, cols)
+    tops = {"cart": 0.2}
+
+    def flags(instances: list[Instance], d: np.ndarray, floor_z: float = 0.0, **kw: object) -> list[bool]:
+        return flat_on_floor(instances, d, CAMERA, T_LEVEL, floor_z_m=floor_z, min_top_m=tops, **kw)
+
+    assert flags([strip, box_instance("iv_pole", rows, cols)], depth) == [True, False]
+    standing = depth.copy()
+    standing[136:230, cols] = 2.5  # a 0.9 m cart at 2.5 m
+    assert flags([box_instance("cart", slice(136, 230), cols)], standing) == [False]
+    assert flags([box_instance("cart", slice(136, 230), cols)], standing, top_percentile=5.0) == [True]
+    bed = depth.copy()
+    bed[170:222, 90:170] = 2.3  # a footboard 0.2 m nearer, right above the strip
+    assert flags([strip], bed) == [True]
+    # The wall's top rows, 0-0.12 m above a floor put at 2.75 m: the mask may go on above the image.
+    assert flags([box_instance("cart", slice(0, 9), cols)], depth, floor_z=2.75) == [False]
+    assert flags([box_instance("cart", slice(4, 13), cols)], depth, floor_z=2.75) == [True]
+    blind = depth.copy()
+    blind[rows, cols] = 0.0
+    assert flags([strip], blind) == [False]
+    with pytest.raises(GeometryError):
+        flags([strip], depth, top_percentile=0.0)
+    with pytest.raises(GeometryError):
+        flat_on_floor([strip], depth, CAMERA, np.eye(3), floor_z_m=0.0, min_top_m=tops)
+
+
+def test_drop_floor_pieces_by_default_and_only_with_a_floor() -> None:
+    from wardmap.server.perception.models import PerceptionConfig, drop_floor_pieces
+
+    strip = box_instance("cart", slice(222, 230), slice(100, 160))
+    depth = corridor_depth(wall_m=4.0)
+    cfg = PerceptionConfig()
+    assert dict(cfg.min_top_m).get("cart") == 0.2 and "iv_pole" not in dict(cfg.min_top_m)
+    assert drop_floor_pieces([strip], depth, CAMERA, cfg, T_LEVEL, 0.0) == ([], 1)
+    assert drop_floor_pieces([strip], depth, CAMERA, cfg, T_LEVEL, None) == ([strip], 0)
+    off = PerceptionConfig(min_top_m=())
+    assert drop_floor_pieces([strip], depth, CAMERA, off, T_LEVEL, 0.0) == ([strip], 0)
+    with pytest.raises(ConfigError, match="min_top_m"):
+        PerceptionConfig(min_top_m=(("cart", 0.0),))
 
 
 def test_no_planes_without_depth_around() -> None:
