@@ -737,8 +737,7 @@ class Associator:
             group_landmarks = track_group(views, cfg.mot, cfg.hdp.class_extent)
             items = [HdpItem(g.category, g.poses, tuple(g.keyframes), tuple(g.mids),
                              np.array([self._sigma[mid] for mid in g.mids]),
-                             np.stack([self._extent[mid] for mid in g.mids]), frozenset(g.apart))
-                     for g in group_landmarks]
+                             np.stack([self._extent[mid] for mid in g.mids])) for g in group_landmarks]
             measurements = [list(g.measurements) for g in group_landmarks]
             likelihood: Literal["gmm", "first_pose"] = "gmm"
         else:

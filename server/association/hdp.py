@@ -154,9 +154,6 @@ class HdpItem:
         sigmas: (K,) position standard deviation of each measurement (metres), or None
             for ``sigma_position_m``.
         extents: (K, 3) world-axis extents of the measured boxes (metres), or None (no slack).
-        apart: ids of measurements known to be of another object (the in-group tracker's
-            :attr:`~wardmap.server.association.mot.GroupLandmark.apart`): the item never
-            shares a landmark with them.
     """
 
     category: str
@@ -165,7 +162,6 @@ class HdpItem:
     mids: tuple[int, ...]
     sigmas: F64 | None = None
     extents: F64 | None = None
-    apart: frozenset[int] = frozenset()
 
 
 @dataclass(frozen=True, eq=False)
@@ -312,15 +308,13 @@ def gibbs_associate(
             topics[t.id] = t
     boxes = boxes if cfg.join_fragments else None
     bounds = [cfg.class_extent(it.category) for it in items]
-    # Allowed existing topics per item: same class, no keyframe conflict, none of its apart.
+    # Allowed existing topics per item: same class, no keyframe conflict.
     allowed: list[list[int]] = []
     for i, it in enumerate(items):
         allowed.append([t.id for t in candidates[i] if t.category == it.category
-                        and not _conflict(kf[i], t.keyframe_mids, boxes, bounds[i])
-                        and not (it.apart and any(it.apart & v for v in t.keyframe_mids.values()))])
+                        and not _conflict(kf[i], t.keyframe_mids, boxes, bounds[i])])
     item_conflict = np.array(
-        [[a != b and (items[a].category != items[b].category or _conflict(kf[a], kf[b], boxes, bounds[a])
-                      or bool(items[a].apart & mids[b]) or bool(items[b].apart & mids[a]))
+        [[a != b and (items[a].category != items[b].category or _conflict(kf[a], kf[b], boxes, bounds[a]))
           for b in range(n)] for a in range(n)], dtype=bool)
     # Component log-sums: per item i, per source -> (K_i,) log sum_z phi.
     first_pose = likelihood == "first_pose"

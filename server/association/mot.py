@@ -12,10 +12,8 @@ keyframe's measurements on a cost that combines
   its camera pose and intrinsics, IoU with the measurement's pixel box,
 - appearance: colour-histogram intersection and ORB descriptor matching,
 
-with class disagreement forbidden and a distance gate, and a measurement forbidden to a track
-when it was out of view of the track's last keyframe (then the two are recorded as apart,
-for the across-group step). Unmatched measurements start new tracks; every track of the
-group becomes a group-level landmark ``O^G_{n,i}``.
+with class disagreement forbidden and a distance gate. Unmatched measurements start new
+tracks; every track of the group becomes a group-level landmark ``O^G_{n,i}``.
 """
 
 from __future__ import annotations
@@ -68,13 +66,6 @@ class MotConfig:
     """Weight of ``1 - appearance similarity``."""
     max_cost: float = 1.8
     """Assigned pairs costing more than this are refused (the measurement starts a new track)."""
-    out_of_view_px: float = 16.0
-    """A track and a measurement never match when the measured box, seen from the keyframe of
-    the track's last measurement, lies wholly outside that image grown by this many pixels:
-    the object measured now was out of view where the track's object was seen, so they are two
-    objects, and the across-group association keeps them apart too
-    (:attr:`GroupLandmark.apart`). A door entering the view at its side as the robot turns is
-    then not taken for the neighbouring door seen there one keyframe before. Negative: off."""
     orb_ratio: float = 0.8
     """Lowe ratio for ORB descriptor matches (Hamming distance)."""
     orb_max_distance: int = 64
@@ -89,8 +80,6 @@ class MotConfig:
             raise ValueError("cost weights must be >= 0")
         if not 0 < self.orb_ratio <= 1 or self.orb_max_distance < 0:
             raise ValueError("need 0 < orb_ratio <= 1 and orb_max_distance >= 0")
-        if not np.isfinite(self.out_of_view_px):
-            raise ValueError(f"out_of_view_px must be a number (< 0: off), got {self.out_of_view_px}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -121,15 +110,12 @@ class GroupLandmark:
         mids: measurement ids, in keyframe order.
         measurements: the measurements, aligned with ``mids``.
         keyframes: keyframe index of each measurement (one measurement per keyframe).
-        apart: ids of measurements of other tracks found to be of another object (out of view
-            of each other, ``MotConfig.out_of_view_px``); no landmark may hold both.
     """
 
     category: str
     mids: list[int] = field(default_factory=list)
     measurements: list[ObjectMeasurement] = field(default_factory=list)
     keyframes: list[int] = field(default_factory=list)
-    apart: set[int] = field(default_factory=set)
 
     def add(self, mid: int, measurement: ObjectMeasurement, keyframe: int) -> None:
         self.mids.append(mid)
@@ -183,18 +169,6 @@ class _Track:
     landmark: GroupLandmark
     last: ObjectMeasurement
     last_partial: bool
-    last_view: KeyframeView
-    last_mid: int
-
-
-def _out_of_view(track: _Track, m: ObjectMeasurement, cfg: MotConfig) -> bool:
-    """True when ``m``'s box lies wholly outside the image of the track's last keyframe, grown
-    by ``out_of_view_px`` (``MotConfig.out_of_view_px``)."""
-    if cfg.out_of_view_px < 0:
-        return False
-    v = track.last_view
-    box = project_box(m.T_world_object, m.size, v.T_world_camera, v.camera, margin_px=cfg.out_of_view_px)
-    return box is None
 
 
 def _cost(track: _Track, m: ObjectMeasurement, partial: bool, view: KeyframeView, cfg: MotConfig,
@@ -243,37 +217,28 @@ def track_group(
     """
     cfg = config or MotConfig()
     tracks: list[_Track] = []
-    pairs: list[tuple[int, int]] = []  # (measurement id, measurement id) of two objects
     for view in keyframes:
         n = len(view.measurements)
         partial = [is_truncated(m.box_xyxy, view.camera, cfg.border_px) for m in view.measurements]
         matched: dict[int, int] = {}
         if tracks and n:
             bounds = [None if class_extent is None else class_extent(m.category) for m in view.measurements]
-            away = np.array([[m.category == t.last.category and _out_of_view(t, m, cfg)
-                              for m in view.measurements] for t in tracks], dtype=bool)
-            cost = np.array([[_FORBIDDEN if away[r, c] else _cost(t, m, partial[c], view, cfg, bounds[c])
-                              for c, m in enumerate(view.measurements)] for r, t in enumerate(tracks)])
+            cost = np.array([[_cost(t, m, partial[c], view, cfg, bounds[c])
+                              for c, m in enumerate(view.measurements)] for t in tracks])
             rows, cols = linear_sum_assignment(cost)
             for r, c in zip(rows.tolist(), cols.tolist(), strict=True):
                 if cost[r, c] <= cfg.max_cost:
                     matched[c] = r
-            pairs += [(tracks[r].last_mid, view.mids[c]) for r, c in zip(*np.nonzero(away), strict=True)]
         for c, (mid, m) in enumerate(zip(view.mids, view.measurements, strict=True)):
             if c in matched:
                 track = tracks[matched[c]]
                 track.landmark.add(mid, m, view.index)
                 track.last = m
                 track.last_partial = partial[c]
-                track.last_view, track.last_mid = view, mid
             else:
                 lm = GroupLandmark(m.category)
                 lm.add(mid, m, view.index)
-                tracks.append(_Track(lm, m, partial[c], view, mid))
-    owner = {mid: t.landmark for t in tracks for mid in t.landmark.mids}
-    for a, b in pairs:
-        owner[a].apart.add(b)
-        owner[b].apart.add(a)
+                tracks.append(_Track(lm, m, partial[c]))
     return [t.landmark for t in tracks]
 
 

@@ -78,21 +78,6 @@ def test_new_landmarks_are_shared_by_compatible_items() -> None:
     assert gibbs_associate(items, [[], []], rng=np.random.default_rng(0)) == [-1, -1]
 
 
-def test_measurements_known_apart_never_share_a_landmark() -> None:
-    """An item whose ``apart`` holds a measurement of landmark 7 (the in-group tracker saw the two
-    out of view of each other) is no candidate of 7, however near; two items apart from each
-    other take two new landmarks, which they share without it."""
-    topic = _topic(7, [0.0])  # holds measurement 7000
-    near = _item(0.01, kf=10, mid=1)
-    assert gibbs_associate([near], [[topic]], rng=np.random.default_rng(3)) == [7]
-    kept_apart = HdpItem("chair", near.poses, near.keyframes, near.mids, apart=frozenset({7000}))
-    assert gibbs_associate([kept_apart], [[topic]], rng=np.random.default_rng(3)) == [-1]
-    a, b = _item(5.0, kf=1, mid=1), _item(5.02, kf=2, mid=2)
-    a_apart = HdpItem("chair", a.poses, a.keyframes, a.mids, apart=frozenset({2}))
-    assert gibbs_associate([a, b], [[], []], rng=np.random.default_rng(0)) == [-1, -1]
-    assert sorted(gibbs_associate([a_apart, b], [[], []], rng=np.random.default_rng(0))) == [-2, -1]
-
-
 def _box(x: float, width: float, y: float = 3.0) -> tuple[np.ndarray, np.ndarray]:
     return np.array([x - width / 2, y - 0.25, 0.0]), np.array([x + width / 2, y + 0.25, 0.9])
 

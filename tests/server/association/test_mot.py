@@ -6,7 +6,6 @@ import numpy as np
 
 from wardmap.server.association.baselines import nearest_assign
 from wardmap.server.association.mot import KeyframeView, MotConfig, appearance_similarity, track_group
-from wardmap.shared.se3 import yaw_transform
 
 from .conftest import CAMERA, MeasurementFactory, camera_looking_along_y, object_pose
 
@@ -68,26 +67,6 @@ def test_distance_gate(make_measurement: MeasurementFactory) -> None:
     lms = track_group([_view(0, T, [make_measurement(object_pose(-0.5, 4.0), T)], 0),
                        _view(1, T, [make_measurement(object_pose(0.5, 4.0), T)], 1)])
     assert len(lms) == 2
-
-
-def test_an_object_out_of_view_of_the_track_is_another_object(make_measurement: MeasurementFactory) -> None:
-    """The robot turns left by 12 deg: door A, cut by the left border of keyframe 0, is not
-    measured in keyframe 1, where door B enters at the left border, 0.67 m from A. Both views
-    are partial, so the distance gate would let them match; but B lies wholly outside keyframe
-    0, where A was seen: two tracks, each listing the other's measurement as apart."""
-    size = np.array([1.2, 0.1, 2.1])
-    A, B = object_pose(-2.4, 3.6, 1.05), object_pose(-3.0, 3.3, 1.05)
-    T0 = camera_looking_along_y(0.0, z=1.05)
-    T1 = yaw_transform(0.0, 0.0, np.deg2rad(12.0)) @ T0
-    a = make_measurement(A, T0, category="door", size=size, gt=1)
-    b = make_measurement(B, T1, category="door", size=size, gt=2)
-    assert a.box_xyxy[0] <= 0 and b.box_xyxy[0] <= 0  # both cut by the left border
-    views = [_view(0, T0, [a], 0), _view(1, T1, [b], 1)]
-    lms = track_group(views)
-    assert [lm.mids for lm in lms] == [[0], [1]]
-    assert [lm.apart for lm in lms] == [{1}, {0}]
-    joined = track_group(views, MotConfig(out_of_view_px=-1.0))
-    assert [lm.mids for lm in joined] == [[0, 1]] and joined[0].apart == set()
 
 
 def test_appearance_similarity_bounds(make_measurement: MeasurementFactory) -> None:
