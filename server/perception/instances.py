@@ -93,7 +93,9 @@ def split_side_by_side(
     position (the gap between two chairs); not when one ``width_m``-wide window holds
     ``one_object_share`` of the pixels (one object and a thin spill beyond it). Pixels
     without depth belong to no piece. A piece keeps the class and confidence; pieces under
-    ``min_pixels`` are dropped, and an instance with fewer than two pieces left stays whole.
+    ``min_pixels`` are dropped, and an instance cut so is replaced by the pieces left, even
+    when only one or none is left: whole, it would be measured as one object as wide as
+    several, on none of them (a row of chairs far away, each under ``min_pixels``).
 
     Args:
         instances: instances of one colour image (H, W).
@@ -132,8 +134,8 @@ def split_side_by_side(
     for inst in instances:
         pieces = (_side_by_side(inst.mask, depth_m, camera, width_m, min_pixels, one_object_share,
                                 usual_width_m)
-                  if inst.category in classes else [])
-        if not pieces:
+                  if inst.category in classes else None)
+        if pieces is None:
             out.append(inst)
             continue
         out.extend(dataclasses.replace(inst, mask=p, box_xyxy=box_of_mask(p), gt_instance=None)
@@ -539,29 +541,31 @@ def densest_window(along: NDArray[np.float64], width: float) -> NDArray[np.bool_
 
 
 def _side_by_side(mask: Mask, depth: NDArray[np.float32], camera: PinholeCamera, width_m: float,
-                  min_pixels: int, one_object_share: float, usual_width_m: float | None = None) -> list[Mask]:
-    """The pieces of one mask (``split_side_by_side``); [] when it stays whole. With
-    ``usual_width_m``: cut at gaps, then each run cut from its far end when it reaches one side
-    border, else evenly; a run at a side border narrower than ``_LEAST_PART`` of a width is a
-    sliver (a door frame, the side of a cabinet) and is dropped, since its measurement would be
-    widened beyond the border into a door of its own."""
+                  min_pixels: int, one_object_share: float, usual_width_m: float | None = None
+                  ) -> list[Mask] | None:
+    """The pieces of one mask (``split_side_by_side``); None when it stays whole. Without
+    ``usual_width_m``: cut evenly, and a mask cut so is replaced by the pieces of at least
+    ``min_pixels`` (maybe one or none). With it: cut at gaps, then each run cut from its far
+    end when it reaches one side border, else evenly; a run at a side border narrower than
+    ``_LEAST_PART`` of a width is a sliver (a door frame, the side of a cabinet) and is
+    dropped, since its measurement would be widened beyond the border into a door of its
+    own."""
     if usual_width_m is None:
-        even = _even_pieces(mask, depth, camera, width_m, min_pixels, one_object_share)
-        return even if len(even) >= 2 else []
+        return _even_pieces(mask, depth, camera, width_m, min_pixels, one_object_share)
     runs, solid = _runs_between_gaps(mask)
     pieces: list[Mask] = []
     changed = len(runs) > 1
     for run in runs:
         side = clipped_side(run)
         cut = (_pieces_from_far_end(run, solid, depth, camera, usual_width_m, side, min_pixels) if side
-               else _even_pieces(run, depth, camera, width_m, min_pixels, one_object_share))
+               else _even_pieces(run, depth, camera, width_m, min_pixels, one_object_share) or [])
         if len(cut) >= 2 or (side and cut):
             pieces.extend(cut)
             changed = True
         elif int(run.sum()) >= min_pixels and (
                 len(runs) == 1 or not side or _extent_m(run, depth, camera) >= _LEAST_PART * usual_width_m):
             pieces.append(run)
-    return pieces if changed and pieces else []
+    return pieces if changed and pieces else None
 
 
 def _along_axis(mask: Mask, depth: NDArray[np.float32], camera: PinholeCamera, least: int
@@ -590,16 +594,16 @@ def _extent_m(mask: Mask, depth: NDArray[np.float32], camera: PinholeCamera) -> 
 
 
 def _even_pieces(mask: Mask, depth: NDArray[np.float32], camera: PinholeCamera, width_m: float,
-                 min_pixels: int, one_object_share: float) -> list[Mask]:
+                 min_pixels: int, one_object_share: float) -> list[Mask] | None:
     """``mask`` cut into k pieces of even width along its extent (``split_side_by_side``)."""
     axis = _along_axis(mask, depth, camera, 2 * min_pixels)
     if axis is None:
-        return []
+        return None
     v, u, along = axis
     lo, hi = (float(q) for q in np.quantile(along, [0.02, 0.98]))
     k = int((hi - lo) / width_m + 0.5)
     if k < 2 or densest_window(along, width_m).sum() >= one_object_share * along.size:
-        return []
+        return None
     edges = np.arange(lo, hi + 0.02, 0.02)
     counts = np.histogram(along, edges)[0]
     mids = 0.5 * (edges[:-1] + edges[1:])

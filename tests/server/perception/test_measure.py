@@ -463,8 +463,8 @@ def test_bleed_onto_the_wall_joining_two_chairs_is_trimmed() -> None:
 
 def test_touching_chairs_in_one_mask_are_split_at_the_gap() -> None:
     """A mask over three touching chairs 2 m away (0.55, 0.45, 0.5 m wide, a 1-pixel seam without
-    depth between them) becomes three pieces, each on its chair; a single chair, an unlisted
-    class and a mask without depth stay whole."""
+    depth between them) becomes three pieces, each on its chair, or only those pieces large
+    enough to measure; a single chair, an unlisted class and a mask without depth stay whole."""
     camera = PinholeCamera(200, 100, 100.0, 100.0, 100.0, 50.0)
     depth = np.full((100, 200), 2.0, np.float32)
     bounds = np.array([30.0, 57.5, 80.0, 105.0])  # pixel columns: 0.5 px = 1 cm at 2 m
@@ -486,6 +486,10 @@ def test_touching_chairs_in_one_mask_are_split_at_the_gap() -> None:
                              (Instance("door", 0.9, mask, np.zeros(4)), ("chair",), depth),
                              (joined, ("chair",), np.zeros_like(depth))):
         assert split_side_by_side([inst], d, camera, classes=classes, width_m=0.5, min_pixels=50) == [inst]
+    # Pieces too small to measure: the mask holds three chairs, so it is not kept whole either.
+    one = split_side_by_side([joined], depth, camera, classes=("chair",), width_m=0.5, min_pixels=1050)
+    assert len(one) == 1 and (chair_of[np.nonzero(one[0].mask)[1]] == 0).mean() > 0.95
+    assert split_side_by_side([joined], depth, camera, classes=("chair",), width_m=0.5, min_pixels=1400) == []
     with pytest.raises(GeometryError):
         split_side_by_side([joined], depth, camera, classes=("chair",), width_m=0.0, min_pixels=50)
 
