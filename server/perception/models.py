@@ -91,9 +91,9 @@ DEFAULT_MODEL: Final = "hospital_seg.onnx"
 _FLOOR_STANDING = ("bed", "cabinet", "desk", "cart", "wheelchair", "chair", "iv_pole")
 """Classes that stand on the floor, so their top height above it is bounded
 (``PerceptionConfig.max_top_m``)."""
-_ON_FLOOR_BODY = ("bed", "cabinet", "desk", "cart", "wheelchair", "chair")
+_ON_FLOOR_BODY = tuple(name for name in _FLOOR_STANDING if name != "iv_pole")
 """Floor-standing classes whose body rises from the floor, so their top is bounded from below
-too (``PerceptionConfig.min_top_m``)."""
+too (``PerceptionConfig.min_top_m``); not IV poles, of which the network may find only the base."""
 
 
 # ---------------------------------------------------------------------------- config
