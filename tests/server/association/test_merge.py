@@ -268,10 +268,12 @@ def test_two_parts_that_fit_one_object_of_their_class_are_merged(
     """A backrest landmark overlapping a chair landmark by 59 % of its box (under
     ``merge_inside``), both inside one chair's size bound: one chair (``merge_fragments``). The
     same backrest 0.4 m behind the chair overlaps nothing and stays apart. (``join_fragments``
-    off, so the two start apart, as they did on the benchmark's worlds.)"""
+    off, so the two start apart, as they did on the benchmark's worlds. By footprint, which
+    chairs are compared by, the backrest lies wholly over the chair: the control compares
+    volumes.)"""
     scene = _backrest_scene(make_measurement, 0.0)
     strict = HdpConfig(join_fragments=False)
-    apart = Associator(AssociationConfig(merge_fragments=0.0, hdp=strict))
+    apart = Associator(AssociationConfig(merge_fragments=0.0, merge_by_footprint=(), hdp=strict))
     _run(apart, scene)
     assert len(apart.landmarks()) == 2
     merged = Associator(AssociationConfig(hdp=strict))
@@ -280,3 +282,59 @@ def test_two_parts_that_fit_one_object_of_their_class_are_merged(
     behind = Associator(AssociationConfig(hdp=strict))
     _run(behind, _backrest_scene(make_measurement, 0.4))
     assert sorted(lm.n_measurements for lm in behind.landmarks()) == [6, 12]
+
+
+Part = tuple[str, np.ndarray, float]
+
+
+def _stacked(make: MeasurementFactory, low: Part, high: Part) -> list[tuple[list, np.ndarray]]:
+    """An object measured as its lower part ``low`` = (class, size, centre height) in 12
+    keyframes and once, in keyframe 7, as its upper part ``high``: two boxes one above the other,
+    with no volume in common."""
+    out = []
+    for i in range(12):
+        T = camera_looking_along_y(0.3 + 0.02 * i, y=-1.0)
+        key = dict(keyframe=f"r1/s1/{i}", stamp=1.0 + i, gt=1)
+        ms = [make(object_pose(0.3, 3.0, low[2]), T, size=low[1], category=low[0], **key)]
+        if i == 7:
+            ms.append(make(object_pose(0.3, 3.0, high[2]), T, size=high[1], category=high[0], **key))
+        out.append((ms, T))
+    return out
+
+
+@pytest.mark.parametrize(("low", "high", "survivor"), [
+    # A chair seen as its legs, and once as its seat and back, called a wheelchair.
+    (("chair", np.array([0.45, 0.45, 0.45]), 0.225),
+     ("wheelchair", np.array([0.46, 0.4, 0.5]), 0.7), "chair"),
+    # An IV pole's pole, and once its stand on the floor apart from it.
+    (("iv_pole", np.array([0.1, 0.1, 1.5]), 1.15),
+     ("iv_pole", np.array([0.5, 0.5, 0.08]), 0.04), "iv_pole"),
+])
+def test_parts_one_above_the_other_merge_by_their_footprints(
+        make_measurement: MeasurementFactory, low: tuple, high: tuple, survivor: str) -> None:
+    """Floor-standing classes (``merge_by_footprint``) compare footprints: the two parts of one
+    object stacked one above the other become one landmark; compared by volume they stay two."""
+    scene = _stacked(make_measurement, low, high)
+    by_volume = Associator(AssociationConfig(merge_by_footprint=()))
+    _run(by_volume, scene)
+    assert sorted(lm.n_measurements for lm in by_volume.landmarks()) == [1, 12]
+    assoc = Associator(AssociationConfig())
+    _run(assoc, scene)
+    (one,) = assoc.landmarks()
+    assert one.category == survivor and one.n_measurements == 13
+
+
+def test_a_footprint_merge_must_fit_one_object_of_the_class(make_measurement: MeasurementFactory) -> None:
+    """A chair under a piece 1.2 m above its seat (a cart's top taken for a wheelchair, say):
+    the footprints match, but a chair 1.9 m tall fits no chair, so the two stay apart."""
+    scene = _stacked(make_measurement, ("chair", np.array([0.45, 0.45, 0.9]), 0.45),
+                     ("wheelchair", np.array([0.46, 0.4, 0.3]), 1.75))
+    assoc = Associator(AssociationConfig())
+    _run(assoc, scene)
+    apart = sorted((lm.category, lm.n_measurements) for lm in assoc.landmarks())
+    assert apart == [("chair", 12), ("wheelchair", 1)]
+
+
+def test_footprint_classes_must_be_knowledge_graph_classes() -> None:
+    with pytest.raises(ValueError, match="merge_by_footprint: not knowledge-graph classes: sofa"):
+        Associator(AssociationConfig(merge_by_footprint=("chair", "sofa")))
