@@ -46,9 +46,7 @@ from wardmap.server.perception.measure import MeasureConfig, measure_instances
 from wardmap.server.perception.models import (
     OnnxSegmenter,
     PerceptionConfig,
-    drop_floating,
-    drop_floor_pieces,
-    drop_wall_pieces,
+    drop_misplaced,
     floor_under,
     make_segmenter,
     measure_config_for,
@@ -320,12 +318,10 @@ def main() -> int:
             T_base_rgb = reader.calibration.T_base_rgb
             floor = None if T_base_rgb is None else floor_under(frame.T_world_camera, T_base_rgb)
             T_wc = frame.T_world_camera
-            cut, n = drop_floating(cut, frame.depth_m, cam, PerceptionConfig(), T_wc, floor)
-            floating += n
-            cut, n = drop_wall_pieces(cut, frame.depth_m, cam, PerceptionConfig(), T_wc, floor)
-            walls += n
-            cut, n = drop_floor_pieces(cut, frame.depth_m, cam, PerceptionConfig(), T_wc, floor)
-            floors += n
+            cut, left = drop_misplaced(cut, frame.depth_m, cam, PerceptionConfig(), T_wc, floor)
+            floating += left.floating
+            walls += left.walls
+            floors += left.floors
             ms, skipped = measure(reader, frame, attach_gt_instances(cut, frame.labels))
             learned.skipped += skipped
             for m in ms:

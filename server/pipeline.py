@@ -72,9 +72,7 @@ from wardmap.server.perception.measure import mean_rgb, measure_instances_report
 from wardmap.server.perception.models import (
     PerceptionConfig,
     Segmenter,
-    drop_floating,
-    drop_floor_pieces,
-    drop_wall_pieces,
+    drop_misplaced,
     make_segmenter,
     measure_config_for,
     split_instances,
@@ -405,16 +403,14 @@ class MapPipeline:
                                     self.perception.segmenter)
         instances = [i for i in instances if i.category not in self._moving]
         T_map_camera, floor = map_pose(msg), floor_height(msg)
-        instances, floating = drop_floating(instances, depth, camera, self.perception, T_map_camera, floor)
-        instances, walls = drop_wall_pieces(instances, depth, camera, self.perception, T_map_camera, floor)
-        instances, floors = drop_floor_pieces(instances, depth, camera, self.perception, T_map_camera, floor)
-        if floating or walls or floors:
+        instances, left = drop_misplaced(instances, depth, camera, self.perception, T_map_camera, floor)
+        if any(left):
             log.debug("keyframe %s: %d instance(s) float above the floor, %d lie on a taller surface, "
-                      "%d lie flat on the floor; left out", key, floating, walls, floors)
+                      "%d lie flat on the floor; left out", key, *left)
             with self._lock:
-                self._counts.floating += floating
-                self._counts.wall_pieces += walls
-                self._counts.floor_pieces += floors
+                self._counts.floating += left.floating
+                self._counts.wall_pieces += left.walls
+                self._counts.floor_pieces += left.floors
         report = measure_instances_report(
             instances, bgr=bgr, depth_m=depth, camera=camera, T_world_camera=T_map_camera,
             keyframe=key, stamp=msg.stamp, config=self._measure_config,

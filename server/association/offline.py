@@ -38,9 +38,7 @@ from wardmap.server.perception.instances import attach_gt_instances, id_to_class
 from wardmap.server.perception.measure import SKIP_KINDS, MeasureConfig, mean_rgb, measure_instances_report
 from wardmap.server.perception.models import (
     PerceptionConfig,
-    drop_floating,
-    drop_floor_pieces,
-    drop_wall_pieces,
+    drop_misplaced,
     floor_under,
     split_instances,
 )
@@ -270,12 +268,10 @@ def measure_dataset(
             instances = split_instances(segment(bgr, frame.depth_m), frame.depth_m, camera, perception,
                                         "model")
             floor_z = None if T_base_rgb is None else floor_under(T, T_base_rgb)
-            instances, n_floating = drop_floating(instances, frame.depth_m, camera, perception, T, floor_z)
-            instances, n_walls = drop_wall_pieces(instances, frame.depth_m, camera, perception, T, floor_z)
-            instances, n_floors = drop_floor_pieces(instances, frame.depth_m, camera, perception, T, floor_z)
-            floating += n_floating
-            walls += n_walls
-            floors += n_floors
+            instances, left = drop_misplaced(instances, frame.depth_m, camera, perception, T, floor_z)
+            floating += left.floating
+            walls += left.walls
+            floors += left.floors
             if frame.labels is not None:
                 instances = attach_gt_instances(instances, frame.labels)
         kept = [inst for inst in instances if not kg.is_moving(inst.category)]

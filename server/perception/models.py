@@ -39,7 +39,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
-from typing import Any, Final, Protocol
+from typing import Any, Final, NamedTuple, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -64,6 +64,7 @@ from wardmap.shared.segmentation import INPUT_NAME, OUTPUT_NAME, Decoded, Placem
 
 __all__ = [
     "DEFAULT_MODEL",
+    "LeftOut",
     "OnnxSegmenter",
     "PerceptionConfig",
     "Segmentation",
@@ -71,6 +72,7 @@ __all__ = [
     "YoloxDetector",
     "drop_floating",
     "drop_floor_pieces",
+    "drop_misplaced",
     "drop_wall_pieces",
     "floor_under",
     "load_perception_config",
@@ -307,6 +309,29 @@ def drop_floor_pieces(instances: Sequence[Instance], depth_m: NDArray[np.float32
         return list(instances), 0
     return _without(instances, flat_on_floor(instances, depth_m, camera, T_world_camera,
                                              floor_z_m=floor_z_m, min_top_m=dict(config.min_top_m)))
+
+
+class LeftOut(NamedTuple):
+    """How many instances :func:`drop_misplaced` left out, by check."""
+
+    floating: int
+    """Floating above the floor (``floor_gap_m``)."""
+    walls: int
+    """A piece of a surface taller than any object of the class (``max_top_m``)."""
+    floors: int
+    """Flat on the floor, lower than any object of the class (``min_top_m``)."""
+
+
+def drop_misplaced(instances: Sequence[Instance], depth_m: NDArray[np.float32], camera: PinholeCamera,
+                   config: PerceptionConfig, T_world_camera: NDArray[np.float64],
+                   floor_z_m: float | None) -> tuple[list[Instance], LeftOut]:
+    """``instances`` after the three floor checks (:func:`drop_floating`,
+    :func:`drop_wall_pieces`, :func:`drop_floor_pieces`, in that order), and how many each left
+    out. ``floor_z_m`` as for :func:`drop_floating`; None keeps every instance."""
+    kept, floating = drop_floating(instances, depth_m, camera, config, T_world_camera, floor_z_m)
+    kept, walls = drop_wall_pieces(kept, depth_m, camera, config, T_world_camera, floor_z_m)
+    kept, floors = drop_floor_pieces(kept, depth_m, camera, config, T_world_camera, floor_z_m)
+    return kept, LeftOut(floating, walls, floors)
 
 
 def _without(instances: Sequence[Instance], flags: Sequence[bool]) -> tuple[list[Instance], int]:

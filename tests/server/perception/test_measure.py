@@ -834,3 +834,23 @@ def test_gt_instance_attached_by_majority() -> None:
     assert gt_instance_of(mask, labels) is None
     inst = Instance("door", 0.5, mask, np.zeros(4))
     assert attach_gt_instances([inst], labels, min_fraction=0.3)[0].gt_instance == 5
+
+
+def test_drop_misplaced_runs_the_three_floor_checks_and_counts_each() -> None:
+    """One call for the server, the offline runner and the bench: a floating "chair", a
+    "cabinet" strip of wall and a "cart" strip on the floor are each left out by their own
+    check and counted there; a standing chair stays; no floor keeps all four."""
+    from wardmap.server.perception.models import LeftOut, PerceptionConfig, drop_misplaced
+
+    depth = room_depth()
+    depth[150:199, 100:140] = 3.0  # a chair-high box on the floor, 1 m in front of the wall
+    depth[106:152, 200:216] = 2.9  # a box hanging on the wall, clear of the floor
+    depth[222:230, 250:300] = 3.5  # a strip along the floor
+    chair = box_instance("chair", slice(150, 199), slice(100, 140))
+    floating = box_instance("chair", slice(106, 152), slice(200, 216))
+    strip = box_instance("cabinet", slice(130, 200), slice(0, 20))
+    flat = box_instance("cart", slice(222, 230), slice(250, 300))
+    given = [chair, floating, strip, flat]
+    cfg = PerceptionConfig()
+    assert drop_misplaced(given, depth, CAMERA, cfg, T_LEVEL, 0.0) == ([chair], LeftOut(1, 1, 1))
+    assert drop_misplaced(given, depth, CAMERA, cfg, T_LEVEL, None) == (given, LeftOut(0, 0, 0))
