@@ -50,8 +50,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _report import git_rev, machine, publish
 
 from wardmap.server.association.associator import AssociationConfig
-from wardmap.server.association.evaluate import AssociationScore, score_landmarks
+from wardmap.server.association.evaluate import (
+    AssociationScore,
+    LandmarkError,
+    landmark_errors,
+    score_landmarks,
+)
 from wardmap.server.association.offline import DatasetMeasurements, associate, measure_dataset
+from wardmap.server.association.types import Landmark
 from wardmap.server.perception.segdata import EVAL_SEED_MIN
 from wardmap.shared.dataset import DatasetReader
 from wardmap.shared.knowledge import KnowledgeGraph
@@ -69,6 +75,7 @@ ORDER = ("per_keyframe_hdp", "nearest", "hierarchical")
 class Result:
     score: AssociationScore
     ms_per_keyframe: float
+    landmarks: list[Landmark]
 
 
 def noisy_trajectory(folder: Path, out: Path, sigma_m: float, sigma_deg: float, seed: int) -> Path:
@@ -92,7 +99,7 @@ def run_methods(ds: DatasetMeasurements, moving: tuple[str, ...]) -> dict[str, R
         landmarks = associate([ds], AssociationConfig(method=method))  # type: ignore[arg-type]
         dt = time.perf_counter() - t0
         out[method] = Result(score_landmarks(landmarks, ds.gt_classes, moving),
-                             1000 * dt / max(len(ds.keyframes), 1))
+                             1000 * dt / max(len(ds.keyframes), 1), landmarks)
     return out
 
 
@@ -168,6 +175,33 @@ def completeness_table(rows: dict[str, tuple[DatasetMeasurements, dict[str, Resu
     return lines
 
 
+def geometry_table(rows: dict[str, tuple[DatasetMeasurements, dict[str, Result]]],
+                   objects: dict[str, list[dict]]) -> list[str]:
+    """Per class, ours: centre and size errors of the landmarks on an object of their class, and
+    the size errors with the median of the measurements' sizes (``size_percentile = 50``)."""
+    ours: dict[str, list[LandmarkError]] = {}
+    median: dict[str, list[LandmarkError]] = {}
+    for name, (ds, res) in rows.items():
+        for e in landmark_errors(res["hierarchical"].landmarks, objects[name]):
+            ours.setdefault(e.category, []).append(e)
+        for e in landmark_errors(associate([ds], AssociationConfig(size_percentile=50.0)), objects[name]):
+            median.setdefault(e.category, []).append(e)
+    lines = [
+        "| class | landmarks | centre median cm | size error cm (median abs: longer side / shorter side / "
+        "height) | same, median of the measurements' sizes |",
+        "|---|---|---|---|---|",
+    ]
+
+    def sides(errs: list[LandmarkError]) -> str:
+        return " / ".join(f"{100 * v:.0f}" for v in np.median(np.abs([e.size_m for e in errs]), axis=0))
+
+    for cat in sorted(ours):
+        errs = ours[cat]
+        lines.append(f"| {cat} | {len(errs)} | {100 * float(np.median([e.centre_m for e in errs])):.1f} "
+                     f"| {sides(errs)} | {sides(median[cat]) if cat in median else '-'} |")
+    return lines
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", type=Path, default=ROOT / "out" / "bench_data")
@@ -187,6 +221,7 @@ def main() -> int:
     if not MODEL.is_file():
         print(f"model measurements: column missing ({MODEL} does not exist)", file=sys.stderr)
     results: dict[str, dict[str, tuple[DatasetMeasurements, dict[str, Result]]]] = {s: {} for s in sources}
+    objects: dict[str, list[dict]] = {}
     measure_s: dict[str, list[float]] = {s: [] for s in sources}
     tmpdir = tempfile.TemporaryDirectory()
     tmp = Path(tmpdir.name)
@@ -195,6 +230,7 @@ def main() -> int:
         if not (folder / "sim.json").exists():
             print(f"generating {name} ...", file=sys.stderr)
             generate(name, args.seed, folder, overwrite=True)
+        objects[name] = list((DatasetReader(folder).objects() or {}).get("objects", []))
         for source in sources:
             print(f"{name}: measuring ({source}) ...", file=sys.stderr)
             t0 = time.perf_counter()
@@ -233,6 +269,10 @@ def main() -> int:
         worlds = ("worlds never used in training" if args.seed >= EVAL_SEED_MIN
                   else "TRAINING worlds of the network: optimistic")
         parts += table(results["model"], f"Model measurements (server/models/hospital_seg.onnx; {worlds})")
+        parts += ["", "**Landmark geometry, model measurements, ours** (each landmark whose majority object "
+                  "is of its class, all sequences above; sizes compared side by side in their own frames; "
+                  "`AssociationConfig.size_percentile`, docs/association.md stage 4)", ""]
+        parts += geometry_table(results["model"], objects)
     else:
         parts.append(f"Model measurements: column missing, `{MODEL.relative_to(ROOT)}` does not exist.")
     tmpdir.cleanup()

@@ -20,10 +20,14 @@ from __future__ import annotations
 from collections import Counter
 from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
 
 from wardmap.server.association.types import Landmark
 
-__all__ = ["AssociationScore", "score_landmarks"]
+__all__ = ["AssociationScore", "LandmarkError", "landmark_errors", "score_landmarks"]
 
 
 @dataclass(frozen=True)
@@ -89,3 +93,53 @@ def score_landmarks(
     unconfirmed = sum(not lm.confirmed for lm in landmarks)
     return AssociationScore(correct / total if total else 0.0, total, correct, len(landmarks) - unconfirmed,
                             len(measured), unconfirmed, complete / total if total else 0.0)
+
+
+@dataclass(frozen=True)
+class LandmarkError:
+    """How far one landmark's geometry is from its object's.
+
+    Attributes:
+        category: the landmark's class.
+        centre_m: distance from the landmark's centre to the object's, metres.
+        size_m: (3,) landmark size minus object size, metres: longer horizontal side, shorter
+            horizontal side, height (both sizes in their own object frames, z up).
+    """
+
+    category: str
+    centre_m: float
+    size_m: NDArray[np.float64]
+
+
+def _sides(size: Any) -> NDArray[np.float64]:
+    s = np.asarray(size, dtype=np.float64).reshape(3)
+    return np.array([max(s[0], s[1]), min(s[0], s[1]), s[2]])
+
+
+def landmark_errors(landmarks: Sequence[Landmark],
+                    objects: Sequence[Mapping[str, Any]]) -> list[LandmarkError]:
+    """Centre and size errors of the landmarks that stand for an object of their class.
+
+    Args:
+        landmarks: the associator's landmarks, measurements carrying ``gt_instance``.
+        objects: ground-truth objects as in the simulator's ``objects.json`` (``id``,
+            ``class``, ``T_world_object`` (4, 4), ``size`` (3,) metres).
+
+    Returns:
+        One entry per landmark whose majority object (as in :func:`score_landmarks`) is listed
+        and of the landmark's class, in landmark order; the others (on no object, or on an object
+        of another class) have no true geometry to compare with.
+    """
+    by_id = {int(o["id"]): o for o in objects}
+    out = []
+    for lm in landmarks:
+        votes = Counter(i for i in lm.gt_instances if i is not None)
+        if not votes:
+            continue
+        obj = by_id.get(votes.most_common(1)[0][0])
+        if obj is None or obj["class"] != lm.category:
+            continue
+        T = np.asarray(obj["T_world_object"], dtype=np.float64)
+        out.append(LandmarkError(lm.category, float(np.linalg.norm(lm.T_world_object[:3, 3] - T[:3, 3])),
+                                 _sides(lm.size) - _sides(obj["size"])))
+    return out

@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 from wardmap.server.association.geometry import Symmetry, pairwise_angles, symmetry_rotations
 from wardmap.shared.errors import GeometryError
 
-__all__ = ["RefineConfig", "pose_differences", "refine_index"]
+__all__ = ["RefineConfig", "landmark_size", "pose_differences", "refine_index"]
 
 F64 = NDArray[np.float64]
 
@@ -86,3 +86,27 @@ def refine_index(T_world_object: F64, config: RefineConfig | None = None) -> int
     Ties go to the earliest measurement.
     """
     return int(np.argmin(pose_differences(T_world_object, config)))
+
+
+def landmark_size(sizes: F64, percentile: float, full_extent: bool) -> F64:
+    """A landmark's size (3,) from its measurements' sizes (N, 3), metres, each in its object
+    frame (x the longer horizontal side, y the shorter, z the height; docs/perception.md).
+
+    A view that sees less of an object measures it smaller, never larger: its legs only, a part
+    behind a nearer object, a part cut by the image border. The height is therefore the
+    ``percentile``-th percentile of the heights; the horizontal extents are too when
+    ``full_extent`` (objects mostly seen in parts: beds, cabinets), and their median otherwise
+    (a class whose masks spill onto the wall beside it, doors, would grow with every spill).
+    ``percentile`` = 50 is the element-wise median of the paper's measurements.
+
+    Raises:
+        GeometryError: ``sizes`` is not (N, 3) with N >= 1.
+    """
+    s = np.asarray(sizes, dtype=np.float64)
+    if s.ndim != 2 or s.shape[1] != 3 or len(s) == 0:
+        raise GeometryError(f"landmark_size: expected sizes (N >= 1, 3), got {s.shape}")
+    size = np.median(s, axis=0)
+    size[2] = np.percentile(s[:, 2], percentile)
+    if full_extent:
+        size[:2] = np.percentile(s[:, :2], percentile, axis=0)
+    return np.asarray(size, dtype=np.float64)

@@ -32,8 +32,9 @@ class Landmark:
         T_world_object: (4, 4) float64 pose; for ``hierarchical`` the measurement pose
             chosen by paper 000 Eq. 4-6, for ``per_keyframe_hdp`` the first measurement's
             pose (HDP-SLAM), for ``nearest`` the pose of the measurement nearest the mean.
-        size: (3,) float64 extent along the object's x, y, z in metres (element-wise
-            median of the measurements' sizes; first measurement's for ``per_keyframe_hdp``).
+        size: (3,) float64 extent along the object's x, y, z in metres (from its recent
+            measurements' sizes: :func:`~wardmap.server.association.refine.landmark_size`,
+            ``AssociationConfig.size_percentile``; first measurement's for ``per_keyframe_hdp``).
         confidence: mean confidence of its measurements, in [0, 1].
         measurements: its measurements in the order they were associated (keyframe order);
             with ``AssociationConfig.keep_measurements`` off, only the most recent

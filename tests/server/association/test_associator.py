@@ -311,3 +311,37 @@ def test_confirmation_config_is_checked() -> None:
         from_mapping(AssociationConfig, {"min_width_m": [["door", -0.5]]})
     with pytest.raises(ConfigError, match="min_width_m lists a class twice"):
         from_mapping(AssociationConfig, {"min_width_m": [["door", 0.5], ["door", 0.6]]})
+
+
+@pytest.mark.parametrize("method", ["hierarchical", "nearest"])
+def test_landmark_size_is_not_shrunk_by_partial_views(make_measurement: MeasurementFactory,
+                                                      method: str) -> None:
+    """A cabinet seen whole in 4 of 12 keyframes and in part (smaller) in the others: its landmark
+    has the whole cabinet's size (``full_extent_classes``); a chair seen mostly as its legs keeps
+    its median width but the whole chair's height. ``size_percentile = 50``: the median."""
+    cabinet, chair = object_pose(0.0, 3.5, 0.9), object_pose(1.5, 3.0)
+    scene = []
+    for i in range(12):
+        T = camera_looking_along_y(0.7 + 0.02 * i, z=1.0)
+        whole = i % 3 == 0
+        ms = [make_measurement(cabinet, T, category="cabinet", gt=1, keyframe=f"kf{i}", stamp=float(i),
+                               size=np.array([1.0, 0.5, 1.8]) if whole else np.array([0.6, 0.3, 1.2])),
+              make_measurement(chair, T, gt=2, keyframe=f"kf{i}", stamp=float(i),
+                               size=np.array([0.46, 0.46, 0.93]) if whole else np.array([0.44, 0.44, 0.4]))]
+        scene.append((ms, T))
+    sizes = {}
+    for percentile in (90.0, 50.0):
+        assoc, _ = _run(AssociationConfig(method=method, size_percentile=percentile), scene)  # type: ignore[arg-type]
+        assert sorted(lm.category for lm in assoc.landmarks()) == ["cabinet", "chair"]
+        sizes[percentile] = {lm.category: lm.size for lm in assoc.landmarks()}
+    np.testing.assert_allclose(sizes[90.0]["cabinet"], [1.0, 0.5, 1.8])
+    np.testing.assert_allclose(sizes[90.0]["chair"], [0.44, 0.44, 0.93])
+    np.testing.assert_allclose(sizes[50.0]["cabinet"], [0.6, 0.3, 1.2])
+    np.testing.assert_allclose(sizes[50.0]["chair"], [0.44, 0.44, 0.4])
+
+
+def test_size_settings_are_checked() -> None:
+    with pytest.raises(ValueError, match="size_percentile must be in"):
+        AssociationConfig(size_percentile=120.0)
+    with pytest.raises(ValueError, match="full_extent_classes: not knowledge-graph classes: sofa"):
+        Associator(AssociationConfig(full_extent_classes=("bed", "sofa")))

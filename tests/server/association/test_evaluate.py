@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
-from wardmap.server.association.evaluate import AssociationScore, score_landmarks
+from wardmap.server.association.evaluate import AssociationScore, landmark_errors, score_landmarks
 from wardmap.server.association.types import Landmark
 
 from .conftest import CHAIR_SIZE, MeasurementFactory, camera_looking_along_y, object_pose
@@ -46,3 +47,19 @@ def test_empty_scores_are_zero() -> None:
     assert (score.accuracy, score.completeness, score.f_measure, score.measurements) == (0.0, 0.0, 0.0, 0)
     assert AssociationScore(0.0, 0, 0, 0, 0).f_measure == 0.0
     assert AssociationScore(1.0, 1, 1, 1, 1, 0, 0.5).f_measure == pytest.approx(2 / 3)
+
+
+def test_landmark_errors_compare_each_landmark_with_its_majority_object(
+        make_measurement: MeasurementFactory) -> None:
+    """Landmark 1 (object 1, a chair 0.5 m away from it, sides given in the other order): centre
+    0.5 m, size error per sorted side and height. Landmark 2 is on no object, landmark 3 on an
+    object of another class: neither is scored."""
+    lms = _landmarks(make_measurement, [[1, 1, 2], [None, None], [3]])
+    objects = [{"id": i, "class": c, "T_world_object": object_pose(x, y).tolist(), "size": size}
+               for i, c, x, y, size in ((1, "chair", 0.3, 3.4, [0.4, 0.5, 1.0]),
+                                        (2, "chair", 5.0, 3.0, [0.5, 0.5, 1.0]),
+                                        (3, "cart", 0.0, 3.0, [0.9, 0.5, 1.0]))]
+    (err,) = landmark_errors(lms, objects)
+    assert err.category == "chair" and err.centre_m == pytest.approx(0.5)
+    np.testing.assert_allclose(err.size_m, CHAIR_SIZE[[0, 1, 2]] - np.array([0.5, 0.4, 1.0]))
+    assert landmark_errors(lms, []) == []

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from wardmap.server.association.refine import RefineConfig, pose_differences, refine_index
+from wardmap.server.association.refine import RefineConfig, landmark_size, pose_differences, refine_index
 from wardmap.shared.errors import GeometryError
 
 from .conftest import object_pose
@@ -50,3 +50,18 @@ def test_single_measurement_and_bad_shapes() -> None:
         pose_differences(np.zeros((0, 4, 4)))
     with pytest.raises(ValueError):
         RefineConfig(alpha=0.0, beta=0.0)
+
+
+def test_landmark_size_takes_the_percentile_where_views_only_see_less() -> None:
+    """Heights: the 90th percentile; horizontal extents: the median, or the 90th percentile for
+    a class mostly seen in parts; 50 is the element-wise median."""
+    partial, whole = [0.6, 0.3, 1.2], [1.0, 0.5, 1.8]
+    sizes = np.array([partial] * 8 + [whole] * 4)  # np.percentile(.., 90) of 12: index 9.9, a whole view
+    np.testing.assert_allclose(landmark_size(sizes, 90.0, full_extent=False), [0.6, 0.3, 1.8])
+    np.testing.assert_allclose(landmark_size(sizes, 90.0, full_extent=True), [1.0, 0.5, 1.8])
+    np.testing.assert_allclose(landmark_size(sizes, 50.0, full_extent=True), np.median(sizes, axis=0))
+    np.testing.assert_allclose(landmark_size(np.array([whole]), 90.0, full_extent=True), whole)
+    with pytest.raises(GeometryError, match="expected sizes"):
+        landmark_size(np.zeros((0, 3)), 90.0, full_extent=False)
+    with pytest.raises(GeometryError, match="expected sizes"):
+        landmark_size(np.zeros((4, 2)), 90.0, full_extent=False)
