@@ -18,7 +18,7 @@ tracks; every track of the group becomes a group-level landmark ``O^G_{n,i}``.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -200,6 +200,7 @@ def track_group(
     keyframes: Sequence[KeyframeView],
     config: MotConfig | None = None,
     class_extent: Callable[[str], F64 | None] | None = None,
+    completed_when_cut: Collection[str] = (),
 ) -> list[GroupLandmark]:
     """Track the measurements of one keyframe group into group-level landmarks.
 
@@ -209,6 +210,8 @@ def track_group(
         class_extent: class name -> the largest world-axis extent (3,) of an object of the
             class, or None; the partial-view slack clips extents to it
             (:func:`~wardmap.server.association.geometry.partial_view_slack`).
+        completed_when_cut: classes whose views touching the image border are gated as whole
+            views (``AssociationConfig.completed_when_cut``: the perception completes them).
 
     Returns:
         One :class:`GroupLandmark` per track, ordered by first appearance; every
@@ -219,7 +222,8 @@ def track_group(
     tracks: list[_Track] = []
     for view in keyframes:
         n = len(view.measurements)
-        partial = [is_truncated(m.box_xyxy, view.camera, cfg.border_px) for m in view.measurements]
+        partial = [m.category not in completed_when_cut
+                   and is_truncated(m.box_xyxy, view.camera, cfg.border_px) for m in view.measurements]
         matched: dict[int, int] = {}
         if tracks and n:
             bounds = [None if class_extent is None else class_extent(m.category) for m in view.measurements]

@@ -345,3 +345,26 @@ def test_size_settings_are_checked() -> None:
         AssociationConfig(size_percentile=120.0)
     with pytest.raises(ValueError, match="full_extent_classes: not knowledge-graph classes: sofa"):
         Associator(AssociationConfig(full_extent_classes=("bed", "sofa")))
+
+
+def test_a_door_cut_by_the_border_keeps_the_whole_view_sigma(make_measurement: MeasurementFactory) -> None:
+    """One keyframe per group (HDP only): a door cut by the left image border and, in the next
+    keyframe, a whole door 0.6 m to its right. With the partly-seen sigma (0.3 m) the GMM takes
+    them for one door; a door completed beyond the border (``completed_when_cut``, the default)
+    keeps the whole-view sigma (0.12 m) and they are two."""
+    T = camera_looking_along_y(0.0)
+    cut = make_measurement(object_pose(-2.4, 4.0, 1.09, np.pi / 2), T, category="door", size=DOOR, gt=1,
+                           keyframe="kf0")
+    whole = make_measurement(object_pose(-1.8, 4.0, 1.09, np.pi / 2), T, category="door", size=DOOR, gt=2,
+                             keyframe="kf1", stamp=1.0)
+    assert cut_at_side(cut.box_xyxy, CAMERA, 3.0) and not cut_at_side(whole.box_xyxy, CAMERA, 3.0)
+    one_per_group = {"group_size": 1, "group_overlap": 0}
+    counts = {}
+    for completed in ((), ("door",)):
+        cfg = from_mapping(AssociationConfig, {**one_per_group, "completed_when_cut": list(completed)})
+        assoc, _ = _run(cfg, [([cut], T), ([whole], T)])
+        counts[completed] = len(assoc.landmarks())
+    assert counts == {(): 1, ("door",): 2}
+    assert AssociationConfig().completed_when_cut == ("door",)
+    with pytest.raises(ValueError, match="completed_when_cut: not knowledge-graph classes: gate"):
+        Associator(AssociationConfig(completed_when_cut=("door", "gate")))

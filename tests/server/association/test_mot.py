@@ -81,3 +81,19 @@ def test_appearance_similarity_bounds(make_measurement: MeasurementFactory) -> N
     d = rng.integers(0, 256, (40, 32), dtype=np.uint8)
     with_desc = dataclasses.replace(a, descriptors=d)
     assert appearance_similarity(with_desc, with_desc) == 1.0
+
+
+def test_a_door_cut_by_the_border_is_gated_as_a_whole_view(make_measurement: MeasurementFactory) -> None:
+    """A door cut by the left image border, then a door 0.6 m to its right, whole: within the
+    partial-view gate (0.8 m) they share a track; for a class the perception completes beyond the
+    border (``completed_when_cut``) the whole-view gate (0.45 m) holds and they stay two."""
+    T = camera_looking_along_y(0.0)
+    door = np.array([0.06, 1.16, 2.18])
+    cut = make_measurement(object_pose(-2.4, 4.0, 1.09, np.pi / 2), T, category="door", size=door, gt=1)
+    whole = make_measurement(object_pose(-1.8, 4.0, 1.09, np.pi / 2), T, category="door", size=door, gt=2,
+                             keyframe="kf1")
+    assert cut.box_xyxy[0] <= 0.0 < whole.box_xyxy[0]
+    views = [_view(0, T, [cut], 0), _view(1, T, [whole], 1)]
+    assert len(track_group(views, MotConfig())) == 1
+    assert len(track_group(views, MotConfig(), completed_when_cut=("door",))) == 2
+    assert len(track_group(views, MotConfig(), completed_when_cut=("chair",))) == 1
