@@ -170,11 +170,13 @@ class AssociationConfig:
     ``HdpConfig.sigma_position_m``, instead of the wider gate and sigma of a partly seen object.
     The perception completes a door cut by a side border to the usual door width beyond it
     (``[perception.measure] clipped_width_m``, doors), so its centre is where a whole door's is;
-    widening the gate and sigma again let a door's sliver at the left border join the
-    neighbouring door's track (seed 1001 ward_chairs). Keep it to the classes of
-    ``clipped_width_m``. Empty: every border-touching view is partial. Beyond the paper; on the
-    model measurements of seeds 1001-1005 (35 sequences) two sequences changed, both for the
-    better (better than both baselines 24 -> 25; docs/association.md)."""
+    a cut at the top or bottom (a door seen close by) moves the centre in height only, where the
+    partial-view slack already allows for the shorter box. Widening the gate and sigma again let
+    a door's sliver at the left border join the neighbouring door's track (seed 1001
+    ward_chairs). Keep it to the classes of ``clipped_width_m``. Empty: every border-touching
+    view is partial. Beyond the paper; on the model measurements of seeds 1001-1005 (35
+    sequences) two sequences changed, both for the better (better than both baselines 24 -> 25;
+    docs/association.md)."""
     keep_measurements: bool = True
     """Keep every measurement of a landmark in memory (the offline runner writes them all to
     landmarks.json). False: only the most recent ``max_history`` (plus the first, for
