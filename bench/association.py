@@ -17,6 +17,11 @@ measurements with ground-truth poses, and scores them:
   F-measure (harmonic mean of the two) is reported beside it. The goal line keeps the
   issue's rule (accuracy, then count).
 
+With model measurements it also gives, per class, the landmarks' geometry against
+objects.json (ours, every landmark whose majority object is of its class): median centre error
+and median absolute size error per side, with the size rule and with the median of the
+measurements' sizes (``AssociationConfig.size_percentile = 50``).
+
 A second oracle table perturbs every ground-truth camera pose independently (seeded
 Gaussian twist: --pose-noise metres and degrees per axis) before measuring, to see how the
 methods cope with pose error.
