@@ -269,11 +269,12 @@ def test_two_parts_that_fit_one_object_of_their_class_are_merged(
     ``merge_inside``), both inside one chair's size bound: one chair (``merge_fragments``). The
     same backrest 0.4 m behind the chair overlaps nothing and stays apart. (``join_fragments``
     off, so the two start apart, as they did on the benchmark's worlds. By footprint, which
-    chairs are compared by, the backrest lies wholly over the chair: the control compares
-    volumes.)"""
+    chairs are compared by, the backrest lies wholly over the chair, and its centre lies within
+    ``merge_within_m`` of the chair's: the control compares volumes only.)"""
     scene = _backrest_scene(make_measurement, 0.0)
     strict = HdpConfig(join_fragments=False)
-    apart = Associator(AssociationConfig(merge_fragments=0.0, merge_by_footprint=(), hdp=strict))
+    apart = Associator(AssociationConfig(merge_fragments=0.0, merge_by_footprint=(), merge_within_m=(),
+                                         hdp=strict))
     _run(apart, scene)
     assert len(apart.landmarks()) == 2
     merged = Associator(AssociationConfig(hdp=strict))
@@ -338,3 +339,41 @@ def test_a_footprint_merge_must_fit_one_object_of_the_class(make_measurement: Me
 def test_footprint_classes_must_be_knowledge_graph_classes() -> None:
     with pytest.raises(ValueError, match="merge_by_footprint: not knowledge-graph classes: sofa"):
         Associator(AssociationConfig(merge_by_footprint=("chair", "sofa")))
+
+
+def _spill_scene(make: MeasurementFactory, offset: float) -> list[tuple[list, np.ndarray]]:
+    """A chair seen whole in 12 keyframes; in the first 6 the network also measured a second
+    chair mask ``offset`` m to its side, 0.7 m wide (chair and the wall beside it)."""
+    out = []
+    for i in range(12):
+        T = camera_looking_along_y(0.3 + 0.02 * i, y=-1.0)
+        key = dict(keyframe=f"r1/s1/{i}", stamp=1.0 + i, category="chair")
+        ms = [make(object_pose(0.3, 3.0), T, size=CHAIR, gt=1, **key)]
+        if i < 6:
+            ms.append(make(object_pose(0.3 + offset, 3.0), T, size=np.array([0.7, 0.46, 0.93]),
+                           gt=1 if offset < 0.4 else 2, **key))
+        out.append((ms, T))
+    return out
+
+
+def test_chair_landmarks_closer_than_any_two_chairs_are_merged(make_measurement: MeasurementFactory) -> None:
+    """Two chair landmarks 0.25 m apart: the box holding both (0.83 m) fits no chair and the
+    smaller lies 72 % inside the other, so no share merges them, but no two chairs stand that
+    close (``merge_within_m``): one chair. A second mask 0.5 m away stays apart."""
+    strict = HdpConfig(join_fragments=False)
+    off = Associator(AssociationConfig(merge_within_m=(), hdp=strict))
+    _run(off, _spill_scene(make_measurement, 0.25))
+    assert sorted(lm.n_measurements for lm in off.landmarks()) == [6, 12]
+    on = Associator(AssociationConfig(hdp=strict))
+    _run(on, _spill_scene(make_measurement, 0.25))
+    assert [lm.n_measurements for lm in on.landmarks()] == [18]
+    far = Associator(AssociationConfig(hdp=strict))
+    _run(far, _spill_scene(make_measurement, 0.5))
+    assert sorted(lm.n_measurements for lm in far.landmarks()) == [6, 12]
+
+
+def test_merge_within_settings_are_checked() -> None:
+    with pytest.raises(ValueError, match="merge_within_m entries are"):
+        AssociationConfig(merge_within_m=(("chair", 0.0),))
+    with pytest.raises(ValueError, match="merge_within_m: not knowledge-graph classes: stool"):
+        Associator(AssociationConfig(merge_within_m=(("stool", 0.3),)))
