@@ -146,8 +146,9 @@ class AssociationConfig:
     when one of them holds masks that run onto the wall beside the chair: the box holding both
     is then wider than any chair. Beyond the paper; on the model measurements of seeds 1001-1005
     (35 sequences) counts equal to the ground truth went from 20 to 24 (summed count error 20
-    -> 13), better than both baselines 25 -> 26, mean accuracy 98.71 % unchanged; 57 of the 59
-    merges it made joined one chair's landmarks (docs/association.md, Merging). Empty: off."""
+    -> 13), better than both baselines 25 -> 26, mean accuracy 98.71 % unchanged; of the 58
+    merges of chair landmarks within 0.3 m (by this rule or the shares), 56 joined one chair's
+    landmarks (docs/association.md, Merging). Empty: off."""
     nearest_centre: bool = True
     """``hierarchical``: after each group, a measurement of the group of a class seen whole (a
     horizontal size bound under ``HdpConfig.parts_min_m``, or none: chairs, IV poles, cups)
