@@ -868,7 +868,8 @@ class Associator:
             self._update_pose(lm)
         if cfg.method == "hierarchical" and cfg.nearest_centre:
             self._to_nearest_centre(added, touched, changed)
-        if cfg.method == "hierarchical" and max(cfg.merge_inside, cfg.merge_fragments, cfg.merge_across) > 0:
+        if cfg.method == "hierarchical" and (max(cfg.merge_inside, cfg.merge_fragments, cfg.merge_across) > 0
+                                             or self._within):
             self._merge_overlapping(list(touched), changed)
         log.debug("group %d: %d group landmarks -> %d landmarks touched (%d new)", group_no, len(items),
                   len(touched), len(new_ids))

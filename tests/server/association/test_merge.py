@@ -370,6 +370,9 @@ def test_chair_landmarks_closer_than_any_two_chairs_are_merged(make_measurement:
     far = Associator(AssociationConfig(hdp=strict))
     _run(far, _spill_scene(make_measurement, 0.5))
     assert sorted(lm.n_measurements for lm in far.landmarks()) == [6, 12]
+    alone = Associator(AssociationConfig(merge_inside=0.0, merge_fragments=0.0, merge_across=0.0, hdp=strict))
+    _run(alone, _spill_scene(make_measurement, 0.25))  # the only merge rule left on
+    assert [lm.n_measurements for lm in alone.landmarks()] == [18]
 
 
 def test_merge_within_settings_are_checked() -> None:
