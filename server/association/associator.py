@@ -708,7 +708,7 @@ class Associator:
             lm = self._landmarks.get(queue.pop())
             if lm is None:
                 continue
-            box, hull = self._bounds(lm), None
+            box, hull, within = self._bounds(lm), None, self._within.get(lm.category, 0.0)
             for oid in sorted(self._grid.query(lm.centre, self._merge_radius)):
                 other = self._landmarks[oid]
                 if oid == lm.id:
@@ -729,8 +729,7 @@ class Associator:
                 held = share > 0 and inside >= share * smaller
                 parts = (same and cfg.merge_fragments > 0 and inside >= cfg.merge_fragments * smaller
                          and self._fits(lm.category, (lo, hi), (olo, ohi)))
-                close = same and float(np.linalg.norm((lm.centre - other.centre)[:2])) < self._within.get(
-                    lm.category, 0.0)
+                close = same and float(np.linalg.norm((lm.centre - other.centre)[:2])) < within
                 if not (held or parts or close):
                     continue
                 keep, gone = (lm, other) if (lm.count, -lm.id) >= (other.count, -other.id) else (other, lm)

@@ -241,10 +241,10 @@ def _height_above_floor(T_world_camera: ArrayLike, up: ArrayLike, floor_z_m: flo
     return T[:3, :3].T @ u, float(u @ T[:3, 3]) - floor_z_m
 
 
-def _with_depth(mask: Mask, depth: NDArray[np.float32], least: int = 20
+def _with_depth(ys: NDArray[np.intp], xs: NDArray[np.intp], depth: NDArray[np.float32], least: int = 20
                 ) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.float32]] | None:
-    """Rows, columns and depths (N,) of the mask's pixels with depth; None when fewer than ``least``."""
-    ys, xs = np.nonzero(mask)
+    """Rows, columns and depths (N,) of the pixels (``ys``, ``xs``: a mask's ``np.nonzero``) that have
+    depth; None when fewer than ``least``."""
     z = depth[ys, xs]
     has = np.isfinite(z) & (z > 0)
     if int(has.sum()) < least:
@@ -312,7 +312,7 @@ def floating_above_floor(
             out.append(False)
             continue
         ys, xs = np.nonzero(inst.mask)
-        seen = _with_depth(inst.mask, depth)
+        seen = _with_depth(ys, xs, depth)
         if seen is None:
             out.append(False)
             continue
@@ -389,7 +389,8 @@ def flat_on_floor(
         if least is None or inst.mask[: edge_px + 1].any():
             out.append(False)
             continue
-        seen = _with_depth(inst.mask, depth)
+        ys, xs = np.nonzero(inst.mask)
+        seen = _with_depth(ys, xs, depth)
         if seen is None:
             out.append(False)
             continue

@@ -35,7 +35,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -281,10 +281,8 @@ def drop_floating(instances: Sequence[Instance], depth_m: NDArray[np.float32], c
     (:func:`~wardmap.server.perception.instances.floating_above_floor`), and how many were
     left out. ``floor_z_m``: the floor's height in the frame of ``T_world_camera`` (world z
     up), metres; None (floor unknown: a hand-held camera) keeps every instance."""
-    if floor_z_m is None or not config.floor_gap_m or not instances:
-        return list(instances), 0
-    return _without(instances, floating_above_floor(instances, depth_m, camera, T_world_camera,
-                                                    floor_z_m=floor_z_m, max_gap_m=dict(config.floor_gap_m)))
+    return _drop(instances, floor_z_m, config.floor_gap_m, lambda floor, table: floating_above_floor(
+        instances, depth_m, camera, T_world_camera, floor_z_m=floor, max_gap_m=table))
 
 
 def drop_wall_pieces(instances: Sequence[Instance], depth_m: NDArray[np.float32], camera: PinholeCamera,
@@ -293,10 +291,8 @@ def drop_wall_pieces(instances: Sequence[Instance], depth_m: NDArray[np.float32]
     """``instances`` without those of the ``max_top_m`` classes that are a piece of a taller
     surface (:func:`~wardmap.server.perception.instances.part_of_taller_surface`), and how
     many were left out. ``floor_z_m`` as for :func:`drop_floating`; None keeps every instance."""
-    if floor_z_m is None or not config.max_top_m or not instances:
-        return list(instances), 0
-    return _without(instances, part_of_taller_surface(instances, depth_m, camera, T_world_camera,
-                                                      floor_z_m=floor_z_m, max_top_m=dict(config.max_top_m)))
+    return _drop(instances, floor_z_m, config.max_top_m, lambda floor, table: part_of_taller_surface(
+        instances, depth_m, camera, T_world_camera, floor_z_m=floor, max_top_m=table))
 
 
 def drop_floor_pieces(instances: Sequence[Instance], depth_m: NDArray[np.float32], camera: PinholeCamera,
@@ -305,10 +301,18 @@ def drop_floor_pieces(instances: Sequence[Instance], depth_m: NDArray[np.float32
     """``instances`` without those of the ``min_top_m`` classes that lie flat on the floor
     (:func:`~wardmap.server.perception.instances.flat_on_floor`), and how many were left out.
     ``floor_z_m`` as for :func:`drop_floating`; None keeps every instance."""
-    if floor_z_m is None or not config.min_top_m or not instances:
+    return _drop(instances, floor_z_m, config.min_top_m, lambda floor, table: flat_on_floor(
+        instances, depth_m, camera, T_world_camera, floor_z_m=floor, min_top_m=table))
+
+
+def _drop(instances: Sequence[Instance], floor_z_m: float | None, pairs: Sequence[tuple[str, float]],
+          flags: Callable[[float, dict[str, float]], list[bool]]) -> tuple[list[Instance], int]:
+    """The instances ``flags`` (called with the floor height and the ``[class, value]`` ``pairs``
+    as a dict) does not flag, and how many it flagged; every instance when the floor is unknown
+    or ``pairs`` is empty."""
+    if floor_z_m is None or not pairs or not instances:
         return list(instances), 0
-    return _without(instances, flat_on_floor(instances, depth_m, camera, T_world_camera,
-                                             floor_z_m=floor_z_m, min_top_m=dict(config.min_top_m)))
+    return _without(instances, flags(floor_z_m, dict(pairs)))
 
 
 class LeftOut(NamedTuple):
