@@ -270,11 +270,12 @@ def test_two_parts_that_fit_one_object_of_their_class_are_merged(
     same backrest 0.4 m behind the chair overlaps nothing and stays apart. (``join_fragments``
     off, so the two start apart, as they did on the benchmark's worlds. By footprint, which
     chairs are compared by, the backrest lies wholly over the chair, and its centre lies within
-    ``merge_within_m`` of the chair's: the control compares volumes only.)"""
+    ``merge_within_m`` of the chair's, and the two fit one chair (``merge_fitting``): the control
+    compares volumes only.)"""
     scene = _backrest_scene(make_measurement, 0.0)
     strict = HdpConfig(join_fragments=False)
     apart = Associator(AssociationConfig(merge_fragments=0.0, merge_by_footprint=(), merge_within_m=(),
-                                         hdp=strict))
+                                         merge_fitting=(), hdp=strict))
     _run(apart, scene)
     assert len(apart.landmarks()) == 2
     merged = Associator(AssociationConfig(hdp=strict))
@@ -380,3 +381,51 @@ def test_merge_within_settings_are_checked() -> None:
         AssociationConfig(merge_within_m=(("chair", 0.0),))
     with pytest.raises(ValueError, match="merge_within_m: not knowledge-graph classes: stool"):
         Associator(AssociationConfig(merge_within_m=(("stool", 0.3),)))
+
+
+SEAT = np.array([0.46, 0.25, 0.47])
+"""A chair's seat and legs, measured without its backrest (front 0.25 m of a 0.46 m chair)."""
+
+
+def _parts_scene(make: MeasurementFactory, spacing: float) -> list[tuple[list, np.ndarray]]:
+    """A chair whose backrest (a 6 cm slab, 0.72 m up) and seat with legs (0.25 m up, centred
+    0.35 m in front of the backrest) the network measured as two chair masks in each of 12
+    keyframes. ``spacing`` > 0: the seat is the next chair's, that far along x."""
+    out = []
+    for i in range(12):
+        T = camera_looking_along_y(0.3 + 0.02 * i, y=-1.0)
+        key = dict(keyframe=f"r1/s1/{i}", stamp=1.0 + i, category="chair")
+        out.append(([make(object_pose(0.3, 3.2, 0.72), T, size=BACKREST, gt=1, **key),
+                     make(object_pose(0.3 + spacing, 2.85, 0.25), T, size=SEAT, gt=1 if spacing == 0 else 2,
+                          **key)], T))
+    return out
+
+
+def test_two_chair_landmarks_that_fit_one_chair_are_merged_however_little_they_overlap(
+        make_measurement: MeasurementFactory) -> None:
+    """A backrest landmark and a seat landmark of one chair share no footprint and their centres
+    lie 0.35 m apart, so neither the shares nor ``merge_within_m`` (0.3 m here) join them, but
+    the box holding both (0.47 x 0.47 x 0.95 m) fits one chair (``merge_fitting``): one chair.
+    The same seat under the next chair of a row (0.55 m along) makes a box 1 m wide: two.
+    (``join_fragments`` off, so the parts start as two landmarks.)"""
+    within, strict = (("chair", 0.3),), HdpConfig(join_fragments=False)
+    off = Associator(AssociationConfig(merge_fitting=(), merge_within_m=within, hdp=strict))
+    _run(off, _parts_scene(make_measurement, 0.0))
+    assert sorted(lm.n_measurements for lm in off.landmarks()) == [12, 12]
+    on = Associator(AssociationConfig(merge_within_m=within, hdp=strict))
+    _run(on, _parts_scene(make_measurement, 0.0))
+    assert [lm.n_measurements for lm in on.landmarks()] == [24]
+    alone = Associator(AssociationConfig(merge_inside=0.0, merge_fragments=0.0, merge_across=0.0,
+                                         merge_within_m=(), hdp=strict))
+    _run(alone, _parts_scene(make_measurement, 0.0))  # the only merge rule left on
+    assert [lm.n_measurements for lm in alone.landmarks()] == [24]
+    row = Associator(AssociationConfig(merge_within_m=within, hdp=strict))
+    _run(row, _parts_scene(make_measurement, 0.55))
+    assert sorted(lm.n_measurements for lm in row.landmarks()) == [12, 12]
+
+
+def test_merge_fitting_classes_need_a_size_bound() -> None:
+    with pytest.raises(ValueError, match="merge_fitting: not knowledge-graph classes: stool"):
+        Associator(AssociationConfig(merge_fitting=("stool",)))
+    with pytest.raises(ValueError, match="merge_fitting: classes without a size bound"):
+        Associator(AssociationConfig(merge_fitting=("cup",)))

@@ -3,6 +3,8 @@ refined centre (``AssociationConfig.nearest_centre``)."""
 
 from __future__ import annotations
 
+import dataclasses
+from collections import Counter
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -16,7 +18,7 @@ from wardmap.server.objectmap import ObjectMap
 from wardmap.server.pipeline import MapPipeline, _MappedKeyframe
 from wardmap.server.store import SqliteKeyframeStore
 
-from .conftest import CAMERA, MeasurementFactory, camera_looking_along_y, object_pose
+from .conftest import CAMERA, CHAIR_SIZE, MeasurementFactory, camera_looking_along_y, object_pose
 
 
 def _sliding_tracks(views: Sequence[KeyframeView], *args: object, **kwargs: object) -> list[GroupLandmark]:
@@ -92,3 +94,53 @@ def test_the_object_map_follows_the_moves(tmp_path: Path, make_measurement: Meas
         assert sorted(rows) == sorted((lid, 20) for lid in landmarks)
         centres = {h.record.object_id: h.record for h in objects.query().hits}
         assert set(centres) == set(landmarks)
+
+
+def _points_in(T_world_object: np.ndarray, size: np.ndarray, n: int, T_world_camera: np.ndarray,
+               rng: np.random.Generator) -> np.ndarray:
+    """(n, 3) float32 camera-frame points on the camera-facing face (y = -size/2) of a box."""
+    local = rng.uniform(-0.5, 0.5, (n, 3)) * size
+    local[:, 1] = -size[1] / 2
+    world = local @ T_world_object[:3, :3].T + T_world_object[:3, 3]
+    T_cw = np.linalg.inv(T_world_camera)
+    return (world @ T_cw[:3, :3].T + T_cw[:3, 3]).astype(np.float32)
+
+
+@pytest.mark.parametrize("share", [0.5, 0.0])
+def test_a_mask_mostly_on_one_chair_joins_that_chair_though_its_centre_is_nearer_the_next(
+        share: float, make_measurement: MeasurementFactory) -> None:
+    """Two chairs 0.55 m apart, seen whole in 12 keyframes. Then, in 6 keyframes, the network's
+    mask covers chair 1 and part of chair 2: 70 % of its points lie on chair 1, but its box
+    centre, 0.33 m along the row, is nearer chair 2's. With ``nearest_held_share`` = 0.5 those
+    views join chair 1, whose box holds most of their points (the ground truth's rule: the object
+    under most of the mask); by centre distance alone they join chair 2."""
+    rng = np.random.default_rng(0)
+    chair1, chair2 = object_pose(0.0, 3.0), object_pose(0.55, 3.0)
+    assoc = Associator(AssociationConfig(nearest_held_share=share))
+    straddling = []
+    for i in range(18):
+        T = camera_looking_along_y(0.27 + 0.005 * i)
+        key = dict(keyframe=f"r1/s1/{i}", stamp=float(i))
+        if i < 12:
+            ms = [make_measurement(chair1, T, gt=1, **key), make_measurement(chair2, T, gt=2, **key)]
+        else:
+            m = make_measurement(object_pose(0.33, 3.0), T, gt=1, **key)
+            points = np.concatenate([_points_in(chair1, CHAIR_SIZE, 70, T, rng),
+                                     _points_in(chair2, CHAIR_SIZE, 30, T, rng)])
+            ms = [dataclasses.replace(m, points_camera=points)]
+            straddling.append(ms[0])
+        assoc.add_keyframe(ms, T, CAMERA)
+    assoc.flush()
+    landmarks = assoc.landmarks()
+    assert len(landmarks) == 2
+    chair_of = {lm.id: Counter(lm.gt_instances).most_common(1)[0][0] for lm in landmarks}
+    assert sorted(chair_of.values()) == [1, 2]
+    holder = {id(m): lm.id for lm in landmarks for m in lm.measurements}
+    assert {chair_of[holder[id(m)]] for m in straddling} == ({1} if share > 0 else {2})
+
+
+def test_held_share_settings_are_checked() -> None:
+    with pytest.raises(ValueError, match="nearest_held_share"):
+        AssociationConfig(nearest_held_share=1.5)
+    with pytest.raises(ValueError, match="held_margin_m"):
+        AssociationConfig(held_margin_m=-0.1)
