@@ -43,6 +43,7 @@ __all__ = [
     "PlacementRule",
     "SegContract",
     "argmax_classes",
+    "drop_unsure_regions",
     "is_segmentation_model",
     "upsample_classes",
 ]
@@ -146,6 +147,7 @@ class SegContract:
         *,
         placement: PlacementRule | None = None,
         refine_edges: bool = True,
+        min_region_confidence: float = 0.0,
     ) -> Decoded:
         """Class maps and confidence at ``image_hw`` of the network output.
 
@@ -159,26 +161,35 @@ class SegContract:
                 of a pixel on a class boundary from the bilinearly upsampled logits
                 (:func:`upsample_classes`) in ``classes``; ``nearest`` always holds each
                 pixel's nearest network cell's class.
+            min_region_confidence: a connected region of a class other than background
+                (8-connected, network cells) whose mean softmax confidence is lower takes
+                each cell's next most likely class (:func:`drop_unsure_regions`), before the
+                placement check; 0 turns it off.
 
         Raises:
             GeometryError: the logits do not have the contract's shape.
+            ConfigError: ``min_region_confidence`` outside 0..1.
         """
         scores = np.asarray(logits, dtype=np.float32)
         w, h = self.input_wh
         want = (1, len(self.class_names), h, w)
         if scores.shape != want:
             raise GeometryError(f"{what}: output shape {scores.shape}, expected {want}")
+        if not 0.0 <= min_region_confidence <= 1.0:
+            raise ConfigError(f"{what}: min_region_confidence must lie in 0..1, got {min_region_confidence}")
         s = scores[0]
         classes, top = argmax_classes(s)
+        confidence: F32 | None = None
+        if min_region_confidence > 0:
+            s, classes, top, confidence = drop_unsure_regions(s, classes, top, min_region_confidence)
         if placement is not None:
             vetoed, classes = placement.apply(s, classes)
             if vetoed is not s:  # apply's classes are the argmax of the vetoed scores
                 s = vetoed
                 top = np.take_along_axis(s, classes[None].astype(np.intp), axis=0)[0]
-        # softmax of the chosen class; a class vetoed by the placement check has -inf and adds nothing
-        exp = s - top[None]
-        np.exp(exp, out=exp)
-        confidence = (1.0 / exp.sum(axis=0)).astype(np.float32)
+                confidence = None
+        if confidence is None:
+            confidence = _top_softmax(s, top)
         height, width = image_hw
         if (h, w) == (height, width):
             return Decoded(classes, classes, confidence)
@@ -187,6 +198,74 @@ class SegContract:
         confidence = np.asarray(cv2.resize(confidence, size, interpolation=cv2.INTER_NEAREST), np.float32)
         refined = upsample_classes(s, classes, image_hw, nearest) if refine_edges else nearest
         return Decoded(refined, nearest, confidence)
+
+
+def _top_softmax(scores: F32, top: F32) -> F32:
+    """Softmax (h, w) of the chosen class, its score ``top`` (h, w), among scores (C, h, w);
+    a vetoed class (``-inf``) adds nothing."""
+    exp = scores - top[None]
+    np.exp(exp, out=exp)
+    return (1.0 / exp.sum(axis=0)).astype(np.float32)
+
+
+def drop_unsure_regions(
+    scores: F32, classes: U8, top: F32, min_confidence: float, confidence: F32 | None = None
+) -> tuple[F32, U8, F32, F32]:
+    """Veto the class of every unsure region: ``(scores, classes, top, confidence)`` after it.
+
+    A region is an 8-connected component of one class other than background (index 0) in
+    ``classes`` (h, w), the argmax of ``scores`` (C, h, w) with maximum ``top`` (h, w) and
+    softmax ``confidence`` (h, w; computed when None). A region is unsure when the mean, over
+    its cells, of the network's softmax for its class is below ``min_confidence``; that class
+    then gets ``-inf`` on the region and each cell takes its next most likely class. The
+    classes that gained cells are checked again, each cell still judged by the network's own
+    softmax for its new class (never renormalised, so a veto cannot make a class look surer
+    than the network was), until no region is unsure: a speck joins a sure neighbouring
+    region of its next class, or falls through to background, which is never vetoed. The
+    returned confidence of a vetoed cell is its new class's softmax among the classes left,
+    as after the placement check. A network hesitating between classes leaves such specks (a
+    cup on a sink's tap); a whole object seen clearly is not one. Only classes with a cell
+    below ``min_confidence`` can hold an unsure region, so only they are looked at. Returns
+    the inputs themselves when nothing is vetoed.
+    """
+    if confidence is None:
+        confidence = _top_softmax(scores, top)
+    judge = confidence  # the network's softmax of each cell's current class
+    out, copied = scores, False
+    check = np.unique(classes[confidence < min_confidence])
+    while True:  # ends: each round sets some finite non-background score to -inf
+        vetoed = np.zeros(classes.shape, bool)
+        for c in check[check > 0]:
+            here = classes == c
+            n, regions = cv2.connectedComponents(here.astype(np.uint8), connectivity=8)
+            labels = regions[here]
+            total = np.bincount(labels, weights=judge[here], minlength=n)
+            unsure = total < min_confidence * np.bincount(labels, minlength=n)  # mean < min_confidence
+            unsure[0] = False  # label 0: the cells of other classes
+            if not unsure.any():
+                continue
+            if out is scores:
+                out = scores.copy()
+            cells = unsure[regions]
+            out[c][cells] = -np.inf
+            vetoed |= cells
+        if not vetoed.any():
+            break
+        if not copied:  # the caller's arrays stay as they were
+            classes, top, confidence, judge = classes.copy(), top.copy(), confidence.copy(), judge.copy()
+            copied = True
+        left = out[:, vetoed]  # (C, k): the vetoed cells' scores, vetoed classes -inf
+        best = np.argmax(left, axis=0)  # ties to the lower class, as argmax_classes
+        k = np.arange(left.shape[1])
+        high = left[best, k]
+        classes[vetoed] = best.astype(np.uint8)
+        top[vetoed] = high
+        confidence[vetoed] = 1.0 / np.exp(left - high[None]).sum(axis=0)
+        own = scores[:, vetoed]
+        peak = own.max(axis=0)
+        judge[vetoed] = np.exp(own[best, k] - peak) / np.exp(own - peak[None]).sum(axis=0)
+        check = np.unique(best)
+    return out, classes, top, confidence
 
 
 class Decoded(NamedTuple):

@@ -129,6 +129,11 @@ class PerceptionConfig:
     such furniture nor a person who carries it takes its next most likely class
     (``PlacementRule``, docs/perception.md). The shipped network paints cups and temperature
     guns on a sink's tap in the robot's views."""
+    min_region_confidence: float = 0.35
+    """Segmentation network: a connected region of a class (not background) whose mean
+    softmax confidence is lower takes its cells' next most likely classes, checked again until
+    none is vetoed, before the placement check (``drop_unsure_regions``, docs/perception.md;
+    chosen on the validation worlds). 0 turns it off."""
     min_pixels: int = 400
     """Instances with fewer pixels are left out."""
     depth_jump_m: float = 0.15
@@ -234,7 +239,7 @@ class PerceptionConfig:
             raise ConfigError(
                 f"PerceptionConfig: detector_cluster_gap_m must be >= 0, got {self.detector_cluster_gap_m}"
             )
-        for name in ("score_threshold", "nms_iou", "min_confidence"):
+        for name in ("score_threshold", "nms_iou", "min_confidence", "min_region_confidence"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ConfigError(f"PerceptionConfig: {name} must lie in 0..1, got {getattr(self, name)!r}")
 
@@ -436,11 +441,11 @@ class OnnxSegmenter:
     """A segmentation network in the wardmap ONNX contract (module docstring), on the CPU.
 
     Per image: BGR -> RGB, resized to the model's input size, 0..1 -> network (and its
-    mirror image, ``flip_average``) -> the knowledge graph's placement check
-    (``placement_check``) -> per-pixel argmax of the logits and softmax maximum as
-    confidence -> both resized back to the image (nearest; class boundaries from the
-    bilinearly upsampled logits, ``refine_edges``) -> :func:`instances_from_classes`
-    (per-class connected components split at depth jumps).
+    mirror image, ``flip_average``) -> unsure regions vetoed (``min_region_confidence``) ->
+    the knowledge graph's placement check (``placement_check``) -> per-pixel argmax of the
+    logits and softmax maximum as confidence -> both resized back to the image (nearest;
+    class boundaries from the bilinearly upsampled logits, ``refine_edges``) ->
+    :func:`instances_from_classes` (per-class connected components split at depth jumps).
     """
 
     def __init__(
@@ -457,12 +462,13 @@ class OnnxSegmenter:
         flip_average: bool = PerceptionConfig.flip_average,
         refine_edges: bool = PerceptionConfig.refine_edges,
         placement_check: bool = PerceptionConfig.placement_check,
+        min_region_confidence: float = PerceptionConfig.min_region_confidence,
     ) -> None:
         """Open and check the model.
 
         ``flip_average``: average the logits of the image and of its mirror image
-        (:attr:`PerceptionConfig.flip_average`); ``refine_edges`` and ``placement_check``:
-        :attr:`PerceptionConfig.refine_edges`, :attr:`PerceptionConfig.placement_check`.
+        (:attr:`PerceptionConfig.flip_average`); ``refine_edges``, ``placement_check`` and
+        ``min_region_confidence``: the :class:`PerceptionConfig` attributes of those names.
 
         Raises:
             ConfigError: missing file, not ONNX, wrong input/output names or shapes,
@@ -495,6 +501,9 @@ class OnnxSegmenter:
         self._flip_average = bool(flip_average)
         self._refine_edges = bool(refine_edges)
         self._placement = PlacementRule.from_knowledge(kg, self._class_names) if placement_check else None
+        if not 0.0 <= min_region_confidence <= 1.0:
+            raise ConfigError(f"{what}: min_region_confidence must lie in 0..1, got {min_region_confidence}")
+        self._min_region_confidence = float(min_region_confidence)
         w, h = self._input_wh
         log.info("segmentation model %s: %d classes, input %dx%d %s, %d thread(s)%s",
                  self.path, len(self._class_names), w, h, "RGB-D" if self.depth_input else "RGB", threads,
@@ -534,7 +543,8 @@ class OnnxSegmenter:
             back = np.asarray(mirrored, np.float32)[..., ::-1]
             logits = (np.asarray(logits, np.float32) + back) * np.float32(0.5)
         return self._contract.decode(logits, image.shape[:2], self._what, placement=self._placement,
-                                     refine_edges=self._refine_edges)
+                                     refine_edges=self._refine_edges,
+                                     min_region_confidence=self._min_region_confidence)
 
     def segment(self, bgr: U8, depth_m: F32 | None) -> Segmentation:
         started = time.perf_counter()
@@ -739,4 +749,5 @@ def make_segmenter(
         flip_average=cfg.flip_average,
         refine_edges=cfg.refine_edges,
         placement_check=cfg.placement_check,
+        min_region_confidence=cfg.min_region_confidence,
     )

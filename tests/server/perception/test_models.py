@@ -226,6 +226,7 @@ def test_perception_config_toml(tmp_path: Path) -> None:
         ("[perception]\nsplit_width_m = 0\n", "split_width_m"),
         ('[perception]\nsplit_width_m = [["door", 0]]\n', "split_width_m of 'door'"),
         ('[perception]\nstack_gap_m = [["iv_pole"]]\n', "stack_gap_m"),
+        ("[perception]\nmin_region_confidence = 1.5\n", "min_region_confidence"),
     ):
         bad.write_text(text)
         with pytest.raises(ConfigError, match=named):
