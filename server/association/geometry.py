@@ -19,6 +19,7 @@ __all__ = [
     "Symmetry",
     "box_iou",
     "cut_at_side",
+    "cut_at_top_or_bottom",
     "is_truncated",
     "pairwise_angles",
     "partial_view_slack",
@@ -156,6 +157,14 @@ def cut_at_side(box_xyxy: F64, camera: PinholeCamera, border_px: float) -> bool:
     doors and most objects close by, and say less)."""
     x1, x2 = float(box_xyxy[0]), float(box_xyxy[2])
     return x1 <= border_px or x2 >= camera.width - border_px
+
+
+def cut_at_top_or_bottom(box_xyxy: F64, camera: PinholeCamera, border_px: float) -> bool:
+    """True when a pixel box (4,) reaches within ``border_px`` of the top or bottom image
+    border: the object may go on above or below the view, so its measured height is a lower
+    bound."""
+    y1, y2 = float(box_xyxy[1]), float(box_xyxy[3])
+    return y1 <= border_px or y2 >= camera.height - border_px
 
 
 def world_extents(T_world_object: F64, size: F64) -> F64:

@@ -9,7 +9,7 @@ import pytest
 
 from wardmap.server.association.associator import AssociationConfig, Associator
 from wardmap.server.association.evaluate import score_landmarks
-from wardmap.server.association.geometry import cut_at_side
+from wardmap.server.association.geometry import cut_at_side, cut_at_top_or_bottom
 from wardmap.server.association.types import LandmarkChange
 from wardmap.server.perception.types import ObjectMeasurement
 from wardmap.shared.config import from_mapping
@@ -219,7 +219,8 @@ def test_flat_slivers_at_the_side_of_the_view_stay_unconfirmed(make_measurement:
         assoc.flush()
         return {lm.category: lm.confirmed for lm in assoc.landmarks()}
 
-    slivers = [[seen(-1.0, "cabinet", flat, k), seen(0.0, "door", flat, k), seen(1.0, "cart", deep, k)]
+    door = np.array([0.3, 0.02, 2.0])  # a door's height (min_height_m), a sliver's width and depth
+    slivers = [[seen(-1.0, "cabinet", flat, k), seen(0.0, "door", door, k), seen(1.0, "cart", deep, k)]
                for k in range(3)]
     assert landmarks(slivers) == {"cabinet": False, "door": True, "cart": True}
     whole = [seen(-1.0, "cabinet", flat, 3, box=None)]
@@ -257,6 +258,37 @@ def test_a_whole_view_narrower_than_any_object_of_its_class_does_not_confirm(
     default = AssociationConfig(method=method)  # type: ignore[arg-type]
     assert confirmed(default) == {1: False, 2: True, 3: False, 4: True}
     assert confirmed(replace(default, min_width_m=())) == {1: True, 2: True, 3: True, 4: True}
+
+
+@pytest.mark.parametrize("method", ["hierarchical", "per_keyframe_hdp", "nearest"])
+def test_a_whole_view_lower_than_any_door_does_not_confirm(make_measurement: MeasurementFactory,
+                                                          method: str) -> None:
+    """With ``min_height_m`` door 1.0 m, a "door" 0.55 x 0.66 m hung 1.55 m up (a poster),
+    clear of every image border, stays unconfirmed; the same view cut by the bottom border
+    cannot show the height and confirms; a real door beside it is confirmed; with
+    ``min_height_m`` empty (the default) all are."""
+    T = camera_looking_along_y(0.0)
+    poster, door = np.array([0.55, 0.03, 0.66]), np.array([0.95, 0.05, 2.1])
+    kinds = [(-1.5, 1.55, poster, 1), (1.0, 1.05, door, 2), (3.0, 1.55, poster, 3)]
+    scene = [[make_measurement(object_pose(x, 5.5, z), T, category="door", size=size, gt=gt,
+                               keyframe=f"kf{k}", stamp=float(k)) for x, z, size, gt in kinds]
+             for k in range(3)]
+    for ms in scene:
+        assert not any(cut_at_side(m.box_xyxy, CAMERA, 3.0) or cut_at_top_or_bottom(m.box_xyxy, CAMERA, 3.0)
+                       for m in ms)
+        x1, y1, x2, _ = ms[2].box_xyxy
+        ms[2] = replace(ms[2], box_xyxy=np.array([x1, y1, x2, float(CAMERA.height)]))  # cut at the bottom
+
+    def confirmed(cfg: AssociationConfig) -> dict[int, bool]:
+        assoc = Associator(cfg)
+        for ms in scene:
+            assoc.add_keyframe(ms, T, CAMERA)
+        assoc.flush()
+        return {lm.gt_instances[0]: lm.confirmed for lm in assoc.landmarks()}
+
+    default = AssociationConfig(method=method)  # type: ignore[arg-type]
+    assert confirmed(replace(default, min_height_m=(("door", 1.0),))) == {1: False, 2: True, 3: True}
+    assert default.min_height_m == () and confirmed(default) == {1: True, 2: True, 3: True}
 
 
 @pytest.mark.parametrize("method", ["hierarchical", "per_keyframe_hdp", "nearest"])
@@ -311,6 +343,12 @@ def test_confirmation_config_is_checked() -> None:
         from_mapping(AssociationConfig, {"min_width_m": [["door", -0.5]]})
     with pytest.raises(ConfigError, match="min_width_m lists a class twice"):
         from_mapping(AssociationConfig, {"min_width_m": [["door", 0.5], ["door", 0.6]]})
+    with pytest.raises(ValueError, match="min_height_m: not knowledge-graph classes: unicorn"):
+        Associator(AssociationConfig(min_height_m=(("unicorn", 1.0),)))
+    with pytest.raises(ConfigError, match="min_height_m entries"):
+        from_mapping(AssociationConfig, {"min_height_m": [["door", -1.0]]})
+    with pytest.raises(ConfigError, match="min_height_m lists a class twice"):
+        from_mapping(AssociationConfig, {"min_height_m": [["door", 1.0], ["door", 1.2]]})
 
 
 @pytest.mark.parametrize("method", ["hierarchical", "nearest"])
