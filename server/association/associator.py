@@ -297,20 +297,8 @@ class AssociationConfig:
         if not 0.0 <= self.size_percentile <= 100.0:
             raise ValueError(f"size_percentile must be in [0, 100] (50: the median), "
                              f"got {self.size_percentile}")
-        for entry in self.min_width_m:
-            if (len(entry) != 2 or not isinstance(entry[0], str) or not isinstance(entry[1], (int, float))
-                    or not (np.isfinite(entry[1]) and entry[1] >= 0.0)):
-                raise ValueError(f"min_width_m entries are [class, metres >= 0], got {entry!r}")
-        names = [name for name, _ in self.min_width_m]
-        if len(set(names)) != len(names):
-            raise ValueError(f"min_width_m lists a class twice: {', '.join(sorted(names))}")
-        for entry in self.min_height_m:
-            if (len(entry) != 2 or not isinstance(entry[0], str) or not isinstance(entry[1], (int, float))
-                    or not (np.isfinite(entry[1]) and entry[1] >= 0.0)):
-                raise ValueError(f"min_height_m entries are [class, metres >= 0], got {entry!r}")
-        heights = [name for name, _ in self.min_height_m]
-        if len(set(heights)) != len(heights):
-            raise ValueError(f"min_height_m lists a class twice: {', '.join(sorted(heights))}")
+        for key in ("min_width_m", "min_height_m"):
+            _check_class_bounds(key, getattr(self, key))
         if not 0.0 <= self.nearest_held_share <= 1.0:
             raise ValueError(f"nearest_held_share must be in [0, 1] (0: off), got {self.nearest_held_share}")
         if not (self.held_margin_m >= 0.0 and np.isfinite(self.held_margin_m)):
@@ -325,6 +313,21 @@ class AssociationConfig:
         (``confirm_classes``, ``min_width_m`` and ``min_height_m``)."""
         return (frozenset(self.confirm_classes) | {name for name, _ in self.min_width_m}
                 | {name for name, _ in self.min_height_m})
+
+
+def _check_class_bounds(key: str, entries: Sequence[tuple[str, float]]) -> None:
+    """``entries`` are ``[class, metres >= 0]`` pairs, each class once.
+
+    Raises:
+        ValueError: naming ``key``.
+    """
+    for entry in entries:
+        if (len(entry) != 2 or not isinstance(entry[0], str) or not isinstance(entry[1], (int, float))
+                or not (np.isfinite(entry[1]) and entry[1] >= 0.0)):
+            raise ValueError(f"{key} entries are [class, metres >= 0], got {entry!r}")
+    names = [name for name, _ in entries]
+    if len(set(names)) != len(names):
+        raise ValueError(f"{key} lists a class twice: {', '.join(sorted(names))}")
 
 
 _FIT_TOL_M = 1e-3  # hulls are clipped to their class's bound: leave room for rounding

@@ -233,6 +233,17 @@ def test_flat_slivers_at_the_side_of_the_view_stay_unconfirmed(make_measurement:
     assert (score.landmarks, score.unconfirmed) == (2, 1)
 
 
+def _confirmed_by_object(scene: list[list[ObjectMeasurement]], T: np.ndarray,
+                         cfg: AssociationConfig) -> dict[int, bool]:
+    """Associate ``scene`` (one list of measurements per keyframe, all seen from ``T``):
+    ground-truth id of each landmark's first measurement -> whether the landmark is confirmed."""
+    assoc = Associator(cfg)
+    for ms in scene:
+        assoc.add_keyframe(ms, T, CAMERA)
+    assoc.flush()
+    return {lm.gt_instances[0]: lm.confirmed for lm in assoc.landmarks()}
+
+
 @pytest.mark.parametrize("method", ["hierarchical", "per_keyframe_hdp", "nearest"])
 def test_a_whole_view_narrower_than_any_object_of_its_class_does_not_confirm(
         make_measurement: MeasurementFactory, method: str) -> None:
@@ -249,11 +260,7 @@ def test_a_whole_view_narrower_than_any_object_of_its_class_does_not_confirm(
         assert not any(cut_at_side(m.box_xyxy, CAMERA, 3.0) for m in ms)
 
     def confirmed(cfg: AssociationConfig) -> dict[int, bool]:
-        assoc = Associator(cfg)
-        for ms in scene:
-            assoc.add_keyframe(ms, T, CAMERA)
-        assoc.flush()
-        return {lm.gt_instances[0]: lm.confirmed for lm in assoc.landmarks()}
+        return _confirmed_by_object(scene, T, cfg)
 
     default = AssociationConfig(method=method)  # type: ignore[arg-type]
     assert confirmed(default) == {1: False, 2: True, 3: False, 4: True}
@@ -280,11 +287,7 @@ def test_a_whole_view_lower_than_any_door_does_not_confirm(make_measurement: Mea
         ms[2] = replace(ms[2], box_xyxy=np.array([x1, y1, x2, float(CAMERA.height)]))  # cut at the bottom
 
     def confirmed(cfg: AssociationConfig) -> dict[int, bool]:
-        assoc = Associator(cfg)
-        for ms in scene:
-            assoc.add_keyframe(ms, T, CAMERA)
-        assoc.flush()
-        return {lm.gt_instances[0]: lm.confirmed for lm in assoc.landmarks()}
+        return _confirmed_by_object(scene, T, cfg)
 
     default = AssociationConfig(method=method)  # type: ignore[arg-type]
     assert confirmed(replace(default, min_height_m=(("door", 1.0),))) == {1: False, 2: True, 3: True}
