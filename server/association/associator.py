@@ -265,7 +265,7 @@ class AssociationConfig:
     simulator's corridor posters, 0.6 x 0.8 m, 1.55 m up): ``[["door", 1.0]]``. Not the
     default: on the model measurements of seeds 1001-1005 (35 sequences, docs/association.md,
     Confirmation) it left the seven door landmarks on no object unconfirmed, but also three
-    real doors seen once with only their upper 0.6-0.8 m, two of them on the benchmark's seed.
+    real doors seen once with only their upper 0.61-0.83 m, two of them on the benchmark's seed.
     Empty: no lower bound."""
     max_range_m: float = 6.0
     """Measurements whose centre lies farther than this along the camera axis
@@ -830,12 +830,12 @@ class Associator:
                 inside = float(np.prod(np.clip(common, 0.0, None)))
                 smaller = min(float(np.prod((hi - lo)[:axes])), float(np.prod((ohi - olo)[:axes])))
                 held = share > 0 and inside >= share * smaller
-                parts = (same and cfg.merge_fragments > 0 and inside >= cfg.merge_fragments * smaller
-                         and self._fits(lm.category, (lo, hi), (olo, ohi)))
+                # parts of one object: both fit it, with merge_fragments overlap (any for merge_fitting)
+                enough = lm.category in self._fitting or (
+                    cfg.merge_fragments > 0 and inside >= cfg.merge_fragments * smaller)
+                parts = same and enough and self._fits(lm.category, (lo, hi), (olo, ohi))
                 close = same and float(np.linalg.norm((lm.centre - other.centre)[:2])) < within
-                fitting = (same and lm.category in self._fitting
-                           and self._fits(lm.category, (lo, hi), (olo, ohi)))
-                if not (held or parts or close or fitting):
+                if not (held or parts or close):
                     continue
                 keep, gone = (lm, other) if (lm.count, -lm.id) >= (other.count, -other.id) else (other, lm)
                 if not same and not self._fits(keep.category, (lo, hi), (olo, ohi)):
