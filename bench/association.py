@@ -27,7 +27,7 @@ Gaussian twist: --pose-noise metres and degrees per axis) before measuring, to s
 methods cope with pose error.
 
 The default world seed, 1001, is one the segmentation network never saw: its training worlds
-use seeds below 1000 (server/perception/segdata.py). With a seed below 1000 the model table
+use seeds below 1000 (tools/training/segdata.py). With a seed below 1000 the model table
 says that its worlds are training worlds.
 
     python bench/association.py [--data out/bench_data] [--seed 1001] [--only NAME ...]
@@ -63,11 +63,11 @@ from wardmap.server.association.evaluate import (
 )
 from wardmap.server.association.offline import DatasetMeasurements, associate, measure_dataset
 from wardmap.server.association.types import Landmark
-from wardmap.server.perception.segdata import EVAL_SEED_MIN
 from wardmap.shared.dataset import DatasetReader
 from wardmap.shared.knowledge import KnowledgeGraph
 from wardmap.shared.se3 import se3_exp, transform_to_tum
 from wardmap.sim.runner import generate
+from wardmap.tools.training.segdata import EVAL_SEED_MIN
 
 ROOT = Path(__file__).resolve().parents[1]
 MODEL = ROOT / "server" / "models" / "hospital_seg.onnx"

@@ -11,7 +11,7 @@ import time
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from wardmap.server.perception.segdata import TrainSegConfig
+    from wardmap.tools.training.segdata import TrainSegConfig
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -36,8 +36,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from wardmap.server.perception.segdata import TrainingError, TrainSegConfig
     from wardmap.shared.config import load_config
+    from wardmap.tools.training.segdata import TrainingError, TrainSegConfig
 
     config = load_config(TrainSegConfig, args.config, section="train_seg")
     if args.adjust:
@@ -48,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
             f"{' and '.join(missing)} not installed; train-seg needs the train extra: "
             "pip install -e '.[train]'"
         )
-    from wardmap.server.perception.training import train_and_export
+    from wardmap.tools.training.training import train_and_export
 
     last = [0.0]
 
@@ -80,9 +80,9 @@ def run(args: argparse.Namespace) -> int:
 def _adjust(args: argparse.Namespace, config: TrainSegConfig) -> int:
     from pathlib import Path
 
-    from wardmap.server.perception.logit_adjust import adjust_model
-    from wardmap.server.perception.segdata import TrainingError, build_samples, class_weights
     from wardmap.shared.knowledge import KnowledgeGraph
+    from wardmap.tools.training.logit_adjust import adjust_model
+    from wardmap.tools.training.segdata import TrainingError, build_samples, class_weights
 
     if importlib.util.find_spec("onnx") is None:
         raise TrainingError("onnx not installed; --adjust needs it: pip install -e '.[train]'")

@@ -14,6 +14,6 @@ fi
 # mypy sees the source folders under their installed names (wardmap.shared, ...).
 TYPECHECK=build/typecheck
 rm -rf "$TYPECHECK" && mkdir -p "$TYPECHECK/wardmap"
-for d in cli edge server shared sim; do ln -s "$PWD/$d" "$TYPECHECK/wardmap/$d"; done
+for d in cli edge server shared sim tools; do ln -s "$PWD/$d" "$TYPECHECK/wardmap/$d"; done
 MYPYPATH="$TYPECHECK" "$VENV/bin/mypy" -p wardmap
 "$VENV/bin/python" -m pytest -q "$@"

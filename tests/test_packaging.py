@@ -14,8 +14,8 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("cli", "edge", "server", "shared", "sim")
-NEEDS_EXTRA = {"wardmap.server.perception.training": "torch"}
+PACKAGES = ("cli", "edge", "server", "shared", "sim", "tools")
+NEEDS_EXTRA = {"wardmap.tools.training.training": "torch"}
 """Modules of an optional extra (``train``): imported only where its package is installed."""
 
 
@@ -67,7 +67,7 @@ def test_built_wheel_imports_every_module(tmp_path: Path) -> None:
         names = zf.namelist()
         zf.extractall(tmp_path / "site")
     top = {n.split("/")[0] for n in names}
-    assert "shared" not in top and "server" not in top and "edge" not in top and "sim" not in top
+    assert not top & set(PACKAGES), top  # only wardmap/ and its dist-info
     assert "wardmap/shared/data/knowledge_graph.toml" in names
     assert "wardmap/server/models/hospital_seg.onnx" in names  # the trained network ships
     script = (
@@ -85,7 +85,7 @@ def test_built_wheel_imports_every_module(tmp_path: Path) -> None:
     )
 
 
-TRAIN_MODULES = ("server/perception/training.py", "server/perception/logit_adjust.py")
+TRAIN_MODULES = ("tools/training/training.py", "tools/training/logit_adjust.py")
 """The only files that may import the ``train`` extra's packages (they say so when missing)."""
 
 

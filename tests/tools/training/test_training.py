@@ -11,13 +11,13 @@ import pytest
 torch = pytest.importorskip("torch")
 onnx = pytest.importorskip("onnx")
 
-from wardmap.server.perception.segdata import SegDataConfig, TrainSegConfig  # noqa: E402
-from wardmap.server.perception.training import (  # noqa: E402
+from wardmap.shared.knowledge import KnowledgeGraph  # noqa: E402
+from wardmap.tools.training.segdata import SegDataConfig, TrainSegConfig  # noqa: E402
+from wardmap.tools.training.training import (  # noqa: E402
     Baff,
     BaffSkipNet,
     train_and_export,
 )
-from wardmap.shared.knowledge import KnowledgeGraph  # noqa: E402
 
 
 @pytest.mark.parametrize("size", [(30, 40), (15, 20), (17, 23)])
@@ -112,7 +112,7 @@ def test_two_step_training_exports_contract_onnx(tmp_path: Path, depth_input: bo
 
 
 def test_bad_output_path_is_a_clear_error(tmp_path: Path) -> None:
-    from wardmap.server.perception.segdata import TrainingError
+    from wardmap.tools.training.segdata import TrainingError
 
     with pytest.raises(TrainingError, match=r"must end in \.onnx"):
         train_and_export(TrainSegConfig(), tmp_path / "model.pt")

@@ -1,4 +1,4 @@
-"""Post-hoc logit adjustment (``server/perception/logit_adjust.py``): bias, choice, ONNX edit."""
+"""Post-hoc logit adjustment (``tools/training/logit_adjust.py``): bias, choice, ONNX edit."""
 
 from __future__ import annotations
 
@@ -13,17 +13,18 @@ pytest.importorskip("onnx", reason="editing ONNX graphs needs the onnx package (
 import onnx
 import onnxruntime as ort
 
-from wardmap.server.perception.logit_adjust import (
+from wardmap.server.perception.models import make_segmenter
+from wardmap.tools.training.logit_adjust import (
     META_LOGIT_BIAS,
     add_logit_bias,
     adjust_model,
     adjustment_bias,
     choose_alpha,
 )
-from wardmap.server.perception.models import make_segmenter
-from wardmap.server.perception.segdata import SegSamples, TrainingError, class_weights
+from wardmap.tools.training.segdata import SegSamples, TrainingError, class_weights
 
-_spec = importlib.util.spec_from_file_location("tiny_onnx", Path(__file__).with_name("tiny_onnx.py"))
+HELPER = Path(__file__).resolve().parents[2] / "server" / "perception" / "tiny_onnx.py"
+_spec = importlib.util.spec_from_file_location("tiny_onnx", HELPER)
 assert _spec is not None and _spec.loader is not None
 tiny = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(tiny)

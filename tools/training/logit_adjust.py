@@ -1,7 +1,7 @@
 """Logit adjustment of a segmentation network trained with class weights.
 
 The network is trained with weighted cross-entropy (weights ``w_c`` up to 10x for rare
-classes, :func:`wardmap.server.perception.segdata.class_weights`) so that rare classes
+classes, :func:`wardmap.tools.training.segdata.class_weights`) so that rare classes
 are learned at all. Weighting shifts the decision rule: the argmax then over-predicts
 rare classes (a cup or a temperature gun on every cart). Post-hoc logit adjustment
 (Menon et al., "Long-tail learning via logit adjustment", ICLR 2021) undoes a chosen
@@ -28,8 +28,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from wardmap.server.perception.segdata import SegSamples, TrainingError, confusion, iou_from_confusion
 from wardmap.shared.segmentation import INPUT_NAME, OUTPUT_NAME
+from wardmap.tools.training.segdata import SegSamples, TrainingError, confusion, iou_from_confusion
 
 META_LOGIT_BIAS = "wardmap.logit_bias"
 """ONNX metadata key recording a baked-in logit bias (JSON list of floats, one per class)."""

@@ -177,7 +177,7 @@ class TrainSegConfig:
             two threads, measured; the exported ONNX file is the same either way).
         logit_adjust: candidate strengths alpha in [0, 1] of the post-hoc logit adjustment
             ``logits - alpha log(w_c)`` that undoes the class weighting's bias toward rare
-            classes (``server/perception/logit_adjust.py``); the one with the best
+            classes (``tools/training/logit_adjust.py``); the one with the best
             validation mIoU is baked into the exported model. ``[0]`` turns it off.
     """
 

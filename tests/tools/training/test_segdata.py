@@ -7,8 +7,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from wardmap.server.perception import segdata
-from wardmap.server.perception.segdata import (
+from wardmap.shared.config import from_mapping
+from wardmap.shared.errors import ConfigError
+from wardmap.shared.knowledge import KnowledgeGraph
+from wardmap.tools.training import segdata
+from wardmap.tools.training.segdata import (
     IGNORE_INDEX,
     SegDataConfig,
     TrainSegConfig,
@@ -21,9 +24,6 @@ from wardmap.server.perception.segdata import (
     look_at,
     render_world,
 )
-from wardmap.shared.config import from_mapping
-from wardmap.shared.errors import ConfigError
-from wardmap.shared.knowledge import KnowledgeGraph
 
 TINY = SegDataConfig(scenarios=("walking_staff",), seeds=(3,), frames_per_world=3, track_fraction=0.34)
 

@@ -37,8 +37,10 @@ import torch.nn.functional as F  # noqa: N812 - torch's conventional alias
 from numpy.typing import NDArray
 from torch import Tensor, nn
 
-from wardmap.server.perception.logit_adjust import adjust_model, onnx_logits
-from wardmap.server.perception.segdata import (
+from wardmap.shared.config import to_mapping
+from wardmap.shared.knowledge import KnowledgeGraph
+from wardmap.tools.training.logit_adjust import adjust_model, onnx_logits
+from wardmap.tools.training.segdata import (
     IGNORE_INDEX,
     SegSamples,
     TrainingError,
@@ -51,8 +53,6 @@ from wardmap.server.perception.segdata import (
     confusion,
     iou_from_confusion,
 )
-from wardmap.shared.config import to_mapping
-from wardmap.shared.knowledge import KnowledgeGraph
 
 log = logging.getLogger(__name__)
 
@@ -520,7 +520,7 @@ def _adjust_section(adjust: dict[str, Any] | None) -> str:
     if not adjust:
         return "No logit adjustment (the argmax of the network's own logits)."
     by = ", ".join(f"{a}: {s:.1f} %" for a, s in adjust["val_miou_by_alpha"].items())
-    return f"""## Logit adjustment (server/perception/logit_adjust.py)
+    return f"""## Logit adjustment (tools/training/logit_adjust.py)
 
 Class weighting makes the argmax over-predict rare classes; the exported model adds
 `-alpha log(w_c)` to each class's logit (Menon et al. 2021), alpha chosen on the validation
@@ -578,7 +578,7 @@ def model_card(summary: dict[str, Any], metrics: dict[str, Any]) -> str:
     )
     return f"""# hospital_seg: hospital semantic segmentation network
 
-Made by `wardmap train-seg` (server/perception/training.py, docs/training.md).
+Made by `wardmap train-seg` (tools/training/training.py, docs/training.md).
 
 ## Interface (ONNX opset {ONNX_OPSET}, one self-contained file, {mb:.2f} MB)
 
@@ -607,7 +607,7 @@ order (see the table below).
 
 ## Training data
 
-Rendered in-process by the wardmap simulator (server/perception/segdata.py), cached by config
+Rendered in-process by the wardmap simulator (tools/training/segdata.py), cached by config
 hash `{summary["train_data_hash"]}`:
 
 - scenarios: {", ".join(d["scenarios"])};
