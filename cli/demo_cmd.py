@@ -1,4 +1,4 @@
-"""``wardmap demo``: router + map server + N simulated robots on loopback (see :mod:`wardmap.cli.demo`)."""
+"""``wardmap demo``: router + map server + N simulated robots on loopback (see :mod:`wardmap.tools.demo`)."""
 
 from __future__ import annotations
 
@@ -27,8 +27,10 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from wardmap.cli.demo import DemoOptions, run_demo
+    from wardmap.cli.server_cmd import parse_http
+    from wardmap.tools.demo import DemoOptions, run_demo
 
+    host, port = parse_http(args.http)
     opts = DemoOptions(robots=args.robots, duration_s=args.duration, seed=args.seed, exit_after=args.exit,
-                       http=args.http, keep=args.keep)
+                       http_host=host, http_port=port, keep=args.keep)
     return run_demo(opts)

@@ -8,10 +8,11 @@ prints a summary table (keyframes produced vs delivered, ATE of the server's tra
 the simulator's ground truth, bytes per keyframe, publish -> ack latency) and keeps router +
 server running until Ctrl-C (or stops at once with ``exit_after``).
 
-Why this lives in ``cli/`` and not in ``server/`` or ``edge/``: the demo orchestrates processes
+Why this lives in ``tools/`` and not in ``server/`` or ``edge/``: the demo orchestrates processes
 of both sides (edge agents, map server, router) and reads the simulator's and the data set's
-outputs; only ``wardmap.cli`` may import every other part of the package, so the library code
-is here, next to the thin entry point :mod:`wardmap.cli.demo_cmd`.
+outputs; ``wardmap.tools`` may import every runtime package, and nothing of the runtime imports
+it. The thin entry point is :mod:`wardmap.cli.demo_cmd` (it parses the arguments, ``--http``
+included, and calls :func:`run_demo`).
 
 Every child runs in its own session (``start_new_session``) so that a Ctrl-C in the terminal
 reaches only the demo, which then stops the children in order (edges, server, router):
@@ -68,7 +69,10 @@ class DemoOptions:
     duration_s: float = 30.0
     seed: int = 0
     exit_after: bool = False
-    http: str = "127.0.0.1:8080"
+    http_host: str = "127.0.0.1"
+    """The map server's REST host (``--http``, parsed by the CLI)."""
+    http_port: int = 8080
+    """Its port; a free port on ``http_host`` is used when this one is busy."""
     keep: Path | None = None
 
     def __post_init__(self) -> None:
@@ -271,11 +275,8 @@ def _port_free(host: str, port: int) -> bool:
     return True
 
 
-def choose_http(text: str) -> tuple[str, int, bool]:
+def choose_http(host: str, port: int) -> tuple[str, int, bool]:
     """``(host, port, moved)``: the ``--http`` address, or a free port on its host when it is busy."""
-    from wardmap.cli.server_cmd import parse_http
-
-    host, port = parse_http(text)
     if port != 0 and _port_free(host, port):
         return host, port, False
     try:
@@ -284,8 +285,13 @@ def choose_http(text: str) -> tuple[str, int, bool]:
         raise DemoError(f"cannot listen on {host} for HTTP: {exc}") from exc
 
 
+def _host_port(host: str, port: int) -> str:
+    """``HOST:PORT`` as typed on the command line (``[IPv6]:PORT``)."""
+    return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+
+
 def _url(host: str, port: int) -> str:
-    return f"http://[{host}]:{port}" if ":" in host else f"http://{host}:{port}"
+    return f"http://{_host_port(host, port)}"
 
 
 @contextlib.contextmanager
@@ -523,9 +529,10 @@ def _run(opts: DemoOptions, work: Path, children: list[Child], wait: Callable[[]
     import httpx
 
     plans = plan_robots(opts.robots, opts.seed)
-    host, port, moved = choose_http(opts.http)
+    host, port, moved = choose_http(opts.http_host, opts.http_port)
     if moved:
-        _say(f"demo: HTTP address {opts.http} is busy; using {host}:{port} instead")
+        _say(f"demo: HTTP address {_host_port(opts.http_host, opts.http_port)} is busy; "
+             f"using {host}:{port} instead")
     logs = work / "logs"
     logs.mkdir()
 
