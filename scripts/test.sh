@@ -16,4 +16,6 @@ TYPECHECK=build/typecheck
 rm -rf "$TYPECHECK" && mkdir -p "$TYPECHECK/wardmap"
 for d in cli edge server shared sim tools; do ln -s "$PWD/$d" "$TYPECHECK/wardmap/$d"; done
 MYPYPATH="$TYPECHECK" "$VENV/bin/mypy" -p wardmap
+# The layering of docs/ARCHITECTURE.md: import-linter contracts in pyproject.toml.
+"$VENV/bin/lint-imports" --no-cache --no-logo
 "$VENV/bin/python" -m pytest -q "$@"
