@@ -29,8 +29,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Final
 
-from wardmap.server.router import _first_line
 from wardmap.server.store import KeyframeStore
+from wardmap.server.zenoh_session import first_line
 from wardmap.shared.errors import ConfigError, WardmapError, WireError
 from wardmap.shared.wire import AckMsg, AckStatus, KeyframeMsg, decode_keyframe, encode
 from wardmap.shared.zenoh_config import ALL_KEYFRAMES, ack_key, client_config, robot_id_from_key
@@ -137,7 +137,7 @@ class Ingest:
         try:
             session = zenoh.open(zenoh.Config.from_json5(json.dumps(self._config)))
         except zenoh.ZError as exc:
-            raise IngestError(f"cannot connect to {', '.join(self._connect)}: {_first_line(exc)}") from exc
+            raise IngestError(f"cannot connect to {', '.join(self._connect)}: {first_line(exc)}") from exc
         try:
             self._subscriber = session.declare_subscriber(
                 ALL_KEYFRAMES, zenoh.handlers.FifoChannel(self._capacity)

@@ -39,7 +39,7 @@ from wardmap.server.objectmap import (
     ObjectQuery,
     ObjectRecord,
 )
-from wardmap.server.router import _first_line
+from wardmap.server.zenoh_session import first_line
 from wardmap.shared.errors import ConfigError, WardmapError
 from wardmap.shared.mapwire import (
     ENCODING,
@@ -191,7 +191,7 @@ class MapServe:
         try:
             session = zenoh.open(zenoh.Config.from_json5(json.dumps(self._config)))
         except zenoh.ZError as exc:
-            raise MapServeError(f"cannot connect to {', '.join(self._connect)}: {_first_line(exc)}") from exc
+            raise MapServeError(f"cannot connect to {', '.join(self._connect)}: {first_line(exc)}") from exc
         try:
             self._queryable = session.declare_queryable(
                 OBJECTS_KEY, zenoh.handlers.FifoChannel(self._capacity), complete=True
