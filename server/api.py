@@ -24,6 +24,7 @@ from fastapi.responses import JSONResponse, PlainTextResponse
 from pydantic import BaseModel
 
 from wardmap.server.ingest import Ingest, IngestCounters
+from wardmap.server.mapmessages import map_object
 from wardmap.server.objectmap import (
     DEFAULT_LIMIT,
     MAX_LIMIT,
@@ -32,13 +33,13 @@ from wardmap.server.objectmap import (
     ObjectMap,
     ObjectMapError,
     ObjectQuery,
-    ObjectRecord,
     parse_near,
 )
 from wardmap.server.perception.measure import SKIP_KINDS
 from wardmap.server.pipeline import MapPipeline, PipelineCounters, PipelineFactory
 from wardmap.server.store import MAX_PAGE, KeyframeStore, StoreError, open_store
 from wardmap.shared.errors import KnowledgeGraphError, WardmapError
+from wardmap.shared.mapwire import object_to_wire
 from wardmap.shared.se3 import rotation_to_quat, transform_to_tum
 
 log = logging.getLogger(__name__)
@@ -114,16 +115,26 @@ class ErrorOut(BaseModel):
     detail: str
 
 
+class TransformOut(BaseModel):
+    """A pose in the wire form of ``docs/wire.md``: translation and unit quaternion."""
+
+    t: list[float]
+    """Translation ``[x, y, z]``, metres."""
+    q_xyzw: list[float]
+
+
 class ObjectOut(BaseModel):
-    """One object of the map; positions in the world frame, metres."""
+    """One object of the map (``shared/mapwire.py`` ``MapObject``); world frame, metres."""
 
     object_id: int
     category: str
     confidence: float
     position: list[float]
-    """Centre of the object's box ``[x, y, z]``, metres."""
+    """Centre of the object's box ``[x, y, z]``, metres (``T_world_object.t``)."""
     q_xyzw: list[float]
-    """Orientation of the object frame (x forward, z up) in the world frame."""
+    """Orientation of the object frame (x forward, z up) in the world frame (``T_world_object.q_xyzw``)."""
+    T_world_object: TransformOut
+    """The object's pose as Zenoh sends it: ``position`` and ``q_xyzw`` together."""
     yaw: float
     """Heading of the object's x axis about world z, radians."""
     size: list[float]
@@ -131,6 +142,7 @@ class ObjectOut(BaseModel):
     bounds_min: list[float]
     bounds_max: list[float]
     color_rgb: list[float] | None
+    """Mean colour ``[R, G, B]`` in 0..255; None when unknown."""
     n_observations: int
     first_seen_s: float
     last_seen_s: float
@@ -196,21 +208,6 @@ class CategoryList(BaseModel):
 
 def _vec(values: Any) -> list[float]:
     return [float(v) for v in values]
-
-
-def object_json(record: ObjectRecord, distance_m: float | None = None) -> dict[str, Any]:
-    """An :class:`ObjectRecord` as the JSON form of :class:`ObjectOut` (plain dict, built without
-    pydantic because the list route is latency-critical; tests validate it against the model)."""
-    return {
-        "object_id": record.object_id, "category": record.category, "confidence": record.confidence,
-        "position": list(record.position), "q_xyzw": list(record.q_xyzw), "yaw": record.yaw,
-        "size": list(record.size), "bounds_min": list(record.bounds_min),
-        "bounds_max": list(record.bounds_max),
-        "color_rgb": None if record.color_rgb is None else list(record.color_rgb),
-        "n_observations": record.n_observations, "first_seen_s": record.first_seen_s,
-        "last_seen_s": record.last_seen_s, "robots": list(record.robots), "confirmed": record.confirmed,
-        "distance_m": distance_m,
-    }
 
 
 # --------------------------------------------------------------------------- cursors
@@ -413,7 +410,7 @@ def create_app(
         except ObjectMapError as exc:
             raise HTTPException(422, str(exc)) from exc
         return JSONResponse({
-            "objects": [object_json(hit.record, hit.distance_m) for hit in page.hits],
+            "objects": [object_to_wire(map_object(hit.record, hit.distance_m)) for hit in page.hits],
             "limit": limit, "offset": offset, "next_offset": page.next_offset,
         })
 
@@ -435,7 +432,7 @@ def create_app(
         if detail is None:
             raise HTTPException(404, f"unknown object {object_id}")
         return ObjectDetailOut(
-            object=ObjectOut.model_validate(object_json(detail.record)),
+            object=ObjectOut.model_validate(object_to_wire(map_object(detail.record))),
             observations=[
                 ObservationOut(
                     observation_id=o.observation_id, robot_id=o.robot_id, session_id=o.session_id,

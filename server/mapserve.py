@@ -6,10 +6,11 @@
   of ``GET /v1/objects`` given as selector parameters, e.g.
   ``wardmap/v1/map/objects?category=door;near=1,2,0;radius=3`` (keys ``category``,
   ``near``, ``radius``, ``min_confidence``, ``robot``, ``limit``, ``offset``; zenoh's own
-  ``_``-prefixed parameters are ignored). One reply of schema ``wardmap.map.objects``;
-  bad parameters get a reply error of schema ``wardmap.map.error`` naming the parameter.
+  ``_``-prefixed parameters are ignored). One reply
+  :class:`~wardmap.shared.mapwire.ObjectsReply`; bad parameters get a reply error
+  :class:`~wardmap.shared.mapwire.MapError` naming the parameter.
 - a publisher on :data:`UPDATES_KEY` (``wardmap/v1/map/updates``), reliable with congestion
-  control ``BLOCK``, that sends one ``wardmap.map.update`` for every
+  control ``BLOCK``, that sends one :class:`~wardmap.shared.mapwire.MapUpdate` for every
   :class:`~wardmap.server.objectmap.ObjectChange`, in commit order.
 
 Queue policy: queries reach the worker thread through a bounded zenoh FIFO channel
@@ -18,8 +19,9 @@ is dropped). Updates are published from the object map's listener on the writer'
 after each commit, so a slow subscriber slows the map writer instead of losing updates; a
 failed put is logged and counted (``update_failures``).
 
-Payloads are msgpack maps with ``schema`` and ``version``, defined in ``shared/mapwire.py``
-so robots decode them without importing the server (docs/map_api.md has the fields).
+The messages are defined in ``shared/mapwire.py`` (robots decode them without importing
+the server); ``server/mapmessages.py`` builds them from the map's records, as the REST API
+does, so an object has one shape in both (docs/map_api.md).
 """
 
 from __future__ import annotations
@@ -31,25 +33,17 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Final
 
-from wardmap.server.objectmap import (
-    ObjectChange,
-    ObjectMap,
-    ObjectMapError,
-    ObjectPage,
-    ObjectQuery,
-    ObjectRecord,
-)
+from wardmap.server.mapmessages import map_update, objects_reply
+from wardmap.server.objectmap import ObjectChange, ObjectMap, ObjectMapError, ObjectQuery
 from wardmap.server.zenoh_session import first_line
 from wardmap.shared.errors import ConfigError, WardmapError
 from wardmap.shared.mapwire import (
     ENCODING,
+    MAX_DETAIL_LEN,
     OBJECTS_KEY,
-    SCHEMA_ERROR,
-    SCHEMA_OBJECTS,
-    SCHEMA_UPDATE,
     UPDATES_KEY,
-    decode_map_message,
-    pack_map_message,
+    MapError,
+    encode_map_message,
 )
 from wardmap.shared.zenoh_config import client_config
 
@@ -61,10 +55,6 @@ __all__ = [
     "MapServe",
     "MapServeCounters",
     "MapServeError",
-    "decode_map_message",
-    "encode_error",
-    "encode_objects",
-    "encode_update",
 ]
 
 DEFAULT_CAPACITY: Final = 64
@@ -73,57 +63,6 @@ DEFAULT_CAPACITY: Final = 64
 
 class MapServeError(WardmapError):
     """The map service cannot start (bad endpoint, zenoh cannot open the session)."""
-
-
-# --------------------------------------------------------------------------- wire form
-
-
-def _object(record: ObjectRecord, distance_m: float | None = None) -> dict[str, Any]:
-    T = record.T_world_object
-    out: dict[str, Any] = {
-        "object_id": record.object_id,
-        "category": record.category,
-        "confidence": record.confidence,
-        "T_world_object": {
-            "t": [float(v) for v in T[:3, 3]],
-            "q_xyzw": list(record.q_xyzw),
-        },
-        "yaw": record.yaw,
-        "size": list(record.size),
-        "bounds_min": list(record.bounds_min),
-        "bounds_max": list(record.bounds_max),
-        "n_observations": record.n_observations,
-        "first_seen_s": record.first_seen_s,
-        "last_seen_s": record.last_seen_s,
-        "robots": list(record.robots),
-        "confirmed": record.confirmed,
-    }
-    if record.color_rgb is not None:
-        out["color_rgb"] = list(record.color_rgb)
-    if distance_m is not None:
-        out["distance_m"] = distance_m
-    return out
-
-
-def encode_objects(page: ObjectPage) -> bytes:
-    """The queryable's reply: ``{schema: wardmap.map.objects, version, objects, next_offset}``."""
-    return pack_map_message(SCHEMA_OBJECTS, {
-        "objects": [_object(hit.record, hit.distance_m) for hit in page.hits],
-        "next_offset": page.next_offset,
-    })
-
-
-def encode_update(change: ObjectChange) -> bytes:
-    """One map update: ``{schema: wardmap.map.update, version, kind, object[, merged_into]}``."""
-    message: dict[str, Any] = {"kind": change.kind, "object": _object(change.record)}
-    if change.merged_into is not None:
-        message["merged_into"] = change.merged_into
-    return pack_map_message(SCHEMA_UPDATE, message)
-
-
-def encode_error(detail: str) -> bytes:
-    """A reply error: ``{schema: wardmap.map.error, version, detail}``."""
-    return pack_map_message(SCHEMA_ERROR, {"detail": str(detail)})
 
 
 # --------------------------------------------------------------------------- the service
@@ -276,15 +215,16 @@ class MapServe:
             log.error("map query %s: %s", str(query.selector)[:200], exc)
             self._reply_error(query, "the map server could not read the object map")
             return
-        query.reply(OBJECTS_KEY, encode_objects(page), encoding=ENCODING)
+        query.reply(OBJECTS_KEY, encode_map_message(objects_reply(page)), encoding=ENCODING)
         self._count("queries")
 
     def _reply_error(self, query: Any, detail: str) -> None:
         import zenoh
 
         self._count("query_errors")
+        payload = encode_map_message(MapError(detail[:MAX_DETAIL_LEN] or "error"))
         try:
-            query.reply_err(encode_error(detail), encoding=ENCODING)
+            query.reply_err(payload, encoding=ENCODING)
         except zenoh.ZError as exc:
             log.warning("cannot answer map query %s: %s", str(query.selector)[:200], exc)
 
@@ -300,8 +240,8 @@ class MapServe:
                         change.record.object_id)
             return
         try:
-            publisher.put(encode_update(change))
-        except zenoh.ZError as exc:
+            publisher.put(encode_map_message(map_update(change)))
+        except (zenoh.ZError, WardmapError) as exc:
             self._count("update_failures")
             log.warning("cannot publish map update of object %d: %s", change.record.object_id, exc)
             return

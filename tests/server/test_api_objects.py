@@ -7,6 +7,7 @@ TestClient, whose lifespan opens the same file. Every filter and every 404/422 p
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Iterator
 from pathlib import Path
@@ -15,10 +16,11 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from wardmap.server.api import ObjectList, create_app
+from wardmap.server.api import ObjectList, ObjectOut, create_app
 from wardmap.server.objectmap import ObjectMap, ObjectState, Observation
 from wardmap.server.store import open_store
 from wardmap.shared.knowledge import KnowledgeGraph
+from wardmap.shared.mapwire import MapObject, object_from_wire
 from wardmap.shared.se3 import quat_to_rotation, yaw_transform
 
 T0 = 1_714_557_600.0
@@ -83,6 +85,33 @@ def test_list_all_objects_with_every_field(client: TestClient) -> None:
     half_x = 0.5 * (abs(math.cos(0.75)) * 1.0 + abs(math.sin(0.75)) * 0.5)
     assert o["bounds_min"][0] == pytest.approx(1.0 - half_x) and o["bounds_max"][2] == pytest.approx(1.5)
     assert body["objects"][3]["robots"] == [] and body["objects"][3]["n_observations"] == 0
+
+
+def test_objects_are_the_shared_map_message(client: TestClient) -> None:
+    """An object's JSON is the map message Zenoh sends (``shared/mapwire.py``): the documented
+    fields exactly, the pose both flat (``position``, ``q_xyzw``) and as ``T_world_object``,
+    ``color_rgb`` null when unknown; it decodes as a :class:`MapObject`."""
+    wire_fields = [f.name for f in dataclasses.fields(MapObject)] + ["T_world_object"]
+    assert set(ObjectOut.model_fields) == set(wire_fields)
+    for path in ("/v1/objects", "/v1/objects?near=1,0,0.5"):
+        for o in client.get(path).json()["objects"]:
+            assert set(o) == set(wire_fields)
+            assert o["T_world_object"] == {"t": o["position"], "q_xyzw": o["q_xyzw"]}
+            assert o["color_rgb"] is None
+            assert object_from_wire(o).object_id == o["object_id"]
+    detail = client.get("/v1/objects/3").json()["object"]
+    assert detail == client.get("/v1/objects").json()["objects"][2]
+
+
+def test_colour_is_listed(tmp_path: Path) -> None:
+    """An object with a known mean colour carries it as ``color_rgb`` in both routes."""
+    url = f"sqlite:///{tmp_path / 'map.db'}"
+    with open_store(url) as store:
+        ObjectMap(store).upsert([ObjectState(1, "chair", 0.8, yaw_transform(1.0, 2.0, 0.0, 0.5),
+                                             np.array([0.5, 0.5, 0.9]), color_rgb=(200.0, 30.5, 12.0))])
+    with TestClient(create_app(url)) as c:
+        assert c.get("/v1/objects").json()["objects"][0]["color_rgb"] == [200.0, 30.5, 12.0]
+        assert c.get("/v1/objects/1").json()["object"]["color_rgb"] == [200.0, 30.5, 12.0]
 
 
 def test_category_filter(client: TestClient) -> None:
@@ -208,8 +237,8 @@ def test_openapi_documents_the_object_routes(client: TestClient) -> None:
     assert {"200", "422"} <= set(spec["paths"]["/v1/objects"]["get"]["responses"])
     assert {"200", "404", "422"} <= set(spec["paths"]["/v1/objects/{object_id}"]["get"]["responses"])
     assert "/v1/categories" in spec["paths"]
-    assert "distance_m" in spec["components"]["schemas"]["ObjectOut"]["properties"]
-    assert "confirmed" in spec["components"]["schemas"]["ObjectOut"]["properties"]
+    properties = spec["components"]["schemas"]["ObjectOut"]["properties"]
+    assert {"distance_m", "confirmed", "color_rgb", "T_world_object"} <= set(properties)
 
 
 def test_unconfirmed_objects_only_when_asked(tmp_path: Path) -> None:
