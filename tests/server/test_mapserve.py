@@ -1,7 +1,8 @@
 """Tests of the zenoh map service (``wardmap.server.mapserve``) on loopback.
 
 A real zenoh router runs on a thread (``run_router``, free port, shared memory and multicast
-scouting off); :class:`MapServe` and this test's client session connect to it as clients. The test waits
+scouting off); the service's session (opened with the server's one helper,
+``open_session``) and this test's client session connect to it as clients. The test waits
 on zenoh replies and channel receives with timeouts, never on sleeps.
 """
 
@@ -31,6 +32,7 @@ from wardmap.server.mapserve import (  # noqa: E402
 from wardmap.server.objectmap import ObjectMap, ObjectState  # noqa: E402
 from wardmap.server.router import run_router  # noqa: E402
 from wardmap.server.store import SqliteKeyframeStore, open_store  # noqa: E402
+from wardmap.server.zenoh_session import open_session  # noqa: E402
 from wardmap.shared.knowledge import KnowledgeGraph  # noqa: E402
 from wardmap.shared.mapwire import (  # noqa: E402
     MapError,
@@ -90,8 +92,15 @@ def objects(tmp_path: Path) -> Iterator[ObjectMap]:
 
 
 @pytest.fixture
-def service(router: str, objects: ObjectMap) -> Iterator[MapServe]:
-    with MapServe([router], objects) as ms:
+def session(router: str) -> Iterator[Any]:
+    """The server side's session, as the composition root opens it."""
+    with open_session([router]) as s:
+        yield s
+
+
+@pytest.fixture
+def service(session: Any, objects: ObjectMap) -> Iterator[MapServe]:
+    with MapServe(session, objects) as ms:
         yield ms
 
 
@@ -204,10 +213,11 @@ def test_every_change_is_published_in_order(service: MapServe, client: Any, obje
     assert service.counters().updates == 4 and service.counters().update_failures == 0
 
 
-def test_stop_is_clean_and_idempotent(router: str, objects: ObjectMap) -> None:
+def test_stop_is_clean_and_idempotent(session: Any, objects: ObjectMap) -> None:
     """After stop() the map still accepts writes (the listener is gone, nothing is counted as lost),
-    a second stop() is harmless and a started service cannot be started again."""
-    ms = MapServe([router], objects)
+    a second stop() is harmless, a started service cannot be started again, and the session it
+    was given stays open for its owner: a new service starts on it."""
+    ms = MapServe(session, objects)
     ms.start()
     with pytest.raises(MapServeError, match="already started"):
         ms.start()
@@ -215,12 +225,17 @@ def test_stop_is_clean_and_idempotent(router: str, objects: ObjectMap) -> None:
     ms.stop()
     objects.upsert([_obj(11, "bed", 0, 0)])
     assert ms.counters().updates == 0 and ms.counters().update_failures == 0
+    assert not session.is_closed()
+    with MapServe(session, objects):
+        pass
 
 
-def test_unreachable_router_is_a_clear_error(objects: ObjectMap) -> None:
-    ms = MapServe([f"tcp/127.0.0.1:{free_port()}"], objects)
-    with pytest.raises(MapServeError, match=r"cannot connect to tcp/127\.0\.0\.1:"):
-        ms.start()
+def test_closed_session_is_a_clear_error(router: str, objects: ObjectMap) -> None:
+    """A service given a session that is already closed fails to start with MapServeError."""
+    s = open_session([router])
+    s.close()
+    with pytest.raises(MapServeError, match="cannot declare the queryable"):
+        MapServe(s, objects).start()
 
 
 def test_wire_round_trip(objects: ObjectMap) -> None:

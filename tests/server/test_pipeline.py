@@ -495,7 +495,7 @@ class _ChairAndHole(_WallChair):
 def test_instances_perception_cannot_measure_are_counted_by_kind(tmp_path: Path) -> None:
     """An instance on a depth hole is not measured: no measurement, one 'little_depth' skip in the
     counters and in /metrics (every kind has its line); the chair beside it is measured."""
-    from wardmap.server.api import _pipeline_metrics
+    from wardmap.server.api.routes.metrics import _pipeline_metrics
     from wardmap.server.perception.measure import SKIP_KINDS
 
     depth = np.full((240, 320), 3.0, np.float32)
@@ -515,7 +515,7 @@ def test_instances_perception_cannot_measure_are_counted_by_kind(tmp_path: Path)
 
 
 def test_mapping_counters_in_prometheus_text() -> None:
-    from wardmap.server.api import _pipeline_metrics
+    from wardmap.server.api.routes.metrics import _pipeline_metrics
 
     text = _pipeline_metrics(PipelineCounters(5, 7, 4, 1, 0, 2, {"GeometryError": 1}, 3, closed_idle=1,
                                               floating=6, beyond_range=9, wall_pieces=4, floor_pieces=8))
