@@ -5,6 +5,7 @@
 | ``main.py`` | :func:`create_app`: the routers, the WardmapError -> HTTP handler, the lifespan |
 | ``deps.py`` | :class:`Services` (what the composition root hands the routes) and the ``*Dep`` aliases |
 | ``schemas.py`` | response bodies (pydantic), separate from the store's dataclasses |
+| ``prometheus.py`` | ``/metrics``: a ``prometheus_client`` collector over the parts' counters |
 | ``routes/<resource>.py`` | one ``APIRouter`` per resource: health, robots, keyframes, objects, ... |
 
 The composition root is :class:`wardmap.server.app.MapServer`: it builds the store, object

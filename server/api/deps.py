@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from typing import Annotated, Protocol
 
 from fastapi import Depends, Request
+from prometheus_client import CollectorRegistry
 
 from wardmap.server.ingest import Ingest
 from wardmap.server.objectmap import ObjectMap
@@ -21,6 +22,7 @@ from wardmap.server.store import KeyframeStore
 
 __all__ = [
     "IngestDep",
+    "MetricsDep",
     "ObjectMapDep",
     "PipelineDep",
     "ServerLifecycle",
@@ -84,7 +86,14 @@ def get_pipeline(services: ServicesDep) -> MapPipeline | None:
     return services.pipeline
 
 
+def get_metrics(request: Request) -> CollectorRegistry:
+    registry: CollectorRegistry = request.app.state.metrics
+    return registry
+
+
 StoreDep = Annotated[KeyframeStore, Depends(get_store)]
 ObjectMapDep = Annotated[ObjectMap, Depends(get_objectmap)]
 IngestDep = Annotated[Ingest | None, Depends(get_ingest)]
 PipelineDep = Annotated[MapPipeline | None, Depends(get_pipeline)]
+MetricsDep = Annotated[CollectorRegistry, Depends(get_metrics)]
+"""The app's own Prometheus registry (never the global one), filled at scrape time."""

@@ -4,8 +4,9 @@
 lifespan calls the composition root's ``start()`` (``server/app.py``: it opens the store,
 the Zenoh session and starts ingest, map service and mapping), keeps the running
 :class:`~wardmap.server.api.deps.Services` on ``app.state`` for the dependencies
-(``deps.py``), and calls ``stop()`` at shutdown. :class:`~wardmap.shared.errors.WardmapError`
-maps to HTTP in one place (:func:`_wardmap_error`).
+(``deps.py``) together with the app's own Prometheus registry, and calls ``stop()`` at
+shutdown. :class:`~wardmap.shared.errors.WardmapError` maps to HTTP in one place
+(:func:`_wardmap_error`).
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from fastapi import APIRouter, FastAPI, Request
 from fastapi.responses import JSONResponse
 
 from wardmap.server.api.deps import ServerLifecycle
+from wardmap.server.api.prometheus import ServerCollector, metrics_registry
 from wardmap.server.api.routes import categories, health, keyframes, metrics, objects, robots
 from wardmap.server.store import StoreError
 from wardmap.shared.errors import WardmapError
@@ -44,6 +46,9 @@ def create_app(server: ServerLifecycle) -> FastAPI:
         services = server.start()
         try:
             app.state.services = services
+            app.state.metrics = metrics_registry(
+                ServerCollector(services.store, services.objects, services.ingest, services.pipeline)
+            )
             yield
         finally:
             app.state.services = None
