@@ -42,7 +42,7 @@ from numpy.typing import NDArray
 
 from wardmap.shared.errors import WireError
 from wardmap.shared.se3 import make_transform, quat_to_rotation
-from wardmap.shared.wire import _check_float, _check_int, _check_text, _Fields
+from wardmap.shared.wire import QUAT_NORM_TOL, _check_float, _check_int, _check_text, _Fields
 from wardmap.shared.zenoh_config import KEY_PREFIX
 
 __all__ = [
@@ -79,8 +79,6 @@ ENCODING: Final = "application/msgpack"
 MAX_MESSAGE_BYTES: Final = 16 * 2**20
 MAX_DETAIL_LEN: Final = 4096
 """Longest ``detail`` of an error reply, in characters."""
-QUAT_NORM_TOL: Final = 1e-3
-"""An object's quaternion must have norm within this of 1 (as a pose in ``shared/wire.py``)."""
 
 ChangeKind: TypeAlias = Literal["created", "updated", "deleted"]
 CHANGE_KINDS: Final[tuple[str, ...]] = get_args(ChangeKind)
@@ -135,8 +133,8 @@ def _vec(value: object, field: str, n: int, lo: float = -_FMAX) -> tuple[float, 
 
 
 def _check_quat(q: tuple[float, ...], field: str) -> tuple[float, ...]:
-    """``q`` unchanged if its norm is within :data:`QUAT_NORM_TOL` of 1 (it is not renormalised,
-    so REST clients read the stored values exactly)."""
+    """``q`` unchanged if its norm is within ``QUAT_NORM_TOL`` of 1, the pose rule of
+    ``shared/wire.py`` (it is not renormalised, so REST clients read the stored values exactly)."""
     x, y, z, w = q
     norm = math.sqrt(x * x + y * y + z * z + w * w)
     if abs(norm - 1.0) > QUAT_NORM_TOL:
@@ -176,7 +174,7 @@ class MapObject:
         position: centre of the object's box in the world frame ``(x, y, z)``, metres: the
             translation of ``T_world_object``.
         q_xyzw: orientation of the object frame (x forward, z up) in the world frame, a unit
-            quaternion ``(x, y, z, w)`` (norm within :data:`QUAT_NORM_TOL` of 1, kept as given).
+            quaternion ``(x, y, z, w)`` (norm within ``wire.QUAT_NORM_TOL`` of 1, kept as given).
         yaw: heading of the object's x axis about world z, radians.
         size: extent along the object's x, y, z, metres (>= 0).
         bounds_min, bounds_max: world-axis-aligned bounds of the oriented box, metres.
