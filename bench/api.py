@@ -2,7 +2,7 @@
 
 Fills a temporary store with ``--objects`` objects (seeded random poses over a hospital
 floor of ``--floor`` metres, every knowledge-graph class, one observation each by one of
-four robots), starts the real server app (``create_app`` under uvicorn, the settings of
+four robots), starts the real server app (``MapServer(url).app`` under uvicorn, the settings of
 ``wardmap server``) in a child process on a free loopback port, and times ``--queries``
 requests of each kind with one keep-alive httpx client. Latency is client-side wall time
 per request (send to full body read, JSON parsed); 100 warm-up requests are not counted.
@@ -93,10 +93,10 @@ def serve(url: str, port: int) -> None:
     """Child process: the server app on 127.0.0.1:port until terminated."""
     import uvicorn
 
-    from wardmap.server.api import create_app
+    from wardmap.server.app import MapServer
 
     uvicorn.run(
-        create_app(url), host="127.0.0.1", port=port, log_config=None, access_log=False, lifespan="on"
+        MapServer(url).app, host="127.0.0.1", port=port, log_config=None, access_log=False, lifespan="on"
     )
 
 
@@ -214,7 +214,7 @@ def main() -> int:
         f"Machine: {machine()}; commit {git_rev()}; 1-min load average {load_before:.1f} before, "
         f"{load_after:.1f} after (other work on the machine inflates the tails).  \n"
         f"Map: {args.objects} objects over {floor[0]:g} m x {floor[1]:g} m, {len(names)} categories, "
-        f"SQLite + R*Tree (written in {fill_s:.1f} s). Server: `create_app` under uvicorn in a child "
+        f"SQLite + R*Tree (written in {fill_s:.1f} s). Server: `MapServer(url).app` under uvicorn in a child "
         "process on 127.0.0.1; client: one keep-alive httpx client, sequential requests, "
         f"{WARMUP} warm-up requests per kind not counted.\n\n"
         + "\n".join(rows)

@@ -1,11 +1,22 @@
-"""Run the map server: keyframe ingest + REST API until SIGTERM/SIGINT or ``stop``.
+"""The map server process: its composition root and ``run_server``.
+
+:class:`MapServer` is the composition root. Built from the settings, it opens nothing; its
+``start()`` opens the keyframe store, builds the object map on it, opens the process's one
+Zenoh session (:func:`~wardmap.server.zenoh_session.open_session`) and starts on it the
+keyframe :class:`~wardmap.server.ingest.Ingest` and the :class:`~wardmap.server.mapserve.MapServe`,
+then the mapping stage; ``stop()`` stops them in reverse order. Its ``app`` is the REST API
+(:func:`wardmap.server.api.create_app`), whose HTTP lifespan only calls ``start()`` and
+``stop()``.
+
+Who owns what: the root owns the store, the session and every part; ingest and map service
+own the declarations they make on the session and undeclare them in ``stop()``; the root
+closes the session after both stopped (a session left open keeps the process from exiting),
+then the store.
 
 :func:`run_server` checks what a user can get wrong up front (the store URL, the HTTP port)
 so those fail with one clear :class:`ServerError`/:class:`StoreError`, then runs uvicorn on a
-helper thread. The app's lifespan (:func:`wardmap.server.api.create_app`) opens the store and
-starts the :class:`~wardmap.server.ingest.Ingest`; the main thread handles the signals and
-waits on one event that either a signal, the caller's ``stop`` or the end of the HTTP
-thread sets.
+helper thread; the main thread handles the signals and waits on one event that either a
+signal, the caller's ``stop`` or the end of the HTTP thread sets.
 """
 
 from __future__ import annotations
@@ -14,26 +25,169 @@ import logging
 import socket
 import threading
 from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
-from typing import Any
+from contextlib import ExitStack, contextmanager
+from typing import TYPE_CHECKING, Any
 
+from wardmap.server.api import Services, create_app
 from wardmap.server.ingest import Ingest
 from wardmap.server.mapserve import MapServe
 from wardmap.server.objectmap import ObjectMap
-from wardmap.server.store import KeyframeStore, open_store
+from wardmap.server.store import open_store
+from wardmap.server.zenoh_session import open_session
 from wardmap.shared.errors import WardmapError
 from wardmap.shared.signals import on_stop_signals
 from wardmap.shared.zenoh_config import client_config
 
+if TYPE_CHECKING:
+    from fastapi import FastAPI
+
+    from wardmap.server.pipeline import PipelineFactory
+
 log = logging.getLogger(__name__)
 
-__all__ = ["ServerError", "run_server"]
+__all__ = ["MapServer", "ServerError", "run_server"]
 
 SHUTDOWN_TIMEOUT_S = 15.0
 
 
 class ServerError(WardmapError):
     """The map server cannot start (port in use, bad address, start-up failure)."""
+
+
+class MapServer:
+    """The composition root of one map server process; see the module docstring.
+
+    Use ``start()`` / ``stop()``, a ``with`` block, or serve :attr:`app` (its lifespan starts
+    and stops the server).
+    """
+
+    def __init__(
+        self,
+        db_url: str,
+        *,
+        connect: Sequence[str] | None = None,
+        pipeline_factory: PipelineFactory | None = None,
+    ) -> None:
+        """
+        Args:
+            db_url: keyframe store URL, ``sqlite:///PATH`` (opened by ``start()``).
+            connect: zenoh router endpoints ``tcp/HOST:PORT`` (checked now). The server opens
+                one session to them for the ingest and the map service. None: no Zenoh
+                (REST API only; tests, benchmarks).
+            pipeline_factory: builds the mapping stage (``server/pipeline.py``) from the
+                store and the object map; started last, stopped first. None: keyframes are
+                stored but not mapped.
+
+        Raises:
+            ConfigError: a bad endpoint in ``connect``.
+        """
+        if connect is not None:
+            client_config(connect)  # validates the endpoints now
+        self._db_url = db_url
+        self._connect = None if connect is None else list(connect)
+        self._pipeline_factory = pipeline_factory
+        self._running: ExitStack | None = None
+        self._services: Services | None = None
+        self.app: FastAPI = create_app(self)
+        """The REST API over this server; its lifespan calls :meth:`start` and :meth:`stop`."""
+
+    def start(self) -> Services:
+        """Open the store and the session, start ingest, map service and mapping stage.
+
+        On failure, whatever started is stopped again (in reverse order) before the error
+        propagates.
+
+        Returns:
+            The running parts the REST API reads.
+
+        Raises:
+            ServerError: already started.
+            StoreError: the store cannot be opened.
+            ZenohSessionError: no router answers at ``connect``.
+            WardmapError: a part cannot start (its own error).
+        """
+        if self._running is not None:
+            raise ServerError("map server already started")
+        with ExitStack() as stack:  # closes in reverse on an error, until pop_all()
+            store = open_store(self._db_url)
+            stack.callback(store.close)
+            objects = ObjectMap(store)
+            ingest: Ingest | None = None
+            if self._connect is not None:
+                session = open_session(self._connect)
+                stack.callback(session.close)  # after ingest and map service undeclared theirs
+                ingest = Ingest(session, store)
+                ingest.start()
+                stack.callback(ingest.stop)
+                mapserve = MapServe(session, objects)
+                mapserve.start()
+                stack.callback(mapserve.stop)
+                log.info("zenoh session via %s: ingest and map service", ", ".join(self._connect))
+            pipeline = None
+            if self._pipeline_factory is not None:
+                pipeline = self._pipeline_factory(store, objects)
+                pipeline.start()
+                stack.callback(pipeline.stop)
+            self._running = stack.pop_all()
+        self._services = Services(store=store, objects=objects, ingest=ingest, pipeline=pipeline)
+        return self._services
+
+    def stop(self) -> None:
+        """Stop the mapping stage, the map service and the ingest, close the session, then the
+        store (idempotent)."""
+        running, self._running = self._running, None
+        self._services = None
+        if running is not None:
+            running.close()
+
+    @classmethod
+    def from_config(
+        cls, db_url: str, *, connect: Sequence[str] | None, config_path: str | None = None
+    ) -> MapServer:
+        """The server ``wardmap server`` runs, with its mapping stage configured from a file.
+
+        Args:
+            db_url, connect: as in the constructor.
+            config_path: TOML file with ``[pipeline]``, ``[perception]`` and ``[association]``
+                tables (defaults when None; ``deploy/server.toml``). With ``[pipeline]
+                enabled = false`` keyframes are stored but not mapped.
+
+        Raises:
+            ConfigError: a bad file or value, or a bad endpoint.
+            WardmapError: the segmentation model cannot be loaded (checked now, before
+                anything starts).
+        """
+        from wardmap.server.association.associator import AssociationConfig
+        from wardmap.server.perception.models import PerceptionConfig, make_segmenter
+        from wardmap.server.pipeline import MapPipeline, PipelineConfig
+        from wardmap.server.store import SqliteKeyframeStore
+        from wardmap.shared.config import load_config
+
+        pipeline_cfg = load_config(PipelineConfig, config_path, section="pipeline")
+        perception_cfg = load_config(PerceptionConfig, config_path, section="perception")
+        association_cfg = load_config(AssociationConfig, config_path, section="association")
+        if not pipeline_cfg.enabled:
+            return cls(db_url, connect=connect)
+        # Build the segmenter now: a missing or bad model is one clear error before anything starts.
+        segmenter = make_segmenter(perception_cfg.segmenter, perception_cfg)
+
+        def make_pipeline(store: SqliteKeyframeStore, objects: ObjectMap) -> MapPipeline:
+            return MapPipeline(store, objects, config=pipeline_cfg, perception=perception_cfg,
+                               association=association_cfg, segmenter=segmenter)
+
+        return cls(db_url, connect=connect, pipeline_factory=make_pipeline)
+
+    @property
+    def services(self) -> Services | None:
+        """The running parts, or None when the server is not started."""
+        return self._services
+
+    def __enter__(self) -> MapServer:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
 
 
 def _bind(host: str, port: int) -> socket.socket:
@@ -113,28 +267,12 @@ def run_server(
     """
     import uvicorn
 
-    from wardmap.server.api import create_app
-    from wardmap.server.association.associator import AssociationConfig
-    from wardmap.server.perception.models import PerceptionConfig, make_segmenter
-    from wardmap.server.pipeline import MapPipeline, PipelineConfig
-    from wardmap.shared.config import load_config
-
     client_config(connect)  # validate the endpoints before anything starts
-    pipeline_cfg = load_config(PipelineConfig, config_path, section="pipeline")
-    perception_cfg = load_config(PerceptionConfig, config_path, section="perception")
-    association_cfg = load_config(AssociationConfig, config_path, section="association")
-    # Build the segmenter now: a missing or bad model is one clear error before anything starts.
-    segmenter = make_segmenter(perception_cfg.segmenter, perception_cfg) if pipeline_cfg.enabled else None
+    server_root = MapServer.from_config(db_url, connect=connect, config_path=config_path)
     open_store(db_url).close()  # validate URL and file here, so the error is one clear line
     stop = stop if stop is not None else threading.Event()
     started = threading.Event()
     done = threading.Event()  # set by a signal, by `stop`, or when the HTTP thread ends
-
-    def make_ingest(store: KeyframeStore) -> Ingest:
-        return Ingest(connect, store)
-
-    def make_mapserve(objects: ObjectMap) -> MapServe:
-        return MapServe(connect, objects)
 
     class _Server(uvicorn.Server):
         async def startup(self, sockets: list[socket.socket] | None = None) -> None:
@@ -143,12 +281,8 @@ def run_server(
                 started.set()
                 done.set()
 
-    def make_pipeline(store: Any, objects: ObjectMap) -> MapPipeline:
-        return MapPipeline(store, objects, config=pipeline_cfg, perception=perception_cfg,
-                           association=association_cfg, segmenter=segmenter)
-
-    app = create_app(db_url, ingest_factory=make_ingest, mapserve_factory=make_mapserve,
-                     pipeline_factory=make_pipeline if pipeline_cfg.enabled else None)
+    # uvicorn's start-up runs the app's lifespan, which starts the root; on_ready comes after.
+    app = server_root.app
     config = uvicorn.Config(
         app, log_config=None, access_log=False, lifespan="on", timeout_graceful_shutdown=5
     )

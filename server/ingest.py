@@ -1,8 +1,11 @@
 """Keyframe ingest: zenoh subscriber -> decode + validate -> store -> ack.
 
-:class:`Ingest` owns one zenoh client session connected to the router(s), one subscriber
-on :data:`~wardmap.shared.zenoh_config.ALL_KEYFRAMES` and one worker thread. Samples reach
-the worker through a bounded zenoh FIFO channel (``zenoh.handlers.FifoChannel``).
+:class:`Ingest` declares, on the server's one zenoh session (opened and closed by the
+composition root, ``server/app.py``), one subscriber on
+:data:`~wardmap.shared.zenoh_config.ALL_KEYFRAMES` and one ack publisher per robot, and runs
+one worker thread. Samples reach the worker through a bounded zenoh FIFO channel
+(``zenoh.handlers.FifoChannel``). :meth:`Ingest.stop` undeclares all of them; the session
+outlives it.
 
 Queue policy: **FIFO, block when full (backpressure, never drop)**. When the channel holds
 ``capacity`` samples, zenoh stops taking samples off the transport; the robots publish
@@ -20,20 +23,18 @@ payload size and counted as ``internal``.
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import threading
 import time
 from collections import OrderedDict, deque
-from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Final
 
-from wardmap.server.router import _first_line
 from wardmap.server.store import KeyframeStore
+from wardmap.server.zenoh_session import first_line
 from wardmap.shared.errors import ConfigError, WardmapError, WireError
 from wardmap.shared.wire import AckMsg, AckStatus, KeyframeMsg, decode_keyframe, encode
-from wardmap.shared.zenoh_config import ALL_KEYFRAMES, ack_key, client_config, robot_id_from_key
+from wardmap.shared.zenoh_config import ALL_KEYFRAMES, ack_key, robot_id_from_key
 
 log = logging.getLogger(__name__)
 
@@ -59,7 +60,7 @@ _MAX_REASON: Final = 200
 
 
 class IngestError(WardmapError):
-    """The ingest cannot start (bad endpoint, zenoh cannot open the session)."""
+    """The ingest cannot start (already started, zenoh refuses the subscriber)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -93,7 +94,7 @@ class Ingest:
 
     def __init__(
         self,
-        connect: Sequence[str],
+        session: Any,
         store: KeyframeStore,
         *,
         capacity: int = DEFAULT_CAPACITY,
@@ -101,75 +102,75 @@ class Ingest:
     ) -> None:
         """
         Args:
-            connect: router endpoints ``tcp/HOST:PORT``.
+            session: the process's open ``zenoh.Session``; it must outlive this object's
+                ``stop()`` (its owner closes it after).
             store: where keyframes go; it must outlive this object's ``stop()``.
             capacity: size of the zenoh FIFO channel (>= 1).
             clock: wall-clock seconds for ``received_s`` (``time.time``).
         """
         if isinstance(capacity, bool) or not isinstance(capacity, int) or capacity < 1:
             raise ConfigError(f"ingest capacity must be an int >= 1, got {capacity!r}")
-        self._config = client_config(connect)  # validates the endpoints now
-        self._connect = list(connect)
+        self._session = session
         self._store = store
         self._capacity = capacity
         self._clock = clock
         self._lock = threading.Lock()
         self._counts = {"received": 0, "stored": 0, "duplicates": 0, "rejected": 0, "ack_failures": 0}
         self._backlog: deque[Any] = deque()
-        self._session: Any = None
         self._subscriber: Any = None
         self._thread: threading.Thread | None = None
-        self._publishers: OrderedDict[str, Any] = OrderedDict()
+        self._publishers: OrderedDict[str, Any] = OrderedDict()  # used by the worker only
         self._stopping = threading.Event()
 
     # ------------------------------------------------------------------ life cycle
 
     def start(self) -> None:
-        """Open the session, declare the subscriber and start the worker.
+        """Declare the subscriber on the session and start the worker.
 
         Raises:
-            IngestError: zenoh cannot open the session (e.g. the router is unreachable).
+            IngestError: already started, or zenoh refuses the subscriber (e.g. the session
+                is closed).
         """
         import zenoh
 
         if self._thread is not None:
             raise IngestError("ingest already started")
         try:
-            session = zenoh.open(zenoh.Config.from_json5(json.dumps(self._config)))
-        except zenoh.ZError as exc:
-            raise IngestError(f"cannot connect to {', '.join(self._connect)}: {_first_line(exc)}") from exc
-        try:
-            self._subscriber = session.declare_subscriber(
+            self._subscriber = self._session.declare_subscriber(
                 ALL_KEYFRAMES, zenoh.handlers.FifoChannel(self._capacity)
             )
-        except BaseException:
-            session.close()
-            raise
-        self._session = session
+        except zenoh.ZError as exc:
+            raise IngestError(f"cannot subscribe to {ALL_KEYFRAMES}: {first_line(exc)}") from exc
         self._stopping.clear()
-        self._thread = threading.Thread(target=self._run, name="wardmap-ingest", daemon=True)
+        # The worker reads the channel, not the subscriber: undeclaring the subscriber from
+        # stop() closes the channel, and recv() then ends once the channel is empty.
+        self._thread = threading.Thread(
+            target=self._run, args=(self._subscriber.handler,), name="wardmap-ingest", daemon=True
+        )
         self._thread.start()
-        log.info("ingest subscribed to %s via %s (FIFO capacity %d)", ALL_KEYFRAMES,
-                 ", ".join(self._connect), self._capacity)
+        log.info("ingest subscribed to %s (FIFO capacity %d)", ALL_KEYFRAMES, self._capacity)
 
     def stop(self, timeout_s: float = 10.0) -> None:
-        """Close the session (which ends the channel), join the worker (idempotent).
+        """Undeclare the subscriber (which closes the channel), join the worker, then undeclare
+        its ack publishers (idempotent). The session stays open; its owner closes it.
 
-        Samples still in the channel when it closes are not acked; robots resend them and
-        get ``duplicate`` for any that were stored.
+        Samples still in the channel are stored but not acked; robots resend them and get
+        ``duplicate`` for any that were stored.
         """
         self._stopping.set()
-        session, self._session = self._session, None
-        if session is not None:
-            session.close()  # also undeclares the subscriber and the worker's ack publishers
+        subscriber, self._subscriber = self._subscriber, None
+        if subscriber is not None:
+            subscriber.undeclare()
         thread, self._thread = self._thread, None
         if thread is not None:
             thread.join(timeout_s)
-            if thread.is_alive():
+            if thread.is_alive():  # its publishers go when the owner closes the session
                 log.warning("ingest worker did not stop within %.1f s", timeout_s)
-        self._subscriber = None
-        self._publishers.clear()
-        log.info("ingest stopped")
+                return
+        while self._publishers:
+            self._publishers.popitem()[1].undeclare()
+        if thread is not None:
+            log.info("ingest stopped")
 
     def __enter__(self) -> Ingest:
         self.start()
@@ -193,10 +194,9 @@ class Ingest:
         with self._lock:
             self._counts[name] += 1
 
-    def _run(self) -> None:
+    def _run(self, sub: Any) -> None:
         import zenoh
 
-        sub = self._subscriber
         while True:
             try:
                 first = sub.recv()  # blocks; raises ZError once the session closed and the channel is empty
@@ -278,13 +278,12 @@ class Ingest:
     def _ack(self, robot_id: str, ack: AckMsg) -> None:
         import zenoh
 
-        session = self._session
-        if session is None or self._stopping.is_set():
+        if self._stopping.is_set():
             return
         try:
             pub = self._publishers.get(robot_id)
             if pub is None:
-                pub = session.declare_publisher(
+                pub = self._session.declare_publisher(
                     ack_key(robot_id),
                     reliability=zenoh.Reliability.RELIABLE,
                     congestion_control=zenoh.CongestionControl.BLOCK,

@@ -1,16 +1,20 @@
 """The object map over Zenoh: a queryable for robots and a stream of map updates.
 
-:class:`MapServe` owns one zenoh client session connected to the router(s) with
+:class:`MapServe` declares, on the server's one zenoh session (opened and closed by the
+composition root, ``server/app.py``),
 
 - a queryable on :data:`OBJECTS_KEY` (``wardmap/v1/map/objects``) that answers the filters
   of ``GET /v1/objects`` given as selector parameters, e.g.
   ``wardmap/v1/map/objects?category=door;near=1,2,0;radius=3`` (keys ``category``,
-  ``near``, ``radius``, ``min_confidence``, ``robot``, ``limit``, ``offset``; zenoh's own
-  ``_``-prefixed parameters are ignored). One reply of schema ``wardmap.map.objects``;
-  bad parameters get a reply error of schema ``wardmap.map.error`` naming the parameter.
+  ``near``, ``radius``, ``min_confidence``, ``robot``, ``limit``, ``offset``,
+  ``include_unconfirmed``; zenoh's own ``_``-prefixed parameters are ignored). One reply
+  :class:`~wardmap.shared.mapwire.ObjectsReply`; bad parameters get a reply error
+  :class:`~wardmap.shared.mapwire.MapError` naming the parameter.
 - a publisher on :data:`UPDATES_KEY` (``wardmap/v1/map/updates``), reliable with congestion
-  control ``BLOCK``, that sends one ``wardmap.map.update`` for every
+  control ``BLOCK``, that sends one :class:`~wardmap.shared.mapwire.MapUpdate` for every
   :class:`~wardmap.server.objectmap.ObjectChange`, in commit order.
+
+:meth:`MapServe.stop` undeclares both; the session outlives it.
 
 Queue policy: queries reach the worker thread through a bounded zenoh FIFO channel
 (``FifoChannel(capacity)``): **FIFO, block when full** (zenoh applies backpressure, nothing
@@ -18,53 +22,40 @@ is dropped). Updates are published from the object map's listener on the writer'
 after each commit, so a slow subscriber slows the map writer instead of losing updates; a
 failed put is logged and counted (``update_failures``).
 
-Payloads are msgpack maps with ``schema`` and ``version``, defined in ``shared/mapwire.py``
-so robots decode them without importing the server (docs/map_api.md has the fields).
+The messages are defined in ``shared/mapwire.py`` (robots decode them without importing
+the server); ``server/mapmessages.py`` builds them from the map's records, as the REST API
+does, so an object has one shape in both (docs/map_api.md).
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import threading
-from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Final
 
-from wardmap.server.objectmap import (
-    ObjectChange,
-    ObjectMap,
-    ObjectMapError,
-    ObjectPage,
-    ObjectQuery,
-    ObjectRecord,
-)
-from wardmap.server.router import _first_line
+from wardmap.server.mapmessages import map_update, objects_reply
+from wardmap.server.objectmap import ObjectChange, ObjectMap, ObjectMapError, ObjectQuery
+from wardmap.server.zenoh_session import first_line
 from wardmap.shared.errors import ConfigError, WardmapError
 from wardmap.shared.mapwire import (
     ENCODING,
+    MAX_DETAIL_LEN,
     OBJECTS_KEY,
-    SCHEMA_ERROR,
-    SCHEMA_OBJECTS,
-    SCHEMA_UPDATE,
     UPDATES_KEY,
-    decode_map_message,
-    pack_map_message,
+    MapError,
+    encode_map_message,
 )
-from wardmap.shared.zenoh_config import client_config
 
 log = logging.getLogger(__name__)
 
 __all__ = [
+    "DEFAULT_CAPACITY",
     "OBJECTS_KEY",
     "UPDATES_KEY",
     "MapServe",
     "MapServeCounters",
     "MapServeError",
-    "decode_map_message",
-    "encode_error",
-    "encode_objects",
-    "encode_update",
 ]
 
 DEFAULT_CAPACITY: Final = 64
@@ -72,61 +63,7 @@ DEFAULT_CAPACITY: Final = 64
 
 
 class MapServeError(WardmapError):
-    """The map service cannot start (bad endpoint, zenoh cannot open the session)."""
-
-
-# --------------------------------------------------------------------------- wire form
-
-
-def _object(record: ObjectRecord, distance_m: float | None = None) -> dict[str, Any]:
-    T = record.T_world_object
-    out: dict[str, Any] = {
-        "object_id": record.object_id,
-        "category": record.category,
-        "confidence": record.confidence,
-        "T_world_object": {
-            "t": [float(v) for v in T[:3, 3]],
-            "q_xyzw": list(record.q_xyzw),
-        },
-        "yaw": record.yaw,
-        "size": list(record.size),
-        "bounds_min": list(record.bounds_min),
-        "bounds_max": list(record.bounds_max),
-        "n_observations": record.n_observations,
-        "first_seen_s": record.first_seen_s,
-        "last_seen_s": record.last_seen_s,
-        "robots": list(record.robots),
-        "confirmed": record.confirmed,
-    }
-    if record.color_rgb is not None:
-        out["color_rgb"] = list(record.color_rgb)
-    if distance_m is not None:
-        out["distance_m"] = distance_m
-    return out
-
-
-def encode_objects(page: ObjectPage) -> bytes:
-    """The queryable's reply: ``{schema: wardmap.map.objects, version, objects, next_offset}``."""
-    return pack_map_message(SCHEMA_OBJECTS, {
-        "objects": [_object(hit.record, hit.distance_m) for hit in page.hits],
-        "next_offset": page.next_offset,
-    })
-
-
-def encode_update(change: ObjectChange) -> bytes:
-    """One map update: ``{schema: wardmap.map.update, version, kind, object[, merged_into]}``."""
-    message: dict[str, Any] = {"kind": change.kind, "object": _object(change.record)}
-    if change.merged_into is not None:
-        message["merged_into"] = change.merged_into
-    return pack_map_message(SCHEMA_UPDATE, message)
-
-
-def encode_error(detail: str) -> bytes:
-    """A reply error: ``{schema: wardmap.map.error, version, detail}``."""
-    return pack_map_message(SCHEMA_ERROR, {"detail": str(detail)})
-
-
-# --------------------------------------------------------------------------- the service
+    """The map service cannot start (already started, zenoh refuses a declaration)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -153,81 +90,87 @@ class MapServe:
     any thread.
     """
 
-    def __init__(
-        self, connect: Sequence[str], objects: ObjectMap, *, capacity: int = DEFAULT_CAPACITY
-    ) -> None:
+    def __init__(self, session: Any, objects: ObjectMap, *, capacity: int = DEFAULT_CAPACITY) -> None:
         """
         Args:
-            connect: router endpoints ``tcp/HOST:PORT``.
+            session: the process's open ``zenoh.Session``; it must outlive this object's
+                ``stop()`` (its owner closes it after).
             objects: the map; it must outlive this object's ``stop()``.
             capacity: size of the queryable's FIFO channel (>= 1).
         """
         if isinstance(capacity, bool) or not isinstance(capacity, int) or capacity < 1:
             raise ConfigError(f"map service capacity must be an int >= 1, got {capacity!r}")
-        self._config = client_config(connect)  # validates the endpoints now
-        self._connect = list(connect)
+        self._session = session
         self._objects = objects
         self._capacity = capacity
-        self._lock = threading.Lock()
+        self._lock = threading.Lock()  # guards the counts
         self._counts = {"queries": 0, "query_errors": 0, "updates": 0, "update_failures": 0}
-        self._session: Any = None
-        self._queryable: Any = None
+        # Held while a put is in flight, so stop() never undeclares the publisher under it.
+        self._publish_lock = threading.Lock()
         self._publisher: Any = None
+        self._queryable: Any = None
         self._remove_listener: Any = None
         self._thread: threading.Thread | None = None
 
     # ------------------------------------------------------------------ life cycle
 
     def start(self) -> None:
-        """Open the session, declare the queryable and the publisher, start the worker.
+        """Declare the queryable and the publisher on the session, start the worker.
 
         Raises:
-            MapServeError: already started, or zenoh cannot open the session.
+            MapServeError: already started, or zenoh refuses a declaration (e.g. the session
+                is closed).
         """
         import zenoh
 
         if self._thread is not None:
             raise MapServeError("map service already started")
         try:
-            session = zenoh.open(zenoh.Config.from_json5(json.dumps(self._config)))
-        except zenoh.ZError as exc:
-            raise MapServeError(f"cannot connect to {', '.join(self._connect)}: {_first_line(exc)}") from exc
-        try:
-            self._queryable = session.declare_queryable(
+            queryable = self._session.declare_queryable(
                 OBJECTS_KEY, zenoh.handlers.FifoChannel(self._capacity), complete=True
             )
-            self._publisher = session.declare_publisher(
+        except zenoh.ZError as exc:
+            raise MapServeError(f"cannot declare the queryable {OBJECTS_KEY}: {first_line(exc)}") from exc
+        try:
+            publisher = self._session.declare_publisher(
                 UPDATES_KEY,
                 encoding=ENCODING,
                 reliability=zenoh.Reliability.RELIABLE,
                 congestion_control=zenoh.CongestionControl.BLOCK,
             )
-        except BaseException:
-            session.close()
-            raise
-        self._session = session
+        except zenoh.ZError as exc:
+            queryable.undeclare()
+            raise MapServeError(f"cannot declare the publisher {UPDATES_KEY}: {first_line(exc)}") from exc
+        self._queryable = queryable
+        with self._publish_lock:
+            self._publisher = publisher
         self._remove_listener = self._objects.add_listener(self._publish)
-        self._thread = threading.Thread(target=self._run, name="wardmap-mapserve", daemon=True)
+        # The worker reads the channel, not the queryable: undeclaring the queryable from
+        # stop() closes the channel, and recv() then ends once the channel is empty.
+        self._thread = threading.Thread(
+            target=self._run, args=(queryable.handler,), name="wardmap-mapserve", daemon=True
+        )
         self._thread.start()
-        log.info("map service: queryable %s, updates on %s via %s", OBJECTS_KEY, UPDATES_KEY,
-                 ", ".join(self._connect))
+        log.info("map service: queryable %s, updates on %s", OBJECTS_KEY, UPDATES_KEY)
 
     def stop(self, timeout_s: float = 10.0) -> None:
-        """Stop publishing, close the session (which ends the channel), join the worker (idempotent)."""
+        """Stop publishing, undeclare the publisher and the queryable (which closes the
+        channel), join the worker (idempotent). The session stays open; its owner closes it."""
         remove, self._remove_listener = self._remove_listener, None
         if remove is not None:
             remove()
-        with self._lock:
-            session, self._session = self._session, None
-            self._publisher = None
-        if session is not None:
-            session.close()  # undeclares the queryable and the publisher
+        with self._publish_lock:  # waits for a put in flight
+            publisher, self._publisher = self._publisher, None
+            if publisher is not None:
+                publisher.undeclare()
+        queryable, self._queryable = self._queryable, None
+        if queryable is not None:
+            queryable.undeclare()
         thread, self._thread = self._thread, None
         if thread is not None:
             thread.join(timeout_s)
             if thread.is_alive():
                 log.warning("map service worker did not stop within %.1f s", timeout_s)
-        self._queryable = None
 
     def __enter__(self) -> MapServe:
         self.start()
@@ -248,13 +191,12 @@ class MapServe:
         with self._lock:
             self._counts[name] += 1
 
-    def _run(self) -> None:
+    def _run(self, queries: Any) -> None:
         import zenoh
 
-        queryable = self._queryable
         while True:
             try:
-                query = queryable.recv()  # raises ZError once the session closed and the channel is empty
+                query = queries.recv()  # raises ZError once the channel is closed and empty
             except zenoh.ZError:
                 break
             with query:  # the final reply is sent when the query is dropped
@@ -276,15 +218,16 @@ class MapServe:
             log.error("map query %s: %s", str(query.selector)[:200], exc)
             self._reply_error(query, "the map server could not read the object map")
             return
-        query.reply(OBJECTS_KEY, encode_objects(page), encoding=ENCODING)
+        query.reply(OBJECTS_KEY, encode_map_message(objects_reply(page)), encoding=ENCODING)
         self._count("queries")
 
     def _reply_error(self, query: Any, detail: str) -> None:
         import zenoh
 
         self._count("query_errors")
+        payload = encode_map_message(MapError(detail[:MAX_DETAIL_LEN] or "error"))
         try:
-            query.reply_err(encode_error(detail), encoding=ENCODING)
+            query.reply_err(payload, encoding=ENCODING)
         except zenoh.ZError as exc:
             log.warning("cannot answer map query %s: %s", str(query.selector)[:200], exc)
 
@@ -292,17 +235,17 @@ class MapServe:
         """Object map listener: publish one update (on the writer's thread, after the commit)."""
         import zenoh
 
-        with self._lock:
+        object_id = change.record.object_id
+        with self._publish_lock:
             publisher = self._publisher
-        if publisher is None:
-            self._count("update_failures")
-            log.warning("map update of object %d not published: the map service is stopped",
-                        change.record.object_id)
-            return
-        try:
-            publisher.put(encode_update(change))
-        except zenoh.ZError as exc:
-            self._count("update_failures")
-            log.warning("cannot publish map update of object %d: %s", change.record.object_id, exc)
-            return
+            if publisher is None:
+                self._count("update_failures")
+                log.warning("map update of object %d not published: the map service is stopped", object_id)
+                return
+            try:
+                publisher.put(encode_map_message(map_update(change)))
+            except (zenoh.ZError, WardmapError) as exc:
+                self._count("update_failures")
+                log.warning("cannot publish map update of object %d: %s", object_id, exc)
+                return
         self._count("updates")

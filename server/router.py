@@ -15,6 +15,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+from wardmap.server.zenoh_session import first_line
 from wardmap.shared.errors import ConfigError, WardmapError
 from wardmap.shared.signals import on_stop_signals
 from wardmap.shared.zenoh_config import config_leaves, router_config
@@ -46,7 +47,7 @@ def _load_config(listen: Sequence[str], config_file: Path | None) -> Any:
     try:
         conf = zenoh.Config.from_file(str(path))
     except zenoh.ZError as exc:
-        raise ConfigError(f"bad zenoh config file {path}: {_first_line(exc)}") from exc
+        raise ConfigError(f"bad zenoh config file {path}: {first_line(exc)}") from exc
     for key, value in config_leaves(ours):
         before = conf.get_json(key)
         if before is not None and before != value and key != "listen/endpoints":
@@ -55,21 +56,6 @@ def _load_config(listen: Sequence[str], config_file: Path | None) -> Any:
             )
         conf.insert_json5(key, json.dumps(value))
     return conf
-
-
-def _first_line(exc: BaseException) -> str:
-    """Zenoh error text on one line, without its Rust source location (`` at /path/file.rs:NN.``).
-
-    Parse errors of config files span several lines (``--> 2:1``, a code excerpt,
-    ``= expected ...``); only the location and the explanation are kept.
-    """
-    lines = [ln.strip() for ln in str(exc).strip().splitlines() if ln.strip()]
-    if not lines:
-        return type(exc).__name__
-    picked = [ln for ln in lines if ln.startswith(("-->", "= "))] if len(lines) > 1 else lines
-    text = " ".join(picked or lines[:1])
-    cut = text.rfind(" at /")
-    return text[:cut] if cut > 0 else text
 
 
 def run_router(
@@ -101,7 +87,7 @@ def run_router(
         try:
             session = zenoh.open(conf)
         except zenoh.ZError as exc:
-            msg = _first_line(exc)
+            msg = first_line(exc)
             if "address already in use" in msg.lower():
                 raise RouterError(f"cannot listen on {', '.join(endpoints)}: address already in use") from exc
             raise RouterError(f"cannot start zenoh router on {', '.join(endpoints)}: {msg}") from exc

@@ -33,6 +33,7 @@ from typing import Any, Final, NamedTuple, Protocol
 
 import cv2
 import numpy as np
+import tomli_w
 from numpy.typing import ArrayLike, NDArray
 
 from wardmap.shared.camera import PinholeCamera
@@ -353,28 +354,11 @@ def _camera_from(t: Mapping[str, Any], source: str, table: str) -> PinholeCamera
         raise DatasetError(f"{source}: [{table}]: {exc}") from exc
 
 
-def _toml_value(v: Any) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, int):
-        return str(v)
-    if isinstance(v, float):
-        return repr(v)  # shortest repr round-trips exactly; finite values only (validated)
-    if isinstance(v, list):
-        if v and isinstance(v[0], list):
-            rows = "".join(f"    {_toml_value(r)},\n" for r in v)
-            return f"[\n{rows}]"
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    raise TypeError(f"cannot write {type(v)} to TOML")
-
-
 def calibration_to_toml(calib: Calibration) -> str:
-    """The text of ``calibration.toml`` for ``calib`` (deterministic, exact floats)."""
-    parts = ["# wardmap sensor calibration; keys and units: docs/dataset.md\n"]
-    for table, values in calib.to_toml_dict().items():
-        parts.append(f"\n[{table}]\n")
-        parts.extend(f"{k} = {_toml_value(v)}\n" for k, v in values.items())
-    return "".join(parts)
+    """The text of ``calibration.toml`` for ``calib`` (deterministic; floats written exactly)."""
+    return "# wardmap sensor calibration; keys and units: docs/dataset.md\n\n" + tomli_w.dumps(
+        calib.to_toml_dict()
+    )
 
 
 def load_calibration(path: str | Path) -> Calibration:

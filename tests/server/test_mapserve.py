@@ -1,8 +1,9 @@
 """Tests of the zenoh map service (``wardmap.server.mapserve``) on loopback.
 
 A real zenoh router runs on a thread (``run_router``, free port, shared memory and multicast
-scouting off); :class:`MapServe` and this test's client session connect to it as clients.
-The test waits on zenoh replies and channel receives with timeouts, never on sleeps.
+scouting off); the service's session (opened with the server's one helper,
+``open_session``) and this test's client session connect to it as clients. The test waits
+on zenoh replies and channel receives with timeouts, never on sleeps.
 """
 
 from __future__ import annotations
@@ -21,21 +22,25 @@ from procs import free_port
 
 zenoh = pytest.importorskip("zenoh")
 
-from wardmap.server.mapserve import (  # noqa: E402  (after the importorskip guard)
+from wardmap.server.mapmessages import map_object, objects_reply  # noqa: E402  (after the importorskip guard)
+from wardmap.server.mapserve import (  # noqa: E402
     OBJECTS_KEY,
     UPDATES_KEY,
     MapServe,
     MapServeError,
-    decode_map_message,
-    encode_error,
-    encode_objects,
-    encode_update,
 )
-from wardmap.server.objectmap import ObjectChange, ObjectMap, ObjectState  # noqa: E402
+from wardmap.server.objectmap import ObjectMap, ObjectState  # noqa: E402
 from wardmap.server.router import run_router  # noqa: E402
 from wardmap.server.store import SqliteKeyframeStore, open_store  # noqa: E402
-from wardmap.shared.errors import WireError  # noqa: E402
+from wardmap.server.zenoh_session import open_session  # noqa: E402
 from wardmap.shared.knowledge import KnowledgeGraph  # noqa: E402
+from wardmap.shared.mapwire import (  # noqa: E402
+    MapError,
+    MapUpdate,
+    ObjectsReply,
+    decode_map_message,
+    encode_map_message,
+)
 from wardmap.shared.se3 import quat_to_rotation, yaw_transform  # noqa: E402
 from wardmap.shared.zenoh_config import client_config  # noqa: E402
 
@@ -44,9 +49,9 @@ pytestmark = pytest.mark.timeout(60)
 TIMEOUT_S = 10.0
 
 
-def _obj(oid: int, category: str, x: float, y: float, confidence: float = 0.9) -> ObjectState:
+def _obj(oid: int, category: str, x: float, y: float, confidence: float = 0.9, **kw: Any) -> ObjectState:
     return ObjectState(
-        oid, category, confidence, yaw_transform(x, y, 0.1 * oid, 0.0), np.array([1.0, 0.5, 2.0])
+        oid, category, confidence, yaw_transform(x, y, 0.1 * oid, 0.0), np.array([1.0, 0.5, 2.0]), **kw
     )
 
 
@@ -87,8 +92,15 @@ def objects(tmp_path: Path) -> Iterator[ObjectMap]:
 
 
 @pytest.fixture
-def service(router: str, objects: ObjectMap) -> Iterator[MapServe]:
-    with MapServe([router], objects) as ms:
+def session(router: str) -> Iterator[Any]:
+    """The server side's session, as the composition root opens it."""
+    with open_session([router]) as s:
+        yield s
+
+
+@pytest.fixture
+def service(session: Any, objects: ObjectMap) -> Iterator[MapServe]:
+    with MapServe(session, objects) as ms:
         yield ms
 
 
@@ -103,41 +115,56 @@ def _get(client: Any, selector: str) -> list[Any]:
     return list(client.get(selector, timeout=TIMEOUT_S))
 
 
-def _ok(client: Any, selector: str) -> dict[str, Any]:
+def _ok(client: Any, selector: str) -> ObjectsReply:
     replies = _get(client, selector)
     assert len(replies) == 1, replies
     assert replies[0].ok is not None, decode_map_message(replies[0].err.payload.to_bytes())
     assert str(replies[0].ok.key_expr) == OBJECTS_KEY
-    return decode_map_message(replies[0].ok.payload.to_bytes())
+    msg = decode_map_message(replies[0].ok.payload.to_bytes())
+    assert isinstance(msg, ObjectsReply)
+    return msg
 
 
 def _err(client: Any, selector: str) -> str:
     replies = _get(client, selector)
     assert len(replies) == 1 and replies[0].err is not None, replies
     message = decode_map_message(replies[0].err.payload.to_bytes())
-    assert message["schema"] == "wardmap.map.error"
-    return str(message["detail"])
+    assert isinstance(message, MapError)
+    return message.detail
 
 
 def test_queryable_answers_with_the_rest_filters(service: MapServe, client: Any, objects: ObjectMap) -> None:
     """The selector parameters filter like GET /v1/objects; the reply is the same page the
     map gives, nearest first, with poses in the wire convention."""
     msg = _ok(client, f"{OBJECTS_KEY}?category=door;near=1,2,0;radius=3")
-    assert msg["schema"] == "wardmap.map.objects" and msg["version"] == 1 and msg["next_offset"] is None
-    assert [o["object_id"] for o in msg["objects"]] == [1, 2]
-    assert [o["distance_m"] for o in msg["objects"]] == pytest.approx([0.0, 1.0])
-    first = msg["objects"][0]
-    assert first["category"] == "door" and first["T_world_object"]["t"] == pytest.approx([1, 2, 0])
-    assert np.allclose(quat_to_rotation(first["T_world_object"]["q_xyzw"]), yaw_transform(0, 0, 0.1)[:3, :3])
-    assert first["size"] == [1.0, 0.5, 2.0] and first["robots"] == [] and "color_rgb" not in first
+    assert msg.next_offset is None
+    assert [o.object_id for o in msg.objects] == [1, 2]
+    assert [o.distance_m for o in msg.objects] == pytest.approx([0.0, 1.0])
+    first = msg.objects[0]
+    assert first.category == "door" and first.position == pytest.approx([1, 2, 0])
+    assert np.allclose(quat_to_rotation(first.q_xyzw), yaw_transform(0, 0, 0.1)[:3, :3])
+    assert first.size == (1.0, 0.5, 2.0) and first.robots == () and first.color_rgb is None
 
     everything = _ok(client, OBJECTS_KEY)
-    assert [o["object_id"] for o in everything["objects"]] == [1, 2, 3, 4]
-    assert all("distance_m" not in o for o in everything["objects"])
+    assert [o.object_id for o in everything.objects] == [1, 2, 3, 4]
+    assert all(o.distance_m is None for o in everything.objects)
     page = _ok(client, f"{OBJECTS_KEY}?limit=2;offset=1")
-    assert [o["object_id"] for o in page["objects"]] == [2, 3] and page["next_offset"] == 3
-    assert [o["object_id"] for o in _ok(client, f"{OBJECTS_KEY}?min_confidence=0.95")["objects"]] == []
+    assert [o.object_id for o in page.objects] == [2, 3] and page.next_offset == 3
+    assert [o.object_id for o in _ok(client, f"{OBJECTS_KEY}?min_confidence=0.95").objects] == []
     assert service.counters().queries == 4
+
+
+def test_reply_is_the_documented_object_map(service: MapServe, client: Any, objects: ObjectMap) -> None:
+    """On the wire a reply is ``{schema, version, objects, next_offset}`` and each object carries
+    its colour and the pose both as ``T_world_object`` and flat (the REST fields)."""
+    objects.upsert([_obj(9, "chair", 5, 5, color_rgb=(10.0, 20.0, 30.0))])
+    replies = _get(client, f"{OBJECTS_KEY}?category=chair")
+    raw = msgpack.unpackb(replies[0].ok.payload.to_bytes())
+    assert raw["schema"] == "wardmap.map.objects" and raw["version"] == 1 and raw["next_offset"] is None
+    (obj,) = raw["objects"]
+    assert obj["color_rgb"] == [10.0, 20.0, 30.0] and obj["distance_m"] is None
+    assert obj["T_world_object"] == {"t": obj["position"], "q_xyzw": obj["q_xyzw"]}
+    assert obj["T_world_object"]["t"] == pytest.approx([5, 5, 0])
 
 
 @pytest.mark.parametrize(
@@ -156,7 +183,7 @@ def test_bad_parameters_get_a_reply_error(service: MapServe, client: Any, params
     """Bad parameters are answered with a reply error naming the problem; the service keeps serving."""
     assert detail in _err(client, f"{OBJECTS_KEY}?{params}")
     assert service.counters().query_errors == 1
-    assert len(_ok(client, f"{OBJECTS_KEY}?category=bed")["objects"]) == 1
+    assert len(_ok(client, f"{OBJECTS_KEY}?category=bed").objects) == 1
 
 
 def test_every_change_is_published_in_order(service: MapServe, client: Any, objects: ObjectMap) -> None:
@@ -166,28 +193,31 @@ def test_every_change_is_published_in_order(service: MapServe, client: Any, obje
     _ok(client, f"{OBJECTS_KEY}?limit=1")  # a round trip through the router: the subscription is known there
     objects.upsert([_obj(10, "wheelchair", 5, 5), _obj(1, "door", 1.5, 2)])
     objects.delete(2, merged_into=1)
-    got: list[dict[str, Any]] = []
+    got: list[MapUpdate] = []
     for _ in range(4):
         try:
             sample = samples.get(timeout=TIMEOUT_S)
         except queue.Empty:
             pytest.fail(f"only {len(got)} updates arrived")
         assert str(sample.key_expr) == UPDATES_KEY
-        got.append(decode_map_message(sample.payload.to_bytes()))
-    assert [(m["kind"], m["object"]["object_id"], m.get("merged_into")) for m in got] == [
+        update = decode_map_message(sample.payload.to_bytes())
+        assert isinstance(update, MapUpdate)
+        got.append(update)
+    assert [(m.kind, m.object.object_id, m.merged_into) for m in got] == [
         ("created", 10, None),
         ("updated", 1, None),
         ("deleted", 2, 1),
         ("updated", 1, None),
     ]
-    assert got[0]["object"]["category"] == "wheelchair" and got[1]["object"]["T_world_object"]["t"][0] == 1.5
+    assert got[0].object.category == "wheelchair" and got[1].object.position[0] == 1.5
     assert service.counters().updates == 4 and service.counters().update_failures == 0
 
 
-def test_stop_is_clean_and_idempotent(router: str, objects: ObjectMap) -> None:
+def test_stop_is_clean_and_idempotent(session: Any, objects: ObjectMap) -> None:
     """After stop() the map still accepts writes (the listener is gone, nothing is counted as lost),
-    a second stop() is harmless and a started service cannot be started again."""
-    ms = MapServe([router], objects)
+    a second stop() is harmless, a started service cannot be started again, and the session it
+    was given stays open for its owner: a new service starts on it."""
+    ms = MapServe(session, objects)
     ms.start()
     with pytest.raises(MapServeError, match="already started"):
         ms.start()
@@ -195,44 +225,39 @@ def test_stop_is_clean_and_idempotent(router: str, objects: ObjectMap) -> None:
     ms.stop()
     objects.upsert([_obj(11, "bed", 0, 0)])
     assert ms.counters().updates == 0 and ms.counters().update_failures == 0
+    assert not session.is_closed()
+    with MapServe(session, objects):
+        pass
 
 
-def test_unreachable_router_is_a_clear_error(objects: ObjectMap) -> None:
-    ms = MapServe([f"tcp/127.0.0.1:{free_port()}"], objects)
-    with pytest.raises(MapServeError, match=r"cannot connect to tcp/127\.0\.0\.1:"):
-        ms.start()
+def test_closed_session_is_a_clear_error(router: str, objects: ObjectMap) -> None:
+    """A service given a session that is already closed fails to start with MapServeError."""
+    s = open_session([router])
+    s.close()
+    with pytest.raises(MapServeError, match="cannot declare the queryable"):
+        MapServe(s, objects).start()
 
 
-def test_wire_round_trip_and_bad_payloads(objects: ObjectMap) -> None:
-    """Encoded replies, updates and errors decode to their fields; foreign payloads raise WireError."""
+def test_wire_round_trip(objects: ObjectMap) -> None:
+    """A page of the map encodes to the reply the queryable sends and decodes to the same objects."""
     page = objects.query(near=(1.0, 2.0, 0.0), radius=1.0)
-    msg = decode_map_message(encode_objects(page))
-    assert [o["object_id"] for o in msg["objects"]] == [1, 2, 4]  # ties (1 m) by id
-    record = page.hits[0].record
-    upd = decode_map_message(encode_update(ObjectChange("deleted", record, 2)))
-    assert upd["kind"] == "deleted" and upd["merged_into"] == 2 and upd["object"]["object_id"] == 1
-    assert decode_map_message(encode_error("boom"))["detail"] == "boom"
-    for payload, field in [
-        (b"\xc1", ""),
-        (msgpack.packb([1, 2]), ""),
-        (msgpack.packb({"schema": "wardmap.keyframe", "version": 1}), "schema"),
-        (msgpack.packb({"schema": "wardmap.map.update", "version": 2}), "version"),
-    ]:
-        with pytest.raises(WireError) as info:
-            decode_map_message(payload)
-        assert info.value.field == field
-    with pytest.raises(WireError, match="exceeds"):
-        decode_map_message(b"\x80" * 10, max_bytes=5)
+    msg = decode_map_message(encode_map_message(objects_reply(page)))
+    assert isinstance(msg, ObjectsReply)
+    assert [o.object_id for o in msg.objects] == [1, 2, 4]  # ties (1 m) by id
+    assert msg.objects[0] == map_object(page.hits[0].record, page.hits[0].distance_m)
 
 
 def test_run_server_serves_the_map_over_rest_and_zenoh(router: str, client: Any, tmp_path: Path) -> None:
     """``run_server`` (what ``wardmap server`` runs) serves the object map over both REST and the
-    zenoh queryable, with the same validation, and stops cleanly."""
+    zenoh queryable, with the same validation and the same object fields and values, and stops
+    cleanly."""
     import httpx
 
     from wardmap.server.app import run_server
 
     db = f"sqlite:///{tmp_path / 'server.db'}"
+    with open_store(db) as store:
+        ObjectMap(store).upsert([_obj(5, "chair", 3, 4, color_rgb=(1.0, 2.0, 3.0))])
     stop, ready = threading.Event(), threading.Event()
     urls: list[str] = []
     errors: list[BaseException] = []
@@ -252,13 +277,17 @@ def test_run_server_serves_the_map_over_rest_and_zenoh(router: str, client: Any,
     worker.start()
     try:
         assert ready.wait(30) and not errors, errors
-        assert _ok(client, f"{OBJECTS_KEY}?category=door")["objects"] == []
+        assert _ok(client, f"{OBJECTS_KEY}?category=door").objects == ()
+        (reply,) = _get(client, f"{OBJECTS_KEY}?near=0,0,0")
+        zenoh_objects = msgpack.unpackb(reply.ok.payload.to_bytes())["objects"]
         with httpx.Client(base_url=urls[0], timeout=TIMEOUT_S) as http:
             resp = http.get("/v1/objects", params={"category": "door"})
             assert resp.status_code == 200 and resp.json()["objects"] == []
             assert http.get("/v1/objects", params={"radius": "1"}).status_code == 422
             cats = http.get("/v1/categories").json()
-            assert cats["total"] == 0 and len(cats["categories"]) == len(KnowledgeGraph.load().names)
+            assert cats["total"] == 1 and len(cats["categories"]) == len(KnowledgeGraph.load().names)
+            rest_objects = http.get("/v1/objects", params={"near": "0,0,0"}).json()["objects"]
+        assert rest_objects == zenoh_objects and rest_objects[0]["color_rgb"] == [1.0, 2.0, 3.0]
     finally:
         stop.set()
         worker.join(30)

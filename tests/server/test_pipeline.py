@@ -495,7 +495,7 @@ class _ChairAndHole(_WallChair):
 def test_instances_perception_cannot_measure_are_counted_by_kind(tmp_path: Path) -> None:
     """An instance on a depth hole is not measured: no measurement, one 'little_depth' skip in the
     counters and in /metrics (every kind has its line); the chair beside it is measured."""
-    from wardmap.server.api import _pipeline_metrics
+    from wardmap.server.api.prometheus import exposition, pipeline_metrics
     from wardmap.server.perception.measure import SKIP_KINDS
 
     depth = np.full((240, 320), 3.0, np.float32)
@@ -506,24 +506,27 @@ def test_instances_perception_cannot_measure_are_counted_by_kind(tmp_path: Path)
         store.insert(msg, payload, time.time())
         c = _counters_when_idle(store, PipelineConfig(poll_s=0.02), _ChairAndHole())
     assert (c.processed, c.measurements, c.skipped) == (1, 1, {"little_depth": 1})
-    text = _pipeline_metrics(c)
-    samples = dict(line.rsplit(" ", 1) for line in text.splitlines() if not line.startswith("#"))
+    text = exposition(pipeline_metrics(c))
+    samples = {k: float(v) for k, v in (line.rsplit(" ", 1) for line in text.splitlines()
+                                         if line and not line.startswith("#"))}
     name = "wardmap_mapping_instances_skipped_total"
     skipped = {k: v for k, v in samples.items() if k.startswith(name)}
-    assert skipped == {f'{name}{{kind="{k}"}}': "1" if k == "little_depth" else "0" for k in SKIP_KINDS}
+    assert skipped == {f'{name}{{kind="{k}"}}': 1 if k == "little_depth" else 0 for k in SKIP_KINDS}
     assert f"# TYPE {name} counter" in text
 
 
 def test_mapping_counters_in_prometheus_text() -> None:
-    from wardmap.server.api import _pipeline_metrics
+    from wardmap.server.api.prometheus import exposition, pipeline_metrics
 
-    text = _pipeline_metrics(PipelineCounters(5, 7, 4, 1, 0, 2, {"GeometryError": 1}, 3, closed_idle=1,
-                                              floating=6, beyond_range=9, wall_pieces=4, floor_pieces=8))
-    samples = dict(line.rsplit(" ", 1) for line in text.splitlines() if line and not line.startswith("#"))
-    assert samples["wardmap_mapping_floating_left_out_total"] == "6"
-    assert samples["wardmap_mapping_beyond_range_total"] == "9"
-    assert samples["wardmap_mapping_wall_pieces_left_out_total"] == "4"
-    assert samples["wardmap_mapping_floor_pieces_left_out_total"] == "8"
-    assert samples["wardmap_mapping_keyframes_total"] == "5" and samples["wardmap_mapping_backlog"] == "2"
-    assert samples['wardmap_mapping_failures_total{reason="GeometryError"}'] == "1"
+    c = PipelineCounters(5, 7, 4, 1, 0, 2, {"GeometryError": 1}, 3, closed_idle=1,
+                         floating=6, beyond_range=9, wall_pieces=4, floor_pieces=8)
+    text = exposition(pipeline_metrics(c))
+    samples = {k: float(v) for k, v in (line.rsplit(" ", 1) for line in text.splitlines()
+                                         if line and not line.startswith("#"))}
+    assert samples["wardmap_mapping_floating_left_out_total"] == 6
+    assert samples["wardmap_mapping_beyond_range_total"] == 9
+    assert samples["wardmap_mapping_wall_pieces_left_out_total"] == 4
+    assert samples["wardmap_mapping_floor_pieces_left_out_total"] == 8
+    assert samples["wardmap_mapping_keyframes_total"] == 5 and samples["wardmap_mapping_backlog"] == 2
+    assert samples['wardmap_mapping_failures_total{reason="GeometryError"}'] == 1
     assert "# TYPE wardmap_mapping_floating_left_out_total counter" in text

@@ -1,76 +1,37 @@
-"""Tests of the object routes of the REST API (``/v1/objects``, ``/v1/objects/{id}``, ``/v1/categories``).
-
-A temporary store is filled through :class:`ObjectMap` with a small known scene (doors, beds
-and wheelchairs on a line, observed by two robots), then the app is driven with FastAPI's
-TestClient, whose lifespan opens the same file. Every filter and every 404/422 path is hit.
-"""
+"""``GET /v1/objects`` and ``/v1/objects/{id}`` (``server/api/routes/objects.py``) over the
+object scene of ``conftest.py``: doors, a bed and a wheelchair on a line, observed by two
+robots. Every filter and every 404/422 path is hit, and every list response is validated
+against the documented :class:`ObjectList` model."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
-from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from wardmap.server.api import ObjectList, create_app
-from wardmap.server.objectmap import ObjectMap, ObjectState, Observation
+from wardmap.server.api import ObjectList, ObjectOut
+from wardmap.server.app import MapServer
+from wardmap.server.objectmap import ObjectMap, ObjectState
 from wardmap.server.store import open_store
 from wardmap.shared.knowledge import KnowledgeGraph
+from wardmap.shared.mapwire import MapObject, object_from_wire
 from wardmap.shared.se3 import quat_to_rotation, yaw_transform
 
-T0 = 1_714_557_600.0
-# id: (category, x, confidence, robots)
-SCENE = {
-    1: ("door", 0.0, 0.9, ("r1",)),
-    2: ("door", 4.0, 0.6, ("r2",)),
-    3: ("bed", 1.0, 0.95, ("r1", "r2")),
-    4: ("wheelchair", 2.5, 0.4, ()),
-    5: ("door", 10.0, 0.8, ("r1",)),
-}
 
-
-@pytest.fixture
-def client(tmp_path: Path) -> Iterator[TestClient]:
-    url = f"sqlite:///{tmp_path / 'map.db'}"
-    with open_store(url) as store:
-        om = ObjectMap(store)
-        objs, obs = [], []
-        for oid, (cat, x, conf, robots) in SCENE.items():
-            objs.append(
-                ObjectState(oid, cat, conf, yaw_transform(x, 0.0, 0.25 * oid, 0.5), np.array([1.0, 0.5, 2.0]))
-            )
-            for k, robot in enumerate(robots):
-                obs.append(
-                    Observation(
-                        oid,
-                        robot,
-                        "s1",
-                        10 * oid + k,
-                        T0 + oid,
-                        cat,
-                        0.7,
-                        np.array([0.0, 0.0, 8.0, 9.0]),
-                        yaw_transform(x, 0.1, 0.0, 0.5),
-                        np.array([1.0, 0.5, 2.0]),
-                    )
-                )
-        om.upsert(objs, obs)
-    with TestClient(create_app(url)) as c:
-        yield c
-
-
-def _ids(resp) -> list[int]:
+def _ids(resp: Any) -> list[int]:
     assert resp.status_code == 200, resp.text
     ObjectList.model_validate(resp.json(), strict=True)  # the documented schema is the one served
     return [o["object_id"] for o in resp.json()["objects"]]
 
 
-def test_list_all_objects_with_every_field(client: TestClient) -> None:
+def test_list_all_objects_with_every_field(object_client: TestClient) -> None:
     """Without filters every object comes, by id, with its pose, size, bounds and robots."""
-    resp = client.get("/v1/objects")
+    resp = object_client.get("/v1/objects")
     assert _ids(resp) == [1, 2, 3, 4, 5]
     body = resp.json()
     assert body["limit"] == 100 and body["offset"] == 0 and body["next_offset"] is None
@@ -85,42 +46,69 @@ def test_list_all_objects_with_every_field(client: TestClient) -> None:
     assert body["objects"][3]["robots"] == [] and body["objects"][3]["n_observations"] == 0
 
 
-def test_category_filter(client: TestClient) -> None:
-    assert _ids(client.get("/v1/objects", params={"category": "door"})) == [1, 2, 5]
-    assert _ids(client.get("/v1/objects", params={"category": "sink"})) == []
+def test_objects_are_the_shared_map_message(object_client: TestClient) -> None:
+    """An object's JSON is the map message Zenoh sends (``shared/mapwire.py``): the documented
+    fields exactly, the pose both flat (``position``, ``q_xyzw``) and as ``T_world_object``,
+    ``color_rgb`` null when unknown; it decodes as a :class:`MapObject`."""
+    wire_fields = [f.name for f in dataclasses.fields(MapObject)] + ["T_world_object"]
+    assert set(ObjectOut.model_fields) == set(wire_fields)
+    for path in ("/v1/objects", "/v1/objects?near=1,0,0.5"):
+        for o in object_client.get(path).json()["objects"]:
+            assert set(o) == set(wire_fields)
+            assert o["T_world_object"] == {"t": o["position"], "q_xyzw": o["q_xyzw"]}
+            assert o["color_rgb"] is None
+            assert object_from_wire(o).object_id == o["object_id"]
+    detail = object_client.get("/v1/objects/3").json()["object"]
+    assert detail == object_client.get("/v1/objects").json()["objects"][2]
 
 
-def test_near_orders_nearest_first_with_distance(client: TestClient) -> None:
+def test_colour_is_listed(tmp_path: Path) -> None:
+    """An object with a known mean colour carries it as ``color_rgb`` in both routes."""
+    url = f"sqlite:///{tmp_path / 'map.db'}"
+    with open_store(url) as store:
+        ObjectMap(store).upsert([ObjectState(1, "chair", 0.8, yaw_transform(1.0, 2.0, 0.0, 0.5),
+                                             np.array([0.5, 0.5, 0.9]), color_rgb=(200.0, 30.5, 12.0))])
+    with TestClient(MapServer(url).app) as c:
+        assert c.get("/v1/objects").json()["objects"][0]["color_rgb"] == [200.0, 30.5, 12.0]
+        assert c.get("/v1/objects/1").json()["object"]["color_rgb"] == [200.0, 30.5, 12.0]
+
+
+def test_category_filter(object_client: TestClient) -> None:
+    assert _ids(object_client.get("/v1/objects", params={"category": "door"})) == [1, 2, 5]
+    assert _ids(object_client.get("/v1/objects", params={"category": "sink"})) == []
+
+
+def test_near_orders_nearest_first_with_distance(object_client: TestClient) -> None:
     """near=3,0,0.5: distances 3 (id 1), 1 (2), 2 (3), 0.5 (4), 7 (5) give the order 4, 2, 3, 1, 5."""
-    resp = client.get("/v1/objects", params={"near": "3,0,0.5"})
+    resp = object_client.get("/v1/objects", params={"near": "3,0,0.5"})
     assert _ids(resp) == [4, 2, 3, 1, 5]
     assert [o["distance_m"] for o in resp.json()["objects"]] == pytest.approx([0.5, 1, 2, 3, 7])
 
 
-def test_near_with_radius(client: TestClient) -> None:
-    assert _ids(client.get("/v1/objects", params={"near": "3,0,0.5", "radius": 2})) == [4, 2, 3]
-    assert _ids(client.get("/v1/objects", params={"near": "3,0,0.5", "radius": 0.25})) == []
-    assert _ids(client.get("/v1/objects", params={"near": "3,0,0.5", "radius": 3, "category": "door"})) == [
-        2,
-        1,
-    ]
+def test_near_with_radius(object_client: TestClient) -> None:
+    c = object_client
+    assert _ids(c.get("/v1/objects", params={"near": "3,0,0.5", "radius": 2})) == [4, 2, 3]
+    assert _ids(c.get("/v1/objects", params={"near": "3,0,0.5", "radius": 0.25})) == []
+    assert _ids(c.get("/v1/objects", params={"near": "3,0,0.5", "radius": 3, "category": "door"})) == [2, 1]
 
 
-def test_min_confidence_and_robot_filters(client: TestClient) -> None:
-    assert _ids(client.get("/v1/objects", params={"min_confidence": 0.8})) == [1, 3, 5]
-    assert _ids(client.get("/v1/objects", params={"robot": "r2"})) == [2, 3]
-    assert _ids(client.get("/v1/objects", params={"robot": "r1", "min_confidence": 0.85})) == [1, 3]
-    assert _ids(client.get("/v1/objects", params={"robot": "r9"})) == []
+def test_min_confidence_and_robot_filters(object_client: TestClient) -> None:
+    c = object_client
+    assert _ids(c.get("/v1/objects", params={"min_confidence": 0.8})) == [1, 3, 5]
+    assert _ids(c.get("/v1/objects", params={"robot": "r2"})) == [2, 3]
+    assert _ids(c.get("/v1/objects", params={"robot": "r1", "min_confidence": 0.85})) == [1, 3]
+    assert _ids(c.get("/v1/objects", params={"robot": "r9"})) == []
 
 
-def test_limit_and_offset(client: TestClient) -> None:
-    first = client.get("/v1/objects", params={"limit": 2})
+def test_limit_and_offset(object_client: TestClient) -> None:
+    c = object_client
+    first = c.get("/v1/objects", params={"limit": 2})
     assert _ids(first) == [1, 2] and first.json()["next_offset"] == 2
-    second = client.get("/v1/objects", params={"limit": 2, "offset": 2})
+    second = c.get("/v1/objects", params={"limit": 2, "offset": 2})
     assert _ids(second) == [3, 4] and second.json()["next_offset"] == 4
-    last = client.get("/v1/objects", params={"limit": 2, "offset": 4})
+    last = c.get("/v1/objects", params={"limit": 2, "offset": 4})
     assert _ids(last) == [5] and last.json()["next_offset"] is None
-    assert _ids(client.get("/v1/objects", params={"near": "3,0,0.5", "limit": 2, "offset": 1})) == [2, 3]
+    assert _ids(c.get("/v1/objects", params={"near": "3,0,0.5", "limit": 2, "offset": 1})) == [2, 3]
 
 
 @pytest.mark.parametrize(
@@ -136,14 +124,14 @@ def test_limit_and_offset(client: TestClient) -> None:
         ({"robot": "r 1"}, "bad robot id 'r 1'"),
     ],
 )
-def test_bad_filters_are_422_with_a_message(client: TestClient, params: dict, detail: str) -> None:
-    resp = client.get("/v1/objects", params=params)
+def test_bad_filters_are_422_with_a_message(object_client: TestClient, params: dict, detail: str) -> None:
+    resp = object_client.get("/v1/objects", params=params)
     assert resp.status_code == 422
     assert detail in resp.json()["detail"]
 
 
-def test_unknown_category_is_422_listing_the_knowledge_graph(client: TestClient) -> None:
-    resp = client.get("/v1/objects", params={"category": "unicorn"})
+def test_unknown_category_is_422_listing_the_knowledge_graph(object_client: TestClient) -> None:
+    resp = object_client.get("/v1/objects", params={"category": "unicorn"})
     assert resp.status_code == 422
     detail = resp.json()["detail"]
     assert detail.startswith("unknown category 'unicorn'; known categories: ")
@@ -154,53 +142,43 @@ def test_unknown_category_is_422_listing_the_knowledge_graph(client: TestClient)
     "params",
     [{"limit": 0}, {"limit": 1001}, {"offset": -1}, {"limit": "ten"}, {"radius": "x", "near": "0,0,0"}],
 )
-def test_bad_numbers_are_422(client: TestClient, params: dict) -> None:
+def test_bad_numbers_are_422(object_client: TestClient, params: dict) -> None:
     """Type and range errors of numeric parameters are FastAPI's 422 (a list naming the parameter)."""
-    resp = client.get("/v1/objects", params=params)
+    resp = object_client.get("/v1/objects", params=params)
     assert resp.status_code == 422
     assert resp.json()["detail"][0]["loc"][-1] in params
 
 
-def test_object_detail(client: TestClient) -> None:
+def test_object_detail(object_client: TestClient, object_scene: Any) -> None:
     """GET /v1/objects/3: the bed with both observations (newest first) and their keyframes."""
-    resp = client.get("/v1/objects/3")
+    resp = object_client.get("/v1/objects/3")
     assert resp.status_code == 200, resp.text
     body = resp.json()
     assert body["object"]["object_id"] == 3 and body["object"]["category"] == "bed"
     assert [(o["robot_id"], o["seq"]) for o in body["observations"]] == [("r2", 31), ("r1", 30)]
     o = body["observations"][0]
     assert o["box_xyxy"] == [0.0, 0.0, 8.0, 9.0] and o["position"] == pytest.approx([1.0, 0.1, 0.5])
-    assert o["stamp"] == T0 + 3 and o["q_xyzw"] == pytest.approx([0, 0, 0, 1])
+    assert o["stamp"] == object_scene.t0 + 3 and o["q_xyzw"] == pytest.approx([0, 0, 0, 1])
     assert [(k["robot_id"], k["session_id"], k["seq"], k["stored"]) for k in body["keyframes"]] == [
         ("r1", "s1", 30, False),
         ("r2", "s1", 31, False),
     ]
-    one = client.get("/v1/objects/3", params={"observations": 1}).json()
+    one = object_client.get("/v1/objects/3", params={"observations": 1}).json()
     assert len(one["observations"]) == 1 and len(one["keyframes"]) == 1
 
 
-def test_object_detail_errors(client: TestClient) -> None:
-    resp = client.get("/v1/objects/999")
+def test_object_detail_errors(object_client: TestClient) -> None:
+    c = object_client
+    resp = c.get("/v1/objects/999")
     assert resp.status_code == 404 and resp.json() == {"detail": "unknown object 999"}
-    resp = client.get("/v1/objects/0")
+    resp = c.get("/v1/objects/0")
     assert resp.status_code == 422 and "object_id: expected an int in [1, 2**63)" in resp.json()["detail"]
-    assert client.get("/v1/objects/door").status_code == 422
-    assert client.get("/v1/objects/3", params={"observations": 5000}).status_code == 422
+    assert c.get("/v1/objects/door").status_code == 422
+    assert c.get("/v1/objects/3", params={"observations": 5000}).status_code == 422
 
 
-def test_categories(client: TestClient) -> None:
-    body = client.get("/v1/categories").json()
-    kg = KnowledgeGraph.load()
-    assert [c["name"] for c in body["categories"]] == list(kg.names)
-    counts = {c["name"]: c["count"] for c in body["categories"]}
-    assert counts["door"] == 3 and counts["bed"] == 1 and counts["wheelchair"] == 1 and counts["sink"] == 0
-    assert body["total"] == 5
-    mobility = {c["name"]: c["mobility"] for c in body["categories"]}
-    assert mobility["door"] == "static" and mobility["wheelchair"] == "movable"
-
-
-def test_openapi_documents_the_object_routes(client: TestClient) -> None:
-    spec = client.get("/openapi.json").json()
+def test_openapi_documents_the_object_routes(object_client: TestClient) -> None:
+    spec = object_client.get("/openapi.json").json()
     params = {p["name"] for p in spec["paths"]["/v1/objects"]["get"]["parameters"]}
     assert params == {
         "category", "near", "radius", "min_confidence", "robot", "limit", "offset", "include_unconfirmed",
@@ -208,8 +186,8 @@ def test_openapi_documents_the_object_routes(client: TestClient) -> None:
     assert {"200", "422"} <= set(spec["paths"]["/v1/objects"]["get"]["responses"])
     assert {"200", "404", "422"} <= set(spec["paths"]["/v1/objects/{object_id}"]["get"]["responses"])
     assert "/v1/categories" in spec["paths"]
-    assert "distance_m" in spec["components"]["schemas"]["ObjectOut"]["properties"]
-    assert "confirmed" in spec["components"]["schemas"]["ObjectOut"]["properties"]
+    properties = spec["components"]["schemas"]["ObjectOut"]["properties"]
+    assert {"distance_m", "confirmed", "color_rgb", "T_world_object"} <= set(properties)
 
 
 def test_unconfirmed_objects_only_when_asked(tmp_path: Path) -> None:
@@ -223,7 +201,7 @@ def test_unconfirmed_objects_only_when_asked(tmp_path: Path) -> None:
             ObjectState(2, "cabinet", 0.7, yaw_transform(1.0, 0.0, 0.0, 0.5), np.array([0.3, 0.02, 0.6]),
                         confirmed=False),
         ])
-    with TestClient(create_app(url)) as c:
+    with TestClient(MapServer(url).app) as c:
         assert _ids(c.get("/v1/objects")) == [1]
         assert _ids(c.get("/v1/objects", params={"near": "1,0,0.5", "radius": 2})) == [1]
         resp = c.get("/v1/objects", params={"near": "1,0,0.5", "radius": 2, "include_unconfirmed": "true"})
@@ -235,9 +213,13 @@ def test_unconfirmed_objects_only_when_asked(tmp_path: Path) -> None:
         every = c.get("/v1/categories", params={"include_unconfirmed": "true"}).json()
         assert {k["name"]: k["count"] for k in every["categories"]}["cabinet"] == 2 and every["total"] == 2
         assert c.get("/v1/objects/2").json()["object"]["confirmed"] is False
-        metrics = c.get("/metrics").text
-        assert 'wardmap_map_objects{confirmed="true"} 1' in metrics
-        assert 'wardmap_map_objects{confirmed="false"} 1' in metrics
+        samples = {}
+        for line in c.get("/metrics").text.splitlines():
+            if line and not line.startswith("#"):
+                name, value = line.rsplit(" ", 1)
+                samples[name] = float(value)
+        assert samples['wardmap_map_objects{confirmed="true"}'] == 1
+        assert samples['wardmap_map_objects{confirmed="false"}'] == 1
         for word in ("maybe", "1", "yes", "True"):  # the Zenoh parser's words only: true, false
             for path in ("/v1/objects", "/v1/categories"):
                 bad = c.get(path, params={"include_unconfirmed": word})

@@ -1,0 +1,99 @@
+"""What the routes get from the server, as FastAPI dependencies.
+
+The composition root (:class:`~wardmap.server.app.MapServer`) builds and starts the server's
+parts; the app's lifespan (:func:`~wardmap.server.api.main.create_app`) asks it for the
+running :class:`Services` and keeps them on ``app.state`` until shutdown. A route declares
+only the parts it uses, e.g. ``objects: ObjectMapDep`` (``Annotated[ObjectMap,
+Depends(get_objectmap)]``), so a test can see from its signature what it touches.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Annotated, Protocol
+
+from fastapi import Depends, Request
+from prometheus_client import CollectorRegistry
+
+from wardmap.server.ingest import Ingest
+from wardmap.server.objectmap import ObjectMap
+from wardmap.server.pipeline import MapPipeline
+from wardmap.server.store import KeyframeStore
+
+__all__ = [
+    "IngestDep",
+    "MetricsDep",
+    "ObjectMapDep",
+    "PipelineDep",
+    "ServerLifecycle",
+    "Services",
+    "StoreDep",
+]
+
+
+@dataclass(frozen=True)
+class Services:
+    """The running parts the REST API reads; built and owned by the composition root.
+
+    Attributes:
+        store: the open keyframe store.
+        objects: the object map on it.
+        ingest: the keyframe ingest, or None when the server has no Zenoh (API only).
+        pipeline: the mapping stage, or None when keyframes are stored but not mapped.
+    """
+
+    store: KeyframeStore
+    objects: ObjectMap
+    ingest: Ingest | None = None
+    pipeline: MapPipeline | None = None
+
+
+class ServerLifecycle(Protocol):
+    """What the app's lifespan starts and stops (the composition root, ``server/app.py``)."""
+
+    def start(self) -> Services:
+        """Open and start every part; on failure, stop what started and raise."""
+        ...
+
+    def stop(self) -> None:
+        """Stop every part in reverse order (idempotent)."""
+        ...
+
+
+def get_services(request: Request) -> Services:
+    services: Services | None = getattr(request.app.state, "services", None)
+    if services is None:  # only outside the lifespan: a route called before start-up
+        raise RuntimeError("the map server is not started")
+    return services
+
+
+ServicesDep = Annotated[Services, Depends(get_services)]
+
+
+def get_store(services: ServicesDep) -> KeyframeStore:
+    return services.store
+
+
+def get_objectmap(services: ServicesDep) -> ObjectMap:
+    return services.objects
+
+
+def get_ingest(services: ServicesDep) -> Ingest | None:
+    return services.ingest
+
+
+def get_pipeline(services: ServicesDep) -> MapPipeline | None:
+    return services.pipeline
+
+
+def get_metrics(request: Request) -> CollectorRegistry:
+    registry: CollectorRegistry = request.app.state.metrics
+    return registry
+
+
+StoreDep = Annotated[KeyframeStore, Depends(get_store)]
+ObjectMapDep = Annotated[ObjectMap, Depends(get_objectmap)]
+IngestDep = Annotated[Ingest | None, Depends(get_ingest)]
+PipelineDep = Annotated[MapPipeline | None, Depends(get_pipeline)]
+MetricsDep = Annotated[CollectorRegistry, Depends(get_metrics)]
+"""The app's own Prometheus registry (never the global one), filled at scrape time."""

@@ -1,0 +1,162 @@
+"""The server's counters in Prometheus form (``GET /metrics``), written by ``prometheus_client``.
+
+:class:`ServerCollector` is a custom collector: it holds no metric objects of its own, and at
+each scrape it reads the counters of the parts that own them (ingest, store, object map,
+mapping stage) and yields them as metric families. Each app registers it on its own
+:class:`~prometheus_client.CollectorRegistry` (:func:`metrics_registry`), never on the
+process-global one, so two apps in one process (tests) never share or clash.
+
+The metric names, types, help texts and labels are the server's public interface
+(dashboards, alerts); they are listed once, in the ``*_metrics`` functions below.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Iterator, Mapping
+
+from prometheus_client import CollectorRegistry
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
+from prometheus_client.exposition import generate_latest
+from prometheus_client.registry import Collector
+
+from wardmap.server.ingest import Ingest, IngestCounters
+from wardmap.server.objectmap import ObjectMap
+from wardmap.server.perception.measure import SKIP_KINDS
+from wardmap.server.pipeline import MapPipeline, PipelineCounters
+from wardmap.server.store import KeyframeStore
+
+__all__ = [
+    "CONTENT_TYPE",
+    "ServerCollector",
+    "exposition",
+    "ingest_metrics",
+    "map_metrics",
+    "metrics_registry",
+    "pipeline_metrics",
+]
+
+CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
+"""The Prometheus text format 0.0.4, which every Prometheus server reads."""
+
+
+def _counter(name: str, help_text: str, value: float) -> CounterMetricFamily:
+    return CounterMetricFamily(name, help_text, value=value)
+
+
+def _gauge(name: str, help_text: str, value: float) -> GaugeMetricFamily:
+    return GaugeMetricFamily(name, help_text, value=value)
+
+
+def _by(label: str, family: type[CounterMetricFamily | GaugeMetricFamily], name: str, help_text: str,
+        samples: Iterable[tuple[str, float]]) -> Metric:
+    """A family with one sample per value of ``label``."""
+    out = family(name, help_text, labels=[label])
+    for value, n in samples:
+        out.add_metric([value], n)
+    return out
+
+
+def ingest_metrics(c: IngestCounters | None, rejections: Mapping[str, int], robots: int) -> list[Metric]:
+    """The ingest's counters (zeros without an ingest), the store's persistent rejection
+    counts by reason, and the robots with a stored keyframe."""
+    c = c or IngestCounters(0, 0, 0, 0, 0, 0)
+    return [
+        _counter("wardmap_keyframes_received_total",
+                 "Keyframe samples taken from zenoh by this server process.", c.received),
+        _counter("wardmap_keyframes_stored_total",
+                 "Keyframes newly stored by this server process.", c.stored),
+        _counter("wardmap_keyframes_duplicates_total",
+                 "Keyframes received again after they were stored (acked duplicate).", c.duplicates),
+        _by("reason", CounterMetricFamily, "wardmap_rejections_total",
+            "Rejected samples by reason, persistent in the store.", sorted(rejections.items())),
+        _gauge("wardmap_ingest_queue_depth",
+               "Samples taken from the zenoh channel and not yet processed.", c.queue_depth),
+        _counter("wardmap_ack_failures_total", "Acks that could not be published.", c.ack_failures),
+        _gauge("wardmap_robots", "Robots with at least one stored keyframe.", robots),
+    ]
+
+
+def map_metrics(confirmed: int, unconfirmed: int) -> list[Metric]:
+    """The objects in the map, confirmed or not."""
+    return [_by("confirmed", GaugeMetricFamily, "wardmap_map_objects",
+                'Objects in the map; confirmed="false": kept, left out of queries.',
+                [("true", confirmed), ("false", unconfirmed)])]
+
+
+def pipeline_metrics(c: PipelineCounters) -> list[Metric]:
+    """The mapping stage's counters."""
+    return [
+        _gauge("wardmap_mapping_backlog", "Stored keyframes the mapping stage has not processed yet.",
+               c.backlog),
+        _counter("wardmap_mapping_keyframes_total", "Keyframes run through perception by this process.",
+                 c.processed),
+        _counter("wardmap_mapping_measurements_total", "Object measurements stored by this process.",
+                 c.measurements),
+        _counter("wardmap_mapping_associated_total", "Keyframes fed to association (sessions on the map).",
+                 c.mapped),
+        _counter("wardmap_mapping_unanchored_total",
+                 "Keyframes of sessions without T_map_odom: measured, not mapped.", c.unanchored),
+        _by("reason", CounterMetricFamily, "wardmap_mapping_failures_total",
+            "Keyframes perception skipped, by error type.", sorted(c.failures.items())),
+        _gauge("wardmap_mapping_landmarks", "Landmarks the associator holds.", c.landmarks),
+        _counter("wardmap_mapping_restarts_total",
+                 "Unexpected errors the mapping stage recovered from (see the server log).", c.restarts),
+        _counter("wardmap_mapping_idle_sessions_closed_total",
+                 "Sessions whose last keyframe group was mapped because they went quiet (close_idle_s).",
+                 c.closed_idle),
+        _counter("wardmap_mapping_floating_left_out_total",
+                 "Instances perception left out for floating above the floor (perception.floor_gap_m).",
+                 c.floating),
+        _counter("wardmap_mapping_wall_pieces_left_out_total",
+                 "Instances perception left out for lying on a surface taller than any object of their class "
+                 "(perception.max_top_m).", c.wall_pieces),
+        _counter("wardmap_mapping_floor_pieces_left_out_total",
+                 "Instances perception left out for lying flat on the floor, lower than any object of their "
+                 "class (perception.min_top_m).", c.floor_pieces),
+        _counter("wardmap_mapping_beyond_range_total",
+                 "Stored measurements association left out for lying beyond association.max_range_m.",
+                 c.beyond_range),
+        _by("kind", CounterMetricFamily, "wardmap_mapping_instances_skipped_total",
+            "Instances perception found but could not measure (stored keyframes), by kind.",
+            [(k, c.skipped.get(k, 0)) for k in SKIP_KINDS]),
+    ]
+
+
+class ServerCollector(Collector):
+    """Yields the server's metrics at scrape time from the parts that count them."""
+
+    def __init__(
+        self, store: KeyframeStore, objects: ObjectMap, ingest: Ingest | None, pipeline: MapPipeline | None
+    ) -> None:
+        self._store = store
+        self._objects = objects
+        self._ingest = ingest
+        self._pipeline = pipeline
+
+    def collect(self) -> Iterator[Metric]:
+        counters = self._ingest.counters() if self._ingest is not None else None
+        yield from ingest_metrics(counters, self._store.rejections(), self._store.stats().robots)
+        yield from map_metrics(self._objects.count(unconfirmed=False), self._objects.count(unconfirmed=True))
+        if self._pipeline is not None:
+            yield from pipeline_metrics(self._pipeline.counters())
+
+
+def metrics_registry(collector: Collector) -> CollectorRegistry:
+    """A registry of its own holding only ``collector`` (never the process-global registry)."""
+    registry = CollectorRegistry(auto_describe=False)
+    registry.register(collector)
+    return registry
+
+
+class _Fixed(Collector):
+    def __init__(self, metrics: Iterable[Metric]) -> None:
+        self._metrics = list(metrics)
+
+    def collect(self) -> Iterator[Metric]:
+        return iter(self._metrics)
+
+
+def exposition(source: CollectorRegistry | Iterable[Metric]) -> str:
+    """The Prometheus text (format 0.0.4) of a registry, or of metric families as they are."""
+    registry = source if isinstance(source, CollectorRegistry) else metrics_registry(_Fixed(source))
+    return generate_latest(registry).decode()

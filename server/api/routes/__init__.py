@@ -1,0 +1,1 @@
+"""One module per REST resource; each defines a ``router`` that ``api/main.py`` includes."""

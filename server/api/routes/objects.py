@@ -1,0 +1,117 @@
+"""``GET /v1/objects`` and ``GET /v1/objects/{object_id}``: the object map.
+
+Objects are the shared map message (``shared/mapwire.py``, built by
+``server/mapmessages.py``), the same shape the Zenoh queryable sends.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from fastapi import APIRouter, HTTPException, Query
+from fastapi.responses import JSONResponse
+
+from wardmap.server.api.deps import ObjectMapDep
+from wardmap.server.api.schemas import (
+    ErrorOut,
+    Flag,
+    KeyframeRefOut,
+    ObjectDetailOut,
+    ObjectList,
+    ObjectOut,
+    ObservationOut,
+)
+from wardmap.server.mapmessages import map_object
+from wardmap.server.objectmap import (
+    DEFAULT_LIMIT,
+    MAX_LIMIT,
+    MAX_OBSERVATIONS,
+    MAX_OFFSET,
+    ObjectMapError,
+    ObjectQuery,
+    parse_near,
+)
+from wardmap.shared.mapwire import object_to_wire
+from wardmap.shared.se3 import rotation_to_quat
+
+router = APIRouter()
+
+
+def _vec(values: Any) -> list[float]:
+    return [float(v) for v in values]
+
+
+@router.get(
+    "/v1/objects",
+    response_model=None,
+    responses={
+        200: {"model": ObjectList},
+        422: {"model": ErrorOut, "description": "a bad filter (message in detail)"},
+    },
+)
+# async: the work is short and mostly GIL-bound Python, so a worker-thread hop only adds latency.
+async def objects(
+    objects: ObjectMapDep,
+    category: Annotated[str | None, Query(max_length=64, description="knowledge-graph class")] = None,
+    near: Annotated[
+        str | None,
+        Query(max_length=200, description="world point `x,y,z` in metres: nearest first, with distance"),
+    ] = None,
+    radius: Annotated[float | None, Query(description="metres (>= 0) around `near`; needs `near`")] = None,
+    min_confidence: Annotated[float | None, Query(description="in [0, 1]")] = None,
+    robot: Annotated[str | None, Query(max_length=64, description="seen by this robot")] = None,
+    limit: Annotated[int, Query(ge=1, le=MAX_LIMIT)] = DEFAULT_LIMIT,
+    offset: Annotated[int, Query(ge=0, le=MAX_OFFSET)] = 0,
+    include_unconfirmed: Annotated[
+        Flag, Query(description="also objects association has not confirmed (`confirmed` false)")
+    ] = "false",
+) -> JSONResponse:
+    """Objects matching every filter; nearest centre first when `near` is given, else by id."""
+    try:
+        centre = None if near is None else parse_near(near)
+        page = objects.find(ObjectQuery(category, centre, radius, min_confidence, robot, limit, offset,
+                                        include_unconfirmed == "true"))
+    except ObjectMapError as exc:
+        raise HTTPException(422, str(exc)) from exc
+    # The JSON is built without pydantic (latency); the tests validate it against ObjectList.
+    return JSONResponse({
+        "objects": [object_to_wire(map_object(hit.record, hit.distance_m)) for hit in page.hits],
+        "limit": limit, "offset": offset, "next_offset": page.next_offset,
+    })
+
+
+@router.get(
+    "/v1/objects/{object_id}",
+    response_model=ObjectDetailOut,
+    responses={404: {"model": ErrorOut}, 422: {"model": ErrorOut}},
+)
+def object_detail(
+    objects: ObjectMapDep,
+    object_id: int,
+    observations: Annotated[int, Query(ge=0, le=MAX_OBSERVATIONS)] = 100,
+) -> ObjectDetailOut:
+    """One object with its latest observations and the keyframes they came from."""
+    try:
+        detail = objects.get(object_id, max_observations=observations)
+    except ObjectMapError as exc:
+        raise HTTPException(422, str(exc)) from exc
+    if detail is None:
+        raise HTTPException(404, f"unknown object {object_id}")
+    return ObjectDetailOut(
+        object=ObjectOut.model_validate(object_to_wire(map_object(detail.record))),
+        observations=[
+            ObservationOut(
+                observation_id=o.observation_id, robot_id=o.robot_id, session_id=o.session_id,
+                seq=o.seq, stamp=o.stamp, added_s=o.added_s, category=o.category,
+                confidence=o.confidence, box_xyxy=_vec(o.box_xyxy),
+                position=_vec(o.T_world_object[:3, 3]),
+                q_xyzw=_vec(rotation_to_quat(o.T_world_object[:3, :3])), size=_vec(o.size),
+            )
+            for o in detail.observations
+        ],
+        keyframes=[
+            KeyframeRefOut(robot_id=k.robot_id, session_id=k.session_id, seq=k.seq, stamp=k.stamp,
+                           stored=k.stored)
+            for k in detail.keyframes
+        ],
+    )

@@ -1,0 +1,130 @@
+"""Scenes for the REST API tests: a keyframe store and an object map, each in a temporary
+SQLite file, and a TestClient over the API-only server (:class:`MapServer` without Zenoh or
+mapping) whose lifespan opens the same file."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from wardmap.server.app import MapServer
+from wardmap.server.objectmap import ObjectMap, ObjectState, Observation
+from wardmap.server.store import open_store
+from wardmap.shared import wire
+from wardmap.shared.se3 import make_transform, yaw_transform
+from wardmap.shared.wire import Intrinsics, KeyframeMsg, Keypoints, PackedRaster
+
+W, H = 64, 48
+T0 = 1_714_557_600.0
+
+
+@dataclass(frozen=True)
+class KeyframeScene:
+    """Robot r1 (``n_r1`` keyframes, sessions s1 and s2) and r2 (``n_r2``, one session), received
+    at ``t0 + 100 + k`` (r1) and ``t0 + 200 + k`` (r2); rejections ``wire: payload`` x2 and
+    ``odd "reason"`` x1."""
+
+    url: str
+    t0: float = T0
+    n_r1: int = 7
+    n_r2: int = 3
+
+    @staticmethod
+    def pose(k: int) -> np.ndarray:
+        """T_odom_camera of keyframe ``k`` of either robot."""
+        a = 0.1 * k
+        R = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+        return make_transform(R, [k * 0.5, -1.0, 0.25])
+
+
+def _keyframe() -> KeyframeMsg:
+    rng = np.random.default_rng(0)
+    ok, jpg = cv2.imencode(".jpg", rng.integers(0, 256, (H, W, 3), dtype=np.uint8))
+    assert ok
+    n = 4
+    return KeyframeMsg(
+        robot_id="r1", session_id="s1", seq=0, stamp=T0, T_odom_camera=np.eye(4), pose_source="rgb",
+        keypoints=Keypoints(
+            uv=(rng.random((n, 2)) * [W - 1, H - 1]).astype(np.float32),
+            octave=np.zeros(n, np.int8),
+            angle_deg=(rng.random(n) * 360).astype(np.float32),
+            depth_m=rng.uniform(0.5, 4.0, n).astype(np.float32),
+            descriptors=rng.integers(0, 256, (n, 32), dtype=np.uint8),
+        ),
+        rgb_jpeg=bytes(jpg.tobytes()),
+        depth=PackedRaster(*wire.encode_depth(rng.uniform(0.5, 4.0, (H // 2, W // 2)))),
+        intrinsics=Intrinsics(W, H, 50.0, 50.0, 31.5, 23.5, (0.0, 0.0, 0.0, 0.0, 0.0), 5000.0),
+    )
+
+
+@pytest.fixture
+def keyframe_scene(tmp_path: Path) -> KeyframeScene:
+    """Real wire keyframes (a 64x48 JPEG, a 32x24 depth raster) stored through ``store.insert``."""
+    scene = KeyframeScene(f"sqlite:///{tmp_path / 'map.db'}")
+    base = _keyframe()
+    with open_store(scene.url) as store:
+        for k in range(scene.n_r1):
+            msg = replace(base, robot_id="r1", session_id="s1" if k < 5 else "s2", seq=k,
+                          stamp=T0 + k, T_odom_camera=scene.pose(k))
+            assert store.insert(msg, wire.encode(msg), T0 + 100 + k) == "stored"
+        for k in range(scene.n_r2):
+            msg = replace(base, robot_id="r2", seq=k, stamp=T0 + k, T_odom_camera=scene.pose(k))
+            assert store.insert(msg, wire.encode(msg), T0 + 200 + k) == "stored"
+        store.count_rejection("wire: payload")
+        store.count_rejection("wire: payload")
+        store.count_rejection('odd "reason"')
+    return scene
+
+
+@pytest.fixture
+def keyframe_client(keyframe_scene: KeyframeScene) -> Iterator[TestClient]:
+    with TestClient(MapServer(keyframe_scene.url).app) as c:
+        yield c
+
+
+@dataclass(frozen=True)
+class ObjectScene:
+    """Objects ``id: (category, x, confidence, robots)``: object k stands at ``(x, 0, 0.5)``
+    with yaw ``0.25 k``, size 1 x 0.5 x 2 m; each of its robots observed it once (seq
+    ``10 k + i``, stamp ``t0 + k``) at ``(x, 0.1, 0.5)``, unrotated."""
+
+    url: str
+    t0: float = T0
+    objects: tuple[tuple[int, str, float, float, tuple[str, ...]], ...] = (
+        (1, "door", 0.0, 0.9, ("r1",)),
+        (2, "door", 4.0, 0.6, ("r2",)),
+        (3, "bed", 1.0, 0.95, ("r1", "r2")),
+        (4, "wheelchair", 2.5, 0.4, ()),
+        (5, "door", 10.0, 0.8, ("r1",)),
+    )
+
+
+@pytest.fixture
+def object_scene(tmp_path: Path) -> ObjectScene:
+    """The scene written through :class:`ObjectMap`."""
+    scene = ObjectScene(f"sqlite:///{tmp_path / 'map.db'}")
+    with open_store(scene.url) as store:
+        objs, obs = [], []
+        for oid, cat, x, conf, robots in scene.objects:
+            objs.append(
+                ObjectState(oid, cat, conf, yaw_transform(x, 0.0, 0.25 * oid, 0.5), np.array([1.0, 0.5, 2.0]))
+            )
+            for k, robot in enumerate(robots):
+                obs.append(Observation(
+                    oid, robot, "s1", 10 * oid + k, T0 + oid, cat, 0.7, np.array([0.0, 0.0, 8.0, 9.0]),
+                    yaw_transform(x, 0.1, 0.0, 0.5), np.array([1.0, 0.5, 2.0]),
+                ))
+        ObjectMap(store).upsert(objs, obs)
+    return scene
+
+
+@pytest.fixture
+def object_client(object_scene: ObjectScene) -> Iterator[TestClient]:
+    with TestClient(MapServer(object_scene.url).app) as c:
+        yield c

@@ -1,0 +1,69 @@
+"""``GET /v1/keyframes`` and its cursor (``server/api/routes/keyframes.py``) over the keyframe
+scene of ``conftest.py``."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+
+from wardmap.server.api import decode_cursor, encode_cursor
+
+
+def test_keyframes_pagination_visits_each_once(keyframe_client: TestClient, keyframe_scene: Any) -> None:
+    """Pages of 3 walk r1's keyframes in stamp order, each exactly once, ending with a null cursor."""
+    client = keyframe_client
+    seen: list[tuple[str, int]] = []
+    cursor: str | None = None
+    pages = 0
+    while True:
+        params: dict[str, str | int] = {"robot": "r1", "limit": 3}
+        if cursor is not None:
+            params["cursor"] = cursor
+        r = client.get("/v1/keyframes", params=params)
+        assert r.status_code == 200, r.text
+        body = r.json()
+        assert len(body["keyframes"]) <= 3
+        seen += [(k["session_id"], k["seq"]) for k in body["keyframes"]]
+        pages += 1
+        cursor = body["next_cursor"]
+        if cursor is None:
+            break
+    assert pages == 3
+    assert seen == [("s1", k) for k in range(5)] + [("s2", 5), ("s2", 6)]
+    first = client.get("/v1/keyframes", params={"robot": "r1", "limit": 1}).json()["keyframes"][0]
+    assert first["stamp"] == pytest.approx(keyframe_scene.t0)
+    assert first["pose_source"] == "rgb"
+    assert first["payload_bytes"] > 0
+
+
+def test_keyframes_unknown_robot_is_empty(keyframe_client: TestClient) -> None:
+    r = keyframe_client.get("/v1/keyframes", params={"robot": "nobody"})
+    assert r.status_code == 200
+    assert r.json() == {"keyframes": [], "next_cursor": None}
+
+
+@pytest.mark.parametrize(
+    ("params", "status"),
+    [
+        ({}, 422),  # robot missing
+        ({"robot": "r1", "limit": 0}, 422),
+        ({"robot": "r1", "limit": 100000}, 422),
+        ({"robot": "r1", "limit": "x"}, 422),
+        ({"robot": "r1", "cursor": "!!not-base64!!"}, 400),
+        ({"robot": "r1", "cursor": encode_cursor("s9", 42)}, 400),  # names no keyframe
+    ],
+)
+def test_keyframes_bad_query(keyframe_client: TestClient, params: dict[str, str | int], status: int) -> None:
+    """Bad parameters give 422 (validation) or 400 (bad cursor) with a JSON detail."""
+    r = keyframe_client.get("/v1/keyframes", params=params)
+    assert r.status_code == status, r.text
+    assert "detail" in r.json()
+
+
+def test_cursor_round_trip() -> None:
+    assert decode_cursor(encode_cursor("s-1.x", 2**62)) == ("s-1.x", 2**62)
+    for bad in ("", "e30", encode_cursor("s", 1) + "!!"):
+        with pytest.raises(ValueError):
+            decode_cursor(bad)

@@ -1,0 +1,44 @@
+"""``GET /metrics`` (``server/api/routes/metrics.py``) over the keyframe scene of ``conftest.py``."""
+
+from __future__ import annotations
+
+from fastapi.testclient import TestClient
+
+
+def _samples(text: str) -> dict[str, float]:
+    samples = {}
+    for line in text.splitlines():
+        if line and not line.startswith("#"):
+            name, value = line.rsplit(" ", 1)
+            samples[name] = float(value)
+    return samples
+
+
+def test_metrics(keyframe_client: TestClient) -> None:
+    """Prometheus text carries the ingest counters (0 without ingest), rejections by reason, robots
+    and the map's objects; no mapping counters without a mapping stage."""
+    r = keyframe_client.get("/metrics")
+    assert r.status_code == 200
+    assert r.headers["content-type"].startswith("text/plain")
+    samples = _samples(r.text)
+    assert samples["wardmap_keyframes_received_total"] == 0
+    assert samples["wardmap_keyframes_stored_total"] == 0
+    assert samples["wardmap_keyframes_duplicates_total"] == 0
+    assert samples["wardmap_ingest_queue_depth"] == 0
+    assert samples["wardmap_robots"] == 2
+    assert samples['wardmap_rejections_total{reason="wire: payload"}'] == 2
+    assert samples['wardmap_rejections_total{reason="odd \\"reason\\""}'] == 1
+    assert samples['wardmap_map_objects{confirmed="true"}'] == 0
+    for name in ("wardmap_keyframes_received_total", "wardmap_rejections_total", "wardmap_robots"):
+        assert f"# TYPE {name} " in r.text
+    assert not any(name.startswith("wardmap_mapping_") for name in samples)
+
+
+def test_metrics_reads_the_counters_at_each_scrape(keyframe_client: TestClient) -> None:
+    """A rejection counted after the first scrape shows in the next one (the collector reads the
+    store at scrape time, it keeps no copy)."""
+    before = _samples(keyframe_client.get("/metrics").text)
+    keyframe_client.app.state.services.store.count_rejection("wire: payload")  # type: ignore[attr-defined]
+    after = _samples(keyframe_client.get("/metrics").text)
+    key = 'wardmap_rejections_total{reason="wire: payload"}'
+    assert (before[key], after[key]) == (2, 3)
