@@ -313,10 +313,13 @@ class Ingest:
     def _retry_later(self, msg: KeyframeMsg, exc: StoreError) -> None:
         """Ack ``retry``: the keyframe is valid but was not stored; logged once per fault."""
         self._count("retry_later")
-        kind = "damaged" if isinstance(exc, StoreDamagedError) else "cannot store"
+        damaged = isinstance(exc, StoreDamagedError)
+        kind = "damaged" if damaged else "cannot store"
         if self._store_fault is None:
+            # The store logged how to repair a damaged file once already; do not repeat it.
+            why = "the store logged how to repair it" if damaged else str(exc)
             log.error("keyframe store %s (%s): keyframes are acked 'retry' and stay on the robots "
-                      "until it can store them", kind, exc)
+                      "until it can store them", kind, why)
         else:
             log.debug("keyframe %s/%s/%d not stored: %s", msg.robot_id, msg.session_id, msg.seq, exc)
         self._store_fault = str(exc)
