@@ -322,7 +322,7 @@ class Ingest:
                       "until it can store them", kind, why)
         else:
             log.debug("keyframe %s/%s/%d not stored: %s", msg.robot_id, msg.session_id, msg.seq, exc)
-        self._store_fault = str(exc)
+        self._store_fault = kind if damaged else str(exc)
         detail = f"server storage: {kind}; resend later"
         self._ack(msg.robot_id, AckMsg(msg.robot_id, msg.session_id, msg.seq, "retry", detail))
 

@@ -17,6 +17,13 @@ Guarantees (SQLite backend):
 - Keyframes are never deleted or rewritten (object-map rows on the same file are: see
   `server/objectmap.py`).
 
+Failures: a SQLite error becomes :class:`StoreUnavailableError` when the store cannot write
+*now* (disk or ``max_pages`` cap full, locked past the busy timeout, I/O error, read-only),
+:class:`StoreDamagedError` when the file is damaged (logged once with :data:`REPAIR_HINT`), or
+a plain :class:`StoreError`; none of them means the keyframe was bad. :meth:`~SqliteKeyframeStore.writable`
+is the readiness probe. Options (busy timeout, page cap) come from the URL's query
+(:class:`StoreOptions`).
+
 Threads: one SQLite connection per thread (``threading.local``), opened on the thread's
 first call, so the ingest thread writes while HTTP threads read concurrently (WAL lets
 readers proceed during a write; each read sees the last committed state). Writers are
@@ -48,7 +55,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
 from typing import Final, Literal, NoReturn, Protocol, TypeAlias
-from urllib.parse import parse_qsl
+from urllib.parse import unquote
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -298,7 +305,8 @@ class StoreOptions:
     def from_query(cls, query: str) -> StoreOptions:
         """Parse a URL query ``busy_timeout_s=2&max_pages=1000``; StoreError names a bad or unknown key."""
         values: dict[str, float | int] = {}
-        for key, text in parse_qsl(query, keep_blank_values=True, strict_parsing=bool(query)):
+        for part in query.split("&") if query else ():
+            key, _, text = (unquote(x) for x in part.partition("="))
             try:
                 if key == "busy_timeout_s":
                     values[key] = float(text)
