@@ -18,7 +18,9 @@ One :class:`EdgeAgent` runs one robot. Threads and the state each one owns:
 Acks: ``stored`` and ``duplicate`` remove the item from the outbox. ``rejected`` also
 removes it (the server validated it and will never accept that payload, so resending it
 is pointless) and counts the reason in ``rejected`` of the summary; it is logged as a
-warning.
+warning. ``retry`` (the server's storage failed: disk full, locked, damaged) keeps the item:
+it is resent ``resend_after_s`` after its last send, like an unacked one, and counted in
+``retry_later`` (summary and heartbeat); a warning is logged when such a spell begins.
 
 Sources: a data-set folder (:class:`~wardmap.shared.dataset.DatasetReader`) or any
 :class:`~wardmap.shared.dataset.FrameSource` object, e.g. the simulator's live run that
@@ -184,6 +186,8 @@ class _SenderStats:
     acked: int = 0
     duplicates: int = 0
     rejected: Counter[str] = field(default_factory=Counter)
+    retry_later: int = 0
+    retrying: bool = False  # the last ack was ``retry`` (logs the start of a spell once)
     bad_acks: int = 0
     heartbeats: int = 0
     first_sent: dict[tuple[str, str, int], float] = field(default_factory=dict)
@@ -324,6 +328,7 @@ class EdgeAgent:
             "acked": s.acked,
             "duplicates": s.duplicates,
             "rejected": dict(s.rejected),
+            "retry_later": s.retry_later,
             "bad_acks": s.bad_acks,
             "inbox_dropped": self._inbox_dropped,
             "outbox_full_waits": track.outbox_full_waits,
@@ -569,6 +574,15 @@ class EdgeAgent:
             stats.bad_acks += 1
             log.warning("ignoring an ack for robot %r on robot %r's key", ack.robot_id, self.robot_id)
             return
+        if ack.status == "retry":
+            # The server could not store it (its storage failed): keep it; pending() resends it
+            # resend_after_s after the send this answers.
+            stats.retry_later += 1
+            if not stats.retrying:
+                log.warning("the server cannot store keyframes now (%s); keeping them to resend", ack.reason)
+            stats.retrying = True
+            return
+        stats.retrying = False
         if ack.status == "rejected":
             # The server will never accept this payload: resending is pointless; drop it, count why.
             stats.rejected[ack.reason or "(no reason)"] += 1
@@ -612,6 +626,7 @@ class EdgeAgent:
                 "acked": stats.acked,
                 "resent": stats.resent,
                 "rejected": sum(stats.rejected.values()),
+                "retry_later": stats.retry_later,
                 "inbox_dropped": self._inbox_dropped,
             },
         )

@@ -14,10 +14,19 @@ reliable with congestion control ``BLOCK``, so their puts wait instead of being 
 For each sample the worker decodes the keyframe, checks that the robot id in the key equals
 the message's ``robot_id``, stores it and only *after* the insert committed publishes an
 :class:`~wardmap.shared.wire.AckMsg` (``stored`` or ``duplicate``) on
-:func:`~wardmap.shared.zenoh_config.ack_key`. Bad input never stops the worker: a
-:class:`~wardmap.shared.errors.WardmapError` is counted as a rejection in the store (and
-acked ``rejected`` when the robot is known); an unexpected exception is logged with the
-payload size and counted as ``internal``.
+:func:`~wardmap.shared.zenoh_config.ack_key`. Bad input never stops the worker: a message that
+can never be stored (a :class:`~wardmap.shared.errors.WireError`, a robot id mismatch) is
+counted as a rejection and acked ``rejected`` when the robot is known; an unexpected exception
+is logged with the payload size and counted as ``internal`` (not acked: the robot resends).
+
+An ack means stored, and only then. When the store fails on a valid keyframe (disk or page cap
+full, locked past the busy timeout, I/O error, damaged file: any
+:class:`~wardmap.server.store.StoreError`) the keyframe is acked ``retry`` and counted in
+``retry_later``; the robot keeps it in its outbox and resends it. Rejection counts are kept in
+memory first and written to the store whenever it can write (at once, after the next stored
+keyframe, at most every :data:`PERSIST_RETRY_S` while it cannot, and when the worker ends), each
+count exactly once: :meth:`Ingest.counters` shows those not written yet and
+:meth:`Ingest.rejections` the sum. :meth:`Ingest.ready` says whether keyframes can be stored now.
 """
 
 from __future__ import annotations
@@ -26,11 +35,12 @@ import dataclasses
 import logging
 import threading
 import time
-from collections import OrderedDict, deque
-from dataclasses import dataclass
+from collections import Counter, OrderedDict, deque
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 from typing import Any, Final
 
-from wardmap.server.store import KeyframeStore
+from wardmap.server.store import KeyframeStore, StoreDamagedError, StoreError
 from wardmap.server.zenoh_session import first_line
 from wardmap.shared.errors import ConfigError, WardmapError, WireError
 from wardmap.shared.wire import AckMsg, AckStatus, KeyframeMsg, decode_keyframe, encode
@@ -57,6 +67,9 @@ DEFAULT_CAPACITY: Final = 256
 MAX_ACK_PUBLISHERS: Final = 1024
 """Ack publishers kept declared (one per robot); the least recently used is undeclared beyond this."""
 _MAX_REASON: Final = 200
+PERSIST_RETRY_S: Final = 5.0
+"""While the store cannot write, rejection counts are retried at most this often (each try may
+wait the store's busy timeout) and after every keyframe stored."""
 
 
 class IngestError(WardmapError):
@@ -71,10 +84,14 @@ class IngestCounters:
         received: samples taken from the channel.
         stored: keyframes newly stored (and acked ``stored``).
         duplicates: keyframes already stored (acked ``duplicate``).
-        rejected: samples rejected (bad payload, key/robot mismatch, store error, internal).
+        rejected: samples rejected (bad payload, key/robot mismatch, internal); never a
+            storage failure.
         queue_depth: samples the worker has taken from the zenoh channel and not yet
             processed (a lower bound of the backlog: zenoh does not expose its channel's length).
         ack_failures: acks that could not be published.
+        retry_later: valid keyframes the store could not take (acked ``retry``; the robot resends).
+        unpersisted_rejections: rejection counts by reason not yet written to the store (it
+            could not write); added to the store's once it can.
     """
 
     received: int
@@ -83,6 +100,8 @@ class IngestCounters:
     rejected: int
     queue_depth: int
     ack_failures: int
+    retry_later: int = 0
+    unpersisted_rejections: Mapping[str, int] = field(default_factory=dict)
 
 
 class Ingest:
@@ -115,7 +134,12 @@ class Ingest:
         self._capacity = capacity
         self._clock = clock
         self._lock = threading.Lock()
-        self._counts = {"received": 0, "stored": 0, "duplicates": 0, "rejected": 0, "ack_failures": 0}
+        self._counts = {"received": 0, "stored": 0, "duplicates": 0, "rejected": 0, "ack_failures": 0,
+                        "retry_later": 0}
+        self._unpersisted: Counter[str] = Counter()  # rejections not in the store yet; under _lock
+        self._persist_lock = threading.Lock()  # one store write + its _unpersisted update at a time
+        self._store_fault: str | None = None  # worker only: why the last insert failed, None once it works
+        self._next_persist = 0.0  # worker only: after a failed count write, none before this (monotonic)
         self._backlog: deque[Any] = deque()
         self._subscriber: Any = None
         self._thread: threading.Thread | None = None
@@ -184,9 +208,35 @@ class Ingest:
         with self._lock:
             c = dict(self._counts)
             depth = len(self._backlog)
+            unpersisted = dict(self._unpersisted)
         return IngestCounters(
-            c["received"], c["stored"], c["duplicates"], c["rejected"], depth, c["ack_failures"]
+            c["received"], c["stored"], c["duplicates"], c["rejected"], depth, c["ack_failures"],
+            c["retry_later"], unpersisted,
         )
+
+    def rejections(self) -> dict[str, int]:
+        """Every rejection reason with its count: the store's plus those not written yet, each
+        counted once (thread safe; for ``/metrics``).
+
+        Raises:
+            StoreError: the store cannot be read (e.g. :class:`StoreDamagedError`).
+        """
+        with self._persist_lock:  # no count moves from memory to the store meanwhile
+            counts = Counter(self._store.rejections())
+            with self._lock:
+                counts.update(self._unpersisted)
+        return dict(sorted(counts.items()))
+
+    def ready(self) -> tuple[bool, str]:
+        """Whether this ingest can store keyframes now: ``(True, "ok")`` or ``(False, why)``,
+        for ``/readyz``: the worker runs and :meth:`KeyframeStore.writable` passes. Thread
+        safe; never raises; may take up to the store's probe timeout (about 1 s) while
+        another process holds the database's write lock."""
+        thread = self._thread
+        if thread is None or not thread.is_alive() or self._stopping.is_set():
+            return False, "ingest is not running"
+        ok, why = self._store.writable()
+        return (True, "ok") if ok else (False, f"keyframe store cannot write: {why}")
 
     # ------------------------------------------------------------------ worker
 
@@ -219,6 +269,7 @@ class Ingest:
                 self._handle(sample)
         with self._lock:
             self._backlog.clear()
+        self._persist_rejections()  # last chance for counts kept while the store could not write
         log.debug("ingest worker ends")
 
     def _handle(self, sample: Any) -> None:
@@ -248,12 +299,33 @@ class Ingest:
             return
         try:
             result = self._store.insert(msg, payload, float(self._clock()))
-        except WardmapError as exc:
-            log.error("store rejected keyframe %s/%s/%d: %s", msg.robot_id, msg.session_id, msg.seq, exc)
-            self._reject("store", key_robot, msg, "server could not store the keyframe")
+        except StoreError as exc:
+            # The server's own failure, never the message's: the robot keeps it and resends.
+            self._retry_later(msg, exc)
             return
+        if self._store_fault is not None:
+            log.warning("keyframe store writes again (was: %s)", self._store_fault)
+            self._store_fault = None
         self._count("stored" if result == "stored" else "duplicates")
         self._ack(msg.robot_id, AckMsg(msg.robot_id, msg.session_id, msg.seq, result))
+        if self._unpersisted:  # read without the lock: only this thread adds to it
+            self._persist_rejections()
+
+    def _retry_later(self, msg: KeyframeMsg, exc: StoreError) -> None:
+        """Ack ``retry``: the keyframe is valid but was not stored; logged once per fault."""
+        self._count("retry_later")
+        damaged = isinstance(exc, StoreDamagedError)
+        kind = "damaged" if damaged else "cannot store"
+        if self._store_fault is None:
+            # The store logged how to repair a damaged file once already; do not repeat it.
+            why = "the store logged how to repair it" if damaged else str(exc)
+            log.error("keyframe store %s (%s): keyframes are acked 'retry' and stay on the robots "
+                      "until it can store them", kind, why)
+        else:
+            log.debug("keyframe %s/%s/%d not stored: %s", msg.robot_id, msg.session_id, msg.seq, exc)
+        self._store_fault = kind if damaged else str(exc)
+        detail = f"server storage: {kind}; resend later"
+        self._ack(msg.robot_id, AckMsg(msg.robot_id, msg.session_id, msg.seq, "retry", detail))
 
     def _reject(self, reason: str, robot: str | None, msg: Any, detail: str) -> None:
         self._count("rejected")
@@ -270,10 +342,29 @@ class Ingest:
         self._ack(robot, ack)
 
     def _count_rejection(self, reason: str) -> None:
-        try:
-            self._store.count_rejection(reason)
-        except WardmapError as exc:
-            log.error("cannot count rejection %r: %s", reason, exc)
+        """Count ``reason`` in memory, then try to write every count kept so far to the store."""
+        with self._lock:
+            self._unpersisted[reason] += 1
+        if time.monotonic() >= self._next_persist:  # not while a recent try failed: each waits
+            self._persist_rejections()
+
+    def _persist_rejections(self) -> None:
+        """Move the in-memory rejection counts into the store, one reason per transaction; a
+        count leaves memory only once its transaction committed, so none is lost or doubled."""
+        with self._persist_lock:
+            with self._lock:
+                todo = list(self._unpersisted.items())
+            for reason, n in todo:
+                try:
+                    self._store.count_rejection(reason, n)
+                except WardmapError as exc:
+                    self._next_persist = time.monotonic() + PERSIST_RETRY_S
+                    log.warning("cannot write rejection counts yet (kept in memory): %s", exc)
+                    return
+                with self._lock:
+                    self._unpersisted[reason] -= n
+                    if self._unpersisted[reason] <= 0:
+                        del self._unpersisted[reason]
 
     def _ack(self, robot_id: str, ack: AckMsg) -> None:
         import zenoh

@@ -17,6 +17,13 @@ Guarantees (SQLite backend):
 - Keyframes are never deleted or rewritten (object-map rows on the same file are: see
   `server/objectmap.py`).
 
+Failures: a SQLite error becomes :class:`StoreUnavailableError` when the store cannot write
+*now* (disk or ``max_pages`` cap full, locked past the busy timeout, I/O error, read-only),
+:class:`StoreDamagedError` when the file is damaged (logged once with :data:`REPAIR_HINT`), or
+a plain :class:`StoreError`; none of them means the keyframe was bad. :meth:`~SqliteKeyframeStore.writable`
+is the readiness probe. Options (busy timeout, page cap) come from the URL's query
+(:class:`StoreOptions`).
+
 Threads: one SQLite connection per thread (``threading.local``), opened on the thread's
 first call, so the ingest thread writes while HTTP threads read concurrently (WAL lets
 readers proceed during a write; each read sees the last committed state). Writers are
@@ -36,8 +43,10 @@ from a newer wardmap is refused with "upgrade wardmap". Clock values ending in `
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
+import shutil
 import sqlite3
 import threading
 from collections.abc import Iterator
@@ -45,7 +54,8 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
-from typing import Final, Literal, Protocol, TypeAlias
+from typing import Final, Literal, NoReturn, Protocol, TypeAlias
+from urllib.parse import unquote
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -214,6 +224,103 @@ class StoreError(WardmapError):
     """The keyframe store cannot be opened or used (bad URL, bad file, bad argument, I/O failure)."""
 
 
+class StoreUnavailableError(StoreError):
+    """The store cannot write (or read) *now*: the disk or the file's page cap is full, another
+    process holds the database's write lock past the busy timeout, an I/O error, a read-only
+    file. Nothing is wrong with the data asked to be stored: try again later (ingest acks
+    ``retry``; HTTP answers 503)."""
+
+
+class StoreDamagedError(StoreError):
+    """The database file is damaged (malformed page, corrupt index, not a database). It will not
+    heal by itself: the message says how to repair it (:data:`REPAIR_HINT`); ingest acks
+    ``retry`` so robots keep their keyframes until it is repaired; HTTP answers 503."""
+
+
+# SQLite primary result codes (``sqlite3.Error.sqlite_errorcode & 0xFF``).
+_UNAVAILABLE_CODES: Final = frozenset({
+    sqlite3.SQLITE_BUSY, sqlite3.SQLITE_LOCKED, sqlite3.SQLITE_NOMEM, sqlite3.SQLITE_READONLY,
+    sqlite3.SQLITE_IOERR, sqlite3.SQLITE_FULL, sqlite3.SQLITE_CANTOPEN, sqlite3.SQLITE_PROTOCOL,
+})
+_DAMAGED_CODES: Final = frozenset({sqlite3.SQLITE_CORRUPT, sqlite3.SQLITE_NOTADB})
+REPAIR_HINT: Final = (
+    "stop the server and repair the file: sqlite3 DB '.recover' | sqlite3 NEW (where .recover is "
+    "missing: sqlite3 DB .dump | sqlite3 NEW, then sqlite3 NEW 'PRAGMA application_id = "
+    f"{APPLICATION_ID}; PRAGMA user_version = {len(MIGRATIONS)}'), check sqlite3 NEW "
+    "'PRAGMA integrity_check', move NEW over DB and delete DB-wal and DB-shm; or restore DB from a "
+    "backup. Robots keep their unacked keyframes meanwhile"
+)
+"""How to repair a damaged store (in :class:`StoreDamagedError` messages and the server log)."""
+PROBE_BUSY_TIMEOUT_S: Final = 1.0
+"""Longest :meth:`SqliteKeyframeStore.writable` waits for another writer's lock."""
+
+
+def classify_sqlite_error(exc: sqlite3.Error) -> type[StoreError]:
+    """Which :class:`StoreError` a SQLite failure is: :class:`StoreUnavailableError` (cannot store
+    now: full, locked/busy, I/O error, read-only, cannot open), :class:`StoreDamagedError` (malformed,
+    corrupt, not a database) or plain :class:`StoreError` (anything else: a bug or bad use)."""
+    code = getattr(exc, "sqlite_errorcode", None)
+    if isinstance(code, int):
+        primary = code & 0xFF
+        if primary in _DAMAGED_CODES:
+            return StoreDamagedError
+        if primary in _UNAVAILABLE_CODES:
+            return StoreUnavailableError
+        return StoreError
+    text = str(exc).lower()  # raised without a code (rare): fall back on SQLite's fixed messages
+    if "malformed" in text or "not a database" in text or "corrupt" in text:
+        return StoreDamagedError
+    if any(w in text for w in ("disk is full", "locked", "busy", "disk i/o", "readonly", "unable to open")):
+        return StoreUnavailableError
+    return StoreError
+
+
+@dataclass(frozen=True, slots=True)
+class StoreOptions:
+    """Settings of the SQLite store, given as the URL's query:
+    ``sqlite:///map.db?busy_timeout_s=2&max_pages=250000`` (docs/deploy.md, "Storage faults").
+
+    Attributes:
+        busy_timeout_s: how long a statement waits for another connection's write lock (another
+            process holding ``BEGIN EXCLUSIVE``, a backup) before it fails as
+            :class:`StoreUnavailableError`; > 0 and <= 600 seconds.
+        max_pages: cap on the file's size in database pages (``PRAGMA max_page_count``; a page is
+            4096 bytes unless the file says otherwise); a write beyond it fails as "database or
+            disk is full" (:class:`StoreUnavailableError`). None: SQLite's own limit. Keeps the
+            server from filling a disk it shares, and lets a fault drill fill "the disk".
+    """
+
+    busy_timeout_s: float = BUSY_TIMEOUT_S
+    max_pages: int | None = None
+
+    def __post_init__(self) -> None:
+        t = self.busy_timeout_s
+        if isinstance(t, bool) or not isinstance(t, int | float) or not (math.isfinite(t) and 0 < t <= 600):
+            raise StoreError(f"store option busy_timeout_s must be a number in (0, 600] s, got {t!r}")
+        m = self.max_pages
+        if m is not None and (isinstance(m, bool) or not isinstance(m, int) or not 1 <= m < 2**32):
+            raise StoreError(f"store option max_pages must be an int in [1, 2**32), got {m!r}")
+
+    @classmethod
+    def from_query(cls, query: str) -> StoreOptions:
+        """Parse a URL query ``busy_timeout_s=2&max_pages=1000``; StoreError names a bad or unknown key."""
+        values: dict[str, float | int] = {}
+        for part in query.split("&") if query else ():
+            key, _, text = (unquote(x) for x in part.partition("="))
+            try:
+                if key == "busy_timeout_s":
+                    values[key] = float(text)
+                elif key == "max_pages":
+                    values[key] = int(text)
+                else:
+                    raise StoreError(
+                        f"unknown store option {key!r:.40}: expected busy_timeout_s or max_pages"
+                    )
+            except ValueError as exc:
+                raise StoreError(f"store option {key} must be a number, got {text!r:.40}") from exc
+        return cls(**values)  # type: ignore[arg-type]  # keys checked above
+
+
 STORE_DB: Final = sqlitedb.SqliteKind(
     "keyframe store", APPLICATION_ID, MIGRATIONS, StoreError, BUSY_TIMEOUT_S
 )
@@ -302,8 +409,12 @@ class KeyframeStore(Protocol):
         """Store ``msg`` (encoded as ``payload``) durably; see :meth:`SqliteKeyframeStore.insert`."""
         ...
 
-    def count_rejection(self, reason: str) -> None:
-        """Add one to the counter of ``reason``."""
+    def count_rejection(self, reason: str, n: int = 1) -> None:
+        """Add ``n`` to the counter of ``reason``, all or nothing."""
+        ...
+
+    def writable(self) -> tuple[bool, str]:
+        """Whether a write can commit now: ``(True, "ok")`` or ``(False, why)``."""
         ...
 
     def rejections(self) -> dict[str, int]:
@@ -342,7 +453,8 @@ def open_store(url: str) -> SqliteKeyframeStore:
         url: ``sqlite:///PATH`` as in SQLAlchemy: ``sqlite:///map.db`` is relative to the
             working folder, ``sqlite:////var/lib/wardmap/map.db`` is absolute. The parent
             folder is created. In-memory databases are not supported (every thread opens its
-            own connection).
+            own connection). A query sets :class:`StoreOptions`:
+            ``sqlite:///map.db?busy_timeout_s=2&max_pages=250000``.
 
     Raises:
         StoreError: an unknown or unsupported scheme, an empty path, or any failure of
@@ -361,12 +473,12 @@ def open_store(url: str) -> SqliteKeyframeStore:
             f"unknown store URL {url!r}: expected {SQLITE_SCHEME}PATH "
             f"(e.g. {SQLITE_SCHEME}wardmap.db or {SQLITE_SCHEME}/var/lib/wardmap/map.db)"
         )
-    path = url[len(SQLITE_SCHEME) :]
+    path, _, query = url[len(SQLITE_SCHEME) :].partition("?")
     if not path:
         raise StoreError(f"store URL {url!r} has no file path: expected {SQLITE_SCHEME}PATH")
-    if path == ":memory:" or path.startswith("file:") or "?" in path:
+    if path == ":memory:" or path.startswith("file:"):
         raise StoreError(f"store URL {url!r}: only a plain file path is supported after {SQLITE_SCHEME}")
-    return SqliteKeyframeStore.open(Path(path))
+    return SqliteKeyframeStore.open(Path(path), StoreOptions.from_query(query))
 
 
 class SqliteKeyframeStore(sqlitedb.GuardedAccess):
@@ -378,9 +490,15 @@ class SqliteKeyframeStore(sqlitedb.GuardedAccess):
     _DB_LABEL = "keyframe store"
     _DB_ERROR = StoreError
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, options: StoreOptions | None = None) -> None:
         """Internal: use :meth:`open`."""
         self.path = path
+        self.options = options or StoreOptions()
+        self._kind = dataclasses.replace(STORE_DB, busy_timeout_s=self.options.busy_timeout_s)
+        self._health_lock = threading.Lock()  # guards the two fields below
+        # what -> (why its last write failed as unavailable, whether a passing probe clears it)
+        self._write_faults: dict[str, tuple[str, bool]] = {}
+        self._damage: str | None = None  # first damage seen; sticky until the file is repaired
         self._local = threading.local()
         self._conns: list[tuple[threading.Thread, sqlite3.Connection]] = []
         self._conns_lock = threading.Lock()
@@ -389,7 +507,7 @@ class SqliteKeyframeStore(sqlitedb.GuardedAccess):
     # ------------------------------------------------------------------ life cycle
 
     @classmethod
-    def open(cls, path: str | Path) -> SqliteKeyframeStore:
+    def open(cls, path: str | Path, options: StoreOptions | None = None) -> SqliteKeyframeStore:
         """Open (or create) the store file at ``path``; its parent folder is created.
 
         Raises:
@@ -401,10 +519,10 @@ class SqliteKeyframeStore(sqlitedb.GuardedAccess):
             path.parent.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise StoreError(f"cannot create the store folder {path.parent}: {exc}") from exc
-        store = cls(path)
+        store = cls(path, options)
         try:
             conn = store._connection()  # this thread's connection; checks and migrates the file
-            sqlitedb.check_and_migrate(conn, path, STORE_DB)
+            sqlitedb.check_and_migrate(conn, path, store._kind)
         except BaseException:
             store.close()
             raise
@@ -450,7 +568,10 @@ class SqliteKeyframeStore(sqlitedb.GuardedAccess):
             ``"duplicate"`` (rather than rejecting) lets the robot drop it from its outbox.
 
         Raises:
-            StoreError: bad arguments or a database failure (nothing was stored).
+            StoreUnavailableError: the database cannot write now (full, locked past the busy timeout,
+                I/O error, read-only); nothing was stored, the same call may succeed later.
+            StoreDamagedError: the file is damaged (e.g. a corrupt index page); nothing was stored.
+            StoreError: bad arguments or another database failure (nothing was stored).
         """
         if not isinstance(msg, KeyframeMsg):
             raise StoreError(f"msg must be a KeyframeMsg, got {type(msg).__name__}")
@@ -497,23 +618,98 @@ class SqliteKeyframeStore(sqlitedb.GuardedAccess):
             )
         return "stored"
 
-    def count_rejection(self, reason: str) -> None:
-        """Add one to the counter of ``reason`` (committed before returning).
+    def count_rejection(self, reason: str, n: int = 1) -> None:
+        """Add ``n`` to the counter of ``reason`` in one transaction (committed before returning,
+        or not at all: a caller that keeps counts while the store cannot write adds them later,
+        once, with ``n``).
 
         Reasons should come from a small fixed set (e.g. the failing wire field), never
         from free text of a message, so the table stays small.
 
         Raises:
-            StoreError: ``reason`` is not a 1-200 character str, or a database failure.
+            StoreUnavailableError, StoreDamagedError: as for :meth:`insert` (nothing was added).
+            StoreError: ``reason`` is not a 1-200 character str, ``n`` is not an int >= 1, or
+                another database failure.
         """
         if not isinstance(reason, str) or not 0 < len(reason) <= MAX_REASON_LEN:
             raise StoreError(f"reason must be a str of 1-{MAX_REASON_LEN} characters, got {reason!r:.80}")
+        if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n < 2**62:
+            raise StoreError(f"n must be an int >= 1, got {n!r:.40}")
         with self._write("count_rejection") as conn:
             conn.execute(
-                "INSERT INTO rejections (reason, count) VALUES (?, 1) "
-                "ON CONFLICT (reason) DO UPDATE SET count = count + 1",
-                (reason,),
+                "INSERT INTO rejections (reason, count) VALUES (?, ?) "
+                "ON CONFLICT (reason) DO UPDATE SET count = count + excluded.count",
+                (reason, n),
             )
+
+    # ------------------------------------------------------------------ readiness
+
+    def writable(self) -> tuple[bool, str]:
+        """Whether a write can commit now: ``(True, "ok")`` or ``(False, why)``.
+
+        Not writable when: the store is closed; damage was seen (sticky: a damaged file does
+        not heal; :data:`REPAIR_HINT`); a probe transaction on this thread's connection fails
+        (``BEGIN IMMEDIATE``, a one-row insert, ``ROLLBACK``: catches a write lock held by
+        another process past :data:`PROBE_BUSY_TIMEOUT_S`, a read-only or vanished file, I/O
+        errors); the file is at its ``max_pages`` cap or its disk has no free space; or the
+        last write of some kind (``insert``, ``count_rejection``, a ``writing(what)`` block)
+        failed as :class:`StoreUnavailableError` and no write of that kind succeeded since (a
+        rolled-back probe never needs new space, so only a real write finds a disk too full
+        for a keyframe; a small write that fits must not hide it), unless that failure was only
+        a lock (busy/locked), which a passing probe clears. Never raises. Thread safe
+        (not from inside a transaction of the same thread); may take up to
+        :data:`PROBE_BUSY_TIMEOUT_S` while another connection holds the write lock.
+        """
+        with self._health_lock:
+            damage = self._damage
+        if self._closed:
+            return False, "closed"
+        if damage is not None:
+            return False, f"damaged: {damage}"
+        try:
+            conn = self._connection()
+        except StoreError as exc:
+            return False, str(exc)
+        probe_ms = int(min(self.options.busy_timeout_s, PROBE_BUSY_TIMEOUT_S) * 1000)
+        try:
+            with self._db_errors("readiness probe"):
+                conn.execute(f"PRAGMA busy_timeout = {probe_ms}")
+                try:
+                    conn.execute("BEGIN IMMEDIATE")
+                    try:
+                        conn.execute(
+                            "INSERT INTO rejections (reason, count) VALUES ('readiness probe', 0) "
+                            "ON CONFLICT (reason) DO NOTHING"
+                        )
+                    finally:
+                        if conn.in_transaction:
+                            conn.execute("ROLLBACK")
+                    full = self._space_left_pages(conn) <= 0
+                finally:
+                    conn.execute(f"PRAGMA busy_timeout = {int(self.options.busy_timeout_s * 1000)}")
+        except StoreError as exc:
+            return False, str(exc)
+        if full:
+            return False, f"keyframe store {self.path}: no space left (disk or max_pages cap full)"
+        with self._health_lock:
+            # The probe took the write lock: a failure that was only a lock is over.
+            self._write_faults = {w: f for w, f in self._write_faults.items() if not f[1]}
+            faults = sorted(why for why, _ in self._write_faults.values())
+        if faults:
+            return False, f"last write failed: {faults[0]}"
+        return True, "ok"
+
+    def _space_left_pages(self, conn: sqlite3.Connection) -> int:
+        """Free pages the file may still use: under ``max_page_count`` and on its disk."""
+        page_size, pages, free, cap = (
+            int(conn.execute(f"PRAGMA {p}").fetchone()[0])
+            for p in ("page_size", "page_count", "freelist_count", "max_page_count")
+        )
+        try:
+            disk = shutil.disk_usage(self.path.parent).free // page_size
+        except OSError:
+            disk = 0
+        return free + min(cap - pages, disk)
 
     # ------------------------------------------------------------------ reads
 
@@ -654,6 +850,45 @@ class SqliteKeyframeStore(sqlitedb.GuardedAccess):
         with self._write(what) as conn:
             yield conn
 
+    # ------------------------------------------------------------------ error classification
+
+    @contextmanager
+    def _db_errors(self, what: str) -> Iterator[None]:
+        """SQLite errors become :class:`StoreUnavailableError`, :class:`StoreDamagedError` (logged once,
+        with :data:`REPAIR_HINT`) or :class:`StoreError`, naming the file and ``what`` failed."""
+        try:
+            yield
+        except sqlite3.Error as exc:
+            self._raise_classified(what, exc)
+
+    def _raise_classified(self, what: str, exc: sqlite3.Error) -> NoReturn:
+        kind = classify_sqlite_error(exc)
+        detail = f"keyframe store {self.path}: {what} failed: {exc}"
+        if kind is StoreDamagedError:
+            with self._health_lock:
+                first = self._damage is None
+                if first:
+                    self._damage = detail
+            if first:
+                log.error("%s: the database file is damaged; %s", detail, REPAIR_HINT)
+            raise StoreDamagedError(f"{detail}: the database file is damaged; {REPAIR_HINT}") from exc
+        raise kind(detail) from exc
+
+    @contextmanager
+    def _write(self, what: str) -> Iterator[sqlite3.Connection]:
+        """One ``BEGIN IMMEDIATE`` .. ``COMMIT`` transaction; its outcome feeds :meth:`writable`."""
+        try:
+            with super()._write(what) as conn:
+                yield conn
+        except StoreUnavailableError as exc:
+            code = getattr(exc.__cause__, "sqlite_errorcode", 0)
+            lock_only = isinstance(code, int) and code & 0xFF in (sqlite3.SQLITE_BUSY, sqlite3.SQLITE_LOCKED)
+            with self._health_lock:
+                self._write_faults[what] = (str(exc), lock_only)
+            raise
+        with self._health_lock:
+            self._write_faults.pop(what, None)
+
     # ------------------------------------------------------------------ internals
 
     @staticmethod
@@ -678,7 +913,13 @@ class SqliteKeyframeStore(sqlitedb.GuardedAccess):
         conn: sqlite3.Connection | None = getattr(self._local, "conn", None)
         if conn is not None:
             return conn
-        conn = sqlitedb.connect(self.path, STORE_DB)
+        conn = sqlitedb.connect(self.path, self._kind)
+        if self.options.max_pages is not None:
+            try:
+                conn.execute(f"PRAGMA max_page_count = {int(self.options.max_pages)}")
+            except sqlite3.Error as exc:
+                conn.close()
+                raise StoreError(f"keyframe store {self.path}: cannot set max_pages: {exc}") from exc
         with self._conns_lock:
             if self._closed:
                 conn.close()

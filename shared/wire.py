@@ -75,7 +75,9 @@ PoseSource: TypeAlias = Literal[
     "init", "rgb", "relocalised", "thermal", "depth", "odometry", "motion_model", "none"
 ]
 """What produced a keyframe's pose; the same values as ``wardmap.edge.tracker.PoseSource``."""
-AckStatus: TypeAlias = Literal["stored", "duplicate", "rejected"]
+AckStatus: TypeAlias = Literal["stored", "duplicate", "rejected", "retry"]
+"""``retry``: the server could not store the keyframe now (its own storage failed); keep it and
+resend. Added within version 1: an older robot reads it as a bad ack and keeps the item too."""
 POSE_SOURCES: Final[tuple[str, ...]] = get_args(PoseSource)
 ACK_STATUSES: Final[tuple[str, ...]] = get_args(AckStatus)
 
@@ -578,8 +580,10 @@ class AckMsg:
 
     Attributes:
         robot_id, session_id, seq: the keyframe acknowledged.
-        status: ``stored`` (new), ``duplicate`` (already stored; the robot may drop it) or
-            ``rejected`` (will never be stored; ``reason`` says why).
+        status: ``stored`` (new, committed), ``duplicate`` (already stored; the robot may drop
+            it), ``rejected`` (invalid: will never be stored; ``reason`` says why) or ``retry``
+            (valid, but the server's storage failed: disk full, locked, damaged; the robot keeps
+            it and resends after its normal resend delay).
         reason: human-readable detail, at most 1024 characters; may be empty.
     """
 

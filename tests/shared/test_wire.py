@@ -183,6 +183,15 @@ def test_ack_and_heartbeat_round_trip() -> None:
     assert e.value.field == "schema"
 
 
+@pytest.mark.parametrize("status", ["stored", "duplicate", "rejected", "retry"])
+def test_every_ack_status_round_trips(status: str) -> None:
+    """Every ack status, including ``retry`` (the server's storage failed: keep and resend),
+    encodes and decodes to an equal message."""
+    ack = AckMsg("robot_0", "s1", 3, status, "server storage: cannot store; resend later")  # type: ignore[arg-type]
+    assert wire.decode_ack(wire.encode(ack)) == ack
+    assert wire.ACK_STATUSES == ("stored", "duplicate", "rejected", "retry")
+
+
 def test_pose_sources_match_tracker() -> None:
     """The wire's pose sources are exactly the tracker's (shared/ cannot import edge/)."""
     assert set(wire.POSE_SOURCES) == set(get_args(TrackerPoseSource))
