@@ -21,7 +21,7 @@ from fastapi.responses import JSONResponse
 from wardmap.server.api.deps import ServerLifecycle
 from wardmap.server.api.prometheus import ServerCollector, metrics_registry
 from wardmap.server.api.routes import categories, health, keyframes, metrics, objects, robots
-from wardmap.server.store import StoreError
+from wardmap.server.store import StoreDamagedError, StoreError, StoreUnavailableError
 from wardmap.shared.errors import WardmapError
 
 log = logging.getLogger(__name__)
@@ -61,8 +61,14 @@ def create_app(server: ServerLifecycle) -> FastAPI:
 
 
 async def _wardmap_error(request: Request, exc: Exception) -> JSONResponse:
-    """The one place a WardmapError becomes an HTTP status: bad store arguments are 400."""
-    status = 400 if isinstance(exc, StoreError) else 500
+    """The one place a WardmapError becomes an HTTP status: a store that cannot serve now
+    (damaged, locked, full: the store logged how to repair) is 503, bad store arguments 400."""
+    if isinstance(exc, StoreDamagedError | StoreUnavailableError):
+        status = 503
+    elif isinstance(exc, StoreError):
+        status = 400
+    else:
+        status = 500
     if status == 500:
         log.error("%s %s failed: %s", request.method, request.url.path, exc)
     return JSONResponse({"detail": str(exc)}, status_code=status)

@@ -57,8 +57,8 @@ def _by(label: str, family: type[CounterMetricFamily | GaugeMetricFamily], name:
 
 
 def ingest_metrics(c: IngestCounters | None, rejections: Mapping[str, int], robots: int) -> list[Metric]:
-    """The ingest's counters (zeros without an ingest), the store's persistent rejection
-    counts by reason, and the robots with a stored keyframe."""
+    """The ingest's counters (zeros without an ingest), the rejection counts by reason (stored
+    and not yet written, each once), and the robots with a stored keyframe."""
     c = c or IngestCounters(0, 0, 0, 0, 0, 0)
     return [
         _counter("wardmap_keyframes_received_total",
@@ -72,6 +72,9 @@ def ingest_metrics(c: IngestCounters | None, rejections: Mapping[str, int], robo
         _gauge("wardmap_ingest_queue_depth",
                "Samples taken from the zenoh channel and not yet processed.", c.queue_depth),
         _counter("wardmap_ack_failures_total", "Acks that could not be published.", c.ack_failures),
+        _counter("wardmap_keyframes_retry_later_total",
+                 "Valid keyframes the store could not take now (acked retry; the robot resends).",
+                 c.retry_later),
         _gauge("wardmap_robots", "Robots with at least one stored keyframe.", robots),
     ]
 
@@ -135,7 +138,8 @@ class ServerCollector(Collector):
 
     def collect(self) -> Iterator[Metric]:
         counters = self._ingest.counters() if self._ingest is not None else None
-        yield from ingest_metrics(counters, self._store.rejections(), self._store.stats().robots)
+        rejections = self._ingest.rejections() if self._ingest is not None else self._store.rejections()
+        yield from ingest_metrics(counters, rejections, self._store.stats().robots)
         yield from map_metrics(self._objects.count(unconfirmed=False), self._objects.count(unconfirmed=True))
         if self._pipeline is not None:
             yield from pipeline_metrics(self._pipeline.counters())

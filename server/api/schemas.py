@@ -42,6 +42,12 @@ class Health(BaseModel):
     status: Literal["ok"]
 
 
+class Readiness(BaseModel):
+    """``ok``, or why keyframes cannot be stored now."""
+
+    status: str
+
+
 class RobotOut(BaseModel):
     robot_id: str
     keyframes: int

@@ -1,10 +1,13 @@
-"""``GET /healthz``: the liveness probe."""
+"""``GET /healthz``: the liveness probe; ``GET /readyz``: the readiness probe (503 while
+keyframes cannot be stored)."""
 
 from __future__ import annotations
 
 from fastapi import APIRouter
+from fastapi.responses import JSONResponse
 
-from wardmap.server.api.schemas import Health
+from wardmap.server.api.deps import ServicesDep
+from wardmap.server.api.schemas import Health, Readiness
 
 router = APIRouter()
 
@@ -12,3 +15,15 @@ router = APIRouter()
 @router.get("/healthz", response_model=Health)
 def healthz() -> Health:
     return Health(status="ok")
+
+
+@router.get("/readyz", response_model=Readiness, responses={503: {"model": Readiness}})
+def readyz(services: ServicesDep) -> JSONResponse:
+    """Ready when keyframes can be stored now: the ingest runs and the store can write
+    (``Ingest.ready``; without ingest, ``KeyframeStore.writable``). A plain ``def``: the
+    probe may wait about 1 s on a locked database, off the event loop."""
+    if services.ingest is not None:
+        ok, why = services.ingest.ready()
+    else:
+        ok, why = services.store.writable()
+    return JSONResponse({"status": "ok" if ok else why}, status_code=200 if ok else 503)
