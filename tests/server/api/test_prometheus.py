@@ -29,6 +29,7 @@ CONTRACT = {
     "wardmap_rejections_total": ("counter", ("reason",)),
     "wardmap_ingest_queue_depth": ("gauge", ()),
     "wardmap_ack_failures_total": ("counter", ()),
+    "wardmap_keyframes_retry_later_total": ("counter", ()),
     "wardmap_robots": ("gauge", ()),
     "wardmap_map_objects": ("gauge", ("confirmed",)),
     "wardmap_mapping_backlog": ("gauge", ()),
