@@ -1,13 +1,17 @@
-"""Helpers for tests that run wardmap commands as real processes (shared by tests/integration)."""
+"""Helpers for tests that run wardmap commands as real processes (shared by tests/integration)
+and read what they answer."""
 
 from __future__ import annotations
 
 import os
 import queue
+import shlex
 import socket
 import subprocess
 import threading
 from typing import IO
+
+import pytest
 
 
 def free_port() -> int:
@@ -32,6 +36,20 @@ def read_line(stream: IO[str], timeout_s: float) -> str | None:
         return lines.get(timeout=timeout_s) or None
     except queue.Empty:
         return None
+
+
+def start(cmd: list[str], expect: str, timeout_s: float) -> subprocess.Popen[str]:
+    """Start ``cmd`` (stdout and stderr piped, :func:`child_env`) and wait up to ``timeout_s`` for
+    its ready line ``expect``; on another line, EOF or timeout kill it and fail the test with
+    its stderr."""
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=child_env())
+    assert proc.stdout is not None
+    line = read_line(proc.stdout, timeout_s)
+    if line is None or line.strip() != expect:
+        proc.kill()
+        _, err = proc.communicate(timeout=5)
+        pytest.fail(f"{shlex.join(cmd)} not ready within {timeout_s} s ({line!r}); stderr: {err[-2000:]!r}")
+    return proc
 
 
 def stop(proc: subprocess.Popen[str], timeout_s: float = 15.0) -> None:
@@ -67,3 +85,13 @@ def one_line_error(p: subprocess.CompletedProcess[str], needle: str, command: st
     if command is not None:
         assert lines[0].startswith(f"wardmap {command}: error:"), lines[0]
     assert needle in lines[0], lines[0]
+
+
+def prometheus_samples(text: str) -> dict[str, float]:
+    """The samples of a Prometheus text exposition (``GET /metrics``): ``name{labels}`` -> value."""
+    out = {}
+    for line in text.splitlines():
+        if line and not line.startswith("#"):
+            name, value = line.rsplit(" ", 1)
+            out[name] = float(value)
+    return out

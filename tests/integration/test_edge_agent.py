@@ -23,6 +23,7 @@ import pytest
 from procs import child_env as _env
 from procs import free_port as _free_port
 from procs import read_line as _read_line
+from procs import start
 from procs import stop as _stop
 
 zenoh = pytest.importorskip("zenoh")
@@ -66,19 +67,9 @@ def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def router() -> Iterator[str]:
     """A ``wardmap router`` subprocess on a free loopback port, after its ready line; yields its endpoint."""
     endpoint = f"tcp/127.0.0.1:{_free_port()}"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "wardmap.cli", "router", "--listen", endpoint],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        env=_env(),
-    )
+    cmd = [sys.executable, "-m", "wardmap.cli", "router", "--listen", endpoint]
+    proc = start(cmd, f"router listening on {endpoint}", READY_TIMEOUT_S)
     try:
-        assert proc.stdout is not None
-        line = _read_line(proc.stdout, READY_TIMEOUT_S)
-        if line is None:
-            pytest.fail("router not ready")
-        assert line.strip() == f"router listening on {endpoint}"
         yield endpoint
     finally:
         _stop(proc)

@@ -11,9 +11,7 @@ deadline, never on sleeps. Agent restart (SIGTERM, resume from the outbox) is co
 from __future__ import annotations
 
 import contextlib
-import copy
 import json
-import math
 import queue
 import signal
 import sqlite3
@@ -22,17 +20,17 @@ import sys
 import threading
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import cv2
 import httpx
-import msgpack
 import numpy as np
 import pytest
+from factories import FUZZ_LEAVES, keyframe, mutate, walk
 from procs import child_env as _env
 from procs import free_port as _free_port
+from procs import prometheus_samples
 from procs import read_line as _read_line
 
 zenoh = pytest.importorskip("zenoh")
@@ -41,14 +39,7 @@ zenoh = pytest.importorskip("zenoh")
 from wardmap.edge.outbox import Outbox  # noqa: E402  (after the importorskip guard)
 from wardmap.shared import wire  # noqa: E402
 from wardmap.shared.errors import WireError  # noqa: E402
-from wardmap.shared.se3 import make_transform  # noqa: E402
-from wardmap.shared.wire import (  # noqa: E402
-    Intrinsics,
-    KeyframeMsg,
-    Keypoints,
-    PackedRaster,
-    decode_heartbeat,
-)
+from wardmap.shared.wire import decode_heartbeat  # noqa: E402
 from wardmap.shared.zenoh_config import client_config, heartbeat_key, keyframe_key  # noqa: E402
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(90)]
@@ -357,111 +348,16 @@ def test_router_restart_agents_reconnect_and_deliver_exactly_once(
 
 # --------------------------------------------------------------------------- 4. malformed payloads
 
-W, H = 64, 48
-T0 = 1_714_557_600.0
 FUZZ_ROBOT = "fz"
 N_FUZZ = 1000
-_LEAF_POOL: list[Any] = [
-    None,
-    True,
-    False,
-    -1,
-    0,
-    1,
-    2**63,
-    2**64 - 1,
-    -(2**63),
-    1.5,
-    -0.0,
-    math.nan,
-    math.inf,
-    "",
-    "x" * 300,
-    "wardmap.keyframe",
-    "r2",
-    b"",
-    b"\xff\xd8" + bytes(30),
-    [],
-    {},
-    [1, 2, 3],
-    {"a": 1},
-    [0.0, 0.0, 0.0, 1.0],
-    {"dtype": "uint8", "shape": [0], "data": b""},
-]
+# The fuzz values plus another robot's id among the strings: edits that make a robot_id mismatch.
+_LEAVES = (*FUZZ_LEAVES[:16], "r2", *FUZZ_LEAVES[16:])
 
 
 def _base_keyframes(n: int) -> list[bytes]:
     """``n`` small valid keyframes of robot ``fz`` (seq 0..n-1)."""
-    rng = np.random.default_rng(3)
-    ok, jpg = cv2.imencode(".jpg", rng.integers(0, 256, (H, W, 3), dtype=np.uint8))
-    assert ok
-    k = 8
-    base = KeyframeMsg(
-        robot_id=FUZZ_ROBOT,
-        session_id="s1",
-        seq=0,
-        stamp=T0,
-        T_odom_camera=np.eye(4),
-        pose_source="rgb",
-        keypoints=Keypoints(
-            uv=(rng.random((k, 2)) * [W - 1, H - 1]).astype(np.float32),
-            octave=np.zeros(k, np.int8),
-            angle_deg=(rng.random(k) * 360).astype(np.float32),
-            depth_m=rng.uniform(0.5, 4.0, k).astype(np.float32),
-            descriptors=rng.integers(0, 256, (k, 32), dtype=np.uint8),
-        ),
-        rgb_jpeg=bytes(jpg.tobytes()),
-        depth=PackedRaster(*wire.encode_depth(rng.uniform(0.5, 4.0, (H // 2, W // 2)))),
-        intrinsics=Intrinsics(W, H, 50.0, 50.0, 31.5, 23.5, (0.0, 0.0, 0.0, 0.0, 0.0), 5000.0),
-    )
-    return [
-        wire.encode(replace(base, seq=i, stamp=T0 + i, T_odom_camera=make_transform(np.eye(3), [i, 0, 0])))
-        for i in range(n)
-    ]
-
-
-def _leaf_paths(node: Any, path: tuple[Any, ...] = ()) -> list[tuple[Any, ...]]:
-    out = [path] if path else []
-    if isinstance(node, dict):
-        for k, v in node.items():
-            out += _leaf_paths(v, (*path, k))
-    elif isinstance(node, list):
-        for i, v in enumerate(node):
-            out += _leaf_paths(v, (*path, i))
-    return out
-
-
-def _mutate(base: bytes, rng: np.random.Generator) -> bytes:
-    """One seeded mutation (as in tests/shared/test_wire.py's fuzzing, plus random bytes)."""
-    kind = int(rng.integers(0, 7))
-    buf = bytearray(base)
-    if kind == 0:  # bit flips
-        for _ in range(int(rng.integers(1, 8))):
-            i = int(rng.integers(0, len(buf)))
-            buf[i] ^= 1 << int(rng.integers(0, 8))
-        return bytes(buf)
-    if kind == 1:  # truncation (never empty: zenoh carries empty payloads, but keep it a prefix)
-        return bytes(buf[: int(rng.integers(1, len(buf)))])
-    if kind == 2:  # byte insertion
-        i = int(rng.integers(0, len(buf) + 1))
-        noise = rng.integers(0, 256, int(rng.integers(1, 16)), dtype=np.uint8).tobytes()
-        return bytes(buf[:i]) + noise + bytes(buf[i:])
-    if kind == 3:  # random bytes
-        return rng.integers(0, 256, int(rng.integers(1, 3000)), dtype=np.uint8).tobytes()
-    tree = msgpack.unpackb(base, raw=False)
-    paths = _leaf_paths(tree)
-    path = paths[int(rng.integers(0, len(paths)))]
-    parent = tree
-    for p in path[:-1]:
-        parent = parent[p]
-    if kind == 4:  # replace a value (leaf or subtree) with a random value of a random type
-        parent[path[-1]] = copy.deepcopy(_LEAF_POOL[int(rng.integers(0, len(_LEAF_POOL)))])
-    elif kind == 5:  # delete a key or list item
-        del parent[path[-1]]
-    else:  # add an unknown key next to a random one
-        target = parent if isinstance(parent, dict) else tree
-        target["extra"] = _LEAF_POOL[int(rng.integers(0, len(_LEAF_POOL)))]
-    return bytes(msgpack.packb(tree, use_bin_type=True))
+    base = keyframe(np.random.default_rng(3), robot_id=FUZZ_ROBOT, n_keypoints=8)
+    return [wire.encode(m) for m in walk(base, n)]
 
 
 def _expected_outcome(payload: bytes) -> str:
@@ -471,15 +367,6 @@ def _expected_outcome(payload: bytes) -> str:
     except WireError:
         return "rejected"
     return "accepted" if msg.robot_id == FUZZ_ROBOT else "rejected"  # else: robot_id mismatch
-
-
-def _metrics(text: str) -> dict[str, float]:
-    out = {}
-    for line in text.splitlines():
-        if line and not line.startswith("#"):
-            name, value = line.rsplit(" ", 1)
-            out[name] = float(value)
-    return out
 
 
 class AckCounter:
@@ -509,7 +396,8 @@ def test_malformed_and_mutated_payloads_are_rejected_and_counted(stack: Stack) -
     sqlite file passes ``PRAGMA integrity_check``."""
     rng = np.random.default_rng(20240501)
     bases = _base_keyframes(4)
-    payloads = [_mutate(bases[i % len(bases)], rng) for i in range(N_FUZZ)]
+    payloads = [mutate(bases[i % len(bases)], rng, leaves=_LEAVES, random_payloads=True)
+                for i in range(N_FUZZ)]
     expected = [_expected_outcome(p) for p in payloads]
     n_rejected = expected.count("rejected")
     assert 500 < n_rejected < N_FUZZ  # the mix exercises both outcomes
@@ -537,7 +425,7 @@ def test_malformed_and_mutated_payloads_are_rejected_and_counted(stack: Stack) -
 
         assert stack.server.popen.poll() is None
         assert http.get("/healthz").json() == {"status": "ok"}
-        metrics = _metrics(http.get("/metrics").text)
+        metrics = prometheus_samples(http.get("/metrics").text)
         reasons = {k: v for k, v in metrics.items() if k.startswith("wardmap_rejections_total")}
         assert sum(reasons.values()) == n_rejected, reasons
         assert 'wardmap_rejections_total{reason="internal"}' not in reasons, reasons

@@ -20,7 +20,7 @@ from typing import Any
 import pytest
 from procs import child_env as _env
 from procs import free_port as _free_port
-from procs import read_line as _read_line
+from procs import start
 from procs import stop as _stop
 
 zenoh = pytest.importorskip("zenoh")
@@ -48,17 +48,8 @@ def _router_cmd(endpoint: str) -> list[str]:
 def router() -> Iterator[tuple[subprocess.Popen[str], str]]:
     """A ``wardmap router`` subprocess on a free loopback port, after its ready line."""
     endpoint = f"tcp/127.0.0.1:{_free_port()}"
-    proc = subprocess.Popen(
-        _router_cmd(endpoint), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env()
-    )
+    proc = start(_router_cmd(endpoint), f"router listening on {endpoint}", READY_TIMEOUT_S)
     try:
-        assert proc.stdout is not None
-        line = _read_line(proc.stdout, READY_TIMEOUT_S)
-        if line is None:
-            proc.kill()
-            _, err = proc.communicate(timeout=5)
-            pytest.fail(f"router not ready within {READY_TIMEOUT_S} s; stderr: {err!r}")
-        assert line.strip() == f"router listening on {endpoint}"
         yield proc, endpoint
     finally:
         _stop(proc)

@@ -1,5 +1,6 @@
-"""End-to-end ingest: a real router subprocess, a real ``wardmap server`` subprocess, and this
-test process as two robots publishing keyframes over zenoh and listening for acks.
+"""``wardmap server`` as a process: end-to-end ingest with a real router subprocess, a real
+``wardmap server`` subprocess, and this test process as two robots publishing keyframes over
+zenoh and listening for acks; start-up errors. Unit tests of the ingest: tests/server/test_ingest.py.
 
 Sessions are zenoh clients on 127.0.0.1 with shared memory and multicast scouting off. The
 test synchronises on ready lines, zenoh matching events and the ack queue, never on sleeps.
@@ -16,25 +17,23 @@ import sys
 import threading
 from collections import Counter
 from collections.abc import Iterator
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-import cv2
 import httpx
 import numpy as np
 import pytest
+from factories import keyframe, walk
 from procs import child_env as _env
 from procs import free_port as _free_port
-from procs import read_line as _read_line
+from procs import prometheus_samples, start
 from procs import stop as _stop
 
 zenoh = pytest.importorskip("zenoh")
 
 
 from wardmap.shared import wire  # noqa: E402  (after the importorskip guard)
-from wardmap.shared.se3 import make_transform  # noqa: E402
-from wardmap.shared.wire import AckMsg, Intrinsics, KeyframeMsg, Keypoints, PackedRaster  # noqa: E402
+from wardmap.shared.wire import AckMsg  # noqa: E402
 from wardmap.shared.zenoh_config import client_config, keyframe_key  # noqa: E402
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(60)]
@@ -42,28 +41,15 @@ pytestmark = [pytest.mark.integration, pytest.mark.timeout(60)]
 READY_TIMEOUT_S = 20.0
 EVENT_TIMEOUT_S = 10.0
 ALL_ACKS = "wardmap/v1/robot/*/ack"
-W, H = 64, 48
-T0 = 1_714_557_600.0
-
-
-def _start(cmd: list[str], expect: str) -> subprocess.Popen[str]:
-    """Start ``cmd`` and wait for its ready line ``expect``; fail with its stderr otherwise."""
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env())
-    assert proc.stdout is not None
-    line = _read_line(proc.stdout, READY_TIMEOUT_S)
-    if line is None or line.strip() != expect:
-        proc.kill()
-        _, err = proc.communicate(timeout=5)
-        pytest.fail(f"{cmd[3]} not ready ({line!r}); stderr: {err[-2000:]!r}")
-    return proc
 
 
 @pytest.fixture
 def router() -> Iterator[str]:
     endpoint = f"tcp/127.0.0.1:{_free_port()}"
-    proc = _start(
+    proc = start(
         [sys.executable, "-m", "wardmap.cli", "router", "--listen", endpoint],
         f"router listening on {endpoint}",
+        READY_TIMEOUT_S,
     )
     try:
         yield endpoint
@@ -87,7 +73,7 @@ def server(router: str, tmp_path: Path) -> Iterator[tuple[subprocess.Popen[str],
         "--http",
         f"127.0.0.1:{port}",
     ]
-    proc = _start(cmd, f"server ready: {url}")
+    proc = start(cmd, f"server ready: {url}", READY_TIMEOUT_S)
     try:
         yield proc, url
     finally:
@@ -95,32 +81,8 @@ def server(router: str, tmp_path: Path) -> Iterator[tuple[subprocess.Popen[str],
 
 
 def _keyframes(robot: str, n: int) -> list[bytes]:
-    rng = np.random.default_rng(sum(robot.encode()))  # seeded per robot
-    ok, jpg = cv2.imencode(".jpg", rng.integers(0, 256, (H, W, 3), dtype=np.uint8))
-    assert ok
-    k = 4
-    base = KeyframeMsg(
-        robot_id=robot,
-        session_id="s1",
-        seq=0,
-        stamp=T0,
-        T_odom_camera=np.eye(4),
-        pose_source="rgb",
-        keypoints=Keypoints(
-            uv=(rng.random((k, 2)) * [W - 1, H - 1]).astype(np.float32),
-            octave=np.zeros(k, np.int8),
-            angle_deg=(rng.random(k) * 360).astype(np.float32),
-            depth_m=rng.uniform(0.5, 4.0, k).astype(np.float32),
-            descriptors=rng.integers(0, 256, (k, 32), dtype=np.uint8),
-        ),
-        rgb_jpeg=bytes(jpg.tobytes()),
-        depth=PackedRaster(*wire.encode_depth(rng.uniform(0.5, 4.0, (H // 2, W // 2)))),
-        intrinsics=Intrinsics(W, H, 50.0, 50.0, 31.5, 23.5, (0.0, 0.0, 0.0, 0.0, 0.0), 5000.0),
-    )
-    return [
-        wire.encode(replace(base, seq=i, stamp=T0 + i, T_odom_camera=make_transform(np.eye(3), [i, 0, 0])))
-        for i in range(n)
-    ]
+    base = keyframe(np.random.default_rng(sum(robot.encode())), robot_id=robot)  # seeded per robot
+    return [wire.encode(m) for m in walk(base, n)]
 
 
 def _garbage(valid: list[bytes], n: int) -> list[bytes]:
@@ -136,15 +98,6 @@ def _garbage(valid: list[bytes], n: int) -> list[bytes]:
             out.append(p[: int(rng.integers(1, len(p) - 1))])
         else:
             out.append(p + b"\x00junk")
-    return out
-
-
-def _metrics(text: str) -> dict[str, float]:
-    out = {}
-    for line in text.splitlines():
-        if line and not line.startswith("#"):
-            name, value = line.rsplit(" ", 1)
-            out[name] = float(value)
     return out
 
 
@@ -215,7 +168,7 @@ def test_ingest_stores_acks_dedups_and_rejects(
         assert {a.status for _, a in rejected} == {"rejected"}
         assert acks.empty()
 
-        metrics = _metrics(http.get("/metrics").text)
+        metrics = prometheus_samples(http.get("/metrics").text)
         reasons = {k: v for k, v in metrics.items() if k.startswith("wardmap_rejections_total")}
         assert sum(reasons.values()) == 210, reasons
         assert metrics['wardmap_rejections_total{reason="robot_id mismatch"}'] == 10
