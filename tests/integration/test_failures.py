@@ -5,7 +5,7 @@ Every process is a subprocess of ``wardmap`` (router, server, edge) on free loop
 test process is a zenoh client with shared memory and multicast scouting off. The tests
 synchronise on ready lines, process exits, zenoh matching events, acks and HTTP polls with a
 deadline, never on sleeps. Agent restart (SIGTERM, resume from the outbox) is covered by
-``test_edge_agent.py``.
+``test_edge_cmd.py``.
 """
 
 from __future__ import annotations

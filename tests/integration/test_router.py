@@ -7,7 +7,6 @@ zenoh matching/liveliness events, probe samples and threading events, never on s
 
 from __future__ import annotations
 
-import json
 import queue
 import signal
 import socket
@@ -18,6 +17,7 @@ from collections.abc import Iterator
 from typing import Any
 
 import pytest
+from peers import open_client
 from procs import child_env as _env
 from procs import free_port as _free_port
 from procs import start
@@ -28,7 +28,6 @@ zenoh = pytest.importorskip("zenoh")
 from wardmap.shared.zenoh_config import (  # noqa: E402  (after the importorskip guard)
     ALL_KEYFRAMES,
     ALL_LIVELINESS,
-    client_config,
     keyframe_key,
     liveliness_key,
 )
@@ -55,11 +54,6 @@ def router() -> Iterator[tuple[subprocess.Popen[str], str]]:
         _stop(proc)
 
 
-def _open_client(endpoint: str) -> Any:
-    """A zenoh client session connected to ``endpoint`` (shm off, multicast scouting off)."""
-    return zenoh.open(zenoh.Config.from_json5(json.dumps(client_config([endpoint]))))
-
-
 def test_keyframes_through_router_in_order_then_sigterm(router: tuple[subprocess.Popen[str], str]) -> None:
     """200 payloads of 50 KB published reliable/BLOCK arrive intact and in order; SIGTERM exits 0."""
     proc, endpoint = router
@@ -84,8 +78,8 @@ def test_keyframes_through_router_in_order_then_sigterm(router: tuple[subprocess
             matched.set()
 
     with (
-        _open_client(endpoint) as sub_session,
-        _open_client(endpoint) as pub_session,
+        open_client(endpoint) as sub_session,
+        open_client(endpoint) as pub_session,
         sub_session.declare_subscriber(ALL_KEYFRAMES, on_sample),
         pub_session.declare_publisher(
             keyframe_key("r1"),
@@ -144,8 +138,8 @@ def test_liveliness_token_appears_and_disappears(router: tuple[subprocess.Popen[
         events.put((str(sample.kind), str(sample.key_expr)))
 
     key = liveliness_key("r1")
-    with _open_client(endpoint) as watcher:
-        robot = _open_client(endpoint)
+    with open_client(endpoint) as watcher:
+        robot = open_client(endpoint)
         try:
             token = robot.liveliness().declare_token(key)  # held until its session closes
             with watcher.liveliness().declare_subscriber(ALL_LIVELINESS, on_liveliness, history=True):
