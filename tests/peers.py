@@ -16,12 +16,32 @@ from procs import free_port
 from wardmap.shared.wire import AckMsg, AckStatus, decode_keyframe, encode
 from wardmap.shared.zenoh_config import ALL_KEYFRAMES, ack_key, client_config
 
+ALL_ACKS = "wardmap/v1/robot/*/ack"
+"""Subscription key for the acks to every robot."""
+
 
 def open_client(endpoint: str) -> Any:
     """A zenoh client session connected to ``endpoint``."""
     import zenoh
 
     return zenoh.open(zenoh.Config.from_json5(json.dumps(client_config([endpoint]))))
+
+
+def matched_publisher(session: Any, key: str, timeout_s: float) -> Any:
+    """A publisher on ``key``, reliable with congestion control BLOCK (as robots publish),
+    returned once a subscriber matches it, so nothing it puts goes to nobody."""
+    import zenoh
+
+    pub = session.declare_publisher(
+        key, reliability=zenoh.Reliability.RELIABLE, congestion_control=zenoh.CongestionControl.BLOCK
+    )
+    matched = threading.Event()
+    with pub.declare_matching_listener(lambda s: matched.set() if s.matching else None):
+        if pub.matching_status.matching:
+            matched.set()
+        if not matched.wait(timeout_s):
+            raise AssertionError(f"no subscriber matched {key} within {timeout_s} s")
+    return pub
 
 
 @contextmanager

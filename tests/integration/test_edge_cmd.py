@@ -27,11 +27,11 @@ from procs import read_line as _read_line
 from procs import start
 from procs import stop as _stop
 
-zenoh = pytest.importorskip("zenoh")
+pytest.importorskip("zenoh")
 
-from wardmap.edge.outbox import Outbox  # noqa: E402  (after the importorskip guard)
-from wardmap.shared.wire import decode_heartbeat  # noqa: E402
-from wardmap.shared.zenoh_config import heartbeat_key  # noqa: E402
+from wardmap.edge.outbox import Outbox
+from wardmap.shared.wire import decode_heartbeat
+from wardmap.shared.zenoh_config import heartbeat_key
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(90)]
 

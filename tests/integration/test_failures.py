@@ -28,19 +28,20 @@ import httpx
 import numpy as np
 import pytest
 from factories import FUZZ_LEAVES, keyframe, mutate, walk
+from peers import ALL_ACKS, matched_publisher, open_client
 from procs import child_env as _env
 from procs import free_port as _free_port
 from procs import prometheus_samples
 from procs import read_line as _read_line
 
-zenoh = pytest.importorskip("zenoh")
+pytest.importorskip("zenoh")
 
 
-from wardmap.edge.outbox import Outbox  # noqa: E402  (after the importorskip guard)
-from wardmap.shared import wire  # noqa: E402
-from wardmap.shared.errors import WireError  # noqa: E402
-from wardmap.shared.wire import decode_heartbeat  # noqa: E402
-from wardmap.shared.zenoh_config import client_config, heartbeat_key, keyframe_key  # noqa: E402
+from wardmap.edge.outbox import Outbox
+from wardmap.shared import wire
+from wardmap.shared.errors import WireError
+from wardmap.shared.wire import decode_heartbeat
+from wardmap.shared.zenoh_config import heartbeat_key, keyframe_key
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(90)]
 
@@ -49,7 +50,6 @@ EVENT_TIMEOUT_S = 20.0
 RUN_TIMEOUT_S = 60.0
 FRAMES = 60
 OUTBOX_FILE = "outbox.sqlite"
-ALL_ACKS = "wardmap/v1/robot/*/ack"
 # The agent gives up on an unacked item only after this (not reached: a safety net for slow CI).
 EDGE_CONFIG = "[agent]\nflush_timeout_s = 40.0\nresend_after_s = 1.0\n"
 
@@ -293,8 +293,10 @@ def test_server_sigkill_mid_stream_loses_and_duplicates_nothing(
         with contextlib.suppress(queue.Full):  # drop-newest: only a recent one is needed
             heartbeats.put_nowait(sample.payload.to_bytes())
 
-    conf = zenoh.Config.from_json5(json.dumps(client_config([stack.endpoint])))
-    with zenoh.open(conf) as watcher, watcher.declare_subscriber(heartbeat_key(robot), on_heartbeat):
+    with (
+        open_client(stack.endpoint) as watcher,
+        watcher.declare_subscriber(heartbeat_key(robot), on_heartbeat),
+    ):
         edge, outbox = _start_edge(robot, dataset, stack, tmp_path)
         try:
             _wait_stored(stack.url, robot, 3)
@@ -403,22 +405,12 @@ def test_malformed_and_mutated_payloads_are_rejected_and_counted(stack: Stack) -
     assert 500 < n_rejected < N_FUZZ  # the mix exercises both outcomes
 
     acks = AckCounter()
-    conf = zenoh.Config.from_json5(json.dumps(client_config([stack.endpoint])))
     with (
-        zenoh.open(conf) as session,
+        open_client(stack.endpoint) as session,
         session.declare_subscriber(ALL_ACKS, acks.on_ack),
-        session.declare_publisher(
-            keyframe_key(FUZZ_ROBOT),
-            reliability=zenoh.Reliability.RELIABLE,
-            congestion_control=zenoh.CongestionControl.BLOCK,
-        ) as pub,
         httpx.Client(base_url=stack.url, timeout=10) as http,
     ):
-        matched = threading.Event()
-        with pub.declare_matching_listener(lambda s: matched.set() if s.matching else None):
-            if pub.matching_status.matching:
-                matched.set()
-            assert matched.wait(EVENT_TIMEOUT_S), "the server's subscriber never matched"
+        pub = matched_publisher(session, keyframe_key(FUZZ_ROBOT), EVENT_TIMEOUT_S)
         for p in payloads:
             pub.put(p)
         assert acks.wait_for(N_FUZZ, EVENT_TIMEOUT_S), f"only {len(acks.statuses)} of {N_FUZZ} acks"

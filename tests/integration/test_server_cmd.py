@@ -8,13 +8,11 @@ test synchronises on ready lines, zenoh matching events and the ack queue, never
 
 from __future__ import annotations
 
-import json
 import queue
 import signal
 import socket
 import subprocess
 import sys
-import threading
 from collections import Counter
 from collections.abc import Iterator
 from pathlib import Path
@@ -24,23 +22,23 @@ import httpx
 import numpy as np
 import pytest
 from factories import keyframe, walk
+from peers import ALL_ACKS, matched_publisher, open_client
 from procs import child_env as _env
 from procs import free_port as _free_port
 from procs import prometheus_samples, start
 from procs import stop as _stop
 
-zenoh = pytest.importorskip("zenoh")
+pytest.importorskip("zenoh")
 
 
-from wardmap.shared import wire  # noqa: E402  (after the importorskip guard)
-from wardmap.shared.wire import AckMsg  # noqa: E402
-from wardmap.shared.zenoh_config import client_config, keyframe_key  # noqa: E402
+from wardmap.shared import wire
+from wardmap.shared.wire import AckMsg
+from wardmap.shared.zenoh_config import keyframe_key
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(60)]
 
 READY_TIMEOUT_S = 20.0
 EVENT_TIMEOUT_S = 10.0
-ALL_ACKS = "wardmap/v1/robot/*/ack"
 
 
 @pytest.fixture
@@ -124,25 +122,12 @@ def test_ingest_stores_acks_dedups_and_rejects(
         acks.put((str(sample.key_expr), wire.decode_ack(sample.payload.to_bytes())))
 
     payloads = {r: _keyframes(r, 50) for r in ("r1", "r2")}
-    conf = zenoh.Config.from_json5(json.dumps(client_config([router])))
     with (
-        zenoh.open(conf) as session,
+        open_client(router) as session,
         session.declare_subscriber(ALL_ACKS, on_ack),
         httpx.Client(base_url=url, timeout=10) as http,
     ):
-        pubs = {}
-        for robot in payloads:
-            pub = session.declare_publisher(
-                keyframe_key(robot),
-                reliability=zenoh.Reliability.RELIABLE,
-                congestion_control=zenoh.CongestionControl.BLOCK,
-            )
-            matched = threading.Event()
-            with pub.declare_matching_listener(lambda s, ev=matched: ev.set() if s.matching else None):
-                if pub.matching_status.matching:
-                    matched.set()
-                assert matched.wait(EVENT_TIMEOUT_S), "the server's subscriber never matched"
-            pubs[robot] = pub
+        pubs = {robot: matched_publisher(session, keyframe_key(robot), EVENT_TIMEOUT_S) for robot in payloads}
 
         for i in range(50):
             for robot, pub in pubs.items():

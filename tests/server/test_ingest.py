@@ -9,9 +9,7 @@ tests/integration/test_server_cmd.py.
 
 from __future__ import annotations
 
-import json
 import queue
-import threading
 from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
@@ -21,21 +19,21 @@ import msgpack
 import numpy as np
 import pytest
 from factories import keyframe, pack, walk
+from peers import ALL_ACKS, matched_publisher, open_client
 from procs import free_port
 
-zenoh = pytest.importorskip("zenoh")
+pytest.importorskip("zenoh")
 
-from wardmap.server.ingest import Ingest, IngestCounters, IngestError  # noqa: E402  (after the guard)
-from wardmap.server.store import InsertResult, SqliteKeyframeStore, StoreError, open_store  # noqa: E402
-from wardmap.shared import wire  # noqa: E402
-from wardmap.shared.errors import ConfigError  # noqa: E402
-from wardmap.shared.wire import AckMsg, KeyframeMsg  # noqa: E402
-from wardmap.shared.zenoh_config import client_config, keyframe_key, robot_id_from_key  # noqa: E402
+from wardmap.server.ingest import Ingest, IngestCounters, IngestError
+from wardmap.server.store import InsertResult, SqliteKeyframeStore, StoreError, open_store
+from wardmap.shared import wire
+from wardmap.shared.errors import ConfigError
+from wardmap.shared.wire import AckMsg, KeyframeMsg
+from wardmap.shared.zenoh_config import keyframe_key, robot_id_from_key
 
 pytestmark = pytest.mark.timeout(60)
 
 EVENT_TIMEOUT_S = 10.0
-ALL_ACKS = "wardmap/v1/robot/*/ack"
 
 
 @pytest.fixture
@@ -50,7 +48,7 @@ class Robots:
 
     def __init__(self, endpoint: str) -> None:
         self.acks: queue.Queue[tuple[str, AckMsg]] = queue.Queue()
-        self._session = zenoh.open(zenoh.Config.from_json5(json.dumps(client_config([endpoint]))))
+        self._session = open_client(endpoint)
         self._subscriber = self._session.declare_subscriber(ALL_ACKS, self._on_ack)
         self._publishers: dict[str, Any] = {}
 
@@ -61,15 +59,7 @@ class Robots:
         """Publish ``payload`` on ``key`` once the ingest's subscriber matches it."""
         pub = self._publishers.get(key)
         if pub is None:
-            pub = self._session.declare_publisher(
-                key, reliability=zenoh.Reliability.RELIABLE, congestion_control=zenoh.CongestionControl.BLOCK
-            )
-            matched = threading.Event()
-            with pub.declare_matching_listener(lambda s: matched.set() if s.matching else None):
-                if pub.matching_status.matching:
-                    matched.set()
-                assert matched.wait(EVENT_TIMEOUT_S), f"no subscriber matched {key}"
-            self._publishers[key] = pub
+            pub = self._publishers[key] = matched_publisher(self._session, key, EVENT_TIMEOUT_S)
         pub.put(payload)
 
     def next_acks(self, n: int) -> list[tuple[str, AckMsg]]:
