@@ -6,8 +6,10 @@ from __future__ import annotations
 import os
 import queue
 import shlex
+import signal
 import socket
 import subprocess
+import sys
 import threading
 from typing import IO
 
@@ -52,6 +54,30 @@ def start(cmd: list[str], expect: str, timeout_s: float) -> subprocess.Popen[str
     return proc
 
 
+def sigkill_after(cmd: list[str], n: int) -> tuple[list[int], int]:
+    """Run ``cmd``, a child that prints one integer per committed write, and SIGKILL it once it
+    has printed ``n``. Returns every integer it printed (any after the ``n``-th included) and its
+    exit code; fails the test if it exits before printing ``n``."""
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert proc.stdout is not None
+    reported: list[int] = []
+    try:
+        while len(reported) < n:
+            line = proc.stdout.readline()
+            if not line:
+                pytest.fail(f"child exited early: {proc.wait()} {proc.stderr.read() if proc.stderr else ''}")
+            reported.append(int(line))
+        os.kill(proc.pid, signal.SIGKILL)
+        reported += [int(ln) for ln in proc.stdout.read().split()]
+    finally:
+        proc.kill()
+        proc.wait()
+        proc.stdout.close()
+        if proc.stderr is not None:
+            proc.stderr.close()
+    return reported, proc.returncode
+
+
 def stop(proc: subprocess.Popen[str], timeout_s: float = 15.0) -> None:
     """Terminate ``proc`` if it still runs; kill it if it ignores SIGTERM; close its pipes."""
     if proc.poll() is None:
@@ -66,13 +92,14 @@ def stop(proc: subprocess.Popen[str], timeout_s: float = 15.0) -> None:
             stream.close()
 
 
+def wardmap_cmd(*args: str) -> list[str]:
+    """The command line ``python -m wardmap.cli ARGS`` (this interpreter)."""
+    return [sys.executable, "-m", "wardmap.cli", *args]
+
+
 def wardmap(*args: str, timeout_s: float = 300.0) -> subprocess.CompletedProcess[str]:
     """Run ``python -m wardmap.cli ARGS`` to completion, text output captured."""
-    import sys
-
-    return subprocess.run(
-        [sys.executable, "-m", "wardmap.cli", *args], capture_output=True, text=True, timeout=timeout_s
-    )
+    return subprocess.run(wardmap_cmd(*args), capture_output=True, text=True, timeout=timeout_s)
 
 
 def one_line_error(p: subprocess.CompletedProcess[str], needle: str, command: str | None = None) -> None:

@@ -14,7 +14,6 @@ import json
 import queue
 import signal
 import subprocess
-import sys
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -24,7 +23,7 @@ from peers import Acker, open_client
 from procs import child_env as _env
 from procs import free_port as _free_port
 from procs import read_line as _read_line
-from procs import start
+from procs import start, wardmap_cmd
 from procs import stop as _stop
 
 pytest.importorskip("zenoh")
@@ -42,7 +41,7 @@ OUTBOX_FILE = "outbox.sqlite"
 
 
 def _edge_cmd(*args: str) -> list[str]:
-    return [sys.executable, "-m", "wardmap.cli", "edge", *args]
+    return wardmap_cmd("edge", *args)
 
 
 @pytest.fixture(scope="module")
@@ -59,7 +58,7 @@ def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def router() -> Iterator[str]:
     """A ``wardmap router`` subprocess on a free loopback port, after its ready line; yields its endpoint."""
     endpoint = f"tcp/127.0.0.1:{_free_port()}"
-    cmd = [sys.executable, "-m", "wardmap.cli", "router", "--listen", endpoint]
+    cmd = wardmap_cmd("router", "--listen", endpoint)
     proc = start(cmd, f"router listening on {endpoint}", READY_TIMEOUT_S)
     try:
         yield endpoint

@@ -16,7 +16,6 @@ import queue
 import signal
 import sqlite3
 import subprocess
-import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -31,7 +30,7 @@ from factories import FUZZ_LEAVES, keyframe, mutate, walk
 from peers import ALL_ACKS, matched_publisher, open_client
 from procs import child_env as _env
 from procs import free_port as _free_port
-from procs import prometheus_samples
+from procs import prometheus_samples, wardmap_cmd
 from procs import read_line as _read_line
 
 pytest.importorskip("zenoh")
@@ -109,27 +108,13 @@ def _stop(proc: Proc, timeout_s: float = 15.0) -> int:
 
 
 def _start_router(endpoint: str, log_dir: Path) -> Proc:
-    return _start(
-        [sys.executable, "-m", "wardmap.cli", "router", "--listen", endpoint],
-        f"router listening on {endpoint}",
-        log_dir,
-        "router",
-    )
+    cmd = wardmap_cmd("router", "--listen", endpoint)
+    return _start(cmd, f"router listening on {endpoint}", log_dir, "router")
 
 
 def _start_server(endpoint: str, db: Path, port: int, log_dir: Path) -> Proc:
-    cmd = [
-        sys.executable,
-        "-m",
-        "wardmap.cli",
-        "server",
-        "--connect",
-        endpoint,
-        "--db",
-        f"sqlite:///{db}",
-        "--http",
-        f"127.0.0.1:{port}",
-    ]
+    cmd = wardmap_cmd("server", "--connect", endpoint, "--db", f"sqlite:///{db}",
+                      "--http", f"127.0.0.1:{port}")
     return _start(cmd, f"server ready: http://127.0.0.1:{port}", log_dir, "server")
 
 
@@ -186,24 +171,8 @@ def _start_edge(robot: str, dataset: Path, stack: Stack, tmp_path: Path) -> tupl
     config = tmp_path / "edge.toml"
     config.write_text(EDGE_CONFIG)
     outbox_dir = tmp_path / "outbox"
-    cmd = [
-        sys.executable,
-        "-m",
-        "wardmap.cli",
-        "edge",
-        "--robot",
-        robot,
-        "--source",
-        str(dataset),
-        "--connect",
-        stack.endpoint,
-        "--outbox",
-        str(outbox_dir),
-        "--rate",
-        "10",
-        "--config",
-        str(config),
-    ]
+    cmd = wardmap_cmd("edge", "--robot", robot, "--source", str(dataset), "--connect", stack.endpoint,
+                      "--outbox", str(outbox_dir), "--rate", "10", "--config", str(config))
     proc = _spawn(cmd, tmp_path, "edge")
     assert proc.popen.stdout is not None
     ready = _read_line(proc.popen.stdout, READY_TIMEOUT_S)

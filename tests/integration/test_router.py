@@ -11,7 +11,6 @@ import queue
 import signal
 import socket
 import subprocess
-import sys
 import threading
 from collections.abc import Iterator
 from typing import Any
@@ -20,7 +19,7 @@ import pytest
 from peers import open_client
 from procs import child_env as _env
 from procs import free_port as _free_port
-from procs import start
+from procs import start, wardmap_cmd
 from procs import stop as _stop
 
 zenoh = pytest.importorskip("zenoh")
@@ -40,7 +39,7 @@ PROBE = b"probe"  # not a test payload: those start with a 4-byte index and are 
 
 
 def _router_cmd(endpoint: str) -> list[str]:
-    return [sys.executable, "-m", "wardmap.cli", "router", "--listen", endpoint]
+    return wardmap_cmd("router", "--listen", endpoint)
 
 
 @pytest.fixture

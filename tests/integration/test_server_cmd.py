@@ -12,7 +12,6 @@ import queue
 import signal
 import socket
 import subprocess
-import sys
 from collections import Counter
 from collections.abc import Iterator
 from pathlib import Path
@@ -25,7 +24,7 @@ from factories import keyframe, walk
 from peers import ALL_ACKS, matched_publisher, open_client
 from procs import child_env as _env
 from procs import free_port as _free_port
-from procs import prometheus_samples, start
+from procs import prometheus_samples, start, wardmap_cmd
 from procs import stop as _stop
 
 pytest.importorskip("zenoh")
@@ -44,11 +43,8 @@ EVENT_TIMEOUT_S = 10.0
 @pytest.fixture
 def router() -> Iterator[str]:
     endpoint = f"tcp/127.0.0.1:{_free_port()}"
-    proc = start(
-        [sys.executable, "-m", "wardmap.cli", "router", "--listen", endpoint],
-        f"router listening on {endpoint}",
-        READY_TIMEOUT_S,
-    )
+    cmd = wardmap_cmd("router", "--listen", endpoint)
+    proc = start(cmd, f"router listening on {endpoint}", READY_TIMEOUT_S)
     try:
         yield endpoint
     finally:
@@ -59,18 +55,8 @@ def router() -> Iterator[str]:
 def server(router: str, tmp_path: Path) -> Iterator[tuple[subprocess.Popen[str], str]]:
     port = _free_port()
     url = f"http://127.0.0.1:{port}"
-    cmd = [
-        sys.executable,
-        "-m",
-        "wardmap.cli",
-        "server",
-        "--connect",
-        router,
-        "--db",
-        f"sqlite:///{tmp_path / 'map.db'}",
-        "--http",
-        f"127.0.0.1:{port}",
-    ]
+    cmd = wardmap_cmd("server", "--connect", router, "--db", f"sqlite:///{tmp_path / 'map.db'}",
+                      "--http", f"127.0.0.1:{port}")
     proc = start(cmd, f"server ready: {url}", READY_TIMEOUT_S)
     try:
         yield proc, url
@@ -174,7 +160,7 @@ def test_ingest_stores_acks_dedups_and_rejects(
 
 def test_server_bad_db_and_port_in_use_exit_1(router: str, tmp_path: Path) -> None:
     """A bad store URL and an HTTP port already taken each give exit 1 and one stderr line."""
-    base = [sys.executable, "-m", "wardmap.cli", "server", "--connect", router]
+    base = wardmap_cmd("server", "--connect", router)
     bad_db = subprocess.run(
         [*base, "--db", "mysql://x", "--http", f"127.0.0.1:{_free_port()}"],
         capture_output=True,
