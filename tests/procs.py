@@ -11,6 +11,8 @@ import socket
 import subprocess
 import sys
 import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import IO
 
 import pytest
@@ -76,6 +78,18 @@ def sigkill_after(cmd: list[str], n: int) -> tuple[list[int], int]:
         if proc.stderr is not None:
             proc.stderr.close()
     return reported, proc.returncode
+
+
+@contextmanager
+def router_process(timeout_s: float) -> Iterator[tuple[subprocess.Popen[str], str]]:
+    """A ``wardmap router`` subprocess on a free loopback port, once its ready line came (within
+    ``timeout_s``); yields it and its endpoint ``tcp/127.0.0.1:PORT``, stops it on exit."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    proc = start(wardmap_cmd("router", "--listen", endpoint), f"router listening on {endpoint}", timeout_s)
+    try:
+        yield proc, endpoint
+    finally:
+        stop(proc)
 
 
 def stop(proc: subprocess.Popen[str], timeout_s: float = 15.0) -> None:

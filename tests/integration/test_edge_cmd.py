@@ -21,9 +21,8 @@ from typing import Any
 import pytest
 from peers import Acker, open_client
 from procs import child_env as _env
-from procs import free_port as _free_port
 from procs import read_line as _read_line
-from procs import start, wardmap_cmd
+from procs import router_process, wardmap_cmd
 from procs import stop as _stop
 
 pytest.importorskip("zenoh")
@@ -57,13 +56,8 @@ def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
 @pytest.fixture(scope="module")
 def router() -> Iterator[str]:
     """A ``wardmap router`` subprocess on a free loopback port, after its ready line; yields its endpoint."""
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
-    cmd = wardmap_cmd("router", "--listen", endpoint)
-    proc = start(cmd, f"router listening on {endpoint}", READY_TIMEOUT_S)
-    try:
+    with router_process(READY_TIMEOUT_S) as (_, endpoint):
         yield endpoint
-    finally:
-        _stop(proc)
 
 
 def _summary(stdout: str) -> dict[str, Any]:

@@ -18,9 +18,7 @@ from typing import Any
 import pytest
 from peers import open_client
 from procs import child_env as _env
-from procs import free_port as _free_port
-from procs import start, wardmap_cmd
-from procs import stop as _stop
+from procs import router_process, wardmap_cmd
 
 zenoh = pytest.importorskip("zenoh")
 
@@ -45,12 +43,8 @@ def _router_cmd(endpoint: str) -> list[str]:
 @pytest.fixture
 def router() -> Iterator[tuple[subprocess.Popen[str], str]]:
     """A ``wardmap router`` subprocess on a free loopback port, after its ready line."""
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
-    proc = start(_router_cmd(endpoint), f"router listening on {endpoint}", READY_TIMEOUT_S)
-    try:
+    with router_process(READY_TIMEOUT_S) as (proc, endpoint):
         yield proc, endpoint
-    finally:
-        _stop(proc)
 
 
 def test_keyframes_through_router_in_order_then_sigterm(router: tuple[subprocess.Popen[str], str]) -> None:

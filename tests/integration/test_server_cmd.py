@@ -24,7 +24,7 @@ from factories import keyframe, walk
 from peers import ALL_ACKS, matched_publisher, open_client
 from procs import child_env as _env
 from procs import free_port as _free_port
-from procs import prometheus_samples, start, wardmap_cmd
+from procs import prometheus_samples, router_process, start, wardmap_cmd
 from procs import stop as _stop
 
 pytest.importorskip("zenoh")
@@ -42,13 +42,9 @@ EVENT_TIMEOUT_S = 10.0
 
 @pytest.fixture
 def router() -> Iterator[str]:
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
-    cmd = wardmap_cmd("router", "--listen", endpoint)
-    proc = start(cmd, f"router listening on {endpoint}", READY_TIMEOUT_S)
-    try:
+    """A ``wardmap router`` subprocess on a free loopback port, after its ready line; yields its endpoint."""
+    with router_process(READY_TIMEOUT_S) as (_, endpoint):
         yield endpoint
-    finally:
-        _stop(proc)
 
 
 @pytest.fixture
