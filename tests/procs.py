@@ -1,13 +1,21 @@
-"""Helpers for tests that run wardmap commands as real processes (shared by tests/integration)."""
+"""Helpers for tests that run wardmap commands as real processes (shared by tests/integration)
+and read what they answer."""
 
 from __future__ import annotations
 
 import os
 import queue
+import shlex
+import signal
 import socket
 import subprocess
+import sys
 import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import IO
+
+import pytest
 
 
 def free_port() -> int:
@@ -34,6 +42,56 @@ def read_line(stream: IO[str], timeout_s: float) -> str | None:
         return None
 
 
+def start(cmd: list[str], expect: str, timeout_s: float) -> subprocess.Popen[str]:
+    """Start ``cmd`` (stdout and stderr piped, :func:`child_env`) and wait up to ``timeout_s`` for
+    its ready line ``expect``; on another line, EOF or timeout kill it and fail the test with
+    its stderr."""
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=child_env())
+    assert proc.stdout is not None
+    line = read_line(proc.stdout, timeout_s)
+    if line is None or line.strip() != expect:
+        proc.kill()
+        _, err = proc.communicate(timeout=5)
+        pytest.fail(f"{shlex.join(cmd)} not ready within {timeout_s} s ({line!r}); stderr: {err[-2000:]!r}")
+    return proc
+
+
+def sigkill_after(cmd: list[str], n: int) -> tuple[list[int], int]:
+    """Run ``cmd``, a child that prints one integer per committed write, and SIGKILL it once it
+    has printed ``n``. Returns every integer it printed (any after the ``n``-th included) and its
+    exit code; fails the test if it exits before printing ``n``."""
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert proc.stdout is not None
+    reported: list[int] = []
+    try:
+        while len(reported) < n:
+            line = proc.stdout.readline()
+            if not line:
+                pytest.fail(f"child exited early: {proc.wait()} {proc.stderr.read() if proc.stderr else ''}")
+            reported.append(int(line))
+        os.kill(proc.pid, signal.SIGKILL)
+        reported += [int(ln) for ln in proc.stdout.read().split()]
+    finally:
+        proc.kill()
+        proc.wait()
+        proc.stdout.close()
+        if proc.stderr is not None:
+            proc.stderr.close()
+    return reported, proc.returncode
+
+
+@contextmanager
+def router_process(timeout_s: float) -> Iterator[tuple[subprocess.Popen[str], str]]:
+    """A ``wardmap router`` subprocess on a free loopback port, once its ready line came (within
+    ``timeout_s``); yields it and its endpoint ``tcp/127.0.0.1:PORT``, stops it on exit."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    proc = start(wardmap_cmd("router", "--listen", endpoint), f"router listening on {endpoint}", timeout_s)
+    try:
+        yield proc, endpoint
+    finally:
+        stop(proc)
+
+
 def stop(proc: subprocess.Popen[str], timeout_s: float = 15.0) -> None:
     """Terminate ``proc`` if it still runs; kill it if it ignores SIGTERM; close its pipes."""
     if proc.poll() is None:
@@ -48,13 +106,14 @@ def stop(proc: subprocess.Popen[str], timeout_s: float = 15.0) -> None:
             stream.close()
 
 
+def wardmap_cmd(*args: str) -> list[str]:
+    """The command line ``python -m wardmap.cli ARGS`` (this interpreter)."""
+    return [sys.executable, "-m", "wardmap.cli", *args]
+
+
 def wardmap(*args: str, timeout_s: float = 300.0) -> subprocess.CompletedProcess[str]:
     """Run ``python -m wardmap.cli ARGS`` to completion, text output captured."""
-    import sys
-
-    return subprocess.run(
-        [sys.executable, "-m", "wardmap.cli", *args], capture_output=True, text=True, timeout=timeout_s
-    )
+    return subprocess.run(wardmap_cmd(*args), capture_output=True, text=True, timeout=timeout_s)
 
 
 def one_line_error(p: subprocess.CompletedProcess[str], needle: str, command: str | None = None) -> None:
@@ -67,3 +126,13 @@ def one_line_error(p: subprocess.CompletedProcess[str], needle: str, command: st
     if command is not None:
         assert lines[0].startswith(f"wardmap {command}: error:"), lines[0]
     assert needle in lines[0], lines[0]
+
+
+def prometheus_samples(text: str) -> dict[str, float]:
+    """The samples of a Prometheus text exposition (``GET /metrics``): ``name{labels}`` -> value."""
+    out = {}
+    for line in text.splitlines():
+        if line and not line.startswith("#"):
+            name, value = line.rsplit(" ", 1)
+            out[name] = float(value)
+    return out

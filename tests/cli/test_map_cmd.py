@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -11,8 +13,6 @@ from procs import one_line_error, wardmap
 from wardmap.sim.runner import generate
 
 TUM = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "tum_fr1_rpy_s3_first100"
-
-
 
 
 @pytest.fixture(scope="module")
@@ -66,11 +66,31 @@ def test_poses_once_per_dataset(small: Path, tmp_path: Path) -> None:
     one_line_error(p, "one trajectory per data set", "map")
 
 
-def test_model_measurements_without_the_model(small: Path, tmp_path: Path) -> None:
-    """--measurements model before a model is installed: one line saying so."""
-    from wardmap.server.perception.models import packaged_model_path
+# ``python -c`` program: ``wardmap ARGV[2:]`` with the packaged model looked up at ARGV[1].
+_WITHOUT_MODEL = """
+import sys
+from pathlib import Path
 
-    if packaged_model_path().is_file():
-        pytest.skip("the packaged model is installed")
-    p = wardmap("map", str(small), "--out", str(tmp_path / "o"), "--measurements", "model")
+import wardmap.server.perception.models as models
+
+if not callable(getattr(models, "packaged_model_path", None)):
+    sys.exit("test seam gone: wardmap.server.perception.models.packaged_model_path")
+missing = Path(sys.argv.pop(1))
+models.packaged_model_path = lambda: missing
+from wardmap.cli.main import main
+
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_model_measurements_without_the_model(small: Path, tmp_path: Path) -> None:
+    """--measurements model before a model is installed: one line saying so. The child process
+    looks for the packaged model at a path that does not exist (the real one is installed)."""
+    missing = tmp_path / "models" / "hospital_seg.onnx"
+    p = subprocess.run(
+        [sys.executable, "-c", _WITHOUT_MODEL, str(missing),
+         "map", str(small), "--out", str(tmp_path / "o"), "--measurements", "model"],
+        capture_output=True, text=True, timeout=300,
+    )
     one_line_error(p, "not installed", "map")
+    assert str(missing) in p.stderr  # the message names where it looked

@@ -12,7 +12,7 @@ import pytest
 
 from wardmap.edge.labels import LABEL_SOURCES, LabelResult, make_label_source
 from wardmap.shared.camera import PinholeCamera
-from wardmap.shared.dataset import Calibration, DatasetReader, DatasetWriter
+from wardmap.shared.dataset import Calibration, DatasetReader, DatasetWriter, Frame
 from wardmap.shared.errors import ConfigError, DatasetError
 from wardmap.shared.knowledge import KnowledgeGraph
 
@@ -167,6 +167,16 @@ def walking_staff(tmp_path_factory: pytest.TempPathFactory) -> DatasetReader:
     return DatasetReader(out)
 
 
+def _persons(dataset: DatasetReader, index: int) -> tuple[Frame, np.ndarray]:
+    """Frame ``index`` of ``dataset`` and its ground-truth person pixels (H, W) bool."""
+    frame = dataset.frame(index)
+    assert frame.labels is not None
+    document = dataset.objects()
+    assert document is not None
+    person_ids = [o["id"] for o in document["objects"] if o["class"] == "person"]
+    return frame, np.isin(frame.labels, person_ids)
+
+
 @needs_model
 @pytest.mark.slow
 def test_onnx_detector_finds_a_simulated_person(walking_staff: DatasetReader, kg: KnowledgeGraph) -> None:
@@ -177,12 +187,7 @@ def test_onnx_detector_finds_a_simulated_person(walking_staff: DatasetReader, kg
 
     source = make_label_source(f"onnx:{MODEL}", dataset=walking_staff, kg=kg, threads=1)
     assert isinstance(source, OnnxDetectorLabels)
-    frame = walking_staff.frame(170)
-    assert frame.labels is not None
-    document = walking_staff.objects()
-    assert document is not None
-    person_ids = [o["id"] for o in document["objects"] if o["class"] == "person"]
-    truth = np.isin(frame.labels, person_ids)
+    frame, truth = _persons(walking_staff, 170)
     assert truth.any()
 
     detections = source.detect(frame.rgb)
@@ -211,12 +216,7 @@ def test_onnx_source_runs_a_segmentation_network(walking_staff: DatasetReader, k
 
     source = make_label_source(f"onnx:{SEG_MODEL}", dataset=walking_staff, kg=kg, threads=1)
     assert isinstance(source, OnnxSegmentationLabels)
-    frame = walking_staff.frame(60)
-    assert frame.labels is not None
-    document = walking_staff.objects()
-    assert document is not None
-    person_ids = [o["id"] for o in document["objects"] if o["class"] == "person"]
-    truth = np.isin(frame.labels, person_ids)
+    frame, truth = _persons(walking_staff, 60)
     result = source.labels(frame)
     assert result.class_image.shape == truth.shape and result.instance_image is None
     person = result.class_image == kg.index_of("person")

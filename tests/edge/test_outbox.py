@@ -14,7 +14,6 @@ import os
 import queue
 import signal
 import sqlite3
-import subprocess
 import sys
 import threading
 from pathlib import Path
@@ -22,6 +21,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from procs import sigkill_after
 
 from wardmap.edge import outbox as outbox_mod
 from wardmap.edge.outbox import (
@@ -281,26 +281,8 @@ def test_crash_safety_sigkill(tmp_path: Path) -> None:
     most the one in flight) with intact payloads, and integrity_check is ok.
     """
     path = tmp_path / "ob.db"
-    proc = subprocess.Popen(
-        [sys.executable, "-c", _CHILD, str(path)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
-    )
-    assert proc.stdout is not None
-    reported: list[int] = []
-    try:
-        while len(reported) < 100:
-            line = proc.stdout.readline()
-            if not line:
-                pytest.fail(f"child exited early: {proc.wait()} {proc.stderr.read() if proc.stderr else ''}")
-            reported.append(int(line))
-        os.kill(proc.pid, signal.SIGKILL)
-        reported += [int(ln) for ln in proc.stdout.read().split()]
-    finally:
-        proc.kill()
-        proc.wait()
-        proc.stdout.close()
-        if proc.stderr is not None:
-            proc.stderr.close()
-    assert proc.returncode == -signal.SIGKILL
+    reported, returncode = sigkill_after([sys.executable, "-c", _CHILD, str(path)], 100)
+    assert returncode == -signal.SIGKILL
     assert reported == list(range(len(reported)))
 
     assert _integrity(path) == "ok"

@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from procs import wardmap
 
 from wardmap.edge.offline import track_dataset
 from wardmap.edge.tracker import Tracker, TrackInput
@@ -191,22 +190,7 @@ def test_nan_in_depth_is_tolerated(aisle_clip: Path) -> None:
 def test_cli_track_prints_json_last(aisle_clip: Path, tmp_path: Path) -> None:
     """``wardmap track`` writes a TUM file and ends stdout with one JSON object."""
     out = tmp_path / "t.txt"
-    p = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "wardmap.cli",
-            "track",
-            str(aisle_clip),
-            "--out",
-            str(out),
-            "--max-frames",
-            "10",
-        ],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    p = wardmap("track", str(aisle_clip), "--out", str(out), "--max-frames", "10")
     assert p.returncode == 0, p.stderr
     summary = json.loads(p.stdout.strip().splitlines()[-1])
     assert summary["frames"] == 10 and "total" in summary["ms_per_frame"]
@@ -216,9 +200,7 @@ def test_cli_track_prints_json_last(aisle_clip: Path, tmp_path: Path) -> None:
 def test_cli_track_bad_input(tmp_path: Path) -> None:
     """A missing data set or an unknown label source: one line, exit code 1."""
     for args in (["track", str(tmp_path / "nope"), "--out", str(tmp_path / "t.txt")],):
-        p = subprocess.run(
-            [sys.executable, "-m", "wardmap.cli", *args], capture_output=True, text=True, timeout=120
-        )
+        p = wardmap(*args, timeout_s=120)
         assert p.returncode == 1 and "Traceback" not in p.stderr
         assert len(p.stderr.strip().splitlines()) == 1
 

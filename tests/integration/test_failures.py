@@ -5,51 +5,42 @@ Every process is a subprocess of ``wardmap`` (router, server, edge) on free loop
 test process is a zenoh client with shared memory and multicast scouting off. The tests
 synchronise on ready lines, process exits, zenoh matching events, acks and HTTP polls with a
 deadline, never on sleeps. Agent restart (SIGTERM, resume from the outbox) is covered by
-``test_edge_agent.py``.
+``test_edge_cmd.py``.
 """
 
 from __future__ import annotations
 
 import contextlib
-import copy
 import json
-import math
 import queue
 import signal
 import sqlite3
 import subprocess
-import sys
 import threading
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import cv2
 import httpx
-import msgpack
 import numpy as np
 import pytest
+from factories import FUZZ_LEAVES, keyframe, mutate, walk
+from peers import ALL_ACKS, matched_publisher, open_client
 from procs import child_env as _env
 from procs import free_port as _free_port
+from procs import prometheus_samples, wardmap_cmd
 from procs import read_line as _read_line
 
-zenoh = pytest.importorskip("zenoh")
+pytest.importorskip("zenoh")
 
 
-from wardmap.edge.outbox import Outbox  # noqa: E402  (after the importorskip guard)
-from wardmap.shared import wire  # noqa: E402
-from wardmap.shared.errors import WireError  # noqa: E402
-from wardmap.shared.se3 import make_transform  # noqa: E402
-from wardmap.shared.wire import (  # noqa: E402
-    Intrinsics,
-    KeyframeMsg,
-    Keypoints,
-    PackedRaster,
-    decode_heartbeat,
-)
-from wardmap.shared.zenoh_config import client_config, heartbeat_key, keyframe_key  # noqa: E402
+from wardmap.edge.outbox import Outbox
+from wardmap.shared import wire
+from wardmap.shared.errors import WireError
+from wardmap.shared.wire import decode_heartbeat
+from wardmap.shared.zenoh_config import heartbeat_key, keyframe_key
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(90)]
 
@@ -58,7 +49,6 @@ EVENT_TIMEOUT_S = 20.0
 RUN_TIMEOUT_S = 60.0
 FRAMES = 60
 OUTBOX_FILE = "outbox.sqlite"
-ALL_ACKS = "wardmap/v1/robot/*/ack"
 # The agent gives up on an unacked item only after this (not reached: a safety net for slow CI).
 EDGE_CONFIG = "[agent]\nflush_timeout_s = 40.0\nresend_after_s = 1.0\n"
 
@@ -118,27 +108,13 @@ def _stop(proc: Proc, timeout_s: float = 15.0) -> int:
 
 
 def _start_router(endpoint: str, log_dir: Path) -> Proc:
-    return _start(
-        [sys.executable, "-m", "wardmap.cli", "router", "--listen", endpoint],
-        f"router listening on {endpoint}",
-        log_dir,
-        "router",
-    )
+    cmd = wardmap_cmd("router", "--listen", endpoint)
+    return _start(cmd, f"router listening on {endpoint}", log_dir, "router")
 
 
 def _start_server(endpoint: str, db: Path, port: int, log_dir: Path) -> Proc:
-    cmd = [
-        sys.executable,
-        "-m",
-        "wardmap.cli",
-        "server",
-        "--connect",
-        endpoint,
-        "--db",
-        f"sqlite:///{db}",
-        "--http",
-        f"127.0.0.1:{port}",
-    ]
+    cmd = wardmap_cmd("server", "--connect", endpoint, "--db", f"sqlite:///{db}",
+                      "--http", f"127.0.0.1:{port}")
     return _start(cmd, f"server ready: http://127.0.0.1:{port}", log_dir, "server")
 
 
@@ -195,24 +171,8 @@ def _start_edge(robot: str, dataset: Path, stack: Stack, tmp_path: Path) -> tupl
     config = tmp_path / "edge.toml"
     config.write_text(EDGE_CONFIG)
     outbox_dir = tmp_path / "outbox"
-    cmd = [
-        sys.executable,
-        "-m",
-        "wardmap.cli",
-        "edge",
-        "--robot",
-        robot,
-        "--source",
-        str(dataset),
-        "--connect",
-        stack.endpoint,
-        "--outbox",
-        str(outbox_dir),
-        "--rate",
-        "10",
-        "--config",
-        str(config),
-    ]
+    cmd = wardmap_cmd("edge", "--robot", robot, "--source", str(dataset), "--connect", stack.endpoint,
+                      "--outbox", str(outbox_dir), "--rate", "10", "--config", str(config))
     proc = _spawn(cmd, tmp_path, "edge")
     assert proc.popen.stdout is not None
     ready = _read_line(proc.popen.stdout, READY_TIMEOUT_S)
@@ -302,8 +262,10 @@ def test_server_sigkill_mid_stream_loses_and_duplicates_nothing(
         with contextlib.suppress(queue.Full):  # drop-newest: only a recent one is needed
             heartbeats.put_nowait(sample.payload.to_bytes())
 
-    conf = zenoh.Config.from_json5(json.dumps(client_config([stack.endpoint])))
-    with zenoh.open(conf) as watcher, watcher.declare_subscriber(heartbeat_key(robot), on_heartbeat):
+    with (
+        open_client(stack.endpoint) as watcher,
+        watcher.declare_subscriber(heartbeat_key(robot), on_heartbeat),
+    ):
         edge, outbox = _start_edge(robot, dataset, stack, tmp_path)
         try:
             _wait_stored(stack.url, robot, 3)
@@ -357,111 +319,16 @@ def test_router_restart_agents_reconnect_and_deliver_exactly_once(
 
 # --------------------------------------------------------------------------- 4. malformed payloads
 
-W, H = 64, 48
-T0 = 1_714_557_600.0
 FUZZ_ROBOT = "fz"
 N_FUZZ = 1000
-_LEAF_POOL: list[Any] = [
-    None,
-    True,
-    False,
-    -1,
-    0,
-    1,
-    2**63,
-    2**64 - 1,
-    -(2**63),
-    1.5,
-    -0.0,
-    math.nan,
-    math.inf,
-    "",
-    "x" * 300,
-    "wardmap.keyframe",
-    "r2",
-    b"",
-    b"\xff\xd8" + bytes(30),
-    [],
-    {},
-    [1, 2, 3],
-    {"a": 1},
-    [0.0, 0.0, 0.0, 1.0],
-    {"dtype": "uint8", "shape": [0], "data": b""},
-]
+# The fuzz values plus another robot's id among the strings: edits that make a robot_id mismatch.
+_LEAVES = (*FUZZ_LEAVES[:16], "r2", *FUZZ_LEAVES[16:])
 
 
 def _base_keyframes(n: int) -> list[bytes]:
     """``n`` small valid keyframes of robot ``fz`` (seq 0..n-1)."""
-    rng = np.random.default_rng(3)
-    ok, jpg = cv2.imencode(".jpg", rng.integers(0, 256, (H, W, 3), dtype=np.uint8))
-    assert ok
-    k = 8
-    base = KeyframeMsg(
-        robot_id=FUZZ_ROBOT,
-        session_id="s1",
-        seq=0,
-        stamp=T0,
-        T_odom_camera=np.eye(4),
-        pose_source="rgb",
-        keypoints=Keypoints(
-            uv=(rng.random((k, 2)) * [W - 1, H - 1]).astype(np.float32),
-            octave=np.zeros(k, np.int8),
-            angle_deg=(rng.random(k) * 360).astype(np.float32),
-            depth_m=rng.uniform(0.5, 4.0, k).astype(np.float32),
-            descriptors=rng.integers(0, 256, (k, 32), dtype=np.uint8),
-        ),
-        rgb_jpeg=bytes(jpg.tobytes()),
-        depth=PackedRaster(*wire.encode_depth(rng.uniform(0.5, 4.0, (H // 2, W // 2)))),
-        intrinsics=Intrinsics(W, H, 50.0, 50.0, 31.5, 23.5, (0.0, 0.0, 0.0, 0.0, 0.0), 5000.0),
-    )
-    return [
-        wire.encode(replace(base, seq=i, stamp=T0 + i, T_odom_camera=make_transform(np.eye(3), [i, 0, 0])))
-        for i in range(n)
-    ]
-
-
-def _leaf_paths(node: Any, path: tuple[Any, ...] = ()) -> list[tuple[Any, ...]]:
-    out = [path] if path else []
-    if isinstance(node, dict):
-        for k, v in node.items():
-            out += _leaf_paths(v, (*path, k))
-    elif isinstance(node, list):
-        for i, v in enumerate(node):
-            out += _leaf_paths(v, (*path, i))
-    return out
-
-
-def _mutate(base: bytes, rng: np.random.Generator) -> bytes:
-    """One seeded mutation (as in tests/shared/test_wire.py's fuzzing, plus random bytes)."""
-    kind = int(rng.integers(0, 7))
-    buf = bytearray(base)
-    if kind == 0:  # bit flips
-        for _ in range(int(rng.integers(1, 8))):
-            i = int(rng.integers(0, len(buf)))
-            buf[i] ^= 1 << int(rng.integers(0, 8))
-        return bytes(buf)
-    if kind == 1:  # truncation (never empty: zenoh carries empty payloads, but keep it a prefix)
-        return bytes(buf[: int(rng.integers(1, len(buf)))])
-    if kind == 2:  # byte insertion
-        i = int(rng.integers(0, len(buf) + 1))
-        noise = rng.integers(0, 256, int(rng.integers(1, 16)), dtype=np.uint8).tobytes()
-        return bytes(buf[:i]) + noise + bytes(buf[i:])
-    if kind == 3:  # random bytes
-        return rng.integers(0, 256, int(rng.integers(1, 3000)), dtype=np.uint8).tobytes()
-    tree = msgpack.unpackb(base, raw=False)
-    paths = _leaf_paths(tree)
-    path = paths[int(rng.integers(0, len(paths)))]
-    parent = tree
-    for p in path[:-1]:
-        parent = parent[p]
-    if kind == 4:  # replace a value (leaf or subtree) with a random value of a random type
-        parent[path[-1]] = copy.deepcopy(_LEAF_POOL[int(rng.integers(0, len(_LEAF_POOL)))])
-    elif kind == 5:  # delete a key or list item
-        del parent[path[-1]]
-    else:  # add an unknown key next to a random one
-        target = parent if isinstance(parent, dict) else tree
-        target["extra"] = _LEAF_POOL[int(rng.integers(0, len(_LEAF_POOL)))]
-    return bytes(msgpack.packb(tree, use_bin_type=True))
+    base = keyframe(np.random.default_rng(3), robot_id=FUZZ_ROBOT, n_keypoints=8)
+    return [wire.encode(m) for m in walk(base, n)]
 
 
 def _expected_outcome(payload: bytes) -> str:
@@ -471,15 +338,6 @@ def _expected_outcome(payload: bytes) -> str:
     except WireError:
         return "rejected"
     return "accepted" if msg.robot_id == FUZZ_ROBOT else "rejected"  # else: robot_id mismatch
-
-
-def _metrics(text: str) -> dict[str, float]:
-    out = {}
-    for line in text.splitlines():
-        if line and not line.startswith("#"):
-            name, value = line.rsplit(" ", 1)
-            out[name] = float(value)
-    return out
 
 
 class AckCounter:
@@ -509,35 +367,26 @@ def test_malformed_and_mutated_payloads_are_rejected_and_counted(stack: Stack) -
     sqlite file passes ``PRAGMA integrity_check``."""
     rng = np.random.default_rng(20240501)
     bases = _base_keyframes(4)
-    payloads = [_mutate(bases[i % len(bases)], rng) for i in range(N_FUZZ)]
+    payloads = [mutate(bases[i % len(bases)], rng, leaves=_LEAVES, random_payloads=True)
+                for i in range(N_FUZZ)]
     expected = [_expected_outcome(p) for p in payloads]
     n_rejected = expected.count("rejected")
     assert 500 < n_rejected < N_FUZZ  # the mix exercises both outcomes
 
     acks = AckCounter()
-    conf = zenoh.Config.from_json5(json.dumps(client_config([stack.endpoint])))
     with (
-        zenoh.open(conf) as session,
+        open_client(stack.endpoint) as session,
         session.declare_subscriber(ALL_ACKS, acks.on_ack),
-        session.declare_publisher(
-            keyframe_key(FUZZ_ROBOT),
-            reliability=zenoh.Reliability.RELIABLE,
-            congestion_control=zenoh.CongestionControl.BLOCK,
-        ) as pub,
         httpx.Client(base_url=stack.url, timeout=10) as http,
     ):
-        matched = threading.Event()
-        with pub.declare_matching_listener(lambda s: matched.set() if s.matching else None):
-            if pub.matching_status.matching:
-                matched.set()
-            assert matched.wait(EVENT_TIMEOUT_S), "the server's subscriber never matched"
+        pub = matched_publisher(session, keyframe_key(FUZZ_ROBOT), EVENT_TIMEOUT_S)
         for p in payloads:
             pub.put(p)
         assert acks.wait_for(N_FUZZ, EVENT_TIMEOUT_S), f"only {len(acks.statuses)} of {N_FUZZ} acks"
 
         assert stack.server.popen.poll() is None
         assert http.get("/healthz").json() == {"status": "ok"}
-        metrics = _metrics(http.get("/metrics").text)
+        metrics = prometheus_samples(http.get("/metrics").text)
         reasons = {k: v for k, v in metrics.items() if k.startswith("wardmap_rejections_total")}
         assert sum(reasons.values()) == n_rejected, reasons
         assert 'wardmap_rejections_total{reason="internal"}' not in reasons, reasons

@@ -7,28 +7,24 @@ zenoh matching/liveliness events, probe samples and threading events, never on s
 
 from __future__ import annotations
 
-import json
 import queue
 import signal
 import socket
 import subprocess
-import sys
 import threading
 from collections.abc import Iterator
 from typing import Any
 
 import pytest
+from peers import open_client
 from procs import child_env as _env
-from procs import free_port as _free_port
-from procs import read_line as _read_line
-from procs import stop as _stop
+from procs import router_process, wardmap_cmd
 
 zenoh = pytest.importorskip("zenoh")
 
 from wardmap.shared.zenoh_config import (  # noqa: E402  (after the importorskip guard)
     ALL_KEYFRAMES,
     ALL_LIVELINESS,
-    client_config,
     keyframe_key,
     liveliness_key,
 )
@@ -41,32 +37,14 @@ PROBE = b"probe"  # not a test payload: those start with a 4-byte index and are 
 
 
 def _router_cmd(endpoint: str) -> list[str]:
-    return [sys.executable, "-m", "wardmap.cli", "router", "--listen", endpoint]
+    return wardmap_cmd("router", "--listen", endpoint)
 
 
 @pytest.fixture
 def router() -> Iterator[tuple[subprocess.Popen[str], str]]:
     """A ``wardmap router`` subprocess on a free loopback port, after its ready line."""
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
-    proc = subprocess.Popen(
-        _router_cmd(endpoint), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env()
-    )
-    try:
-        assert proc.stdout is not None
-        line = _read_line(proc.stdout, READY_TIMEOUT_S)
-        if line is None:
-            proc.kill()
-            _, err = proc.communicate(timeout=5)
-            pytest.fail(f"router not ready within {READY_TIMEOUT_S} s; stderr: {err!r}")
-        assert line.strip() == f"router listening on {endpoint}"
+    with router_process(READY_TIMEOUT_S) as (proc, endpoint):
         yield proc, endpoint
-    finally:
-        _stop(proc)
-
-
-def _open_client(endpoint: str) -> Any:
-    """A zenoh client session connected to ``endpoint`` (shm off, multicast scouting off)."""
-    return zenoh.open(zenoh.Config.from_json5(json.dumps(client_config([endpoint]))))
 
 
 def test_keyframes_through_router_in_order_then_sigterm(router: tuple[subprocess.Popen[str], str]) -> None:
@@ -93,8 +71,8 @@ def test_keyframes_through_router_in_order_then_sigterm(router: tuple[subprocess
             matched.set()
 
     with (
-        _open_client(endpoint) as sub_session,
-        _open_client(endpoint) as pub_session,
+        open_client(endpoint) as sub_session,
+        open_client(endpoint) as pub_session,
         sub_session.declare_subscriber(ALL_KEYFRAMES, on_sample),
         pub_session.declare_publisher(
             keyframe_key("r1"),
@@ -153,8 +131,8 @@ def test_liveliness_token_appears_and_disappears(router: tuple[subprocess.Popen[
         events.put((str(sample.kind), str(sample.key_expr)))
 
     key = liveliness_key("r1")
-    with _open_client(endpoint) as watcher:
-        robot = _open_client(endpoint)
+    with open_client(endpoint) as watcher:
+        robot = open_client(endpoint)
         try:
             token = robot.liveliness().declare_token(key)  # held until its session closes
             with watcher.liveliness().declare_subscriber(ALL_LIVELINESS, on_liveliness, history=True):

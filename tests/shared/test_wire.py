@@ -11,6 +11,20 @@ import cv2
 import msgpack
 import numpy as np
 import pytest
+from factories import (
+    T0,
+    TH,
+    TW,
+    H,
+    W,
+    depth_image,
+    full_keyframe,
+    mutate,
+    noise_jpeg,
+    pack,
+    random_pose,
+    thermal_image,
+)
 
 from wardmap.edge.tracker import PoseSource as TrackerPoseSource
 from wardmap.shared import wire
@@ -27,73 +41,11 @@ from wardmap.shared.wire import (
     RasterMeta,
 )
 
-W, H = 64, 48
-TW, TH = 32, 24
-T0 = 1_700_000_000.0
-
-
-# --------------------------------------------------------------------------- builders
-
-
-def random_pose(rng: np.random.Generator) -> np.ndarray:
-    return se3_exp(rng.normal(size=6))
-
-
-def jpeg(rng: np.random.Generator, width: int = W, height: int = H, channels: int = 3) -> bytes:
-    shape = (height, width, channels) if channels > 1 else (height, width)
-    img = rng.integers(0, 256, shape, dtype=np.uint8)
-    ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 85])
-    assert ok
-    return bytes(buf.tobytes())
-
-
-def random_keypoints(rng: np.random.Generator, n: int, width: int = W, height: int = H) -> Keypoints:
-    return Keypoints(
-        uv=(rng.random((n, 2)) * [width - 1, height - 1]).astype(np.float32),
-        octave=rng.integers(0, 8, n).astype(np.int8),
-        angle_deg=(rng.random(n) * 360).astype(np.float32),
-        depth_m=np.where(rng.random(n) < 0.2, 0, rng.uniform(0.3, 6.0, n)).astype(np.float32),
-        descriptors=rng.integers(0, 256, (n, 32), dtype=np.uint8),
-    )
-
-
-def random_depth(rng: np.random.Generator, width: int = W, height: int = H) -> np.ndarray:
-    d = rng.uniform(0.3, 8.0, (height, width)).astype(np.float32)
-    d[rng.random((height, width)) < 0.1] = 0.0
-    return d
-
-
-def random_thermal(rng: np.random.Generator) -> np.ndarray:
-    return rng.uniform(290.0, 315.0, (TH, TW)).astype(np.float32)
-
-
-def make_keyframe(rng: np.random.Generator, *, thermal: bool = True, intrinsics: bool = True,
-                  base: bool = True, n: int = 20) -> KeyframeMsg:
-    return KeyframeMsg(
-        robot_id="robot_0",
-        session_id="2024-05-01T10.00_a",
-        seq=int(rng.integers(0, 2**40)),
-        stamp=T0 + float(rng.random()),
-        T_odom_camera=random_pose(rng),
-        pose_source="rgb",
-        keypoints=random_keypoints(rng, n),
-        rgb_jpeg=jpeg(rng),
-        depth=PackedRaster(*wire.encode_depth(random_depth(rng))),
-        intrinsics=Intrinsics(W, H, 52.5, 52.5, 31.5, 23.5, (0.1, -0.2, 0.001, 0.002, 0.05), 5000.0)
-        if intrinsics else None,
-        calib_ref=None if intrinsics else "sha256:" + "ab" * 32,
-        T_odom_base=random_pose(rng) if base else None,
-        thermal=PackedRaster(*wire.encode_thermal(random_thermal(rng))) if thermal else None,
-        T_map_odom=random_pose(rng) if base else None,
-    )
+# --------------------------------------------------------------------------- helpers
 
 
 def wire_dict(msg: wire.Message) -> dict[str, Any]:
     return dict(msgpack.unpackb(wire.encode(msg), raw=False))
-
-
-def pack(d: Any) -> bytes:
-    return bytes(msgpack.packb(d, use_bin_type=True))
 
 
 def assert_keyframes_equal(a: KeyframeMsg, b: KeyframeMsg) -> None:
@@ -128,7 +80,7 @@ def test_keyframe_round_trip(thermal: bool, intrinsics: bool, base: bool) -> Non
     """A keyframe with every combination of optional parts decodes to an equal keyframe:
     arrays and bytes exactly, poses to 1e-12 (they travel as translation + quaternion)."""
     rng = np.random.default_rng(1)
-    msg = make_keyframe(rng, thermal=thermal, intrinsics=intrinsics, base=base)
+    msg = full_keyframe(rng, thermal=thermal, intrinsics=intrinsics, base=base)
     back = wire.decode_keyframe(wire.encode(msg))
     assert_keyframes_equal(msg, back)
 
@@ -136,7 +88,7 @@ def test_keyframe_round_trip(thermal: bool, intrinsics: bool, base: bool) -> Non
 def test_keyframe_without_keypoints_round_trips() -> None:
     """A keyframe with zero keypoints (e.g. a blank wall) is valid and round trips."""
     rng = np.random.default_rng(2)
-    msg = make_keyframe(rng, n=0)
+    msg = full_keyframe(rng, n=0)
     back = wire.decode_keyframe(wire.encode(msg))
     assert len(back.keypoints) == 0
     assert back.keypoints.descriptors.shape == (0, 32)
@@ -145,7 +97,7 @@ def test_keyframe_without_keypoints_round_trips() -> None:
 def test_int16_octaves_round_trip() -> None:
     """Octaves may travel as int16 (SIFT-style -1 included); the dtype is preserved."""
     rng = np.random.default_rng(3)
-    msg = make_keyframe(rng, n=5)
+    msg = full_keyframe(rng, n=5)
     kp = msg.keypoints
     kp16 = Keypoints(kp.uv, np.array([-1, 0, 1, 2, 31], np.int16), kp.angle_deg, kp.depth_m, kp.descriptors)
     msg16 = KeyframeMsg(msg.robot_id, msg.session_id, msg.seq, msg.stamp, msg.T_odom_camera, "thermal",
@@ -158,7 +110,7 @@ def test_int16_octaves_round_trip() -> None:
 def test_pose_through_quaternion_is_rigid_and_close() -> None:
     """50 random poses survive the (t, q_xyzw) encoding to 1e-12 and stay proper rotations."""
     rng = np.random.default_rng(4)
-    msg = make_keyframe(rng)
+    msg = full_keyframe(rng)
     for _ in range(50):
         T = random_pose(rng)
         m = KeyframeMsg(msg.robot_id, msg.session_id, 1, 1.0, T, "odometry", msg.keypoints, msg.rgb_jpeg,
@@ -205,7 +157,7 @@ def test_depth_is_lossless_at_its_unit(unit_m: float) -> None:
     """Decoded depth equals round(depth / unit) * unit as float32 exactly; holes (0, NaN,
     negative, inf) decode as 0; re-encoding the decoded image gives identical bytes."""
     rng = np.random.default_rng(5)
-    d = random_depth(rng, 97, 61) * np.float32(unit_m / 0.001 / 8 * 13)  # stay within 65535 units
+    d = depth_image(rng, 97, 61) * np.float32(unit_m / 0.001 / 8 * 13)  # stay within 65535 units
     d[0, :4] = [np.nan, -1.0, np.inf, 0.0]
     data, meta = wire.encode_depth(d, unit_m=unit_m)
     assert (meta.width, meta.height, meta.unit) == (97, 61, unit_m)
@@ -230,7 +182,7 @@ def test_raster_codec_extremes() -> None:
 def test_thermal_is_lossless_at_centikelvin() -> None:
     """Thermal decodes to round(K / 0.01) * 0.01 exactly, with its own size."""
     rng = np.random.default_rng(6)
-    t = random_thermal(rng)
+    t = thermal_image(rng)
     data, meta = wire.encode_thermal(t)
     assert (meta.width, meta.height) == (TW, TH)
     out = wire.decode_thermal(data, meta)
@@ -250,8 +202,8 @@ def test_raster_out_of_range_raises() -> None:
 def test_jpeg_size_reads_header() -> None:
     """jpeg_size reads width, height and channels from the SOF header of real JPEGs."""
     rng = np.random.default_rng(7)
-    assert wire.jpeg_size(jpeg(rng, 123, 45)) == (123, 45, 3)
-    assert wire.jpeg_size(jpeg(rng, 20, 10, channels=1)) == (20, 10, 1)
+    assert wire.jpeg_size(noise_jpeg(rng, 123, 45)) == (123, 45, 3)
+    assert wire.jpeg_size(noise_jpeg(rng, 20, 10, channels=1)) == (20, 10, 1)
 
 
 # --------------------------------------------------------------------------- malformed input
@@ -321,13 +273,13 @@ def _both_cameras(d: dict[str, Any]) -> Any:
 
 def _jpeg_size(width: int, height: int) -> Mutation:
     def f(d: dict[str, Any]) -> Any:
-        d["rgb_jpeg"] = jpeg(np.random.default_rng(0), width, height)
+        d["rgb_jpeg"] = noise_jpeg(np.random.default_rng(0), width, height)
         return d
     return f
 
 
 def _grey_jpeg(d: dict[str, Any]) -> Any:
-    d["rgb_jpeg"] = jpeg(np.random.default_rng(0), W, H, channels=1)
+    d["rgb_jpeg"] = noise_jpeg(np.random.default_rng(0), W, H, channels=1)
     return d
 
 
@@ -429,7 +381,7 @@ KEYFRAME_CASES: list[tuple[str, Mutation, str]] = [
 
 @pytest.fixture(scope="module")
 def keyframe_wire() -> dict[str, Any]:
-    return wire_dict(make_keyframe(np.random.default_rng(8)))
+    return wire_dict(full_keyframe(np.random.default_rng(8)))
 
 
 @pytest.mark.parametrize(("mutation", "field"), [c[1:] for c in KEYFRAME_CASES],
@@ -481,7 +433,7 @@ def test_invalid_ack_and_heartbeat_name_field(msg: wire.Message, mutation: Mutat
 def test_payload_level_errors() -> None:
     """Oversize, truncated, garbage, non-map, non-bytes, ext types and deep nesting all raise
     WireError with the empty field (the payload as a whole)."""
-    good = wire.encode(make_keyframe(np.random.default_rng(9)))
+    good = wire.encode(full_keyframe(np.random.default_rng(9)))
     deep = b"\x91" * 100_000 + b"\x00"  # 100k nested one-element arrays
     bad_utf8 = pack({"schema": "x"})[:-1] + b"\xff"
     cases: list[Any] = [good[: len(good) // 2], good[:1], b"", b"\xc1\xc1\xc1", good + b"\x00", deep,
@@ -500,7 +452,7 @@ def test_payload_level_errors() -> None:
 def test_constructors_validate() -> None:
     """Messages validate on construction too, so an invalid message cannot be encoded."""
     rng = np.random.default_rng(10)
-    kf = make_keyframe(rng)
+    kf = full_keyframe(rng)
     cases: list[tuple[Callable[[], object], str]] = [
         (lambda: AckMsg("r", "s", 0, "ok"), "status"),
         (lambda: HeartbeatMsg("r", "s", 1.0, {"x": float("nan")}), "stats.x"),
@@ -522,67 +474,20 @@ def test_constructors_validate() -> None:
 
 # --------------------------------------------------------------------------- fuzzing
 
-_LEAF_POOL: list[Any] = [None, True, False, -1, 0, 1, 2**63, 2**64 - 1, -(2**63), 1.5, -0.0, math.nan,
-                         math.inf,
-                         "", "x" * 300, "wardmap.keyframe", b"", b"\xff\xd8" + bytes(30), [], {}, [1, 2, 3],
-                         {"a": 1}, [0.0, 0.0, 0.0, 1.0], {"dtype": "uint8", "shape": [0], "data": b""}]
-
-
-def _leaf_paths(node: Any, path: tuple[Any, ...] = ()) -> list[tuple[Any, ...]]:
-    out = [path] if path else []
-    if isinstance(node, dict):
-        for k, v in node.items():
-            out += _leaf_paths(v, (*path, k))
-    elif isinstance(node, list):
-        for i, v in enumerate(node):
-            out += _leaf_paths(v, (*path, i))
-    return out
-
-
-def _mutate(base: bytes, rng: np.random.Generator) -> bytes:
-    kind = int(rng.integers(0, 6))
-    buf = bytearray(base)
-    if kind == 0:  # bit flips
-        for _ in range(int(rng.integers(1, 8))):
-            i = int(rng.integers(0, len(buf)))
-            buf[i] ^= 1 << int(rng.integers(0, 8))
-        return bytes(buf)
-    if kind == 1:  # truncation
-        return bytes(buf[: int(rng.integers(0, len(buf)))])
-    if kind == 2:  # byte insertion
-        i = int(rng.integers(0, len(buf) + 1))
-        noise = rng.integers(0, 256, int(rng.integers(1, 16)), dtype=np.uint8).tobytes()
-        return bytes(buf[:i]) + noise + bytes(buf[i:])
-    tree = msgpack.unpackb(base, raw=False)
-    paths = _leaf_paths(tree)
-    path = paths[int(rng.integers(0, len(paths)))]
-    parent = tree
-    for p in path[:-1]:
-        parent = parent[p]
-    if kind == 3:  # replace a value (leaf or subtree) with a random value of a random type
-        parent[path[-1]] = copy.deepcopy(_LEAF_POOL[int(rng.integers(0, len(_LEAF_POOL)))])
-    elif kind == 4:  # delete a key or list item
-        del parent[path[-1]]
-    else:  # add an unknown key next to a random one
-        target = parent if isinstance(parent, dict) else tree
-        target["extra"] = _LEAF_POOL[int(rng.integers(0, len(_LEAF_POOL)))]
-    return pack(tree)
-
-
 def test_fuzz_decode_raises_only_wire_errors() -> None:
     """1000 seeded random mutations (bit flips, truncations, insertions, structural edits of
     the decoded tree) of valid keyframes, acks and heartbeats: decode either returns a
     message or raises WireError -- never any other exception."""
     rng = np.random.default_rng(11)
     bases = [
-        wire.encode(make_keyframe(rng, thermal=True, intrinsics=True)),
-        wire.encode(make_keyframe(rng, thermal=False, intrinsics=False, base=False)),
+        wire.encode(full_keyframe(rng, thermal=True, intrinsics=True)),
+        wire.encode(full_keyframe(rng, thermal=False, intrinsics=False, base=False)),
         wire.encode(ACK),
         wire.encode(HEARTBEAT),
     ]
     outcomes = {"ok": 0, "wire_error": 0}
     for trial in range(1000):
-        payload = _mutate(bases[trial % len(bases)], rng)
+        payload = mutate(bases[trial % len(bases)], rng)
         assert len(payload) <= wire.MAX_MESSAGE_BYTES
         try:
             wire.decode(payload)

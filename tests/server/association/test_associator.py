@@ -6,6 +6,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from factories import CAMERA, MeasurementFactory, camera_looking_along_y, object_pose
 
 from wardmap.server.association.associator import AssociationConfig, Associator
 from wardmap.server.association.evaluate import score_landmarks
@@ -14,8 +15,6 @@ from wardmap.server.association.types import LandmarkChange
 from wardmap.server.perception.types import ObjectMeasurement
 from wardmap.shared.config import from_mapping
 from wardmap.shared.errors import ConfigError, GeometryError
-
-from .conftest import CAMERA, MeasurementFactory, camera_looking_along_y, object_pose
 
 DOOR = np.array([0.06, 1.16, 2.18])
 

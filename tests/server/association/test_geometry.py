@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from factories import CAMERA, CHAIR_SIZE, camera_looking_along_y, object_pose
 
 from wardmap.server.association.geometry import (
     box_iou,
@@ -16,8 +17,6 @@ from wardmap.server.association.geometry import (
     world_extents,
 )
 from wardmap.server.association.spatial import SpatialGrid
-
-from .conftest import CAMERA, CHAIR_SIZE, camera_looking_along_y, object_pose
 
 
 def test_residuals_respect_box_symmetry() -> None:

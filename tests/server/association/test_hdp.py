@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import numpy as np
+from factories import object_pose
 
 from wardmap.server.association.hdp import HdpConfig, HdpItem, HdpTopic, gibbs_associate, gmm_log_density
-
-from .conftest import object_pose
 
 
 def _item(x: float, kf: int, mid: int, y: float = 3.0) -> HdpItem:

@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
+from factories import CAMERA, MeasurementFactory, camera_looking_along_y, object_pose
 
 from wardmap.server.association.baselines import nearest_assign
 from wardmap.server.association.mot import KeyframeView, MotConfig, appearance_similarity, track_group
-
-from .conftest import CAMERA, MeasurementFactory, camera_looking_along_y, object_pose
 
 
 def _view(index: int, T_wc: np.ndarray, ms: list, first_mid: int) -> KeyframeView:

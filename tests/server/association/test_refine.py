@@ -6,11 +6,10 @@ import math
 
 import numpy as np
 import pytest
+from factories import object_pose
 
 from wardmap.server.association.refine import RefineConfig, landmark_size, pose_differences, refine_index
 from wardmap.shared.errors import GeometryError
-
-from .conftest import object_pose
 
 
 def test_eq_4_to_6_known_numbers() -> None:

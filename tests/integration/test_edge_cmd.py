@@ -1,5 +1,6 @@
-"""Multi-process tests of ``wardmap edge``: a real router subprocess, the agent as a subprocess,
-and a tiny acker (a zenoh client in the test process that stands in for the server's ingest).
+"""``wardmap edge`` as a process: a real router subprocess, the agent as a subprocess, and a tiny
+acker (``peers.Acker``, a zenoh client in the test process that stands in for the server's
+ingest). Tests of the agent in this process: tests/edge/test_agent.py.
 
 Every session is a client with shared memory and multicast scouting off, connected to the
 router on 127.0.0.1; the tests wait on the router's ready line, the agent's stdout,
@@ -13,28 +14,22 @@ import json
 import queue
 import signal
 import subprocess
-import sys
-import threading
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
+from peers import Acker, open_client
 from procs import child_env as _env
-from procs import free_port as _free_port
 from procs import read_line as _read_line
+from procs import router_process, wardmap_cmd
 from procs import stop as _stop
 
-zenoh = pytest.importorskip("zenoh")
+pytest.importorskip("zenoh")
 
-from wardmap.edge.outbox import Outbox  # noqa: E402  (after the importorskip guard)
-from wardmap.shared.wire import AckMsg, decode_heartbeat, decode_keyframe, encode  # noqa: E402
-from wardmap.shared.zenoh_config import (  # noqa: E402
-    ALL_KEYFRAMES,
-    ack_key,
-    client_config,
-    heartbeat_key,
-)
+from wardmap.edge.outbox import Outbox
+from wardmap.shared.wire import decode_heartbeat
+from wardmap.shared.zenoh_config import heartbeat_key
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(90)]
 
@@ -45,11 +40,7 @@ OUTBOX_FILE = "outbox.sqlite"
 
 
 def _edge_cmd(*args: str) -> list[str]:
-    return [sys.executable, "-m", "wardmap.cli", "edge", *args]
-
-
-def _open_client(endpoint: str) -> Any:
-    return zenoh.open(zenoh.Config.from_json5(json.dumps(client_config([endpoint]))))
+    return wardmap_cmd("edge", *args)
 
 
 @pytest.fixture(scope="module")
@@ -65,72 +56,8 @@ def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
 @pytest.fixture(scope="module")
 def router() -> Iterator[str]:
     """A ``wardmap router`` subprocess on a free loopback port, after its ready line; yields its endpoint."""
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "wardmap.cli", "router", "--listen", endpoint],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        env=_env(),
-    )
-    try:
-        assert proc.stdout is not None
-        line = _read_line(proc.stdout, READY_TIMEOUT_S)
-        if line is None:
-            pytest.fail("router not ready")
-        assert line.strip() == f"router listening on {endpoint}"
+    with router_process(READY_TIMEOUT_S) as (_, endpoint):
         yield endpoint
-    finally:
-        _stop(proc)
-
-
-class Acker:
-    """Stands in for the server: acks every keyframe it decodes with status ``stored``.
-
-    The subscriber callback only enqueues (bounded queue, blocking: the test must see every
-    keyframe); a worker thread decodes, records ``(session_id, seq)`` and publishes the ack.
-    """
-
-    def __init__(self, endpoint: str) -> None:
-        self.endpoint = endpoint
-        self.received: list[tuple[str, int]] = []  # owned by the worker; read under _lock
-        self._lock = threading.Lock()
-        self._changed = threading.Condition(self._lock)
-        self._queue: queue.Queue[bytes | None] = queue.Queue(maxsize=256)
-        self._session: Any = None
-        self._worker = threading.Thread(target=self._work, name="acker", daemon=True)
-
-    def __enter__(self) -> Acker:
-        self._session = _open_client(self.endpoint)
-        self._sub = self._session.declare_subscriber(
-            ALL_KEYFRAMES, lambda s: self._queue.put(s.payload.to_bytes())
-        )
-        self._worker.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self._queue.put(None)
-        self._worker.join(timeout=10)
-        self._sub.undeclare()
-        self._session.close()
-
-    def _work(self) -> None:
-        while (payload := self._queue.get()) is not None:
-            msg = decode_keyframe(payload)
-            ack = AckMsg(msg.robot_id, msg.session_id, msg.seq, "stored")
-            self._session.put(ack_key(msg.robot_id), encode(ack))
-            with self._changed:
-                self.received.append((msg.session_id, msg.seq))
-                self._changed.notify_all()
-
-    def keys(self) -> set[tuple[str, int]]:
-        with self._lock:
-            return set(self.received)
-
-    def wait_for(self, keys: set[tuple[str, int]], timeout_s: float) -> bool:
-        """True once every key in ``keys`` was received."""
-        with self._changed:
-            return self._changed.wait_for(lambda: keys <= set(self.received), timeout=timeout_s)
 
 
 def _summary(stdout: str) -> dict[str, Any]:
@@ -210,7 +137,7 @@ def test_edge_resumes_unacked_keyframes_after_sigterm(dataset: Path, router: str
         with contextlib.suppress(queue.Full):  # drop-newest: the test only needs a recent one
             heartbeats.put_nowait(sample.payload.to_bytes())
 
-    with _open_client(router) as watcher, watcher.declare_subscriber(heartbeat_key("r2"), on_heartbeat):
+    with open_client(router) as watcher, watcher.declare_subscriber(heartbeat_key("r2"), on_heartbeat):
         proc = subprocess.Popen(
             _edge_cmd(*base, "--rate", "10", "--config", str(config)),
             stdout=subprocess.PIPE,

@@ -1,5 +1,6 @@
-"""End-to-end ingest: a real router subprocess, a real ``wardmap server`` subprocess, and this
-test process as two robots publishing keyframes over zenoh and listening for acks.
+"""``wardmap server`` as a process: end-to-end ingest with a real router subprocess, a real
+``wardmap server`` subprocess, and this test process as two robots publishing keyframes over
+zenoh and listening for acks; start-up errors. Unit tests of the ingest: tests/server/test_ingest.py.
 
 Sessions are zenoh clients on 127.0.0.1 with shared memory and multicast scouting off. The
 test synchronises on ready lines, zenoh matching events and the ack queue, never on sleeps.
@@ -7,87 +8,52 @@ test synchronises on ready lines, zenoh matching events and the ack queue, never
 
 from __future__ import annotations
 
-import json
 import queue
 import signal
 import socket
 import subprocess
-import sys
-import threading
 from collections import Counter
 from collections.abc import Iterator
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-import cv2
 import httpx
 import numpy as np
 import pytest
+from factories import keyframe, walk
+from peers import ALL_ACKS, matched_publisher, open_client
 from procs import child_env as _env
 from procs import free_port as _free_port
-from procs import read_line as _read_line
+from procs import prometheus_samples, router_process, start, wardmap_cmd
 from procs import stop as _stop
 
-zenoh = pytest.importorskip("zenoh")
+pytest.importorskip("zenoh")
 
 
-from wardmap.shared import wire  # noqa: E402  (after the importorskip guard)
-from wardmap.shared.se3 import make_transform  # noqa: E402
-from wardmap.shared.wire import AckMsg, Intrinsics, KeyframeMsg, Keypoints, PackedRaster  # noqa: E402
-from wardmap.shared.zenoh_config import client_config, keyframe_key  # noqa: E402
+from wardmap.shared import wire
+from wardmap.shared.wire import AckMsg
+from wardmap.shared.zenoh_config import keyframe_key
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(60)]
 
 READY_TIMEOUT_S = 20.0
 EVENT_TIMEOUT_S = 10.0
-ALL_ACKS = "wardmap/v1/robot/*/ack"
-W, H = 64, 48
-T0 = 1_714_557_600.0
-
-
-def _start(cmd: list[str], expect: str) -> subprocess.Popen[str]:
-    """Start ``cmd`` and wait for its ready line ``expect``; fail with its stderr otherwise."""
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env())
-    assert proc.stdout is not None
-    line = _read_line(proc.stdout, READY_TIMEOUT_S)
-    if line is None or line.strip() != expect:
-        proc.kill()
-        _, err = proc.communicate(timeout=5)
-        pytest.fail(f"{cmd[3]} not ready ({line!r}); stderr: {err[-2000:]!r}")
-    return proc
 
 
 @pytest.fixture
 def router() -> Iterator[str]:
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
-    proc = _start(
-        [sys.executable, "-m", "wardmap.cli", "router", "--listen", endpoint],
-        f"router listening on {endpoint}",
-    )
-    try:
+    """A ``wardmap router`` subprocess on a free loopback port, after its ready line; yields its endpoint."""
+    with router_process(READY_TIMEOUT_S) as (_, endpoint):
         yield endpoint
-    finally:
-        _stop(proc)
 
 
 @pytest.fixture
 def server(router: str, tmp_path: Path) -> Iterator[tuple[subprocess.Popen[str], str]]:
     port = _free_port()
     url = f"http://127.0.0.1:{port}"
-    cmd = [
-        sys.executable,
-        "-m",
-        "wardmap.cli",
-        "server",
-        "--connect",
-        router,
-        "--db",
-        f"sqlite:///{tmp_path / 'map.db'}",
-        "--http",
-        f"127.0.0.1:{port}",
-    ]
-    proc = _start(cmd, f"server ready: {url}")
+    cmd = wardmap_cmd("server", "--connect", router, "--db", f"sqlite:///{tmp_path / 'map.db'}",
+                      "--http", f"127.0.0.1:{port}")
+    proc = start(cmd, f"server ready: {url}", READY_TIMEOUT_S)
     try:
         yield proc, url
     finally:
@@ -95,32 +61,8 @@ def server(router: str, tmp_path: Path) -> Iterator[tuple[subprocess.Popen[str],
 
 
 def _keyframes(robot: str, n: int) -> list[bytes]:
-    rng = np.random.default_rng(sum(robot.encode()))  # seeded per robot
-    ok, jpg = cv2.imencode(".jpg", rng.integers(0, 256, (H, W, 3), dtype=np.uint8))
-    assert ok
-    k = 4
-    base = KeyframeMsg(
-        robot_id=robot,
-        session_id="s1",
-        seq=0,
-        stamp=T0,
-        T_odom_camera=np.eye(4),
-        pose_source="rgb",
-        keypoints=Keypoints(
-            uv=(rng.random((k, 2)) * [W - 1, H - 1]).astype(np.float32),
-            octave=np.zeros(k, np.int8),
-            angle_deg=(rng.random(k) * 360).astype(np.float32),
-            depth_m=rng.uniform(0.5, 4.0, k).astype(np.float32),
-            descriptors=rng.integers(0, 256, (k, 32), dtype=np.uint8),
-        ),
-        rgb_jpeg=bytes(jpg.tobytes()),
-        depth=PackedRaster(*wire.encode_depth(rng.uniform(0.5, 4.0, (H // 2, W // 2)))),
-        intrinsics=Intrinsics(W, H, 50.0, 50.0, 31.5, 23.5, (0.0, 0.0, 0.0, 0.0, 0.0), 5000.0),
-    )
-    return [
-        wire.encode(replace(base, seq=i, stamp=T0 + i, T_odom_camera=make_transform(np.eye(3), [i, 0, 0])))
-        for i in range(n)
-    ]
+    base = keyframe(np.random.default_rng(sum(robot.encode())), robot_id=robot)  # seeded per robot
+    return [wire.encode(m) for m in walk(base, n)]
 
 
 def _garbage(valid: list[bytes], n: int) -> list[bytes]:
@@ -136,15 +78,6 @@ def _garbage(valid: list[bytes], n: int) -> list[bytes]:
             out.append(p[: int(rng.integers(1, len(p) - 1))])
         else:
             out.append(p + b"\x00junk")
-    return out
-
-
-def _metrics(text: str) -> dict[str, float]:
-    out = {}
-    for line in text.splitlines():
-        if line and not line.startswith("#"):
-            name, value = line.rsplit(" ", 1)
-            out[name] = float(value)
     return out
 
 
@@ -171,25 +104,12 @@ def test_ingest_stores_acks_dedups_and_rejects(
         acks.put((str(sample.key_expr), wire.decode_ack(sample.payload.to_bytes())))
 
     payloads = {r: _keyframes(r, 50) for r in ("r1", "r2")}
-    conf = zenoh.Config.from_json5(json.dumps(client_config([router])))
     with (
-        zenoh.open(conf) as session,
+        open_client(router) as session,
         session.declare_subscriber(ALL_ACKS, on_ack),
         httpx.Client(base_url=url, timeout=10) as http,
     ):
-        pubs = {}
-        for robot in payloads:
-            pub = session.declare_publisher(
-                keyframe_key(robot),
-                reliability=zenoh.Reliability.RELIABLE,
-                congestion_control=zenoh.CongestionControl.BLOCK,
-            )
-            matched = threading.Event()
-            with pub.declare_matching_listener(lambda s, ev=matched: ev.set() if s.matching else None):
-                if pub.matching_status.matching:
-                    matched.set()
-                assert matched.wait(EVENT_TIMEOUT_S), "the server's subscriber never matched"
-            pubs[robot] = pub
+        pubs = {robot: matched_publisher(session, keyframe_key(robot), EVENT_TIMEOUT_S) for robot in payloads}
 
         for i in range(50):
             for robot, pub in pubs.items():
@@ -215,7 +135,7 @@ def test_ingest_stores_acks_dedups_and_rejects(
         assert {a.status for _, a in rejected} == {"rejected"}
         assert acks.empty()
 
-        metrics = _metrics(http.get("/metrics").text)
+        metrics = prometheus_samples(http.get("/metrics").text)
         reasons = {k: v for k, v in metrics.items() if k.startswith("wardmap_rejections_total")}
         assert sum(reasons.values()) == 210, reasons
         assert metrics['wardmap_rejections_total{reason="robot_id mismatch"}'] == 10
@@ -236,7 +156,7 @@ def test_ingest_stores_acks_dedups_and_rejects(
 
 def test_server_bad_db_and_port_in_use_exit_1(router: str, tmp_path: Path) -> None:
     """A bad store URL and an HTTP port already taken each give exit 1 and one stderr line."""
-    base = [sys.executable, "-m", "wardmap.cli", "server", "--connect", router]
+    base = wardmap_cmd("server", "--connect", router)
     bad_db = subprocess.run(
         [*base, "--db", "mysql://x", "--http", f"127.0.0.1:{_free_port()}"],
         capture_output=True,
