@@ -39,6 +39,7 @@ zenoh = pytest.importorskip("zenoh")
 
 from wardmap.server.ingest import Ingest  # noqa: E402  (after the importorskip guard)
 from wardmap.server.store import open_store  # noqa: E402
+from wardmap.server.zenoh_session import open_session  # noqa: E402
 from wardmap.shared import wire  # noqa: E402
 from wardmap.shared.zenoh_config import client_config, heartbeat_key, keyframe_key  # noqa: E402
 
@@ -413,6 +414,17 @@ def _matched_publisher(session: Any, robot: str) -> Any:
     return pub
 
 
+@contextlib.contextmanager
+def _ingest(router: str, store: Any) -> Iterator[Ingest]:
+    """An ingest started on its own session to ``router``; stopped, then the session closed."""
+    session = open_session([router])
+    try:
+        with Ingest(session, store) as ingest:
+            yield ingest
+    finally:
+        session.close()
+
+
 def test_ingest_ready_and_rejection_counts_through_a_lock_and_a_damaged_index(
     router: str, tmp_path: Path
 ) -> None:
@@ -427,7 +439,7 @@ def test_ingest_ready_and_rejection_counts_through_a_lock_and_a_damaged_index(
     garbage = [b"\x00", valid[0][:50], valid[1] + b"junk"]
     store = open_store(f"sqlite:///{db}?busy_timeout_s=0.3")
     try:
-        with Ingest([router], store) as ingest, _watching(router) as watch:
+        with _ingest(router, store) as ingest, _watching(router) as watch:
             assert ingest.ready() == (True, "ok")
             conf = zenoh.Config.from_json5(json.dumps(client_config([router])))
             with zenoh.open(conf) as session:
@@ -460,7 +472,7 @@ def test_ingest_ready_and_rejection_counts_through_a_lock_and_a_damaged_index(
     garble_index_page(db)
     store = open_store(f"sqlite:///{db}")
     try:
-        with Ingest([router], store) as ingest, _watching(router) as watch:
+        with _ingest(router, store) as ingest, _watching(router) as watch:
             conf = zenoh.Config.from_json5(json.dumps(client_config([router])))
             with zenoh.open(conf) as session:
                 pub = _matched_publisher(session, "r1")

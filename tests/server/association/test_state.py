@@ -17,6 +17,7 @@ from typing import Any
 import msgpack
 import numpy as np
 import pytest
+from factories import CAMERA, MeasurementFactory, camera_looking_along_y, object_pose
 
 import wardmap.server.association.state as state_module
 from wardmap.server.association.associator import AssociationConfig, Associator
@@ -25,8 +26,6 @@ from wardmap.server.association.state import FORMAT, VERSION, CheckpointError, d
 from wardmap.server.association.types import Landmark, LandmarkChange
 from wardmap.server.perception.types import ObjectMeasurement
 from wardmap.shared.errors import WardmapError
-
-from .conftest import CAMERA, MeasurementFactory, camera_looking_along_y, object_pose
 
 DOOR = np.array([0.06, 1.16, 2.18])
 BED = np.array([2.1, 1.0, 0.6])
