@@ -11,10 +11,10 @@ import pytest
 
 from wardmap.server.association.associator import AssociationConfig, Associator
 from wardmap.server.association.hdp import HdpConfig
-from wardmap.server.association.types import LandmarkChange
+from wardmap.server.association.types import Landmark, LandmarkChange
+from wardmap.server.mapping import MappedKeyframe, MapWriter
 from wardmap.server.objectmap import ObjectMap
-from wardmap.server.pipeline import MapPipeline, _MappedKeyframe
-from wardmap.server.store import SqliteKeyframeStore
+from wardmap.server.store import MapStore, SqliteMapStore
 from wardmap.shared.knowledge import KnowledgeGraph
 
 from .conftest import CAMERA, MeasurementFactory, camera_looking_along_y, object_pose
@@ -57,20 +57,21 @@ def _inside_other_class(make: MeasurementFactory, big: tuple[str, np.ndarray],
     return out
 
 
-def _map_scene(store: SqliteKeyframeStore, scene: list, association: AssociationConfig | None = None,
-               ) -> tuple[MapPipeline, ObjectMap, set[tuple[int, str]]]:
-    """Run the server's mapping stage over ``scene`` (one session); returns the pipeline, its
-    object map and every (object id, category) the map held after some keyframe, confirmed or
-    not (a 0.2 m piece of a cart is narrower than any cart: ``AssociationConfig.min_width_m``)."""
+def _map_scene(store: MapStore, scene: list, association: AssociationConfig | None = None,
+               ) -> tuple[list[Landmark], ObjectMap, set[tuple[int, str]]]:
+    """Run the server's map writer over ``scene`` (one session); returns the associator's
+    landmarks, the object map and every (object id, category) the map held after some keyframe,
+    confirmed or not (a 0.2 m piece of a cart is narrower than any cart:
+    ``AssociationConfig.min_width_m``)."""
     objects = ObjectMap(store)
-    pipe = MapPipeline(store, objects, association=association)
+    writer = MapWriter(objects, association)
     seen: set[tuple[int, str]] = set()
     for ms, T in scene:
-        pipe._associate([_MappedKeyframe("r1/s1", T, CAMERA, ms)])
+        writer.add([MappedKeyframe("r1/s1", T, CAMERA, ms)])
         page = objects.query(include_unconfirmed=True)
         seen |= {(h.record.object_id, h.record.category) for h in page.hits}
-    pipe._close(["r1/s1"])
-    return pipe, objects, seen
+    writer.close(["r1/s1"])
+    return writer.landmarks(), objects, seen
 
 
 def _run(assoc: Associator, scene: list) -> list[LandmarkChange]:
@@ -128,16 +129,13 @@ def test_identical_neighbours_are_not_merged(make_measurement: MeasurementFactor
 
 def test_the_object_map_follows_a_merge(tmp_path: Path, make_measurement: MeasurementFactory) -> None:
     """The mapping stage deletes the absorbed object and moves its observations to the survivor."""
-    with SqliteKeyframeStore.open(tmp_path / "map.db") as store:
+    with SqliteMapStore.open(tmp_path / "map.db") as store:
         strict = AssociationConfig(hdp=HdpConfig(join_fragments=False))  # two objects, then a merge
-        pipe, objects, seen = _map_scene(store, _keyframes(make_measurement), strict)
-        (survivor,) = pipe._associator.landmarks()
+        (survivor,), objects, seen = _map_scene(store, _keyframes(make_measurement), strict)
         page = objects.query()
         assert [h.record.object_id for h in page.hits] == [survivor.id]
         assert len({oid for oid, _ in seen}) == 2  # the piece was an object of its own before the merge
-        with store.reading("test") as conn:
-            rows = conn.execute("SELECT object_id, COUNT(*) FROM observations GROUP BY object_id").fetchall()
-        assert rows == [(survivor.id, survivor.n_measurements)]
+        assert store.observation_counts() == {survivor.id: survivor.n_measurements}
         assert page.hits[0].record.n_observations == survivor.n_measurements
 
 
@@ -234,7 +232,7 @@ def test_the_object_map_follows_a_merge_across_classes(tmp_path: Path,
         else:
             m = make_measurement(object_pose(0.3, 3.0, 0.3), T, size=BED, category="bed", **key)
         scene.append(([m], T))
-    with SqliteKeyframeStore.open(tmp_path / "map.db") as store:
+    with SqliteMapStore.open(tmp_path / "map.db") as store:
         _, objects, seen = _map_scene(store, scene)
         assert {category for _, category in seen} == {"bed", "cart"}
         (bed,) = objects.query().hits

@@ -14,9 +14,9 @@ import pytest
 import wardmap.server.association.associator as associator_module
 from wardmap.server.association.associator import AssociationConfig, Associator
 from wardmap.server.association.mot import GroupLandmark, KeyframeView, track_group
+from wardmap.server.mapping import MappedKeyframe, MapWriter
 from wardmap.server.objectmap import ObjectMap
-from wardmap.server.pipeline import MapPipeline, _MappedKeyframe
-from wardmap.server.store import SqliteKeyframeStore
+from wardmap.server.store import SqliteMapStore
 
 from .conftest import CAMERA, CHAIR_SIZE, MeasurementFactory, camera_looking_along_y, object_pose
 
@@ -77,21 +77,19 @@ def test_the_object_map_follows_the_moves(tmp_path: Path, make_measurement: Meas
     """Through the server's mapping stage with the sliding tracker: two objects, each with its
     own chair's 20 observations in the database."""
     monkeypatch.setattr(associator_module, "track_group", _sliding_tracks)
-    with SqliteKeyframeStore.open(tmp_path / "map.db") as store:
+    with SqliteMapStore.open(tmp_path / "map.db") as store:
         objects = ObjectMap(store)
-        pipe = MapPipeline(store, objects)
+        writer = MapWriter(objects)
         for i in range(20):
             T = camera_looking_along_y(0.27 + 0.005 * i)
             key = dict(keyframe=f"r1/s1/{i}", stamp=1.0 + i)
             ms = [make_measurement(object_pose(0.0, 3.0), T, gt=1, **key),
                   make_measurement(object_pose(0.55, 3.0), T, gt=2, **key)]
-            pipe._associate([_MappedKeyframe("r1/s1", T, CAMERA, ms)])
-        pipe._close(["r1/s1"])
-        landmarks = {lm.id: lm for lm in pipe._associator.landmarks()}
+            writer.add([MappedKeyframe("r1/s1", T, CAMERA, ms)])
+        writer.close(["r1/s1"])
+        landmarks = {lm.id: lm for lm in writer.landmarks()}
         assert len(landmarks) == 2 and all(len(set(lm.gt_instances)) == 1 for lm in landmarks.values())
-        with store.reading("test") as conn:
-            rows = conn.execute("SELECT object_id, COUNT(*) FROM observations GROUP BY object_id").fetchall()
-        assert sorted(rows) == sorted((lid, 20) for lid in landmarks)
+        assert store.observation_counts() == {lid: 20 for lid in landmarks}
         centres = {h.record.object_id: h.record for h in objects.query().hits}
         assert set(centres) == set(landmarks)
 
