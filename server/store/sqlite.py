@@ -161,7 +161,7 @@ MIGRATIONS: Final[tuple[sqlitedb.Migration, ...]] = (
         # Axis-aligned world bounds of each object (float32, rounded outwards by SQLite).
         "CREATE VIRTUAL TABLE objects_rtree USING rtree(object_id, min_x, max_x, min_y, max_y, min_z, max_z)",
     ),
-    # v3: the mapping stage (server/pipeline.py): object measurements per keyframe and how far
+    # v3: the mapping stage (server/mapping/): object measurements per keyframe and how far
     # the stage got (the keyframes' rowid, i.e. insertion order).
     (
         """CREATE TABLE measurements (
@@ -197,7 +197,7 @@ MIGRATIONS: Final[tuple[sqlitedb.Migration, ...]] = (
             PRIMARY KEY (at_rowid, robot_id, session_id)) WITHOUT ROWID""",
     ),
     # v6: the mapping stage's association state at a settled cursor (pickled; one row), so a
-    # restart replays only the keyframes after it (server/pipeline.py, "Restart").
+    # restart replays only the keyframes after it (server/mapping/stage.py, "Restart").
     (
         """CREATE TABLE association_checkpoint (
             id INTEGER PRIMARY KEY CHECK (id = 1),
