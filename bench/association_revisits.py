@@ -37,7 +37,7 @@ from _report import git_rev, machine, publish
 
 from wardmap.server.association.associator import AssociationConfig, Associator
 from wardmap.server.association.offline import measure_dataset
-from wardmap.server.pipeline import for_association
+from wardmap.server.mapping import for_association
 from wardmap.sim.runner import generate
 
 ROOT = Path(__file__).resolve().parents[1]

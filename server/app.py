@@ -41,7 +41,7 @@ from wardmap.shared.zenoh_config import client_config
 if TYPE_CHECKING:
     from fastapi import FastAPI
 
-    from wardmap.server.pipeline import PipelineFactory
+    from wardmap.server.mapping import PipelineFactory
 
 log = logging.getLogger(__name__)
 
@@ -158,9 +158,9 @@ class MapServer:
                 anything starts).
         """
         from wardmap.server.association.associator import AssociationConfig
+        from wardmap.server.mapping import MapPipeline, PipelineConfig
         from wardmap.server.perception.models import PerceptionConfig, make_segmenter
-        from wardmap.server.pipeline import MapPipeline, PipelineConfig
-        from wardmap.server.store import SqliteKeyframeStore
+        from wardmap.server.store import MapStore
         from wardmap.shared.config import load_config
 
         pipeline_cfg = load_config(PipelineConfig, config_path, section="pipeline")
@@ -171,7 +171,7 @@ class MapServer:
         # Build the segmenter now: a missing or bad model is one clear error before anything starts.
         segmenter = make_segmenter(perception_cfg.segmenter, perception_cfg)
 
-        def make_pipeline(store: SqliteKeyframeStore, objects: ObjectMap) -> MapPipeline:
+        def make_pipeline(store: MapStore, objects: ObjectMap) -> MapPipeline:
             return MapPipeline(store, objects, config=pipeline_cfg, perception=perception_cfg,
                                association=association_cfg, segmenter=segmenter)
 

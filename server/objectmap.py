@@ -1,19 +1,18 @@
 """The persistent object map: object landmarks, their observations and spatial queries.
 
 Association (paper 000 Sec. III) turns object measurements into landmarks; this module
-keeps them in the server's database (the keyframe store's SQLite file, schema v2 of
-:data:`wardmap.server.store.MIGRATIONS`) and answers "which objects, where". Tables:
+checks them and keeps them in the server's store (:class:`~wardmap.server.store.ObjectStore`)
+and answers "which objects, where". The store keeps:
 
-- ``objects``: one row per landmark: category, confidence, ``T_world_object`` (16 float64),
-  its position, yaw, size, world-axis bounds, mean colour, and values derived from its
-  observations (count, first/last seen, robots);
-- ``observations``: one row per measurement of an object in a keyframe, keyed by
+- objects: one per landmark: category, confidence, ``T_world_object``, its position, yaw,
+  size, world-axis bounds, mean colour, and values derived from its observations (count,
+  first/last seen, robots);
+- observations: one per measurement of an object in a keyframe, keyed by
   ``(robot_id, session_id, seq, box)``, so sending the same measurement again moves or
-  refreshes it instead of adding a copy;
-- ``object_robots``: which robots observed which object (the ``robot`` filter);
-- ``objects_rtree``: an SQLite R*Tree over the bounds. A radius query takes the objects whose
-  bounds meet the cube around the centre from the R*Tree, then keeps those whose centre lies
-  within the exact (float64) distance.
+  refreshes it instead of adding a copy.
+
+A radius query takes the objects whose bounds meet the cube around the centre, then keeps
+those whose centre lies within the exact (float64) distance.
 
 Frames and units: ``world`` is the frame association works in (a robot session's odom
 frame until multi-robot alignment gives ``T_map_odom``). The object frame has x forward and
@@ -21,28 +20,37 @@ z up, origin at the centre of its box (``server/perception/types.py``). Metres, 
 ``*_s`` values are the server's wall-clock seconds (``time.time()``), ``stamp`` is the
 robot's capture time.
 
-Threads: :class:`ObjectMap` is thread safe like the store (one SQLite connection per
-thread through :meth:`SqliteKeyframeStore.reading` / :meth:`~SqliteKeyframeStore.writing`).
-Writes are serialised by a lock so that listeners receive :class:`ObjectChange` events in
-commit order; listeners run on the writer's thread after the commit.
+Threads: :class:`ObjectMap` is thread safe like the store. Writes are serialised by a lock so
+that listeners receive :class:`ObjectChange` events in commit order; listeners run on the
+writer's thread after the commit.
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import math
-import sqlite3
 import threading
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, Final, Literal, Protocol, TypeAlias
+from typing import Final, Literal, Protocol, TypeAlias
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from wardmap.server.store import SqliteKeyframeStore, pose_blob, pose_from_blob
+from wardmap.server.store import (
+    KeyframeRef,
+    ObjectDetail,
+    ObjectHit,
+    ObjectPage,
+    ObjectRecord,
+    ObjectRow,
+    ObjectStore,
+    Observation,
+    ObservationRecord,
+    UnknownObjectError,
+)
+from wardmap.server.store.records import Vec3
 from wardmap.shared.errors import ConfigError, GeometryError, WardmapError
 from wardmap.shared.knowledge import KnowledgeGraph
 from wardmap.shared.se3 import check_transform, rotation_to_quat
@@ -77,8 +85,6 @@ MAX_OBSERVATIONS: Final = 1000
 """Most observations :meth:`ObjectMap.get` returns for one object."""
 
 ChangeKind: TypeAlias = Literal["created", "updated", "deleted"]
-Vec3: TypeAlias = tuple[float, float, float]
-Vec4: TypeAlias = tuple[float, float, float, float]
 
 
 class ObjectMapError(WardmapError):
@@ -111,114 +117,6 @@ class ObjectState:
     size: NDArray[np.float64]
     color_rgb: Vec3 | None = None
     confirmed: bool = True
-
-
-@dataclass(frozen=True, eq=False)
-class Observation:
-    """One measurement of an object in a keyframe (paper 000 Eq. 1: class, pose, size).
-
-    Attributes:
-        object_id: the object it belongs to (in the same upsert or already stored).
-        robot_id, session_id, seq: the keyframe.
-        stamp: keyframe capture time, robot clock, seconds.
-        category: measured class (may differ from the object's).
-        confidence: detector score in [0, 1].
-        box_xyxy: (4,) float64 ``x1, y1, x2, y2`` pixel box in the keyframe's colour image;
-            with the keyframe it identifies the measurement.
-        T_world_object: (4, 4) float64 measured object pose in ``world``.
-        size: (3,) float64 measured extent, metres.
-    """
-
-    object_id: int
-    robot_id: str
-    session_id: str
-    seq: int
-    stamp: float
-    category: str
-    confidence: float
-    box_xyxy: NDArray[np.float64]
-    T_world_object: NDArray[np.float64]
-    size: NDArray[np.float64]
-
-
-@dataclass(frozen=True, eq=False)
-class ObservationRecord(Observation):
-    """A stored :class:`Observation` with its row id and the server time it was first added."""
-
-    observation_id: int
-    added_s: float
-
-
-@dataclass(frozen=True, eq=False)
-class ObjectRecord:
-    """One stored object.
-
-    Attributes:
-        object_id, category, confidence, T_world_object, color_rgb: as in :class:`ObjectState`.
-        position: ``T_world_object[:3, 3]``, metres.
-        q_xyzw: the rotation of ``T_world_object`` as a unit quaternion (x, y, z, w).
-        yaw: heading of the object's x axis about world z, radians in (-pi, pi].
-        size: (x, y, z) extent, metres.
-        bounds_min, bounds_max: world-axis-aligned bounds of the oriented box, metres.
-        n_observations: stored observations.
-        first_seen_s, last_seen_s: server seconds when the object was created or first
-            observed (the earlier) and when it was last observed (its creation if never).
-        robots: robots with an observation of it, sorted.
-        confirmed: as in :class:`ObjectState`.
-    """
-
-    object_id: int
-    category: str
-    confidence: float
-    T_world_object: NDArray[np.float64]
-    position: Vec3
-    q_xyzw: Vec4
-    yaw: float
-    size: Vec3
-    bounds_min: Vec3
-    bounds_max: Vec3
-    color_rgb: Vec3 | None
-    n_observations: int
-    first_seen_s: float
-    last_seen_s: float
-    robots: tuple[str, ...]
-    confirmed: bool = True
-
-
-@dataclass(frozen=True, eq=False)
-class ObjectHit:
-    """A query result: the object and, when the query has ``near``, its centre's distance (m)."""
-
-    record: ObjectRecord
-    distance_m: float | None
-
-
-@dataclass(frozen=True, eq=False)
-class ObjectPage:
-    """One page of :meth:`ObjectMap.find`; ``next_offset`` is None on the last page."""
-
-    hits: list[ObjectHit]
-    next_offset: int | None
-
-
-@dataclass(frozen=True, slots=True)
-class KeyframeRef:
-    """A keyframe an object was observed in; ``stored`` says whether the store holds it."""
-
-    robot_id: str
-    session_id: str
-    seq: int
-    stamp: float
-    stored: bool
-
-
-@dataclass(frozen=True, eq=False)
-class ObjectDetail:
-    """:meth:`ObjectMap.get`: the object, its latest observations (newest first) and their keyframes."""
-
-    record: ObjectRecord
-    observations: list[ObservationRecord]
-    keyframes: list[KeyframeRef]
 
 
 @dataclass(frozen=True, eq=False)
@@ -422,22 +320,9 @@ def from_landmark(
 
 # --------------------------------------------------------------------------- the map
 
-_OBJECT_COLUMNS: Final = (
-    "o.object_id, o.category, o.confidence, o.T_world_object, o.x, o.y, o.z, o.yaw, "
-    "o.qx, o.qy, o.qz, o.qw, o.size_x, o.size_y, o.size_z, "
-    "o.min_x, o.min_y, o.min_z, o.max_x, o.max_y, o.max_z, "
-    "o.color_r, o.color_g, o.color_b, o.n_observations, o.first_seen_s, o.last_seen_s, o.confirmed"
-)
-_OBS_COLUMNS: Final = (
-    "observation_id, added_s, object_id, robot_id, session_id, seq, stamp, category, confidence, "
-    "box_x1, box_y1, box_x2, box_y2, T_world_object, size_x, size_y, size_z"
-)
-_IN_IDS: Final = "(SELECT value FROM json_each(?))"
-"""A list of ids as one JSON parameter (no limit on the number of SQL variables)."""
-
 
 class ObjectMap:
-    """The object map on the keyframe store's file; see the module docstring.
+    """The object map on the server's store; see the module docstring.
 
     Args:
         store: the open store; it must outlive this object (closing the store ends it).
@@ -447,7 +332,7 @@ class ObjectMap:
 
     def __init__(
         self,
-        store: SqliteKeyframeStore,
+        store: ObjectStore,
         *,
         knowledge: KnowledgeGraph | None = None,
         clock: Callable[[], float] = time.time,
@@ -516,83 +401,18 @@ class ObjectMap:
         """
         obj_rows = [self._object_row(o, i) for i, o in enumerate(objects)]
         obs_rows = [self._observation_row(o, i) for i, o in enumerate(observations)]
-        ids = [int(r["object_id"]) for r in obj_rows]
+        ids = [r.object_id for r in obj_rows]
         if len(set(ids)) != len(ids):
             raise ObjectMapError("objects: the same object_id is given more than once")
         if not obj_rows and not obs_rows:
             return []
         with self._write_lock:
             now = self._now()
-            with self._store.writing("object map upsert") as conn:
-                existing = self._existing(conn, ids)
-                for row in obj_rows:
-                    row["now"] = now
-                conn.executemany(
-                    "INSERT INTO objects (object_id, category, confidence, T_world_object, x, y, z, yaw, "
-                    "qx, qy, qz, qw, size_x, size_y, size_z, min_x, min_y, min_z, max_x, max_y, max_z, "
-                    "color_r, color_g, color_b, n_observations, first_seen_s, last_seen_s, confirmed) "
-                    "VALUES (:object_id, :category, :confidence, :T, :x, :y, :z, :yaw, :qx, :qy, :qz, :qw, "
-                    ":size_x, :size_y, :size_z, "
-                    ":min_x, :min_y, :min_z, :max_x, :max_y, :max_z, :color_r, :color_g, :color_b, "
-                    "0, :now, :now, :confirmed) "
-                    "ON CONFLICT (object_id) DO UPDATE SET category = excluded.category, "
-                    "confidence = excluded.confidence, T_world_object = excluded.T_world_object, "
-                    "x = excluded.x, y = excluded.y, z = excluded.z, yaw = excluded.yaw, "
-                    "qx = excluded.qx, qy = excluded.qy, qz = excluded.qz, qw = excluded.qw, "
-                    "size_x = excluded.size_x, size_y = excluded.size_y, size_z = excluded.size_z, "
-                    "min_x = excluded.min_x, min_y = excluded.min_y, min_z = excluded.min_z, "
-                    "max_x = excluded.max_x, max_y = excluded.max_y, max_z = excluded.max_z, "
-                    "color_r = excluded.color_r, color_g = excluded.color_g, color_b = excluded.color_b, "
-                    "confirmed = excluded.confirmed",
-                    obj_rows,
-                )
-                conn.executemany(
-                    "INSERT OR REPLACE INTO objects_rtree "
-                    "(object_id, min_x, max_x, min_y, max_y, min_z, max_z) "
-                    "VALUES (:object_id, :min_x, :max_x, :min_y, :max_y, :min_z, :max_z)",
-                    obj_rows,
-                )
-                touched: dict[int, None] = dict.fromkeys(ids)
-                if obs_rows:
-                    missing = {int(r["object_id"]) for r in obs_rows} - set(ids)
-                    missing -= self._existing(conn, sorted(missing))
-                    if missing:
-                        raise ObjectMapError(
-                            "observations name objects that are neither given nor stored: "
-                            f"{sorted(missing)[:10]}"
-                        )
-                    for row in obs_rows:
-                        row["now"] = now
-                        old = conn.execute(
-                            "SELECT object_id FROM observations WHERE robot_id = :robot_id AND "
-                            "session_id = :session_id AND seq = :seq AND box_x1 = :box_x1 AND "
-                            "box_y1 = :box_y1 AND box_x2 = :box_x2 AND box_y2 = :box_y2",
-                            row,
-                        ).fetchone()
-                        if old is not None:
-                            touched.setdefault(int(old[0]))
-                        touched.setdefault(int(row["object_id"]))
-                    conn.executemany(
-                        "INSERT INTO observations (object_id, robot_id, session_id, seq, stamp, added_s, "
-                        "category, confidence, box_x1, box_y1, box_x2, box_y2, T_world_object, "
-                        "size_x, size_y, size_z) VALUES (:object_id, :robot_id, :session_id, :seq, :stamp, "
-                        ":now, :category, :confidence, :box_x1, :box_y1, :box_x2, :box_y2, :T, "
-                        ":size_x, :size_y, :size_z) "
-                        "ON CONFLICT (robot_id, session_id, seq, box_x1, box_y1, box_x2, box_y2) "
-                        "DO UPDATE SET "
-                        "object_id = excluded.object_id, stamp = excluded.stamp, "
-                        "category = excluded.category, confidence = excluded.confidence, "
-                        "T_world_object = excluded.T_world_object, size_x = excluded.size_x, "
-                        "size_y = excluded.size_y, size_z = excluded.size_z",
-                        obs_rows,
-                    )
-                order = list(touched)
-                self._refresh_derived(conn, order)
-                records = self._records(conn, order)
-            changes = [
-                ObjectChange("updated" if oid in existing or oid not in ids else "created", records[oid])
-                for oid in order
-            ]
+            try:
+                written = self._store.write_objects(obj_rows, obs_rows, now)
+            except UnknownObjectError as exc:
+                raise ObjectMapError(str(exc)) from exc
+            changes = [ObjectChange("created" if w.created else "updated", w.record) for w in written]
             self._notify(changes)
         return changes
 
@@ -619,23 +439,13 @@ class ObjectMap:
         if target == oid:
             raise ObjectMapError(f"object {oid} cannot be merged into itself")
         with self._write_lock:
-            with self._store.writing("object map delete") as conn:
-                before = self._records(conn, [oid])
-                if oid not in before:
-                    raise ObjectMapError(f"unknown object {oid}")
-                if target is not None and not self._existing(conn, [target]):
-                    raise ObjectMapError(f"unknown object {target} (merged_into)")
-                if target is None:
-                    conn.execute("DELETE FROM observations WHERE object_id = ?", (oid,))
-                else:
-                    conn.execute("UPDATE observations SET object_id = ? WHERE object_id = ?", (target, oid))
-                conn.execute("DELETE FROM object_robots WHERE object_id = ?", (oid,))
-                conn.execute("DELETE FROM objects_rtree WHERE object_id = ?", (oid,))
-                conn.execute("DELETE FROM objects WHERE object_id = ?", (oid,))
-                changes = [ObjectChange("deleted", before[oid], target)]
-                if target is not None:
-                    self._refresh_derived(conn, [target])
-                    changes.append(ObjectChange("updated", self._records(conn, [target])[target]))
+            try:
+                before, after = self._store.delete_object(oid, target)
+            except UnknownObjectError as exc:
+                raise ObjectMapError(str(exc)) from exc
+            changes = [ObjectChange("deleted", before, target)]
+            if after is not None:
+                changes.append(ObjectChange("updated", after))
             self._notify(changes)
         return changes
 
@@ -660,8 +470,7 @@ class ObjectMap:
         """Objects matching every filter of ``q``, ``q.limit`` per page from ``q.offset``.
 
         Order: nearest centre first when ``q.near`` is given (ties by id), else by id.
-        With ``q.radius_m`` the R*Tree selects candidates whose bounds meet the cube of
-        half-side ``radius_m`` around ``near``; the exact centre distance then decides.
+        With ``q.radius_m`` only objects whose centre is within that distance of ``near``.
 
         Raises:
             ObjectMapError: a category the knowledge graph does not know.
@@ -670,58 +479,10 @@ class ObjectMap:
             raise ObjectMapError(
                 f"unknown category {q.category[:40]!r}; known categories: {', '.join(self._kg.names)}"
             )
-        where: list[str] = []
-        params: dict[str, Any] = {"limit": q.limit + 1, "offset": q.offset}
-        source = "objects AS o"
-        select = _OBJECT_COLUMNS
-        order = "o.object_id"
-        if q.near is not None:
-            params.update(px=q.near[0], py=q.near[1], pz=q.near[2])
-            d2 = "((o.x - :px) * (o.x - :px) + (o.y - :py) * (o.y - :py) + (o.z - :pz) * (o.z - :pz))"
-            select += f", {d2} AS d2"
-            order = "d2, o.object_id"
-            if q.radius_m is not None:
-                r = float(q.radius_m)
-                # CROSS JOIN: the R*Tree drives the loop (SQLite keeps the left table outermost).
-                source = "objects_rtree AS r CROSS JOIN objects AS o ON o.object_id = r.object_id"
-                where += [
-                    "r.max_x >= :lo_x", "r.min_x <= :hi_x", "r.max_y >= :lo_y", "r.min_y <= :hi_y",
-                    "r.max_z >= :lo_z", "r.min_z <= :hi_z", f"{d2} <= :r2",
-                ]
-                params.update(
-                    lo_x=q.near[0] - r, hi_x=q.near[0] + r, lo_y=q.near[1] - r, hi_y=q.near[1] + r,
-                    lo_z=q.near[2] - r, hi_z=q.near[2] + r, r2=r * r,
-                )
-        if q.category is not None:
-            where.append("o.category = :category")
-            params["category"] = q.category
-        if not q.include_unconfirmed:
-            where.append("o.confirmed = 1")
-        if q.min_confidence is not None:
-            where.append("o.confidence >= :min_confidence")
-            params["min_confidence"] = float(q.min_confidence)
-        if q.robot is not None:
-            where.append(
-                "EXISTS (SELECT 1 FROM object_robots AS ro WHERE ro.object_id = o.object_id "
-                "AND ro.robot_id = :robot)"
-            )
-            params["robot"] = q.robot
-        sql = f"SELECT {select} FROM {source}"
-        if where:
-            sql += " WHERE " + " AND ".join(where)
-        sql += f" ORDER BY {order} LIMIT :limit OFFSET :offset"
-        with self._store.reading("object map query") as conn:
-            rows = conn.execute(sql, params).fetchall()
-            page = rows[: q.limit]
-            robots = self._robots(conn, [int(r[0]) for r in page])
-        hits = [
-            ObjectHit(
-                _record(r, robots.get(int(r[0]), ())),
-                None if q.near is None else math.sqrt(max(float(r[28]), 0.0)),
-            )
-            for r in page
-        ]
-        return ObjectPage(hits, q.offset + q.limit if len(rows) > q.limit else None)
+        return self._store.find_objects(
+            category=q.category, near=q.near, radius_m=q.radius_m, min_confidence=q.min_confidence,
+            robot=q.robot, include_unconfirmed=q.include_unconfirmed, limit=q.limit, offset=q.offset,
+        )
 
     def get(self, object_id: int, *, max_observations: int = 100) -> ObjectDetail | None:
         """One object with its latest ``max_observations`` observations (newest first) and the
@@ -735,48 +496,19 @@ class ObjectMap:
             raise ObjectMapError(
                 f"max_observations must be an int in [0, {MAX_OBSERVATIONS}], got {max_observations!r:.80}"
             )
-        with self._store.reading("object map get") as conn:
-            conn.execute("BEGIN")  # one snapshot for the three reads
-            try:
-                records = self._records(conn, [oid])
-                if oid not in records:
-                    return None
-                obs_rows = conn.execute(
-                    f"SELECT {_OBS_COLUMNS} FROM observations WHERE object_id = ? "
-                    "ORDER BY added_s DESC, observation_id DESC LIMIT ?",
-                    (oid, max_observations),
-                ).fetchall()
-                kf_rows = conn.execute(
-                    "SELECT DISTINCT b.robot_id, b.session_id, b.seq, b.stamp, "
-                    "EXISTS (SELECT 1 FROM keyframes AS k WHERE k.robot_id = b.robot_id AND "
-                    "k.session_id = b.session_id AND k.seq = b.seq) "
-                    "FROM (SELECT robot_id, session_id, seq, stamp FROM observations WHERE object_id = ? "
-                    "ORDER BY added_s DESC, observation_id DESC LIMIT ?) AS b "
-                    "ORDER BY b.stamp, b.robot_id, b.session_id, b.seq",
-                    (oid, max_observations),
-                ).fetchall()
-            finally:
-                conn.execute("COMMIT")
-        observations = [_observation(r) for r in obs_rows]
-        keyframes = [KeyframeRef(str(r[0]), str(r[1]), int(r[2]), float(r[3]), bool(r[4])) for r in kf_rows]
-        return ObjectDetail(records[oid], observations, keyframes)
+        return self._store.object_detail(oid, int(max_observations))
 
     def categories(self, include_unconfirmed: bool = False) -> dict[str, int]:
         """Number of stored objects per knowledge-graph class (every class, in index order);
         confirmed ones only unless ``include_unconfirmed``."""
-        where = "" if include_unconfirmed else " WHERE confirmed = 1"
-        with self._store.reading("object map categories") as conn:
-            rows = conn.execute(f"SELECT category, COUNT(*) FROM objects{where} GROUP BY category").fetchall()
-        counts = {str(r[0]): int(r[1]) for r in rows}
+        counts = self._store.category_counts(include_unconfirmed=include_unconfirmed)
         out = {name: counts.pop(name, 0) for name in self._kg.names}
         out.update(sorted(counts.items()))  # classes of an older knowledge graph stay visible
         return out
 
     def count(self, *, unconfirmed: bool | None = None) -> int:
         """Number of stored objects; with ``unconfirmed`` True or False, of those (not) confirmed."""
-        where = "" if unconfirmed is None else f" WHERE confirmed = {0 if unconfirmed else 1}"
-        with self._store.reading("object map count") as conn:
-            return int(conn.execute(f"SELECT COUNT(*) FROM objects{where}").fetchone()[0])
+        return self._store.count_objects(unconfirmed=unconfirmed)
 
     # ------------------------------------------------------------------ internals
 
@@ -786,7 +518,7 @@ class ObjectMap:
             raise ObjectMapError(f"clock returned {now}: expected positive seconds")
         return now
 
-    def _object_row(self, obj: ObjectState, i: int) -> dict[str, Any]:
+    def _object_row(self, obj: ObjectState, i: int) -> ObjectRow:
         where = f"objects[{i}]"
         if not isinstance(obj, ObjectState):
             raise ObjectMapError(f"{where}: expected an ObjectState, got {type(obj).__name__}")
@@ -794,28 +526,28 @@ class ObjectMap:
         self._check_category(obj.category, where)
         T = _check_pose(obj.T_world_object, f"{where}.T_world_object")
         size = _check_size(obj.size, f"{where}.size")
+        confidence = _check_unit(obj.confidence, f"{where}.confidence")
+        confirmed = _check_bool(obj.confirmed, f"{where}.confirmed")
         lo, hi = _bounds(T, size)
         q = rotation_to_quat(T[:3, :3])
-        row: dict[str, Any] = {
-            "object_id": oid, "category": obj.category,
-            "confidence": _check_unit(obj.confidence, f"{where}.confidence"),
-            "T": pose_blob(T), "x": T[0, 3], "y": T[1, 3], "z": T[2, 3],
-            "yaw": math.atan2(T[1, 0], T[0, 0]), "qx": q[0], "qy": q[1], "qz": q[2], "qw": q[3],
-            "size_x": size[0], "size_y": size[1], "size_z": size[2],
-            "min_x": lo[0], "min_y": lo[1], "min_z": lo[2], "max_x": hi[0], "max_y": hi[1], "max_z": hi[2],
-            "color_r": None, "color_g": None, "color_b": None,
-            "confirmed": _check_bool(obj.confirmed, f"{where}.confirmed"),
-        }
+        color = None
         if obj.color_rgb is not None:
             rgb = np.asarray(obj.color_rgb, dtype=np.float64)
             if rgb.shape != (3,) or not np.all(np.isfinite(rgb)) or rgb.min() < 0 or rgb.max() > 255:
                 raise ObjectMapError(
                     f"{where}.color_rgb: expected 3 values in [0, 255], got {obj.color_rgb!r:.80}"
                 )
-            row.update(color_r=float(rgb[0]), color_g=float(rgb[1]), color_b=float(rgb[2]))
-        return {k: float(v) if isinstance(v, np.floating) else v for k, v in row.items()}
+            color = (float(rgb[0]), float(rgb[1]), float(rgb[2]))
+        return ObjectRow(
+            object_id=oid, category=obj.category, confidence=confidence, T_world_object=T,
+            yaw=math.atan2(T[1, 0], T[0, 0]), q_xyzw=(float(q[0]), float(q[1]), float(q[2]), float(q[3])),
+            size=(float(size[0]), float(size[1]), float(size[2])),
+            bounds_min=(float(lo[0]), float(lo[1]), float(lo[2])),
+            bounds_max=(float(hi[0]), float(hi[1]), float(hi[2])),
+            color_rgb=color, confirmed=bool(confirmed),
+        )
 
-    def _observation_row(self, obs: Observation, i: int) -> dict[str, Any]:
+    def _observation_row(self, obs: Observation, i: int) -> Observation:
         where = f"observations[{i}]"
         if not isinstance(obs, Observation):
             raise ObjectMapError(f"{where}: expected an Observation, got {type(obs).__name__}")
@@ -834,73 +566,18 @@ class ObjectMap:
             raise ObjectMapError(f"{where}.box_xyxy: expected finite x1, y1, x2 >= x1, y2 >= y1, got {box}")
         T = _check_pose(obs.T_world_object, f"{where}.T_world_object")
         size = _check_size(obs.size, f"{where}.size")
-        return {
-            "object_id": _check_id(obs.object_id, f"{where}.object_id"),
-            "robot_id": obs.robot_id, "session_id": obs.session_id, "seq": int(obs.seq),
-            "stamp": float(obs.stamp), "category": obs.category,
-            "confidence": _check_unit(obs.confidence, f"{where}.confidence"),
-            "box_x1": float(box[0]), "box_y1": float(box[1]),
-            "box_x2": float(box[2]), "box_y2": float(box[3]),
-            "T": pose_blob(T),
-            "size_x": float(size[0]), "size_y": float(size[1]), "size_z": float(size[2]),
-        }
+        return Observation(
+            object_id=_check_id(obs.object_id, f"{where}.object_id"),
+            robot_id=obs.robot_id, session_id=obs.session_id, seq=int(obs.seq), stamp=float(obs.stamp),
+            category=obs.category, confidence=_check_unit(obs.confidence, f"{where}.confidence"),
+            box_xyxy=box, T_world_object=T, size=size,
+        )
 
     def _check_category(self, category: object, where: str) -> None:
         if not isinstance(category, str) or category not in self._classes:
             raise ObjectMapError(
                 f"{where}.category: unknown category {category!r:.40}; known: {', '.join(self._kg.names)}"
             )
-
-    @staticmethod
-    def _existing(conn: sqlite3.Connection, ids: Sequence[int]) -> set[int]:
-        if not ids:
-            return set()
-        rows = conn.execute(f"SELECT object_id FROM objects WHERE object_id IN {_IN_IDS}", (json.dumps(ids),))
-        return {int(r[0]) for r in rows}
-
-    @staticmethod
-    def _refresh_derived(conn: sqlite3.Connection, ids: Sequence[int]) -> None:
-        """Recompute count, first/last seen and robots of ``ids`` from their observations."""
-        arg = (json.dumps(list(ids)),)
-        conn.execute(
-            "UPDATE objects SET "
-            "n_observations = (SELECT COUNT(*) FROM observations AS b "
-            "WHERE b.object_id = objects.object_id), "
-            "first_seen_s = min(first_seen_s, COALESCE((SELECT MIN(added_s) FROM observations AS b "
-            "WHERE b.object_id = objects.object_id), first_seen_s)), "
-            "last_seen_s = COALESCE((SELECT MAX(added_s) FROM observations AS b "
-            "WHERE b.object_id = objects.object_id), first_seen_s) "
-            f"WHERE object_id IN {_IN_IDS}",
-            arg,
-        )
-        conn.execute(f"DELETE FROM object_robots WHERE object_id IN {_IN_IDS}", arg)
-        conn.execute(
-            "INSERT INTO object_robots (object_id, robot_id) SELECT DISTINCT object_id, robot_id "
-            f"FROM observations WHERE object_id IN {_IN_IDS}",
-            arg,
-        )
-
-    @staticmethod
-    def _robots(conn: sqlite3.Connection, ids: Sequence[int]) -> dict[int, tuple[str, ...]]:
-        if not ids:
-            return {}
-        rows = conn.execute(
-            f"SELECT object_id, robot_id FROM object_robots WHERE object_id IN {_IN_IDS} "
-            "ORDER BY object_id, robot_id",
-            (json.dumps(list(ids)),),
-        ).fetchall()
-        out: dict[int, list[str]] = {}
-        for oid, robot in rows:
-            out.setdefault(int(oid), []).append(str(robot))
-        return {k: tuple(v) for k, v in out.items()}
-
-    def _records(self, conn: sqlite3.Connection, ids: Sequence[int]) -> dict[int, ObjectRecord]:
-        rows = conn.execute(
-            f"SELECT {_OBJECT_COLUMNS} FROM objects AS o WHERE o.object_id IN {_IN_IDS}",
-            (json.dumps(list(ids)),),
-        ).fetchall()
-        robots = self._robots(conn, [int(r[0]) for r in rows])
-        return {int(r[0]): _record(r, robots.get(int(r[0]), ())) for r in rows}
 
 
 # --------------------------------------------------------------------------- helpers
@@ -959,27 +636,3 @@ def _bounds(
     """World-axis bounds of the box of extent ``size`` (3,) centred at the origin of ``T_world_object``."""
     half = np.abs(T[:3, :3]) @ (0.5 * size)
     return T[:3, 3] - half, T[:3, 3] + half
-
-
-def _record(r: Sequence[Any], robots: tuple[str, ...]) -> ObjectRecord:
-    color = None if r[21] is None else (float(r[21]), float(r[22]), float(r[23]))
-    return ObjectRecord(
-        object_id=int(r[0]), category=str(r[1]), confidence=float(r[2]), T_world_object=pose_from_blob(r[3]),
-        position=(float(r[4]), float(r[5]), float(r[6])), yaw=float(r[7]),
-        q_xyzw=(float(r[8]), float(r[9]), float(r[10]), float(r[11])),
-        size=(float(r[12]), float(r[13]), float(r[14])),
-        bounds_min=(float(r[15]), float(r[16]), float(r[17])),
-        bounds_max=(float(r[18]), float(r[19]), float(r[20])),
-        color_rgb=color, n_observations=int(r[24]), first_seen_s=float(r[25]), last_seen_s=float(r[26]),
-        robots=robots, confirmed=bool(r[27]),
-    )
-
-
-def _observation(r: Sequence[Any]) -> ObservationRecord:
-    return ObservationRecord(
-        observation_id=int(r[0]), added_s=float(r[1]), object_id=int(r[2]), robot_id=str(r[3]),
-        session_id=str(r[4]), seq=int(r[5]), stamp=float(r[6]), category=str(r[7]), confidence=float(r[8]),
-        box_xyxy=np.array([r[9], r[10], r[11], r[12]], dtype=np.float64),
-        T_world_object=pose_from_blob(r[13]),
-        size=np.array([r[14], r[15], r[16]], dtype=np.float64),
-    )

@@ -786,6 +786,11 @@ def _array_from_wire(value: object, field: str, dtypes: tuple[str, ...], shape: 
     return np.frombuffer(data, dtype=dt).reshape(dims).astype(dt.newbyteorder("="))
 
 
+def array_to_wire(a: NDArray[Any]) -> dict[str, Any]:
+    """An array as the wire's ``{"dtype": name, "shape": [...], "data": little-endian bytes}`` map."""
+    return _array_to_wire(a)
+
+
 def _raster_from_wire(value: object, field: str) -> PackedRaster:
     f = _Fields(value, field)
     codec = f.get("codec")

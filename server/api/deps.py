@@ -16,8 +16,8 @@ from fastapi import Depends, Request
 from prometheus_client import CollectorRegistry
 
 from wardmap.server.ingest import Ingest
+from wardmap.server.mapping import MapPipeline
 from wardmap.server.objectmap import ObjectMap
-from wardmap.server.pipeline import MapPipeline
 from wardmap.server.store import KeyframeStore
 
 __all__ = [

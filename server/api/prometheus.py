@@ -20,9 +20,9 @@ from prometheus_client.exposition import generate_latest
 from prometheus_client.registry import Collector
 
 from wardmap.server.ingest import Ingest, IngestCounters
+from wardmap.server.mapping import MapPipeline, PipelineCounters
 from wardmap.server.objectmap import ObjectMap
 from wardmap.server.perception.measure import SKIP_KINDS
-from wardmap.server.pipeline import MapPipeline, PipelineCounters
 from wardmap.server.store import KeyframeStore
 
 __all__ = [

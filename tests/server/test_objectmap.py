@@ -34,7 +34,7 @@ from wardmap.server.objectmap import (
 from wardmap.server.store import (
     APPLICATION_ID,
     MIGRATIONS,
-    SqliteKeyframeStore,
+    MapStore,
     StoreError,
     open_store,
     pose_blob,
@@ -42,6 +42,8 @@ from wardmap.server.store import (
 from wardmap.shared import sqlitedb
 from wardmap.shared.knowledge import KnowledgeGraph
 from wardmap.shared.se3 import yaw_transform
+
+from .store.conftest import keyframe
 
 KG = KnowledgeGraph.load()
 CATS = KG.names
@@ -60,13 +62,13 @@ class Clock:
 
 
 @pytest.fixture
-def store(tmp_path: Path) -> Iterator[SqliteKeyframeStore]:
+def store(tmp_path: Path) -> Iterator[MapStore]:
     with open_store(f"sqlite:///{tmp_path / 'map.db'}") as s:
         yield s
 
 
 @pytest.fixture
-def om(store: SqliteKeyframeStore) -> ObjectMap:
+def om(store: MapStore) -> ObjectMap:
     return ObjectMap(store, knowledge=KG, clock=Clock())
 
 
@@ -226,7 +228,7 @@ def test_duplicate_ids_in_one_upsert_are_rejected(om: ObjectMap) -> None:
         om.upsert([_obj(1, 0, 0), _obj(1, 1, 1)])
 
 
-def test_delete_and_merge(om: ObjectMap) -> None:
+def test_delete_and_merge(om: ObjectMap, store: MapStore) -> None:
     """Deleting removes an object from queries, the R*Tree and get; merging moves its observations
     and robots to the surviving object; unknown ids raise."""
     om.upsert(
@@ -251,10 +253,8 @@ def test_delete_and_merge(om: ObjectMap) -> None:
         om.delete(2, merged_into=42)
     with pytest.raises(ObjectMapError, match="into itself"):
         om.delete(2, merged_into=2)
-    # The deleted object's observations went with it; the rtree holds only object 2.
-    with om._store.reading("test") as conn:
-        assert conn.execute("SELECT COUNT(*) FROM observations").fetchone()[0] == 3
-        assert [r[0] for r in conn.execute("SELECT object_id FROM objects_rtree")] == [2]
+    # The deleted object's observations went with it (the R*Tree: tests/server/store/test_sqlite.py).
+    assert store.observation_counts() == {2: 3}
 
 
 def test_listeners_get_changes_in_commit_order(om: ObjectMap) -> None:
@@ -335,7 +335,8 @@ def test_every_filter_agrees_with_brute_force(om: ObjectMap) -> None:
 
 def test_rtree_radius_agrees_with_brute_force(om: ObjectMap) -> None:
     """1500 objects of random size and yaw: for 100 random centres and radii the R*Tree query
-    returns the same set as an exact scan of the centres; the R*Tree is actually used."""
+    returns the same set as an exact scan of the centres (that it searches the R*Tree:
+    tests/server/store/test_sqlite.py)."""
     rng = np.random.default_rng(2)
     objs = _random_scene(rng, 1500, floor=(60.0, 30.0))
     om.upsert(objs)
@@ -346,17 +347,6 @@ def test_rtree_radius_agrees_with_brute_force(om: ObjectMap) -> None:
         expected = {objs[i].object_id for i in np.flatnonzero(np.linalg.norm(centres - c, axis=1) <= r)}
         got = _ids(om.query(near=tuple(c), radius=r, limit=MAX_LIMIT))
         assert set(got) == expected and len(got) == len(expected)
-    # The SQL find() runs (traced on this thread's connection) searches the R*Tree by its constraints.
-    statements: list[str] = []
-    with om._store.reading("test") as conn:
-        conn.set_trace_callback(statements.append)
-        try:
-            om.query(near=(10.0, 10.0, 1.0), radius=3.0, category="door")
-        finally:
-            conn.set_trace_callback(None)
-        select = next(st for st in statements if "objects_rtree" in st)
-        plan = " ".join(str(row[-1]) for row in conn.execute(f"EXPLAIN QUERY PLAN {select}"))
-    assert "VIRTUAL TABLE INDEX 2:" in plan  # rtree constraint search, not a scan
 
 
 def test_nearest_first_and_radius_edge(om: ObjectMap) -> None:
@@ -455,13 +445,10 @@ def test_query_from_text_parameters() -> None:
 # --------------------------------------------------------------------------- get / categories
 
 
-def test_get_returns_observations_and_keyframes(om: ObjectMap, store: SqliteKeyframeStore) -> None:
+def test_get_returns_observations_and_keyframes(om: ObjectMap, store: MapStore) -> None:
     """get() gives the newest observations first (capped), the keyframes they came from and whether
     the store holds each keyframe; unknown ids give None."""
-    with store.writing("test") as conn:
-        conn.execute(
-            "INSERT INTO keyframes VALUES ('r1', 's1', 1, ?, ?, 'rgb', 1, zeroblob(128), x'00')", (T0 + 1, T0)
-        )
+    store.insert(*keyframe("r1", "s1", 1, stamp=T0 + 1), T0)
     om.upsert([_obj(1, 0, 0)], [_obs(1, "r1", 0)])
     om.add_observations([_obs(1, "r1", 1), _obs(1, "r2", 2, box=5.0)])
     detail = om.get(1)

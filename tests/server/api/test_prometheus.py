@@ -19,8 +19,8 @@ from wardmap.server.api.prometheus import (
     pipeline_metrics,
 )
 from wardmap.server.ingest import IngestCounters
+from wardmap.server.mapping import PipelineCounters
 from wardmap.server.perception.measure import SKIP_KINDS
-from wardmap.server.pipeline import PipelineCounters
 
 CONTRACT = {
     "wardmap_keyframes_received_total": ("counter", ()),

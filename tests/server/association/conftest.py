@@ -11,9 +11,10 @@ from factories import CAMERA, MeasurementFactory, measurement
 
 from wardmap.server.association.associator import AssociationConfig
 from wardmap.server.association.types import Landmark
+from wardmap.server.mapping import MappedKeyframe, MapWriter
 from wardmap.server.objectmap import ObjectMap
 from wardmap.server.perception.types import ObjectMeasurement
-from wardmap.server.store import SqliteKeyframeStore
+from wardmap.server.store import MapStore
 
 Scene = Sequence[tuple[Sequence[ObjectMeasurement], np.ndarray]]
 """Per keyframe: its measurements and T_world_camera (4, 4), in keyframe order."""
@@ -26,28 +27,23 @@ def make_measurement() -> MeasurementFactory:
     return measurement
 
 
-def map_scene(store: SqliteKeyframeStore, scene: Scene, association: AssociationConfig | None = None,
+def map_scene(store: MapStore, scene: Scene, association: AssociationConfig | None = None,
               ) -> tuple[list[Landmark], ObjectMap, set[tuple[int, str]]]:
-    """Run the server's mapping stage over ``scene`` as session r1/s1 seen by
+    """Run the server's map writer over ``scene`` as session r1/s1 seen by
     :data:`factories.CAMERA`, then close the session. Returns the associator's landmarks, the
     object map and every (object id, category) the map held after some keyframe, confirmed or not.
     """
-    # The stage has no public call that maps measured keyframes: this is the one place that reaches in.
-    from wardmap.server.pipeline import MapPipeline, _MappedKeyframe
-
     objects = ObjectMap(store)
-    pipe = MapPipeline(store, objects, association=association)
+    writer = MapWriter(objects, association)
     seen: set[tuple[int, str]] = set()
     for ms, T in scene:
-        pipe._associate([_MappedKeyframe("r1/s1", T, CAMERA, list(ms))])
+        writer.add([MappedKeyframe("r1/s1", T, CAMERA, list(ms))])
         page = objects.query(include_unconfirmed=True)
         seen |= {(h.record.object_id, h.record.category) for h in page.hits}
-    pipe._close(["r1/s1"])
-    return pipe._associator.landmarks(), objects, seen
+    writer.close(["r1/s1"])
+    return writer.landmarks(), objects, seen
 
 
-def observation_counts(store: SqliteKeyframeStore) -> dict[int, int]:
+def observation_counts(store: MapStore) -> dict[int, int]:
     """Stored observations per object id, orphans (of deleted objects) included."""
-    with store.reading("test") as conn:
-        rows = conn.execute("SELECT object_id, COUNT(*) FROM observations GROUP BY object_id").fetchall()
-    return {int(oid): int(n) for oid, n in rows}
+    return store.observation_counts()

@@ -1,43 +1,39 @@
-"""The map server's mapping stage: stored keyframes -> perception -> association -> object map.
+"""The mapping stage runner: stored keyframes -> perception -> the map writer, in one thread.
 
 Ingest stores a keyframe and acks it (``server/ingest.py``); this stage runs behind it in its
 own thread and never delays an ack. It reads keyframes from the store in insertion order
-(SQLite ``rowid``), and for each one:
+(their ``rowid``), and for each one:
 
 1. decodes the payload (JPEG colour, depth upsampled to the colour size, intrinsics);
 2. runs the segmenter (``server/perception/models.py``: the trained network by default) and
    measures every non-``moving`` instance in 3D (paper 000 Eq. 1, ``measure.py``);
-3. commits the measurements, the keyframe's map pose and camera (``mapped_keyframes``), and
-   its cursor in one transaction (``measurements``, ``pipeline_cursor``), so a crash never
-   loses or repeats one;
+3. commits the measurements, the keyframe's map pose and camera, and its cursor in one
+   transaction (:meth:`~wardmap.server.store.MappingStore.commit_keyframe`), so a crash
+   never loses or repeats one;
 4. when the keyframe's session is on the map (the robot sent ``T_map_odom``, docs/wire.md),
-   feeds the measurements, in the map frame, to the :class:`Associator` (paper 000:
-   keyframe groups per robot session, HDP across groups), and writes the landmarks it
-   created or changed into the :class:`ObjectMap` (which publishes them on Zenoh). The
-   first keyframe of a robot's new session first closes its previous session's last,
-   incomplete group (``Associator.flush``).
+   hands the measurements, in the map frame, to the :class:`~wardmap.server.mapping.writer.MapWriter`
+   (association and object-map writes).
 
 Sessions without ``T_map_odom`` are measured and counted (``unanchored``) but not mapped: their
-odom frame is unknown in the map until loop closure aligns it (a later stage).
+odom frame is unknown in the map until loop closure aligns it (a later stage). A session that
+sent no keyframe for ``close_idle_s`` has its last, incomplete keyframe group associated; the
+closure is stored with the cursor, so a replay repeats it at the same point.
 
 Restart: association is a deterministic function of the ordered measurements, so on start the
-stage replays every stored measurement of anchored sessions through a fresh associator (no
-perception is re-run) and upserts the landmarks; then it continues after its cursor. The
-replay reads ``mapped_keyframes`` and ``measurements`` in chunks of ``REPLAY_CHUNK``
-keyframes, never the keyframe payloads (a store from before schema v4 has them read once, one
-at a time, to fill ``mapped_keyframes``). The stage checkpoints its association state (the
-pickled associator, colour sums and open sessions, with the cursor and the idle closures at
-it; table ``association_checkpoint``) when it stops and every ``checkpoint_s`` at a settled
-point; a restart starts from a checkpoint of the same association code and settings and
-replays only the keyframes after it (association costs 7-19 ms per keyframe,
-bench/association_revisits.py, so a full replay grows with the store's history).
+stage replays every stored measurement of anchored sessions through a fresh writer (no
+perception is re-run); then it continues after its cursor. The replay reads map poses and
+measurements in chunks of ``REPLAY_CHUNK`` keyframes, never the keyframe payloads (a store
+from before map poses were stored has them read once, one at a time, to record them). The
+stage checkpoints its association state (``checkpoint.py``) when it stops and every
+``checkpoint_s`` at a settled point; a restart starts from a checkpoint of the same
+association code and settings and replays only the keyframes after it.
 
 Backlog: ``backlog`` = stored keyframes not yet processed, exported on ``/metrics``.
 A keyframe whose perception fails (corrupt image, model error) is counted by reason, logged,
 and skipped: the keyframe itself stays stored.
 
 Unexpected errors (a bug, a full disk): the stage logs them, counts a restart on ``/metrics``,
-waits (``retry_s``, doubling up to ``max_retry_s``), rebuilds the associator by replay (the
+waits (``retry_s``, doubling up to ``max_retry_s``), rebuilds the writer by replay (the
 failed round may have left it half-updated) and carries on from its cursor. When the same
 keyframe fails ``max_attempts`` times in a row it is skipped as ``internal: <error type>``
 (counted with the other failures; the keyframe stays stored), so one bad keyframe cannot stall
@@ -46,29 +42,24 @@ the map. Nothing is committed twice: measurements and the cursor move in one tra
 
 from __future__ import annotations
 
-import functools
-import json
 import logging
 import math
-import pickle
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field, replace
-from pathlib import Path
-from typing import Any, Final
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from typing import Final
 
 import cv2
-import msgpack
 import numpy as np
 from numpy.typing import NDArray
 
 from wardmap.server.association.associator import AssociationConfig, Associator
-from wardmap.server.association.types import Landmark, LandmarkChange
-from wardmap.server.codedigest import code_digest
-from wardmap.server.objectmap import ObjectMap, from_landmark
-from wardmap.server.perception.measure import mean_rgb, measure_instances_report
+from wardmap.server.mapping.checkpoint import checkpoint_key, decode_state, encode_state
+from wardmap.server.mapping.writer import MappedKeyframe, MapWriter, WriterState
+from wardmap.server.objectmap import ObjectMap
+from wardmap.server.perception.measure import measure_instances_report
 from wardmap.server.perception.models import (
     PerceptionConfig,
     Segmenter,
@@ -78,9 +69,8 @@ from wardmap.server.perception.models import (
     split_instances,
 )
 from wardmap.server.perception.types import ObjectMeasurement
-from wardmap.server.store import SqliteKeyframeStore, pose_blob, pose_from_blob
+from wardmap.server.store import Checkpoint, MappedPose, MapStore
 from wardmap.shared.camera import PinholeCamera
-from wardmap.shared.config import to_mapping
 from wardmap.shared.errors import ConfigError, WardmapError, WireError
 from wardmap.shared.knowledge import KnowledgeGraph
 from wardmap.shared.wire import KeyframeMsg, decode_depth, decode_keyframe
@@ -90,12 +80,8 @@ log = logging.getLogger(__name__)
 F64 = NDArray[np.float64]
 CURSOR_NAME: Final = "mapping"
 MAX_FAILURE_REASON: Final = 120
-_INSERT_MAPPED: Final = ("INSERT OR REPLACE INTO mapped_keyframes (robot_id, session_id, seq, T_map_camera, "
-                         "camera) VALUES (?, ?, ?, ?, ?)")
 REPLAY_CHUNK: Final = 500
 """Keyframes read per step of the replay at start (bounds its memory besides the associator's)."""
-CHECKPOINT_FORMAT: Final = 1
-"""Bumped when the checkpoint's contents change shape (part of its key)."""
 
 
 @dataclass(frozen=True)
@@ -211,24 +197,26 @@ class MapPipeline:
     """The mapping stage thread (see the module docstring).
 
     Args:
-        store: the open keyframe store (its file also holds measurements and objects).
+        store: the open store (keyframes, measurements, objects).
         objects: the object map on the same store.
         config: stage settings.
         perception: segmenter and measurement settings.
         association: association settings.
         segmenter: a ready segmenter (tests); None builds ``perception.segmenter`` in
             :meth:`start`.
+        clock: monotonic seconds, for idle sessions and checkpoint intervals.
     """
 
     def __init__(
         self,
-        store: SqliteKeyframeStore,
+        store: MapStore,
         objects: ObjectMap,
         *,
         config: PipelineConfig | None = None,
         perception: PerceptionConfig | None = None,
         association: AssociationConfig | None = None,
         segmenter: Segmenter | None = None,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.store = store
         self.objects = objects
@@ -236,10 +224,11 @@ class MapPipeline:
         self.perception = perception or PerceptionConfig()
         self.association = association or AssociationConfig()
         self._segmenter = segmenter
+        self._clock = clock
         self._measure_config = measure_config_for(self.perception, self.perception.segmenter)
         self._kg = KnowledgeGraph.load()
         self._moving = {c.name for c in self._kg.classes if str(c.mobility) == "moving"}
-        self._new_associator()
+        self._reset()
         self._lock = threading.Lock()  # guards _counts and _backlog for counters()
         self._counts = _Counts()
         self._backlog = 0
@@ -277,7 +266,7 @@ class MapPipeline:
         with self._lock:
             c = self._counts
             return PipelineCounters(c.processed, c.measurements, c.mapped, c.unanchored, c.replayed,
-                                    self._backlog, dict(c.failures), len(self._associator.landmarks()),
+                                    self._backlog, dict(c.failures), len(self._writer.landmarks()),
                                     c.restarts, c.last_error, c.closed_idle, c.floating, c.beyond_range,
                                     dict(c.skipped), c.wall_pieces, c.floor_pieces)
 
@@ -290,24 +279,29 @@ class MapPipeline:
                 raise WardmapError(f"mapping stage failed: {self._error}") from self._error
             with self._lock:
                 settled = self._settled
-            if settled >= 0 and self._pending(after=settled) == 0:
+            if settled >= 0 and self.store.count_keyframes_after(settled) == 0:
                 return True
             time.sleep(0.05)
         return False
+
+    @property
+    def writer(self) -> MapWriter:
+        """The map writer the stage feeds (replaced when the stage recovers from an error)."""
+        return self._writer
 
     # ------------------------------------------------------------------ thread
 
     def _main(self) -> None:
         delay = self.cfg.retry_s
         failing: tuple[int, int] | None = None  # (cursor, consecutive failures there)
-        settled = True  # the associator holds exactly the keyframes up to the cursor
+        settled = True  # the writer holds exactly the keyframes up to the cursor
         while not self._stop.is_set():
             try:
                 done = self._round()
                 self._settle()
-                self._close_idle()  # also while other robots keep the stage busy
+                self.close_idle()  # also while other robots keep the stage busy
                 settled = True
-                if time.monotonic() - self._checkpoint_at >= self.cfg.checkpoint_s:
+                if self._clock() - self._checkpoint_at >= self.cfg.checkpoint_s:
                     self._checkpoint()
                 if done == 0:
                     self._stop.wait(self.cfg.poll_s)
@@ -328,7 +322,7 @@ class MapPipeline:
                     if failing[1] >= self.cfg.max_attempts:
                         self._skip_after(cursor, f"internal: {type(exc).__name__}")
                         failing = None
-                    self._new_associator()
+                    self._reset()
                     self._replay()
                     self._settle()
                     settled = True
@@ -343,35 +337,24 @@ class MapPipeline:
 
     def _skip_after(self, cursor: int, reason: str) -> None:
         """Mark the first keyframe after ``cursor`` processed with no measurements, counted as ``reason``."""
-        with self.store.reading("mapping: keyframe to skip") as conn:
-            row = conn.execute(
-                "SELECT rowid, robot_id, session_id, seq FROM keyframes WHERE rowid > ? "
-                "ORDER BY rowid LIMIT 1",
-                (cursor,),
-            ).fetchone()
-        if row is None:
+        rows = self.store.next_keyframes(cursor, 1)
+        if not rows:
             return
-        key = f"{row[1]}/{row[2]}/{int(row[3])}"
+        kf = rows[0]
         log.error("mapping stage: keyframe %s failed %d times; skipped (%s)",
-                  key, self.cfg.max_attempts, reason)
-        self._commit(int(row[0]), key, msg=None, measurements=[])
+                  kf.key, self.cfg.max_attempts, reason)
+        self._commit(kf.rowid, kf.key, msg=None, measurements=[])
         with self._lock:
             self._counts.failures[reason] += 1
 
     def _round(self) -> int:
-        cursor = self._cursor()
-        with self.store.reading("mapping: next keyframes") as conn:
-            rows = conn.execute(
-                "SELECT rowid, robot_id, session_id, seq, payload FROM keyframes WHERE rowid > ? "
-                "ORDER BY rowid LIMIT ?",
-                (cursor, self.cfg.batch),
-            ).fetchall()
-        for rowid, robot_id, session_id, seq, payload in rows:
+        rows = self.store.next_keyframes(self._cursor(), self.cfg.batch)
+        for kf in rows:
             if self._stop.is_set():
                 break
-            self._process(int(rowid), f"{robot_id}/{session_id}/{int(seq)}", bytes(payload))
+            self._process(kf.rowid, kf.key, kf.payload)
         with self._lock:
-            self._backlog = self._pending()
+            self._backlog = self.store.count_keyframes_after(self._cursor())
         return len(rows)
 
     def _process(self, rowid: int, key: str, payload: bytes) -> None:
@@ -393,8 +376,8 @@ class MapPipeline:
             with self._lock:
                 self._counts.unanchored += 1
             return
-        self._associate([_MappedKeyframe(f"{msg.robot_id}/{msg.session_id}", map_pose(msg), camera_of(msg),
-                                         measurements)])
+        self.associate([MappedKeyframe(f"{msg.robot_id}/{msg.session_id}", map_pose(msg), camera_of(msg),
+                                       measurements)])
 
     def _measure(self, msg: KeyframeMsg, key: str) -> list[ObjectMeasurement]:
         bgr, depth, camera = decode_images(msg)
@@ -420,187 +403,98 @@ class MapPipeline:
                 self._counts.skipped.update(skip.kind for skip in report.skipped)
         return report.measurements
 
-    def _associate(self, keyframes: Iterable[_MappedKeyframe]) -> None:
-        touched: dict[int, Landmark] = {}
-        new: dict[int, list[ObjectMeasurement]] = {}
+    def associate(self, keyframes: Iterable[MappedKeyframe]) -> None:
+        """Feed measured keyframes of anchored sessions to the writer in order and write the
+        changes to the object map; counts them as mapped. The stage's thread calls it; call it
+        yourself only on a stage that is not started."""
+        writer = self._writer
         for kf in keyframes:
-            # A robot's new session ends its previous one: that session's last, incomplete
-            # keyframe group is associated now (it would wait for keyframes that never come).
-            # Decided from the keyframe order alone, so replay repeats it exactly.
-            robot = kf.stream.split("/", 1)[0]
-            previous = self._open_stream.get(robot)
-            if previous is not None and previous != kf.stream:
-                self._collect(self._associator.flush(previous), touched, new)
-            self._open_stream[robot] = kf.stream
-            self._last_seen[kf.stream] = time.monotonic()
-            far = self._associator.beyond_range
-            changes = self._associator.add_keyframe(
-                for_association(kf.measurements), kf.T_map_camera, kf.camera, stream=kf.stream
-            )
-            self._collect(changes, touched, new)
+            self._last_seen[kf.stream] = self._clock()
+            far = writer.associate(kf)
             with self._lock:
                 self._counts.mapped += 1
-                self._counts.beyond_range += self._associator.beyond_range - far
-        self._write_landmarks(touched.values(), new)
+                self._counts.beyond_range += far
+        writer.write()
 
-    def _close_idle(self) -> None:
-        """Associate the open keyframe group of every session quiet for ``close_idle_s``; the
-        closure is stored with the cursor first, so replay repeats it at the same point."""
+    def close_idle(self) -> list[str]:
+        """Associate the open keyframe group of every session quiet for ``close_idle_s`` (whose
+        stored keyframes are all processed); the closure is stored with the cursor first, so
+        replay repeats it at the same point. Returns the sessions closed (``"<robot>/<session>"``).
+        The stage's thread calls it; call it yourself only on a stage that is not started."""
         if self.cfg.close_idle_s <= 0:
-            return
-        now = time.monotonic()
-        quiet = sorted(stream for stream in self._open_stream.values()
+            return []
+        now = self._clock()
+        quiet = sorted(stream for stream in self._writer.open_streams.values()
                        if now - self._last_seen.get(stream, now) >= self.cfg.close_idle_s)
         if not quiet:
-            return
+            return []
         cursor = self._cursor()
-        with self.store.reading("mapping: idle sessions") as conn:
-            # A session whose keyframes wait behind other robots' backlog is not idle.
-            quiet = [stream for stream in quiet if conn.execute(
-                "SELECT 1 FROM keyframes WHERE robot_id = ? AND session_id = ? AND rowid > ? LIMIT 1",
-                (*stream.split("/", 1), cursor)).fetchone() is None]
+        # A session whose keyframes wait behind other robots' backlog is not idle.
+        quiet = [stream for stream in quiet
+                 if not self.store.session_has_keyframes_after(*_split_stream(stream), cursor)]
         if not quiet:
-            return
-        with self.store.writing("mapping: close idle sessions") as conn:
-            conn.executemany(
-                "INSERT OR IGNORE INTO closed_sessions (robot_id, session_id, at_rowid) VALUES (?, ?, ?)",
-                [(*stream.split("/", 1), cursor) for stream in quiet],
-            )
-        self._close(quiet)
+            return []
+        self.store.close_sessions([_split_stream(stream) for stream in quiet], cursor)
+        self._writer.close(quiet)
         with self._lock:
             self._counts.closed_idle += len(quiet)
         log.info("mapping stage: closed the last keyframe group of idle session(s) %s", ", ".join(quiet))
+        return quiet
 
-    def _close(self, streams: Iterable[str]) -> None:
-        """Flush the streams' open groups into the map; each robot then has no open session."""
-        touched: dict[int, Landmark] = {}
-        new: dict[int, list[ObjectMeasurement]] = {}
-        for stream in streams:
-            self._collect(self._associator.flush(stream), touched, new)
-            robot = stream.split("/", 1)[0]
-            if self._open_stream.get(robot) == stream:
-                del self._open_stream[robot]
-        self._write_landmarks(touched.values(), new)
-
-    def _new_associator(self) -> None:
-        # The database holds every measurement; the live associator only each landmark's recent ones.
-        self._associator = Associator(replace(self.association, keep_measurements=False), self._kg)
-        # Per landmark, the running sum of its measurements' colour histograms.
-        self._hist_sum: dict[int, NDArray[np.float64]] = {}
-        # Landmarks the associator merged into another, in order, waiting to be written.
-        self._merges: list[tuple[int, int]] = []
-        self._open_stream: dict[str, str] = {}  # robot -> its session being associated
-        self._last_seen: dict[str, float] = {}  # stream -> monotonic time of its last keyframe
+    def _reset(self) -> None:
+        """A fresh writer, and no checkpoint written by it yet."""
+        self._new_writer()
         self._checkpointed: tuple[int, int] | None = None  # (cursor, closures there) of the last one
-        self._checkpoint_at = time.monotonic()
+        self._checkpoint_at = self._clock()
 
-    def _collect(self, changes: Iterable[LandmarkChange], touched: dict[int, Landmark],
-                 new: dict[int, list[ObjectMeasurement]]) -> None:
-        """Take the measurements each change added and add their colour histograms to the
-        landmark's running sum; note merged landmarks (:meth:`_write_landmarks` deletes them)."""
-        bins = self._measure_config.hist_bins
-        for change in changes:
-            lm = change.landmark
-            if change.kind == "merged":
-                gone = self._hist_sum.pop(lm.id, None)
-                if gone is not None:
-                    self._hist_sum[change.into] = self._hist_sum.get(change.into, 0.0) + gone
-                self._merges.append((lm.id, change.into))
-                continue
-            hists = [np.asarray(m.color_hist, np.float64) for m in change.added
-                     if np.shape(m.color_hist) == (bins[0] * bins[1] * bins[2],)]
-            if hists:
-                self._hist_sum[lm.id] = self._hist_sum.get(lm.id, 0.0) + np.sum(hists, axis=0)
-            new.setdefault(lm.id, []).extend(change.added)
-            touched[lm.id] = lm
-
-    def _write_landmarks(self, landmarks: Iterable[Landmark],
-                         new: dict[int, list[ObjectMeasurement]]) -> None:
-        """Upsert the landmarks (their latest state) with only the observations ``new`` to them
-        (:meth:`_collect`), so an update costs the same however often the object has been seen."""
-        states, observations = [], []
-        bins = self._measure_config.hist_bins
-        for lm in landmarks:
-            total = self._hist_sum.get(lm.id)
-            colour = None if total is None else mean_rgb([total], bins)
-            state, obs = from_landmark(lm.id, lm.category, lm.confidence, lm.T_world_object, lm.size,
-                                       new.get(lm.id, []), colour, lm.confirmed)
-            states.append(state)
-            observations.extend(obs)
-        if states:
-            self.objects.upsert(states, observations)
-        merges, self._merges = self._merges, []
-        for gone, into in merges:
-            # After the upsert: ``into`` may be new. ``gone`` exists: it was written when created.
-            self.objects.delete(gone, merged_into=into)
+    def _new_writer(self, state: WriterState | None = None) -> None:
+        self._writer = MapWriter(self.objects, self.association, hist_bins=self._measure_config.hist_bins,
+                                 knowledge=self._kg, state=state)
+        now = self._clock()
+        # stream -> clock time of its last keyframe
+        self._last_seen: dict[str, float] = {stream: now for stream in self._writer.open_streams.values()}
 
     # ------------------------------------------------------------------ storage
 
     def _cursor(self) -> int:
-        with self.store.reading("mapping: cursor") as conn:
-            row = conn.execute(
-                "SELECT last_rowid FROM pipeline_cursor WHERE name = ?", (CURSOR_NAME,)
-            ).fetchone()
-        return int(row[0]) if row else 0
+        return self.store.cursor(CURSOR_NAME)
 
     def _settle(self) -> None:
         cursor = self._cursor()
         with self._lock:
             self._settled = cursor
 
-    def _pending(self, after: int | None = None) -> int:
-        """Stored keyframes after ``after`` (default: the cursor)."""
-        cursor = self._cursor() if after is None else after
-        with self.store.reading("mapping: backlog") as conn:
-            row = conn.execute("SELECT COUNT(*) FROM keyframes WHERE rowid > ?", (cursor,)).fetchone()
-        return int(row[0])
-
     def _commit(self, rowid: int, key: str, msg: KeyframeMsg | None,
-                measurements: Sequence[ObjectMeasurement]) -> None:
+                measurements: list[ObjectMeasurement]) -> None:
         robot_id, session_id, seq = key.split("/")
         anchored = msg is not None and msg.T_map_odom is not None
-        pose, camera = _mapped_row(msg)
-        with self.store.writing("mapping: store measurements") as conn:
-            conn.executemany(
-                "INSERT INTO measurements (robot_id, session_id, seq, anchored, payload) "
-                "VALUES (?, ?, ?, ?, ?)",
-                [(robot_id, session_id, int(seq), int(anchored), pack_measurement(m)) for m in measurements],
-            )
-            conn.execute(_INSERT_MAPPED, (robot_id, session_id, int(seq), pose, camera))
-            conn.execute(
-                "INSERT INTO pipeline_cursor (name, last_rowid) VALUES (?, ?) "
-                "ON CONFLICT(name) DO UPDATE SET last_rowid = excluded.last_rowid",
-                (CURSOR_NAME, rowid),
-            )
+        self.store.commit_keyframe(CURSOR_NAME, rowid, _mapped_pose(robot_id, session_id, int(seq), msg),
+                                   measurements, anchored=anchored)
 
     def _replay(self) -> None:
-        """Rebuild the associator from stored measurements of anchored keyframes, in order.
+        """Rebuild the writer from stored measurements of anchored keyframes, in order.
 
-        Keyframes are read in chunks of ``REPLAY_CHUNK`` from ``mapped_keyframes`` (pose and
-        camera) and ``measurements``; no keyframe payload is read (except once, to fill
-        ``mapped_keyframes`` for keyframes a version before it processed).
+        Keyframes are read in chunks of ``REPLAY_CHUNK`` (map pose, camera and measurements);
+        no keyframe payload is read (except once, to record the map pose of keyframes a
+        version before it processed).
         """
         cursor = self._cursor()
         if cursor == 0:
             return
         self._backfill(cursor)
         start, applied = self._restore(cursor)
-        with self.store.reading("mapping: closed sessions") as conn:
-            closures: dict[int, list[str]] = {}
-            for at, robot_id, session_id in conn.execute(
-                "SELECT at_rowid, robot_id, session_id FROM closed_sessions WHERE at_rowid >= ? AND "
-                "at_rowid <= ? ORDER BY at_rowid, robot_id, session_id", (start, cursor)
-            ):
-                stream = f"{robot_id}/{session_id}"
-                if not (at == start and stream in applied):
-                    closures.setdefault(int(at), []).append(stream)
+        closures: dict[int, list[str]] = {}
+        for c in self.store.closed_sessions(start, cursor):
+            stream = f"{c.robot_id}/{c.session_id}"
+            if not (c.at_rowid == start and stream in applied):
+                closures.setdefault(c.at_rowid, []).append(stream)
         counts = [0, 0]  # keyframes, measurements
         after = start
         for end in [*sorted(closures), cursor]:
             self._replay_range(after, end, counts)
             if self._stop.is_set():
                 break
-            self._close(closures.get(end, []))
+            self._writer.close(closures.get(end, []))
             after = end
         keyframes, replayed = counts
         with self._lock:
@@ -609,10 +503,7 @@ class MapPipeline:
         log.info("mapping stage: replayed %d measurements of %d keyframes", replayed, keyframes)
 
     def _checkpoint_key(self) -> str:
-        """What a checkpoint is valid for: its format, the association code and settings."""
-        return json.dumps({"format": CHECKPOINT_FORMAT, "code": _association_code(),
-                           "association": to_mapping(self.association),
-                           "hist_bins": list(self._measure_config.hist_bins)}, sort_keys=True)
+        return checkpoint_key(self.association, self._measure_config.hist_bins)
 
     def _checkpoint(self) -> None:
         """Save the association state at the current cursor, which it must match (a settled
@@ -620,27 +511,20 @@ class MapPipeline:
         failure (a full disk) is logged, and a later restart replays from an older one."""
         if self.cfg.checkpoint_s <= 0:
             return
-        self._checkpoint_at = time.monotonic()
+        self._checkpoint_at = self._clock()
         try:
             cursor = self._cursor()
-            with self.store.reading("mapping: closures at the cursor") as conn:
-                closed = sorted(f"{r}/{s}" for r, s in conn.execute(
-                    "SELECT robot_id, session_id FROM closed_sessions WHERE at_rowid = ?", (cursor,)))
+            at_cursor = self.store.closed_sessions(cursor, cursor)
+            closed = sorted(f"{c.robot_id}/{c.session_id}" for c in at_cursor)
             if (cursor, len(closed)) == self._checkpointed:
                 return
-            state = pickle.dumps({"associator": self._associator, "hist_sum": self._hist_sum,
-                                  "open_stream": self._open_stream, "closed_at_cursor": closed},
-                                 protocol=pickle.HIGHEST_PROTOCOL)
-            with self.store.writing("mapping: association checkpoint") as conn:
-                conn.execute(
-                    "INSERT INTO association_checkpoint (id, last_rowid, config_key, state, written_s) "
-                    "VALUES (1, ?, ?, ?, ?) ON CONFLICT(id) DO UPDATE SET "
-                    "last_rowid = excluded.last_rowid, config_key = excluded.config_key, "
-                    "state = excluded.state, written_s = excluded.written_s",
-                    (cursor, self._checkpoint_key(), state, time.time()))
+            w = self._writer.state()
+            state = encode_state({"associator": w.associator, "hist_sum": w.hist_sum,
+                                  "open_stream": w.open_stream, "closed_at_cursor": closed})
+            self.store.save_checkpoint(Checkpoint(cursor, self._checkpoint_key(), state, time.time()))
             self._checkpointed = (cursor, len(closed))
             log.info("mapping stage: association checkpoint at keyframe %d (%d landmarks, %.1f MB)", cursor,
-                     len(self._associator.landmarks()), len(state) / 1e6)
+                     len(w.associator.landmarks()), len(state) / 1e6)
         except Exception:
             log.exception("mapping stage: association checkpoint not written")
 
@@ -650,13 +534,11 @@ class MapPipeline:
         by other association code or settings, lies beyond ``cursor`` or cannot be read."""
         if self.cfg.checkpoint_s <= 0:
             return 0, set()
-        with self.store.reading("mapping: association checkpoint") as conn:
-            row = conn.execute(
-                "SELECT last_rowid, config_key, state FROM association_checkpoint WHERE id = 1").fetchone()
-        if row is None:
+        saved = self.store.checkpoint()
+        if saved is None:
             return 0, set()
-        at, key, blob = int(row[0]), str(row[1]), bytes(row[2])
-        if key != self._checkpoint_key():
+        at = saved.last_rowid
+        if saved.config_key != self._checkpoint_key():
             log.info("mapping stage: the association checkpoint is of other code or settings; replaying all")
             return 0, set()
         if at > cursor:
@@ -664,19 +546,17 @@ class MapPipeline:
                         "(%d); replaying all", at, cursor)
             return 0, set()
         try:
-            state = pickle.loads(blob)  # the server's own file (docs/ARCHITECTURE.md)
+            state = decode_state(saved.state)
             associator, hist_sum, open_stream = state["associator"], state["hist_sum"], state["open_stream"]
             applied = set(state["closed_at_cursor"])
             if not (isinstance(associator, Associator) and isinstance(hist_sum, dict)
                     and isinstance(open_stream, dict)):
                 raise TypeError("unexpected contents")
-        except Exception as exc:  # any unpickling error: the full replay is always correct
+        except Exception as exc:  # any decoding error: the full replay is always correct
             log.warning("mapping stage: the association checkpoint cannot be read (%s: %s); replaying all",
                         type(exc).__name__, exc)
             return 0, set()
-        self._associator, self._hist_sum, self._open_stream = associator, hist_sum, open_stream
-        now = time.monotonic()
-        self._last_seen = {stream: now for stream in open_stream.values()}
+        self._new_writer(WriterState(associator, hist_sum, open_stream))
         self._checkpointed = (at, len(applied))
         log.info("mapping stage: association restored from its checkpoint at keyframe %d (%d landmarks)", at,
                  len(associator.landmarks()))
@@ -685,63 +565,32 @@ class MapPipeline:
     def _replay_range(self, after: int, end: int, counts: list[int]) -> None:
         """Replay the keyframes with ``after < rowid <= end`` (see :meth:`_replay`)."""
         while not self._stop.is_set():
-            with self.store.reading("mapping: replay") as conn:
-                rows = conn.execute(
-                    "SELECT k.rowid, k.robot_id, k.session_id, k.seq, mk.T_map_camera, mk.camera "
-                    "FROM keyframes k JOIN mapped_keyframes mk USING (robot_id, session_id, seq) "
-                    "WHERE k.rowid > ? AND k.rowid <= ? AND mk.T_map_camera IS NOT NULL "
-                    "ORDER BY k.rowid LIMIT ?",
-                    (after, end, REPLAY_CHUNK),
-                ).fetchall()
-                if not rows:
-                    break
-                last = int(rows[-1][0])
-                by_key: dict[str, list[ObjectMeasurement]] = {}
-                for robot_id, session_id, seq, payload in conn.execute(
-                    "SELECT m.robot_id, m.session_id, m.seq, m.payload FROM measurements m "
-                    "JOIN keyframes k USING (robot_id, session_id, seq) "
-                    "WHERE k.rowid > ? AND k.rowid <= ? AND m.anchored = 1 "
-                    "ORDER BY k.rowid, m.measurement_id",
-                    (after, last),
-                ):
-                    by_key.setdefault(f"{robot_id}/{session_id}/{int(seq)}", []).append(
-                        unpack_measurement(payload))
-            chunk = [
-                _MappedKeyframe(f"{robot_id}/{session_id}", pose_from_blob(pose), _camera_from_json(camera),
-                                by_key.get(f"{robot_id}/{session_id}/{int(seq)}", []))
-                for _, robot_id, session_id, seq, pose, camera in rows
-            ]
-            self._associate(chunk)
-            counts[0] += len(chunk)
-            counts[1] += sum(len(v) for v in by_key.values())
-            after = last
+            rows = self.store.anchored_keyframes(after, end, REPLAY_CHUNK)
+            if not rows:
+                break
+            self.associate(MappedKeyframe(f"{kf.robot_id}/{kf.session_id}", kf.T_map_camera, kf.camera,
+                                          kf.measurements) for kf in rows)
+            counts[0] += len(rows)
+            counts[1] += sum(len(kf.measurements) for kf in rows)
+            after = rows[-1].rowid
 
     def _backfill(self, cursor: int) -> None:
-        """Fill ``mapped_keyframes`` for processed keyframes that have no row (stores written
-        before schema v4), decoding their payloads one at a time."""
+        """Record the map pose of processed keyframes that have none (stores written before
+        map poses were stored), decoding their payloads one at a time."""
         done = 0
         while True:
-            with self.store.reading("mapping: keyframes to backfill") as conn:
-                rows = conn.execute(
-                    "SELECT k.rowid, k.robot_id, k.session_id, k.seq FROM keyframes k "
-                    "LEFT JOIN mapped_keyframes mk USING (robot_id, session_id, seq) "
-                    "WHERE k.rowid <= ? AND mk.robot_id IS NULL ORDER BY k.rowid LIMIT ?",
-                    (cursor, REPLAY_CHUNK),
-                ).fetchall()
+            rows = self.store.unmapped_keyframes(cursor, REPLAY_CHUNK)
             if not rows:
                 break
             filled = []
-            for rowid, robot_id, session_id, seq in rows:
-                with self.store.reading("mapping: keyframe to backfill") as conn:
-                    (payload,) = conn.execute("SELECT payload FROM keyframes WHERE rowid = ?",
-                                              (rowid,)).fetchone()
+            for kf in rows:
+                payload = self.store.payload(kf.robot_id, kf.session_id, kf.seq)
                 try:
-                    msg: KeyframeMsg | None = decode_keyframe(bytes(payload))
+                    msg: KeyframeMsg | None = None if payload is None else decode_keyframe(payload)
                 except WireError:
                     msg = None  # it was skipped the first time too (counted then)
-                filled.append((robot_id, session_id, int(seq), *_mapped_row(msg)))
-            with self.store.writing("mapping: backfill mapped keyframes") as conn:
-                conn.executemany(_INSERT_MAPPED, filled)
+                filled.append(_mapped_pose(kf.robot_id, kf.session_id, kf.seq, msg))
+            self.store.record_mapped(filled)
             done += len(filled)
         if done:
             log.info("mapping stage: recorded the map pose of %d keyframes processed by an older version",
@@ -751,27 +600,17 @@ class MapPipeline:
 # ---------------------------------------------------------------------------- helpers
 
 
-@dataclass(frozen=True)
-class _MappedKeyframe:
-    """What association needs of one anchored keyframe."""
-
-    stream: str  # "<robot>/<session>": keyframe groups never span two sessions
-    T_map_camera: F64
-    camera: PinholeCamera
-    measurements: Sequence[ObjectMeasurement]
+def _split_stream(stream: str) -> tuple[str, str]:
+    robot_id, session_id = stream.split("/", 1)
+    return robot_id, session_id
 
 
-def _mapped_row(msg: KeyframeMsg | None) -> tuple[bytes | None, str | None]:
-    """``(T_map_camera blob, camera JSON)`` of a processed keyframe for ``mapped_keyframes``;
-    ``(None, None)`` when it is not on the map (unanchored, undecodable, no intrinsics)."""
+def _mapped_pose(robot_id: str, session_id: str, seq: int, msg: KeyframeMsg | None) -> MappedPose:
+    """Where a processed keyframe is on the map; no pose when it is not on the map
+    (unanchored, undecodable, no intrinsics)."""
     if msg is None or msg.T_map_odom is None or msg.intrinsics is None:
-        return None, None
-    return pose_blob(map_pose(msg)), json.dumps(to_mapping(camera_of(msg)))
-
-
-def _camera_from_json(text: str) -> PinholeCamera:
-    d = json.loads(text)
-    return PinholeCamera(**{**d, "distortion": tuple(d["distortion"])})
+        return MappedPose(robot_id, session_id, seq, None, None)
+    return MappedPose(robot_id, session_id, seq, map_pose(msg), camera_of(msg))
 
 
 def camera_of(msg: KeyframeMsg) -> PinholeCamera:
@@ -799,16 +638,6 @@ def decode_images(msg: KeyframeMsg) -> tuple[NDArray[np.uint8], NDArray[np.float
     return np.ascontiguousarray(bgr, np.uint8), np.ascontiguousarray(depth, np.float32), camera
 
 
-@functools.cache
-def _association_code() -> str:
-    """Digest of the code whose state a checkpoint holds (the association package, this module)
-    and of the packaged knowledge graph: a checkpoint of other code is not used."""
-    import wardmap.server.association as association
-
-    return code_digest([*sorted(Path(association.__file__).resolve().parent.glob("*.py")),
-                        Path(__file__).resolve()])
-
-
 def floor_height(msg: KeyframeMsg) -> float | None:
     """Height (m) of the floor in the map frame: that of the robot base, whose frame sits on the
     floor (``T_odom_base``); None for keyframes without a base (a hand-held camera)."""
@@ -824,42 +653,4 @@ def map_pose(msg: KeyframeMsg) -> F64:
     return np.asarray(T_map_odom @ msg.T_odom_camera, np.float64)
 
 
-# ---------------------------------------------------------------------------- measurement blobs
-
-_ARRAYS: Final = ("box_xyxy", "points_camera", "T_camera_object", "T_world_camera", "T_world_object",
-                  "size", "color_hist", "descriptors")
-
-
-def pack_measurement(m: ObjectMeasurement) -> bytes:
-    """msgpack of a measurement without its mask (association does not read masks)."""
-    d: dict[str, Any] = {"keyframe": m.keyframe, "stamp": m.stamp, "category": m.category,
-                         "confidence": float(m.confidence), "gt_instance": m.gt_instance}
-    for name in _ARRAYS:
-        a = np.ascontiguousarray(getattr(m, name))
-        d[name] = {"dtype": a.dtype.str, "shape": list(a.shape), "data": a.tobytes()}
-    return bytes(msgpack.packb(d, use_bin_type=True))
-
-
-def unpack_measurement(blob: bytes) -> ObjectMeasurement:
-    """Inverse of :func:`pack_measurement` (the mask comes back empty, shape (0, 0))."""
-    d = msgpack.unpackb(blob, raw=False)
-    arrays = {
-        name: np.frombuffer(d[name]["data"], np.dtype(d[name]["dtype"])).reshape(d[name]["shape"]).copy()
-        for name in _ARRAYS
-    }
-    return ObjectMeasurement(
-        keyframe=d["keyframe"], stamp=float(d["stamp"]), category=d["category"],
-        confidence=float(d["confidence"]), mask=np.zeros((0, 0), bool), gt_instance=d["gt_instance"],
-        **arrays,
-    )
-
-
-def for_association(measurements: Sequence[ObjectMeasurement]) -> list[ObjectMeasurement]:
-    """The measurements without their (H, W) masks and 3D points, for long-lived association
-    state: association never reads either, and the points (up to ``MeasureConfig.max_points``,
-    36 kB) were most of a measurement's memory. Both stay in the stored measurement."""
-    return [replace(m, mask=np.zeros((0, 0), bool), points_camera=np.zeros((0, 3), np.float32))
-            for m in measurements]
-
-
-PipelineFactory = Callable[[SqliteKeyframeStore, ObjectMap], MapPipeline]
+PipelineFactory = Callable[[MapStore, ObjectMap], MapPipeline]

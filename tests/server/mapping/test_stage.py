@@ -1,10 +1,17 @@
-"""The server's mapping stage on real simulated keyframes and the packaged segmentation network:
-stored keyframes become measurements and objects; a restart replays and does not duplicate."""
+"""The server's mapping stage (``wardmap.server.mapping.stage``) on real simulated keyframes and
+the packaged segmentation network: stored keyframes become measurements and objects; a restart
+replays and does not duplicate.
+
+Tests that tamper with the database (to make it look like an older version's, or to blank the
+keyframe payloads) open the SQLite file directly; everything else goes through the store."""
 
 from __future__ import annotations
 
 import dataclasses
+import sqlite3
 import time
+from contextlib import closing
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -12,25 +19,19 @@ import numpy as np
 import pytest
 
 from wardmap.server.association.associator import AssociationConfig, beyond_range
-from wardmap.server.objectmap import ObjectMap
+from wardmap.server.mapping import MappedKeyframe, MapPipeline, MapWriter, PipelineConfig, PipelineCounters
+from wardmap.server.mapping.stage import CURSOR_NAME
+from wardmap.server.objectmap import MAX_LIMIT, ObjectMap
 from wardmap.server.perception.models import PerceptionConfig
-from wardmap.server.pipeline import (
-    MapPipeline,
-    PipelineConfig,
-    PipelineCounters,
-    pack_measurement,
-    unpack_measurement,
-)
-from wardmap.server.store import SqliteKeyframeStore
+from wardmap.server.store import MappedPose, MapStore, SqliteMapStore
 from wardmap.shared import wire
+from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.wire import Intrinsics, KeyframeMsg, Keypoints, PackedRaster, encode
 
-MODEL = Path(__file__).resolve().parents[2] / "server" / "models" / "hospital_seg.onnx"
+MODEL = Path(__file__).resolve().parents[3] / "server" / "models" / "hospital_seg.onnx"
 pytestmark = pytest.mark.skipif(not MODEL.is_file(), reason="the packaged segmentation network is not built")
 
 FRAMES = (0, 8, 16, 24, 32, 40, 48, 56)
-LAST: dict[str, int] = {}
-HIST_SUMS: dict[int, np.ndarray] = {}  # the last run's per-landmark colour histogram sums
 
 
 def _keyframes(anchored: bool) -> list[tuple[KeyframeMsg, bytes]]:
@@ -58,14 +59,46 @@ def _keyframes(anchored: bool) -> list[tuple[KeyframeMsg, bytes]]:
     return out
 
 
+@dataclass(frozen=True)
+class Run:
+    """What one run of the stage left (see :func:`_run`).
+
+    Attributes:
+        categories: the object map's count per category.
+        measurements: measurements in the store.
+        counters: the stage's counters when it was idle.
+        landmarks: the writer's landmarks.
+        associated: measurements its landmarks took in all.
+        held: most measurements one landmark holds in memory.
+        most: most measurements one landmark took.
+        colour_sums: per landmark, the sum of its measurements' colour histograms.
+    """
+
+    categories: dict[str, int]
+    measurements: int
+    counters: PipelineCounters
+    landmarks: int
+    associated: int
+    held: int
+    most: int
+    colour_sums: dict[int, np.ndarray]
+
+    @property
+    def replayed(self) -> int:
+        return self.counters.replayed
+
+
+def _all_objects(objects: ObjectMap) -> list:
+    return [h.record for h in objects.query(include_unconfirmed=True, limit=MAX_LIMIT).hits]
+
+
 def _run(path: Path, keyframes: list[tuple[KeyframeMsg, bytes]], close_idle_s: float = 0.0,
          closures: int = 0, association: AssociationConfig | None = None,
-         checkpoint_s: float = 0.0) -> tuple[dict[str, int], int, int]:
+         checkpoint_s: float = 0.0) -> Run:
     """Run the stage until idle (and until it closed ``closures`` idle sessions); every object it
-    wrote has a mean colour. Returns the map's categories, the stored measurements and the
-    measurements replayed at start; ``LAST`` gets the associator's landmark count. Checkpoints
-    are off unless ``checkpoint_s`` is given (these tests are about the full replay)."""
-    with SqliteKeyframeStore.open(path) as store:
+    wrote has a mean colour. Checkpoints are off unless ``checkpoint_s`` is given (these tests are
+    about the full replay)."""
+    with SqliteMapStore.open(path) as store:
         for msg, payload in keyframes:
             store.insert(msg, payload, time.time())
         objects = ObjectMap(store)
@@ -81,31 +114,27 @@ def _run(path: Path, keyframes: list[tuple[KeyframeMsg, bytes]], close_idle_s: f
             assert pipe.wait_idle(120.0)
             counters = pipe.counters()
             assert counters.closed_idle == closures
-            landmarks = pipe._associator.landmarks()
-            LAST["landmarks"] = len(landmarks)
-            LAST["beyond_range"] = counters.beyond_range
-            LAST["associated"] = sum(lm.n_measurements for lm in landmarks)
-            LAST["held"] = max((len(lm.measurements) for lm in landmarks), default=0)
-            LAST["most"] = max((lm.n_measurements for lm in landmarks), default=0)
-            HIST_SUMS.clear()
-            HIST_SUMS.update({k: np.asarray(v).copy() for k, v in pipe._hist_sum.items()})
+            landmarks = pipe.writer.landmarks()
+            colour_sums = pipe.writer.colour_sums()
             # Long-lived association state holds no masks or 3D points (memory).
             held = [m for lm in landmarks for m in lm.measurements]
             assert all(m.mask.size == 0 and len(m.points_camera) == 0 for m in held)
         finally:
             pipe.stop()
-        with store.reading("test") as conn:
-            n_meas = int(conn.execute("SELECT COUNT(*) FROM measurements").fetchone()[0])
-            colours = conn.execute("SELECT color_r, color_g, color_b FROM objects").fetchall()
-            # Every associated measurement is one observation, written once as landmarks grow
-            # (measurements of a group still filling up wait for it).
-            n_obs = int(conn.execute("SELECT COUNT(*) FROM observations").fetchone()[0])
-            assert n_obs == LAST["associated"]
-            assert conn.execute("SELECT COALESCE(SUM(n_observations), 0) FROM objects").fetchone()[0] == n_obs
-            # Landmarks merged into others are gone from the map too.
-            assert conn.execute("SELECT COUNT(*) FROM objects").fetchone()[0] == LAST["landmarks"]
-        assert all(c is not None and 0 <= c <= 255 for row in colours for c in row)
-        return objects.categories(), n_meas, counters.replayed
+        run = Run(objects.categories(), store.count_measurements(), counters, len(landmarks),
+                  sum(lm.n_measurements for lm in landmarks),
+                  max((len(lm.measurements) for lm in landmarks), default=0),
+                  max((lm.n_measurements for lm in landmarks), default=0), colour_sums)
+        records = _all_objects(objects)
+        # Every associated measurement is one observation, written once as landmarks grow
+        # (measurements of a group still filling up wait for it).
+        n_obs = sum(store.observation_counts().values())
+        assert n_obs == run.associated
+        assert sum(r.n_observations for r in records) == n_obs
+        # Landmarks merged into others are gone from the map too.
+        assert len(records) == objects.count() == run.landmarks
+        assert all(r.color_rgb is not None and all(0 <= c <= 255 for c in r.color_rgb) for r in records)
+        return run
 
 
 @pytest.fixture(scope="module")
@@ -115,29 +144,36 @@ def anchored() -> list[tuple[KeyframeMsg, bytes]]:
 
 def test_keyframes_become_objects_and_a_restart_replays(tmp_path: Path, anchored: list) -> None:
     db = tmp_path / "map.db"
-    categories, n_meas, replayed = _run(db, anchored)
-    assert replayed == 0  # a new file has nothing to replay
-    assert n_meas > 0
-    assert sum(categories.values()) > 0
-    assert categories.get("person", 0) == 0  # moving classes never enter the map
+    run = _run(db, anchored)
+    assert run.replayed == 0  # a new file has nothing to replay
+    assert run.measurements > 0
+    assert sum(run.categories.values()) > 0
+    assert run.categories.get("person", 0) == 0  # moving classes never enter the map
     # Restart on the same file with nothing new: association is replayed from the stored
     # measurements; no keyframe is measured twice and the map keeps its objects.
-    categories2, n_meas2, replayed2 = _run(db, [])
-    assert n_meas2 == n_meas and replayed2 == n_meas
-    assert categories2 == categories
+    again = _run(db, [])
+    assert again.measurements == run.measurements and again.replayed == run.measurements
+    assert again.categories == run.categories
 
 
 def _objects(path: Path) -> list[tuple]:
-    """The object map's rows (id, category, rounded pose and size, observations, colour)."""
-    with SqliteKeyframeStore.open(path) as store, store.reading("test") as conn:
-        cols = [r[1] for r in conn.execute("PRAGMA table_info(objects)")]
-        rows = conn.execute("SELECT * FROM objects ORDER BY object_id").fetchall()
+    """The object map's objects by id (every field but the clock times; the pose exact, other
+    floats rounded)."""
+    with SqliteMapStore.open(path) as store:
+        records = _all_objects(ObjectMap(store))
     out = []
-    for row in rows:
-        d = dict(zip(cols, row, strict=True))
-        out.append(tuple(round(v, 6) if isinstance(v, float) else v for k, v in sorted(d.items())
-                         if not k.endswith("_s")))
+    for r in records:
+        values = [r.object_id, r.category, r.confidence, r.T_world_object.tobytes(), *r.position, *r.q_xyzw,
+                  r.yaw, *r.size, *r.bounds_min, *r.bounds_max, *(r.color_rgb or (None,) * 3),
+                  r.n_observations, r.robots, r.confirmed]
+        out.append(tuple(round(v, 6) if isinstance(v, float) else v for v in values))
     return out
+
+
+def _colours(path: Path) -> list[tuple[float, float, float] | None]:
+    """The objects' mean colours, by object id."""
+    with SqliteMapStore.open(path) as store:
+        return [r.color_rgb for r in _all_objects(ObjectMap(store))]
 
 
 def test_a_restart_resumes_from_the_association_checkpoint(tmp_path: Path, anchored: list) -> None:
@@ -145,40 +181,41 @@ def test_a_restart_resumes_from_the_association_checkpoint(tmp_path: Path, ancho
     the keyframes after it, and the map ends as if it had never stopped. A checkpoint of other
     settings, a corrupt one, or none (``checkpoint_s = 0``) means a full replay."""
     ref = tmp_path / "ref.db"
-    _, n_ref, _ = _run(ref, anchored)
+    ref_run = _run(ref, anchored)
+    n_ref, hist_sums = ref_run.measurements, ref_run.colour_sums
     expected = _objects(ref)
-    hist_sums = dict(HIST_SUMS)
     assert expected and hist_sums
 
-    def same_state() -> bool:
-        return _objects(db) == expected and HIST_SUMS.keys() == hist_sums.keys() and all(
-            np.allclose(HIST_SUMS[k], v) for k, v in hist_sums.items())
+    def same_state(run: Run) -> bool:
+        return _objects(db) == expected and run.colour_sums.keys() == hist_sums.keys() and all(
+            np.allclose(run.colour_sums[k], v) for k, v in hist_sums.items())
 
     db = tmp_path / "map.db"
-    _, _, replayed = _run(db, anchored[:4], checkpoint_s=600.0)
-    assert replayed == 0
-    with SqliteKeyframeStore.open(db) as store, store.reading("test") as conn:
-        at_4 = conn.execute("SELECT last_rowid, state FROM association_checkpoint").fetchone()
-    assert at_4[0] == 4
-    _, n_all, replayed = _run(db, anchored[4:], checkpoint_s=600.0)  # 4 new keyframes in the backlog
-    assert replayed == 0 and n_all == n_ref and same_state()
-    _, _, replayed = _run(db, [], checkpoint_s=600.0)  # stopped at keyframe 8: nothing to replay
-    assert replayed == 0 and same_state()
+    assert _run(db, anchored[:4], checkpoint_s=600.0).replayed == 0
+    with SqliteMapStore.open(db) as store:
+        at_4 = store.checkpoint()
+    assert at_4 is not None and at_4.last_rowid == 4
+    run = _run(db, anchored[4:], checkpoint_s=600.0)  # 4 new keyframes in the backlog
+    assert run.replayed == 0 and run.measurements == n_ref and same_state(run)
+    run = _run(db, [], checkpoint_s=600.0)  # stopped at keyframe 8: nothing to replay
+    assert run.replayed == 0 and same_state(run)
 
     def set_checkpoint(last_rowid: int, state: bytes) -> None:
-        with SqliteKeyframeStore.open(db) as store, store.writing("test") as conn:
-            conn.execute("UPDATE association_checkpoint SET last_rowid = ?, state = ?", (last_rowid, state))
+        with SqliteMapStore.open(db) as store:
+            saved = store.checkpoint()
+            assert saved is not None
+            store.save_checkpoint(replace(saved, last_rowid=last_rowid, state=state))
 
-    set_checkpoint(*at_4)  # as if the stage had crashed after keyframe 4
-    _, _, replayed = _run(db, [], checkpoint_s=600.0)
-    assert 0 < replayed < n_ref and same_state()
+    set_checkpoint(at_4.last_rowid, at_4.state)  # as if the stage had crashed after keyframe 4
+    run = _run(db, [], checkpoint_s=600.0)
+    assert 0 < run.replayed < n_ref and same_state(run)
     set_checkpoint(8, b"\x00\xff")  # unreadable
-    _, _, replayed = _run(db, [], checkpoint_s=600.0)
-    assert replayed == n_ref and same_state()
-    _, _, replayed = _run(db, [])  # checkpoints off
-    assert replayed == n_ref and same_state()
-    _, _, replayed = _run(db, [], association=AssociationConfig(group_size=5), checkpoint_s=600.0)
-    assert replayed == n_ref  # a checkpoint of other settings is not used
+    run = _run(db, [], checkpoint_s=600.0)
+    assert run.replayed == n_ref and same_state(run)
+    run = _run(db, [])  # checkpoints off
+    assert run.replayed == n_ref and same_state(run)
+    run = _run(db, [], association=AssociationConfig(group_size=5), checkpoint_s=600.0)
+    assert run.replayed == n_ref  # a checkpoint of other settings is not used
 
 
 def test_a_closure_stored_after_the_checkpoint_is_replayed(tmp_path: Path, anchored: list) -> None:
@@ -189,54 +226,69 @@ def test_a_closure_stored_after_the_checkpoint_is_replayed(tmp_path: Path, ancho
 
     db = tmp_path / "map.db"
     _run(db, anchored[:4], checkpoint_s=600.0)
-    with SqliteKeyframeStore.open(db) as store, store.writing("test") as conn:
-        conn.execute("INSERT INTO closed_sessions (robot_id, session_id, at_rowid) VALUES ('r1', 's1', 4)")
+    with SqliteMapStore.open(db) as store:
+        store.close_sessions([("r1", "s1")], 4)
     full = tmp_path / "full.db"
     shutil.copy(db, full)
-    _, _, replayed_full = _run(full, [])
-    _, _, replayed = _run(db, [], checkpoint_s=600.0)
+    replayed_full = _run(full, []).replayed
+    replayed = _run(db, [], checkpoint_s=600.0).replayed
     assert replayed == 0 < replayed_full
     assert _objects(db) == _objects(full)
-    with SqliteKeyframeStore.open(db) as store, store.reading("test") as conn:
-        assert conn.execute("SELECT COUNT(*) FROM closed_sessions").fetchone()[0] == 1
+    with SqliteMapStore.open(db) as store:
+        assert len(store.closed_sessions()) == 1
     before = _objects(db)
-    _, _, replayed = _run(db, [], checkpoint_s=600.0)  # the new checkpoint holds the closure
+    replayed = _run(db, [], checkpoint_s=600.0).replayed  # the new checkpoint holds the closure
     assert replayed == 0 and _objects(db) == before
 
 
+def _tamper(db: Path, sql: str) -> None:
+    """Change the SQLite file behind the store's back (what an older version or a damaged
+    payload leaves)."""
+    with closing(sqlite3.connect(db)) as conn, conn:
+        conn.execute(sql)
+
+
 def test_replay_reads_no_keyframe_payload_and_backfills_old_stores(tmp_path: Path, anchored: list) -> None:
-    """A restart replays from mapped_keyframes + measurements: with every payload blanked the map
-    comes back the same. A store from before mapped_keyframes (rows deleted) is backfilled from
-    the payloads once, and replays the same map too."""
+    """A restart replays from the keyframes' map poses + measurements: with every payload blanked the
+    map comes back the same. A store from before map poses were kept (rows deleted) is backfilled
+    from the payloads once, and replays the same map too."""
     db = tmp_path / "map.db"
-    categories, n_meas, _ = _run(db, anchored)
-    landmarks = LAST["landmarks"]
-    assert landmarks > 0
-    with SqliteKeyframeStore.open(db) as store, store.writing("test") as conn:
-        rows = conn.execute("SELECT seq, T_map_camera IS NOT NULL FROM mapped_keyframes ORDER BY seq")
-        rows = rows.fetchall()
-        assert [tuple(r) for r in rows] == [(i, 1) for i in range(len(FRAMES))]
-        conn.execute("DELETE FROM mapped_keyframes")
-    categories2, _, replayed2 = _run(db, [])  # backfill from the payloads, then replay
-    assert replayed2 == n_meas and categories2 == categories and LAST["landmarks"] == landmarks
-    with SqliteKeyframeStore.open(db) as store, store.writing("test") as conn:
-        assert conn.execute("SELECT COUNT(*) FROM mapped_keyframes").fetchone()[0] == len(FRAMES)
-        conn.execute("UPDATE keyframes SET payload = x'00'")
-    categories3, _, replayed3 = _run(db, [])
-    assert replayed3 == n_meas and categories3 == categories and LAST["landmarks"] == landmarks
+    run = _run(db, anchored)
+    assert run.landmarks > 0
+    with SqliteMapStore.open(db) as store:
+        on_map = store.anchored_keyframes(0, store.cursor(CURSOR_NAME), 100)
+        assert [k.seq for k in on_map] == list(range(len(FRAMES)))
+        assert store.unmapped_keyframes(len(FRAMES), 100) == []
+    _tamper(db, "DELETE FROM mapped_keyframes")
+    with SqliteMapStore.open(db) as store:
+        assert len(store.unmapped_keyframes(len(FRAMES), 100)) == len(FRAMES)
+    run2 = _run(db, [])  # backfill from the payloads, then replay
+    assert run2.replayed == run.measurements and run2.categories == run.categories
+    assert run2.landmarks == run.landmarks
+    with SqliteMapStore.open(db) as store:
+        assert store.unmapped_keyframes(len(FRAMES), 100) == []
+        assert len(store.anchored_keyframes(0, len(FRAMES), 100)) == len(FRAMES)
+    _tamper(db, "UPDATE keyframes SET payload = x'00'")
+    run3 = _run(db, [])
+    assert run3.replayed == run.measurements and run3.categories == run.categories
+    assert run3.landmarks == run.landmarks
 
 
 def _session_observations(db: Path, session: str) -> tuple[int, int]:
     """(observations, anchored measurements within association's ``max_range_m``) of one session
     in the store ``db``; the farther ones are stored but never mapped."""
     max_range = AssociationConfig().max_range_m
-    with SqliteKeyframeStore.open(db) as store, store.reading("test") as conn:
-        n_obs = conn.execute("SELECT COUNT(*) FROM observations WHERE session_id = ?",
-                             (session,)).fetchone()[0]
-        blobs = conn.execute("SELECT payload FROM measurements WHERE session_id = ? AND anchored = 1",
-                             (session,)).fetchall()
-    n_meas = sum(not beyond_range(unpack_measurement(bytes(b)), max_range) for (b,) in blobs)
-    return int(n_obs), int(n_meas)
+    with SqliteMapStore.open(db) as store:
+        objects = ObjectMap(store)
+        n_obs = 0
+        for record in _all_objects(objects):
+            detail = objects.get(record.object_id, max_observations=1000)
+            assert detail is not None
+            n_obs += sum(o.session_id == session for o in detail.observations)
+        measured = [m for kf in store.anchored_keyframes(0, store.cursor(CURSOR_NAME), 1000)
+                    if kf.session_id == session for m in kf.measurements]
+    n_meas = sum(not beyond_range(m, max_range) for m in measured)
+    return n_obs, n_meas
 
 
 def test_a_new_session_maps_the_last_group_of_the_previous_one(tmp_path: Path, anchored: list) -> None:
@@ -247,11 +299,10 @@ def test_a_new_session_maps_the_last_group_of_the_previous_one(tmp_path: Path, a
     n_obs, n_meas = _session_observations(db, "s1")
     assert 0 < n_obs < n_meas  # the last group (keyframes after the first 6) is still open
     msg = dataclasses.replace(anchored[0][0], session_id="s3", seq=0)
-    _run(db, [(msg, encode(msg))])
+    landmarks = _run(db, [(msg, encode(msg))]).landmarks
     assert _session_observations(db, "s1") == (n_meas, n_meas)
-    landmarks = LAST["landmarks"]
-    _, _, replayed = _run(db, [])
-    assert replayed > n_meas and LAST["landmarks"] == landmarks
+    run = _run(db, [])
+    assert run.replayed > n_meas and run.landmarks == landmarks
     assert _session_observations(db, "s1") == (n_meas, n_meas)
 
 
@@ -261,44 +312,51 @@ def test_an_idle_session_is_closed_and_replayed(tmp_path: Path, anchored: list) 
     again. Keyframes of the session that come later start a new group and are mapped too."""
     db = tmp_path / "map.db"
     first, later = anchored[:7], anchored[7:]
-    _run(db, first, close_idle_s=0.3, closures=1)
+    landmarks = _run(db, first, close_idle_s=0.3, closures=1).landmarks
     n_obs, n_meas = _session_observations(db, "s1")
     assert n_obs == n_meas > 0
-    landmarks = LAST["landmarks"]
-    with SqliteKeyframeStore.open(db) as store, store.reading("test") as conn:
-        rows = conn.execute("SELECT robot_id, session_id, at_rowid FROM closed_sessions").fetchall()
-    assert [tuple(r) for r in rows] == [("r1", "s1", 7)]
-    _, _, replayed = _run(db, [], close_idle_s=0.0)  # replay alone repeats the closure
-    assert replayed == n_meas + LAST["beyond_range"] and LAST["landmarks"] == landmarks
+    with SqliteMapStore.open(db) as store:
+        assert [(c.robot_id, c.session_id, c.at_rowid) for c in store.closed_sessions()] == [("r1", "s1", 7)]
+    run = _run(db, [], close_idle_s=0.0)  # replay alone repeats the closure
+    assert run.replayed == n_meas + run.counters.beyond_range and run.landmarks == landmarks
     assert _session_observations(db, "s1") == (n_meas, n_meas)
     _run(db, later, close_idle_s=0.3, closures=1)  # the session resumes, then goes quiet again
     n_obs, n_meas = _session_observations(db, "s1")
     assert n_obs == n_meas
-    _, _, replayed = _run(db, [], close_idle_s=0.0)
-    assert LAST["beyond_range"] > 0  # the scene has objects farther than max_range_m: stored, not mapped
-    assert replayed == n_meas + LAST["beyond_range"] and _session_observations(db, "s1") == (n_meas, n_meas)
+    run = _run(db, [], close_idle_s=0.0)
+    assert run.counters.beyond_range > 0  # the scene has objects farther than max_range_m: stored, not mapped
+    assert run.replayed == n_meas + run.counters.beyond_range
+    assert _session_observations(db, "s1") == (n_meas, n_meas)
+
+
+class _Clock:
+    """Monotonic seconds that move only when told."""
+
+    def __init__(self) -> None:
+        self.now = 1000.0
+
+    def __call__(self) -> float:
+        return self.now
 
 
 def test_a_session_waiting_in_the_backlog_is_not_idle(tmp_path: Path, anchored: list) -> None:
-    """A session quiet on the associator's clock but with stored keyframes the stage has not
-    reached yet (behind other robots' backlog) is not closed; once they are processed it is."""
-    with SqliteKeyframeStore.open(tmp_path / "map.db") as store:
+    """A session quiet on the stage's clock but with stored keyframes the stage has not reached yet
+    (behind other robots' backlog) is not closed; once they are processed it is."""
+    with SqliteMapStore.open(tmp_path / "map.db") as store:
         msg, payload = anchored[0]
         store.insert(msg, payload, time.time())
+        clock = _Clock()
         pipe = MapPipeline(store, ObjectMap(store), config=PipelineConfig(close_idle_s=1.0),
-                           perception=PerceptionConfig())
-        pipe._open_stream["r1"] = "r1/s1"
-        pipe._last_seen["r1/s1"] = time.monotonic() - 5.0
-        pipe._close_idle()  # cursor 0: the keyframe waits
-        assert pipe.counters().closed_idle == 0 and pipe._open_stream == {"r1": "r1/s1"}
-        with store.writing("test") as conn:
-            conn.execute("INSERT INTO pipeline_cursor (name, last_rowid) VALUES ('mapping', 1) "
-                         "ON CONFLICT(name) DO UPDATE SET last_rowid = 1")
-        pipe._close_idle()
-        assert pipe.counters().closed_idle == 1 and pipe._open_stream == {}
-        with store.reading("test") as conn:
-            assert conn.execute("SELECT robot_id, session_id, at_rowid FROM closed_sessions").fetchall() == [
-                ("r1", "s1", 1)]
+                           perception=PerceptionConfig(), clock=clock)
+        camera = PinholeCamera(320, 240, 262.5, 262.5, 159.5, 119.5)
+        pipe.associate([MappedKeyframe("r1/s1", np.eye(4), camera, [])])  # an earlier keyframe of r1/s1
+        clock.now += 5.0
+        assert pipe.close_idle() == []  # cursor 0: the keyframe waits
+        assert pipe.counters().closed_idle == 0 and pipe.writer.open_streams == {"r1": "r1/s1"}
+        store.commit_keyframe(CURSOR_NAME, 1, MappedPose("r1", "s1", 0, None, None), [], anchored=False)
+        assert pipe.close_idle() == ["r1/s1"]
+        assert pipe.counters().closed_idle == 1 and pipe.writer.open_streams == {}
+        assert [(c.robot_id, c.session_id, c.at_rowid) for c in store.closed_sessions()] == [("r1", "s1", 1)]
 
 
 def test_the_live_associator_holds_only_recent_measurements(tmp_path: Path, anchored: list) -> None:
@@ -307,37 +365,36 @@ def test_the_live_associator_holds_only_recent_measurements(tmp_path: Path, anch
     of them, and a restart replays to the same landmarks."""
     db = tmp_path / "map.db"
     small = AssociationConfig(max_history=2)
-    categories, n_meas, _ = _run(db, anchored, association=small)
-    landmarks, associated = LAST["landmarks"], LAST["associated"]
-    assert LAST["held"] < LAST["most"]  # older measurements were dropped from memory
-    with SqliteKeyframeStore.open(db) as store, store.reading("test") as conn:
-        colours = conn.execute("SELECT color_r, color_g, color_b FROM objects ORDER BY object_id").fetchall()
-    _run(tmp_path / "full.db", anchored)
-    with SqliteKeyframeStore.open(tmp_path / "full.db") as store, store.reading("test") as conn:
-        n_full = conn.execute("SELECT COUNT(*) FROM observations").fetchone()[0]
-    assert n_full == associated  # the same measurements reach the map as with everything held
-    categories2, _, replayed = _run(db, [], association=small)
-    assert replayed == n_meas and LAST["landmarks"] == landmarks and categories2 == categories
-    with SqliteKeyframeStore.open(db) as store, store.reading("test") as conn:
-        assert conn.execute("SELECT color_r, color_g, color_b FROM objects ORDER BY object_id").fetchall() \
-            == colours
+    run = _run(db, anchored, association=small)
+    assert run.held < run.most  # older measurements were dropped from memory
+    colours = _colours(db)
+    full = tmp_path / "full.db"
+    _run(full, anchored)
+    with SqliteMapStore.open(full) as store:
+        n_full = sum(store.observation_counts().values())
+    assert n_full == run.associated  # the same measurements reach the map as with everything held
+    again = _run(db, [], association=small)
+    assert again.replayed == run.measurements and again.landmarks == run.landmarks
+    assert again.categories == run.categories
+    assert _colours(db) == colours
 
 
-def test_wait_idle_waits_for_association_not_just_the_cursor(tmp_path: Path, anchored: list) -> None:
+def test_wait_idle_waits_for_association_not_just_the_cursor(
+        tmp_path: Path, anchored: list, monkeypatch: pytest.MonkeyPatch) -> None:
     """The cursor is committed before a keyframe is associated; idle means associated and written
     too (the flaky CI failure: the map was read between the two)."""
-    with SqliteKeyframeStore.open(tmp_path / "map.db") as store:
+    associate = MapWriter.associate
+
+    def slow_associate(self: MapWriter, keyframe: MappedKeyframe) -> int:
+        time.sleep(0.4)
+        return associate(self, keyframe)
+
+    monkeypatch.setattr(MapWriter, "associate", slow_associate)
+    with SqliteMapStore.open(tmp_path / "map.db") as store:
         for msg, payload in anchored[:3]:
             store.insert(msg, payload, time.time())
         pipe = MapPipeline(store, ObjectMap(store), config=PipelineConfig(poll_s=0.05),
                            perception=PerceptionConfig())
-        associate = pipe._associate
-
-        def slow_associate(keyframes):  # type: ignore[no-untyped-def]
-            time.sleep(0.4)
-            associate(keyframes)
-
-        pipe._associate = slow_associate  # type: ignore[method-assign]
         pipe.start()
         try:
             assert pipe.wait_idle(120.0)
@@ -347,31 +404,11 @@ def test_wait_idle_waits_for_association_not_just_the_cursor(tmp_path: Path, anc
 
 
 def test_sessions_without_map_pose_are_measured_not_mapped(tmp_path: Path) -> None:
-    categories, n_meas, _ = _run(tmp_path / "map.db", _keyframes(anchored=False)[:3])
-    assert n_meas > 0 and sum(categories.values()) == 0
+    run = _run(tmp_path / "map.db", _keyframes(anchored=False)[:3])
+    assert run.measurements > 0 and sum(run.categories.values()) == 0
 
 
-def test_measurement_blob_round_trip(anchored: list) -> None:
-    """Stored measurements come back equal, without their masks."""
-    from wardmap.server.perception.instances import oracle_instances  # noqa: F401  (import check)
-    from wardmap.server.perception.types import ObjectMeasurement
-
-    m = ObjectMeasurement(
-        keyframe="r1/s1/0", stamp=1.5, category="door", confidence=0.9,
-        box_xyxy=np.array([1.0, 2.0, 30.0, 40.0]), mask=np.ones((4, 4), bool),
-        points_camera=np.random.default_rng(0).normal(size=(5, 3)).astype(np.float32),
-        T_camera_object=np.eye(4), T_world_camera=np.eye(4), T_world_object=np.eye(4),
-        size=np.array([1.0, 0.1, 2.0]), color_hist=np.full(8, 0.125, np.float32),
-        descriptors=np.arange(64, dtype=np.uint8).reshape(2, 32), gt_instance=7,
-    )
-    back = unpack_measurement(pack_measurement(m))
-    assert back.mask.shape == (0, 0) and back.gt_instance == 7 and back.category == "door"
-    for name in ("box_xyxy", "points_camera", "size", "color_hist", "descriptors", "T_world_object"):
-        a, b = getattr(m, name), getattr(back, name)
-        assert a.dtype == b.dtype and np.array_equal(a, b), name
-
-
-def _counters_when_idle(store: SqliteKeyframeStore, config: PipelineConfig, segmenter: object
+def _counters_when_idle(store: MapStore, config: PipelineConfig, segmenter: object
                         ) -> PipelineCounters:
     """Run the stage with ``segmenter`` over the stored keyframes until idle; its counters."""
     pipe = MapPipeline(store, ObjectMap(store), config=config, segmenter=segmenter)
@@ -407,7 +444,7 @@ def test_unexpected_errors_restart_with_backoff(
 ) -> None:
     """An unexpected error does not stop the stage: it backs off and resumes at its cursor; a
     keyframe that fails max_attempts times is skipped, counted as internal, and the rest go on."""
-    with SqliteKeyframeStore.open(tmp_path / "map.db") as store:
+    with SqliteMapStore.open(tmp_path / "map.db") as store:
         for msg, payload in anchored[:4]:
             store.insert(msg, payload, time.time())
         cfg = PipelineConfig(poll_s=0.02, retry_s=0.01, max_retry_s=0.05, max_attempts=3)
@@ -471,11 +508,10 @@ def test_a_chair_floating_above_the_floor_is_left_out_and_counted(tmp_path: Path
     counts = []
     for kf in (_grey_keyframe(depth, "base", T_odom_camera, np.eye(4)),
                _grey_keyframe(depth, "handheld", T_odom_camera)):
-        with SqliteKeyframeStore.open(tmp_path / f"{kf[0].session_id}.db") as store:
+        with SqliteMapStore.open(tmp_path / f"{kf[0].session_id}.db") as store:
             store.insert(kf[0], kf[1], time.time())
             c = _counters_when_idle(store, PipelineConfig(poll_s=0.02), _WallChair())
-            with store.reading("test") as conn:
-                stored = int(conn.execute("SELECT COUNT(*) FROM measurements").fetchone()[0])
+            stored = store.count_measurements()
         counts.append((c.processed, c.floating, c.measurements, stored))
     assert counts == [(1, 1, 0, 0), (1, 0, 1, 1)]
 
@@ -502,7 +538,7 @@ def test_instances_perception_cannot_measure_are_counted_by_kind(tmp_path: Path)
     depth[104:152, 148:168] = 2.9
     depth[16:64, 16:84] = 0.0
     msg, payload = _grey_keyframe(depth)
-    with SqliteKeyframeStore.open(tmp_path / "m.db") as store:
+    with SqliteMapStore.open(tmp_path / "m.db") as store:
         store.insert(msg, payload, time.time())
         c = _counters_when_idle(store, PipelineConfig(poll_s=0.02), _ChairAndHole())
     assert (c.processed, c.measurements, c.skipped) == (1, 1, {"little_depth": 1})

@@ -1,26 +1,20 @@
-"""The map server's persistent keyframe store.
+"""The SQLite map store: the embedded default backend (stdlib ``sqlite3``).
 
-Ingest calls :meth:`KeyframeStore.insert` for every decoded keyframe and acks the robot
-only after it returned; the REST API reads through the query methods. :class:`KeyframeStore`
-is the Protocol every backend implements; :class:`SqliteKeyframeStore` (stdlib ``sqlite3``)
-is the embedded default and a PostgreSQL backend will sit behind the same Protocol.
-Choose one with :func:`open_store` and a URL.
+Guarantees:
 
-Guarantees (SQLite backend):
-
-- An :meth:`~SqliteKeyframeStore.insert` that returned is committed in WAL mode with
+- An :meth:`~SqliteMapStore.insert` that returned is committed in WAL mode with
   ``synchronous=FULL``: it survives a crash of the process and a power loss, so acking
-  after it returns never acks a keyframe that could be lost.
+  after it returns never acks a keyframe that could be lost. Every other write is one
+  transaction too.
 - Idempotent on ``(robot_id, session_id, seq)``: a key already stored returns
-  ``"duplicate"`` and changes nothing (see :meth:`~SqliteKeyframeStore.insert` for why the
+  ``"duplicate"`` and changes nothing (see :meth:`~SqliteMapStore.insert` for why the
   first copy wins even when the bytes differ).
-- Keyframes are never deleted or rewritten (object-map rows on the same file are: see
-  `server/objectmap.py`).
+- Keyframes are never deleted or rewritten (object-map rows on the same file are).
 
 Failures: a SQLite error becomes :class:`StoreUnavailableError` when the store cannot write
 *now* (disk or ``max_pages`` cap full, locked past the busy timeout, I/O error, read-only),
 :class:`StoreDamagedError` when the file is damaged (logged once with :data:`REPAIR_HINT`), or
-a plain :class:`StoreError`; none of them means the keyframe was bad. :meth:`~SqliteKeyframeStore.writable`
+a plain :class:`StoreError`; none of them means the keyframe was bad. :meth:`SqliteMapStore.writable`
 is the readiness probe. Options (busy timeout, page cap) come from the URL's query
 (:class:`StoreOptions`).
 
@@ -28,7 +22,7 @@ Threads: one SQLite connection per thread (``threading.local``), opened on the t
 first call, so the ingest thread writes while HTTP threads read concurrently (WAL lets
 readers proceed during a write; each read sees the last committed state). Writers are
 serialised by SQLite (``BEGIN IMMEDIATE`` with a busy timeout). Connections of threads that
-have ended are closed when the next thread opens one; :meth:`~SqliteKeyframeStore.close`
+have ended are closed when the next thread opens one; :meth:`~SqliteMapStore.close`
 closes them all and must be called after the other threads stopped using the store.
 Several processes may open the same file (e.g. a CLI reading while the server runs); the
 file must be on a local disk (WAL needs shared memory).
@@ -36,60 +30,80 @@ file must be on a local disk (WAL needs shared memory).
 Storage: ``PRAGMA application_id`` marks the file as a wardmap keyframe store and
 ``PRAGMA user_version`` holds the schema version; :data:`MIGRATIONS` are applied in order,
 inside one transaction, when an older file (including a new, empty one) is opened. A file
-from a newer wardmap is refused with "upgrade wardmap". Clock values ending in ``_s``
-(``received_s``, ``first_seen_s``, ...) are the server's wall-clock seconds
-(``time.time()``) when a keyframe was received; ``stamp`` is the robot's capture time.
+from a newer wardmap is refused with "upgrade wardmap". Poses are 16 little-endian float64,
+row-major; measurements and cameras are encoded by ``codec.py``. The object map's radius
+query uses an SQLite R*Tree over the objects' world bounds (:func:`find_sql`).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import math
 import shutil
 import sqlite3
 import threading
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
-from typing import Final, Literal, NoReturn, Protocol, TypeAlias
+from typing import Any, Final, NoReturn
 from urllib.parse import unquote
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
 
+from wardmap.server.perception.types import ObjectMeasurement
+from wardmap.server.store.codec import (
+    camera_from_json,
+    camera_to_json,
+    pack_measurement,
+    pose_blob,
+    pose_from_blob,
+    poses_from_blobs,
+    unpack_measurement,
+)
+from wardmap.server.store.records import (
+    MAX_PAGE,
+    MAX_REASON_LEN,
+    AnchoredKeyframe,
+    Checkpoint,
+    ClosedSession,
+    Cursor,
+    InsertResult,
+    KeyframeKey,
+    KeyframePage,
+    KeyframeRef,
+    KeyframeRow,
+    MappedPose,
+    ObjectDetail,
+    ObjectHit,
+    ObjectPage,
+    ObjectRecord,
+    ObjectRow,
+    ObjectWrite,
+    Observation,
+    ObservationRecord,
+    RobotSummary,
+    StoreDamagedError,
+    StoredKeyframe,
+    StoreError,
+    StoreStats,
+    StoreUnavailableError,
+    Trajectory,
+    UnknownObjectError,
+    Vec3,
+)
 from wardmap.shared import sqlitedb
-from wardmap.shared.errors import WardmapError
 from wardmap.shared.wire import KeyframeMsg
 
 log = logging.getLogger(__name__)
 
 APPLICATION_ID: Final = 0x77726D73  # "wrms": marks the SQLite file as a wardmap keyframe store
 BUSY_TIMEOUT_S: Final = 10.0
-MAX_PAGE: Final = 1000
-"""Largest ``limit`` :meth:`KeyframeStore.keyframes` accepts."""
-MAX_REASON_LEN: Final = 200
-"""Longest rejection reason, in characters."""
-SQLITE_SCHEME: Final = "sqlite:///"
-_POSE_DTYPE: Final = np.dtype("<f8")
-_POSE_BYTES: Final = 16 * 8
 
-
-def pose_blob(T: ArrayLike) -> bytes:
-    """A (4, 4) pose as this file's tables store it: 16 little-endian float64, row-major."""
-    return np.ascontiguousarray(T, dtype=_POSE_DTYPE).tobytes()
-
-
-def pose_from_blob(blob: bytes) -> NDArray[np.float64]:
-    """Inverse of :func:`pose_blob`: a read-only (4, 4) float64 array."""
-    T = np.frombuffer(bytes(blob), dtype=_POSE_DTYPE).astype(np.float64).reshape(4, 4)
-    T.flags.writeable = False
-    return T
-
-"""SQL statements that take the schema from version ``i`` to ``i + 1`` (``MIGRATIONS[i]``)."""
-
+# SQL statements that take the schema from version ``i`` to ``i + 1`` (``MIGRATIONS[i]``).
 MIGRATIONS: Final[tuple[sqlitedb.Migration, ...]] = (
     # v1: robots, sessions, keyframes, rejection counters.
     (
@@ -161,7 +175,7 @@ MIGRATIONS: Final[tuple[sqlitedb.Migration, ...]] = (
         # Axis-aligned world bounds of each object (float32, rounded outwards by SQLite).
         "CREATE VIRTUAL TABLE objects_rtree USING rtree(object_id, min_x, max_x, min_y, max_y, min_z, max_z)",
     ),
-    # v3: the mapping stage (server/pipeline.py): object measurements per keyframe and how far
+    # v3: the mapping stage (server/mapping/): object measurements per keyframe and how far
     # the stage got (the keyframes' rowid, i.e. insertion order).
     (
         """CREATE TABLE measurements (
@@ -196,8 +210,9 @@ MIGRATIONS: Final[tuple[sqlitedb.Migration, ...]] = (
             at_rowid INTEGER NOT NULL,
             PRIMARY KEY (at_rowid, robot_id, session_id)) WITHOUT ROWID""",
     ),
-    # v6: the mapping stage's association state at a settled cursor (pickled; one row), so a
-    # restart replays only the keyframes after it (server/pipeline.py, "Restart").
+    # v6: the mapping stage's association state at a settled cursor (one row, in the data-only
+    # format of server/association/state.py), so a restart replays only the keyframes after it
+    # (server/mapping/stage.py, "Restart").
     (
         """CREATE TABLE association_checkpoint (
             id INTEGER PRIMARY KEY CHECK (id = 1),
@@ -212,30 +227,6 @@ MIGRATIONS: Final[tuple[sqlitedb.Migration, ...]] = (
         "ALTER TABLE objects ADD COLUMN confirmed INTEGER NOT NULL DEFAULT 1 CHECK (confirmed IN (0, 1))",
     ),
 )
-
-InsertResult: TypeAlias = Literal["stored", "duplicate"]
-KeyCursor: TypeAlias = tuple[str, int]
-"""``(session_id, seq)`` of a keyframe of the queried robot: the page starts after it."""
-Cursor: TypeAlias = KeyCursor | float
-"""A :data:`KeyCursor`, or a stamp in seconds: the page starts at the first stamp above it."""
-
-
-class StoreError(WardmapError):
-    """The keyframe store cannot be opened or used (bad URL, bad file, bad argument, I/O failure)."""
-
-
-class StoreUnavailableError(StoreError):
-    """The store cannot write (or read) *now*: the disk or the file's page cap is full, another
-    process holds the database's write lock past the busy timeout, an I/O error, a read-only
-    file. Nothing is wrong with the data asked to be stored: try again later (ingest acks
-    ``retry``; HTTP answers 503)."""
-
-
-class StoreDamagedError(StoreError):
-    """The database file is damaged (malformed page, corrupt index, not a database). It will not
-    heal by itself: the message says how to repair it (:data:`REPAIR_HINT`); ingest acks
-    ``retry`` so robots keep their keyframes until it is repaired; HTTP answers 503."""
-
 
 # SQLite primary result codes (``sqlite3.Error.sqlite_errorcode & 0xFF``).
 _UNAVAILABLE_CODES: Final = frozenset({
@@ -252,7 +243,7 @@ REPAIR_HINT: Final = (
 )
 """How to repair a damaged store (in :class:`StoreDamagedError` messages and the server log)."""
 PROBE_BUSY_TIMEOUT_S: Final = 1.0
-"""Longest :meth:`SqliteKeyframeStore.writable` waits for another writer's lock."""
+"""Longest :meth:`SqliteMapStore.writable` waits for another writer's lock."""
 
 
 def classify_sqlite_error(exc: sqlite3.Error) -> type[StoreError]:
@@ -326,163 +317,10 @@ STORE_DB: Final = sqlitedb.SqliteKind(
 )
 
 
-@dataclass(frozen=True, slots=True)
-class RobotSummary:
-    """One robot as the store knows it.
 
-    Attributes:
-        robot_id: the robot.
-        keyframes: keyframes stored for it (all sessions).
-        sessions: sessions with at least one stored keyframe.
-        first_seen_s, last_seen_s: server wall-clock seconds of its first and last stored
-            keyframe (duplicates do not count).
-    """
-
-    robot_id: str
-    keyframes: int
-    sessions: int
-    first_seen_s: float
-    last_seen_s: float
-
-
-@dataclass(frozen=True, slots=True)
-class KeyframeRow:
-    """A stored keyframe's index entry (fetch the bytes with :meth:`KeyframeStore.payload`).
-
-    Attributes:
-        robot_id, session_id, seq: the key.
-        stamp: capture time, robot clock, seconds since the Unix epoch.
-        received_s: server wall-clock seconds when it was stored.
-        pose_source: the message's ``pose_source``.
-        payload_bytes: size of the stored wire message.
-    """
-
-    robot_id: str
-    session_id: str
-    seq: int
-    stamp: float
-    received_s: float
-    pose_source: str
-    payload_bytes: int
-
-
-@dataclass(frozen=True, slots=True)
-class KeyframePage:
-    """One page of :meth:`KeyframeStore.keyframes`.
-
-    Attributes:
-        rows: up to ``limit`` rows ordered by ``(stamp, session_id, seq)``.
-        next_cursor: pass as ``after`` for the next page; None when this page is the last.
-    """
-
-    rows: list[KeyframeRow]
-    next_cursor: KeyCursor | None
-
-
-@dataclass(frozen=True, slots=True)
-class StoreStats:
-    """Totals over the whole store.
-
-    Attributes:
-        robots, sessions, keyframes: row counts.
-        payload_bytes: total size of the stored wire messages.
-        rejections: sum of all rejection counters.
-        schema_version: the file's ``user_version``.
-    """
-
-    robots: int
-    sessions: int
-    keyframes: int
-    payload_bytes: int
-    rejections: int
-    schema_version: int
-
-
-Trajectory: TypeAlias = tuple[NDArray[np.float64], NDArray[np.float64]]
-"""``(stamps (N,) seconds, T_odom_camera (N, 4, 4))``."""
-
-
-class KeyframeStore(Protocol):
-    """What the server needs from a keyframe store; see the module docstring for the contract."""
-
-    def insert(self, msg: KeyframeMsg, payload: bytes, received_s: float) -> InsertResult:
-        """Store ``msg`` (encoded as ``payload``) durably; see :meth:`SqliteKeyframeStore.insert`."""
-        ...
-
-    def count_rejection(self, reason: str, n: int = 1) -> None:
-        """Add ``n`` to the counter of ``reason``, all or nothing."""
-        ...
-
-    def writable(self) -> tuple[bool, str]:
-        """Whether a write can commit now: ``(True, "ok")`` or ``(False, why)``."""
-        ...
-
-    def rejections(self) -> dict[str, int]:
-        """Every rejection reason with its count."""
-        ...
-
-    def robots(self) -> list[RobotSummary]:
-        """Every robot with at least one keyframe, by ``robot_id``."""
-        ...
-
-    def keyframes(self, robot_id: str, *, after: Cursor | None = None, limit: int = 100) -> KeyframePage:
-        """One page of a robot's keyframes by ``(stamp, session_id, seq)``."""
-        ...
-
-    def trajectory(self, robot_id: str, session_id: str | None = None) -> Trajectory:
-        """Stamps and camera poses of a robot's keyframes ordered by stamp."""
-        ...
-
-    def payload(self, robot_id: str, session_id: str, seq: int) -> bytes | None:
-        """The stored wire bytes of one keyframe, None if absent."""
-        ...
-
-    def stats(self) -> StoreStats:
-        """Totals over the whole store."""
-        ...
-
-    def close(self) -> None:
-        """Release the store (idempotent)."""
-        ...
-
-
-def open_store(url: str) -> SqliteKeyframeStore:
-    """Open (or create) the keyframe store that ``url`` names.
-
-    Args:
-        url: ``sqlite:///PATH`` as in SQLAlchemy: ``sqlite:///map.db`` is relative to the
-            working folder, ``sqlite:////var/lib/wardmap/map.db`` is absolute. The parent
-            folder is created. In-memory databases are not supported (every thread opens its
-            own connection). A query sets :class:`StoreOptions`:
-            ``sqlite:///map.db?busy_timeout_s=2&max_pages=250000``.
-
-    Raises:
-        StoreError: an unknown or unsupported scheme, an empty path, or any failure of
-            :meth:`SqliteKeyframeStore.open`.
-    """
-    if not isinstance(url, str):
-        raise StoreError(f"store URL must be a str, got {type(url).__name__}")
-    scheme = url.split(":", 1)[0] if ":" in url else ""
-    if scheme in ("postgres", "postgresql") or scheme.startswith("postgresql+"):
-        raise StoreError(
-            f"store URL {url.split('@')[-1]!r}: the PostgreSQL store is not available yet; "
-            f"use {SQLITE_SCHEME}PATH"
-        )
-    if not url.startswith(SQLITE_SCHEME):
-        raise StoreError(
-            f"unknown store URL {url!r}: expected {SQLITE_SCHEME}PATH "
-            f"(e.g. {SQLITE_SCHEME}wardmap.db or {SQLITE_SCHEME}/var/lib/wardmap/map.db)"
-        )
-    path, _, query = url[len(SQLITE_SCHEME) :].partition("?")
-    if not path:
-        raise StoreError(f"store URL {url!r} has no file path: expected {SQLITE_SCHEME}PATH")
-    if path == ":memory:" or path.startswith("file:"):
-        raise StoreError(f"store URL {url!r}: only a plain file path is supported after {SQLITE_SCHEME}")
-    return SqliteKeyframeStore.open(Path(path), StoreOptions.from_query(query))
-
-
-class SqliteKeyframeStore(sqlitedb.GuardedAccess):
-    """The SQLite keyframe store. Create with :func:`open_store` or :meth:`open`.
+class SqliteMapStore(sqlitedb.GuardedAccess):
+    """The SQLite map store: implements :class:`~wardmap.server.store.protocol.MapStore`.
+    Create with :func:`~wardmap.server.store.open_store` or :meth:`open`.
 
     Thread safe with one connection per thread; see the module docstring.
     """
@@ -507,7 +345,7 @@ class SqliteKeyframeStore(sqlitedb.GuardedAccess):
     # ------------------------------------------------------------------ life cycle
 
     @classmethod
-    def open(cls, path: str | Path, options: StoreOptions | None = None) -> SqliteKeyframeStore:
+    def open(cls, path: str | Path, options: StoreOptions | None = None) -> SqliteMapStore:
         """Open (or create) the store file at ``path``; its parent folder is created.
 
         Raises:
@@ -539,7 +377,7 @@ class SqliteKeyframeStore(sqlitedb.GuardedAccess):
         for _, conn in conns:
             conn.close()
 
-    def __enter__(self) -> SqliteKeyframeStore:
+    def __enter__(self) -> SqliteMapStore:
         return self
 
     def __exit__(
@@ -568,10 +406,7 @@ class SqliteKeyframeStore(sqlitedb.GuardedAccess):
             ``"duplicate"`` (rather than rejecting) lets the robot drop it from its outbox.
 
         Raises:
-            StoreUnavailableError: the database cannot write now (full, locked past the busy timeout,
-                I/O error, read-only); nothing was stored, the same call may succeed later.
-            StoreDamagedError: the file is damaged (e.g. a corrupt index page); nothing was stored.
-            StoreError: bad arguments or another database failure (nothing was stored).
+            StoreError: bad arguments or a database failure (nothing was stored).
         """
         if not isinstance(msg, KeyframeMsg):
             raise StoreError(f"msg must be a KeyframeMsg, got {type(msg).__name__}")
@@ -711,8 +546,6 @@ class SqliteKeyframeStore(sqlitedb.GuardedAccess):
             disk = 0
         return free + min(cap - pages, disk)
 
-    # ------------------------------------------------------------------ reads
-
     def rejections(self) -> dict[str, int]:
         """Every rejection reason with its count, by reason."""
         with self._read("rejections") as conn:
@@ -801,8 +634,7 @@ class SqliteKeyframeStore(sqlitedb.GuardedAccess):
                     (robot_id, session_id),
                 ).fetchall()
         stamps = np.array([float(r[0]) for r in rows], dtype=np.float64)
-        poses = np.frombuffer(b"".join(bytes(r[1]) for r in rows), dtype=_POSE_DTYPE)
-        return stamps, poses.astype(np.float64).reshape(len(rows), 4, 4)
+        return stamps, poses_from_blobs([r[1] for r in rows])
 
     def payload(self, robot_id: str, session_id: str, seq: int) -> bytes | None:
         """The stored wire bytes of one keyframe (the first copy received), None if absent."""
@@ -834,21 +666,340 @@ class SqliteKeyframeStore(sqlitedb.GuardedAccess):
             int(robots), int(sessions), int(keyframes), int(nbytes), int(rejected), int(version)
         )
 
-    # ------------------------------------------------------------------ shared access
+    # ------------------------------------------------------------------ objects
 
-    @contextmanager
-    def reading(self, what: str) -> Iterator[sqlite3.Connection]:
-        """This thread's connection for reads by another component on the same file
-        (the object map); SQLite errors become :class:`StoreError` naming ``what``."""
-        with self._read(what) as conn:
-            yield conn
+    def write_objects(
+        self, objects: Sequence[ObjectRow], observations: Sequence[Observation], now_s: float
+    ) -> list[ObjectWrite]:
+        """See :meth:`~wardmap.server.store.protocol.ObjectStore.write_objects`."""
+        obj_rows = [_object_params(o, now_s) for o in objects]
+        obs_rows = [_observation_params(o, now_s) for o in observations]
+        ids = [o.object_id for o in objects]
+        with self._write("object map upsert") as conn:
+            existing = _existing(conn, ids)
+            conn.executemany(
+                "INSERT INTO objects (object_id, category, confidence, T_world_object, x, y, z, yaw, "
+                "qx, qy, qz, qw, size_x, size_y, size_z, min_x, min_y, min_z, max_x, max_y, max_z, "
+                "color_r, color_g, color_b, n_observations, first_seen_s, last_seen_s, confirmed) "
+                "VALUES (:object_id, :category, :confidence, :T, :x, :y, :z, :yaw, :qx, :qy, :qz, :qw, "
+                ":size_x, :size_y, :size_z, "
+                ":min_x, :min_y, :min_z, :max_x, :max_y, :max_z, :color_r, :color_g, :color_b, "
+                "0, :now, :now, :confirmed) "
+                "ON CONFLICT (object_id) DO UPDATE SET category = excluded.category, "
+                "confidence = excluded.confidence, T_world_object = excluded.T_world_object, "
+                "x = excluded.x, y = excluded.y, z = excluded.z, yaw = excluded.yaw, "
+                "qx = excluded.qx, qy = excluded.qy, qz = excluded.qz, qw = excluded.qw, "
+                "size_x = excluded.size_x, size_y = excluded.size_y, size_z = excluded.size_z, "
+                "min_x = excluded.min_x, min_y = excluded.min_y, min_z = excluded.min_z, "
+                "max_x = excluded.max_x, max_y = excluded.max_y, max_z = excluded.max_z, "
+                "color_r = excluded.color_r, color_g = excluded.color_g, color_b = excluded.color_b, "
+                "confirmed = excluded.confirmed",
+                obj_rows,
+            )
+            conn.executemany(
+                "INSERT OR REPLACE INTO objects_rtree "
+                "(object_id, min_x, max_x, min_y, max_y, min_z, max_z) "
+                "VALUES (:object_id, :min_x, :max_x, :min_y, :max_y, :min_z, :max_z)",
+                obj_rows,
+            )
+            touched: dict[int, None] = dict.fromkeys(ids)
+            if obs_rows:
+                missing = {int(r["object_id"]) for r in obs_rows} - set(ids)
+                missing -= _existing(conn, sorted(missing))
+                if missing:
+                    raise UnknownObjectError(
+                        "observations name objects that are neither given nor stored: "
+                        f"{sorted(missing)[:10]}"
+                    )
+                for row in obs_rows:
+                    old = conn.execute(
+                        "SELECT object_id FROM observations WHERE robot_id = :robot_id AND "
+                        "session_id = :session_id AND seq = :seq AND box_x1 = :box_x1 AND "
+                        "box_y1 = :box_y1 AND box_x2 = :box_x2 AND box_y2 = :box_y2",
+                        row,
+                    ).fetchone()
+                    if old is not None:
+                        touched.setdefault(int(old[0]))
+                    touched.setdefault(int(row["object_id"]))
+                conn.executemany(
+                    "INSERT INTO observations (object_id, robot_id, session_id, seq, stamp, added_s, "
+                    "category, confidence, box_x1, box_y1, box_x2, box_y2, T_world_object, "
+                    "size_x, size_y, size_z) VALUES (:object_id, :robot_id, :session_id, :seq, :stamp, "
+                    ":now, :category, :confidence, :box_x1, :box_y1, :box_x2, :box_y2, :T, "
+                    ":size_x, :size_y, :size_z) "
+                    "ON CONFLICT (robot_id, session_id, seq, box_x1, box_y1, box_x2, box_y2) "
+                    "DO UPDATE SET "
+                    "object_id = excluded.object_id, stamp = excluded.stamp, "
+                    "category = excluded.category, confidence = excluded.confidence, "
+                    "T_world_object = excluded.T_world_object, size_x = excluded.size_x, "
+                    "size_y = excluded.size_y, size_z = excluded.size_z",
+                    obs_rows,
+                )
+            order = list(touched)
+            _refresh_derived(conn, order)
+            records = _records(conn, order)
+        given = set(ids)
+        return [ObjectWrite(records[oid], oid in given and oid not in existing) for oid in order]
 
-    @contextmanager
-    def writing(self, what: str) -> Iterator[sqlite3.Connection]:
-        """One ``BEGIN IMMEDIATE`` .. ``COMMIT`` transaction on this thread's connection, for
-        another component on the same file; rolled back on any exception."""
-        with self._write(what) as conn:
-            yield conn
+    def delete_object(
+        self, object_id: int, merged_into: int | None = None
+    ) -> tuple[ObjectRecord, ObjectRecord | None]:
+        """See :meth:`~wardmap.server.store.protocol.ObjectStore.delete_object`."""
+        oid, target = object_id, merged_into
+        with self._write("object map delete") as conn:
+            before = _records(conn, [oid])
+            if oid not in before:
+                raise UnknownObjectError(f"unknown object {oid}")
+            if target is not None and not _existing(conn, [target]):
+                raise UnknownObjectError(f"unknown object {target} (merged_into)")
+            if target is None:
+                conn.execute("DELETE FROM observations WHERE object_id = ?", (oid,))
+            else:
+                conn.execute("UPDATE observations SET object_id = ? WHERE object_id = ?", (target, oid))
+            conn.execute("DELETE FROM object_robots WHERE object_id = ?", (oid,))
+            conn.execute("DELETE FROM objects_rtree WHERE object_id = ?", (oid,))
+            conn.execute("DELETE FROM objects WHERE object_id = ?", (oid,))
+            after = None
+            if target is not None:
+                _refresh_derived(conn, [target])
+                after = _records(conn, [target])[target]
+        return before[oid], after
+
+    def find_objects(
+        self,
+        *,
+        category: str | None = None,
+        near: Vec3 | None = None,
+        radius_m: float | None = None,
+        min_confidence: float | None = None,
+        robot: str | None = None,
+        include_unconfirmed: bool = False,
+        limit: int = 100,
+        offset: int = 0,
+    ) -> ObjectPage:
+        """See :meth:`~wardmap.server.store.protocol.ObjectStore.find_objects`."""
+        sql, params = find_sql(
+            category=category, near=near, radius_m=radius_m, min_confidence=min_confidence, robot=robot,
+            include_unconfirmed=include_unconfirmed, limit=limit, offset=offset,
+        )
+        with self._read("object map query") as conn:
+            rows = conn.execute(sql, params).fetchall()
+            page = rows[:limit]
+            robots = _robots(conn, [int(r[0]) for r in page])
+        hits = [
+            ObjectHit(
+                _record(r, robots.get(int(r[0]), ())),
+                None if near is None else math.sqrt(max(float(r[28]), 0.0)),
+            )
+            for r in page
+        ]
+        return ObjectPage(hits, offset + limit if len(rows) > limit else None)
+
+    def object_detail(self, object_id: int, max_observations: int) -> ObjectDetail | None:
+        """See :meth:`~wardmap.server.store.protocol.ObjectStore.object_detail`."""
+        oid = object_id
+        with self._read("object map get") as conn:
+            conn.execute("BEGIN")  # one snapshot for the three reads
+            try:
+                records = _records(conn, [oid])
+                if oid not in records:
+                    return None
+                obs_rows = conn.execute(
+                    f"SELECT {_OBS_COLUMNS} FROM observations WHERE object_id = ? "
+                    "ORDER BY added_s DESC, observation_id DESC LIMIT ?",
+                    (oid, max_observations),
+                ).fetchall()
+                kf_rows = conn.execute(
+                    "SELECT DISTINCT b.robot_id, b.session_id, b.seq, b.stamp, "
+                    "EXISTS (SELECT 1 FROM keyframes AS k WHERE k.robot_id = b.robot_id AND "
+                    "k.session_id = b.session_id AND k.seq = b.seq) "
+                    "FROM (SELECT robot_id, session_id, seq, stamp FROM observations WHERE object_id = ? "
+                    "ORDER BY added_s DESC, observation_id DESC LIMIT ?) AS b "
+                    "ORDER BY b.stamp, b.robot_id, b.session_id, b.seq",
+                    (oid, max_observations),
+                ).fetchall()
+            finally:
+                conn.execute("COMMIT")
+        observations = [_observation(r) for r in obs_rows]
+        keyframes = [KeyframeRef(str(r[0]), str(r[1]), int(r[2]), float(r[3]), bool(r[4])) for r in kf_rows]
+        return ObjectDetail(records[oid], observations, keyframes)
+
+    def count_objects(self, *, unconfirmed: bool | None = None) -> int:
+        """See :meth:`~wardmap.server.store.protocol.ObjectStore.count_objects`."""
+        where = "" if unconfirmed is None else f" WHERE confirmed = {0 if unconfirmed else 1}"
+        with self._read("object map count") as conn:
+            return int(conn.execute(f"SELECT COUNT(*) FROM objects{where}").fetchone()[0])
+
+    def category_counts(self, *, include_unconfirmed: bool = False) -> dict[str, int]:
+        """See :meth:`~wardmap.server.store.protocol.ObjectStore.category_counts`."""
+        where = "" if include_unconfirmed else " WHERE confirmed = 1"
+        with self._read("object map categories") as conn:
+            rows = conn.execute(f"SELECT category, COUNT(*) FROM objects{where} GROUP BY category").fetchall()
+        return {str(r[0]): int(r[1]) for r in rows}
+
+    def observation_counts(self) -> dict[int, int]:
+        """See :meth:`~wardmap.server.store.protocol.ObjectStore.observation_counts`."""
+        with self._read("object map observation counts") as conn:
+            rows = conn.execute("SELECT object_id, COUNT(*) FROM observations GROUP BY object_id").fetchall()
+        return {int(r[0]): int(r[1]) for r in rows}
+
+    # ------------------------------------------------------------------ the mapping stage
+
+    def cursor(self, name: str) -> int:
+        """See :meth:`~wardmap.server.store.protocol.MappingStore.cursor`."""
+        with self._read("mapping: cursor") as conn:
+            row = conn.execute("SELECT last_rowid FROM pipeline_cursor WHERE name = ?", (name,)).fetchone()
+        return int(row[0]) if row else 0
+
+    def next_keyframes(self, after: int, limit: int) -> list[StoredKeyframe]:
+        """See :meth:`~wardmap.server.store.protocol.MappingStore.next_keyframes`."""
+        with self._read("mapping: next keyframes") as conn:
+            rows = conn.execute(
+                "SELECT rowid, robot_id, session_id, seq, payload FROM keyframes WHERE rowid > ? "
+                "ORDER BY rowid LIMIT ?",
+                (after, limit),
+            ).fetchall()
+        return [StoredKeyframe(int(r[0]), str(r[1]), str(r[2]), int(r[3]), bytes(r[4])) for r in rows]
+
+    def count_keyframes_after(self, after: int) -> int:
+        """See :meth:`~wardmap.server.store.protocol.MappingStore.count_keyframes_after`."""
+        with self._read("mapping: backlog") as conn:
+            row = conn.execute("SELECT COUNT(*) FROM keyframes WHERE rowid > ?", (after,)).fetchone()
+        return int(row[0])
+
+    def session_has_keyframes_after(self, robot_id: str, session_id: str, after: int) -> bool:
+        """See :meth:`~wardmap.server.store.protocol.MappingStore.session_has_keyframes_after`."""
+        with self._read("mapping: idle sessions") as conn:
+            row = conn.execute(
+                "SELECT 1 FROM keyframes WHERE robot_id = ? AND session_id = ? AND rowid > ? LIMIT 1",
+                (robot_id, session_id, after),
+            ).fetchone()
+        return row is not None
+
+    def commit_keyframe(
+        self, cursor: str, rowid: int, pose: MappedPose, measurements: Sequence[ObjectMeasurement],
+        *, anchored: bool,
+    ) -> None:
+        """See :meth:`~wardmap.server.store.protocol.MappingStore.commit_keyframe`."""
+        rows = [(pose.robot_id, pose.session_id, pose.seq, int(anchored), pack_measurement(m))
+                for m in measurements]
+        with self._write("mapping: store measurements") as conn:
+            conn.executemany(
+                "INSERT INTO measurements (robot_id, session_id, seq, anchored, payload) "
+                "VALUES (?, ?, ?, ?, ?)",
+                rows,
+            )
+            conn.execute(_INSERT_MAPPED, _mapped_params(pose))
+            conn.execute(
+                "INSERT INTO pipeline_cursor (name, last_rowid) VALUES (?, ?) "
+                "ON CONFLICT(name) DO UPDATE SET last_rowid = excluded.last_rowid",
+                (cursor, rowid),
+            )
+
+    def unmapped_keyframes(self, upto: int, limit: int) -> list[KeyframeKey]:
+        """See :meth:`~wardmap.server.store.protocol.MappingStore.unmapped_keyframes`."""
+        with self._read("mapping: keyframes to backfill") as conn:
+            rows = conn.execute(
+                "SELECT k.rowid, k.robot_id, k.session_id, k.seq FROM keyframes k "
+                "LEFT JOIN mapped_keyframes mk USING (robot_id, session_id, seq) "
+                "WHERE k.rowid <= ? AND mk.robot_id IS NULL ORDER BY k.rowid LIMIT ?",
+                (upto, limit),
+            ).fetchall()
+        return [KeyframeKey(int(r[0]), str(r[1]), str(r[2]), int(r[3])) for r in rows]
+
+    def record_mapped(self, poses: Sequence[MappedPose]) -> None:
+        """See :meth:`~wardmap.server.store.protocol.MappingStore.record_mapped`."""
+        with self._write("mapping: backfill mapped keyframes") as conn:
+            conn.executemany(_INSERT_MAPPED, [_mapped_params(p) for p in poses])
+
+    def anchored_keyframes(self, after: int, upto: int, limit: int) -> list[AnchoredKeyframe]:
+        """See :meth:`~wardmap.server.store.protocol.MappingStore.anchored_keyframes`."""
+        with self._read("mapping: replay") as conn:
+            rows = conn.execute(
+                "SELECT k.rowid, k.robot_id, k.session_id, k.seq, mk.T_map_camera, mk.camera "
+                "FROM keyframes k JOIN mapped_keyframes mk USING (robot_id, session_id, seq) "
+                "WHERE k.rowid > ? AND k.rowid <= ? AND mk.T_map_camera IS NOT NULL "
+                "ORDER BY k.rowid LIMIT ?",
+                (after, upto, limit),
+            ).fetchall()
+            if not rows:
+                return []
+            by_key: dict[tuple[str, str, int], list[ObjectMeasurement]] = {}
+            for robot_id, session_id, seq, payload in conn.execute(
+                "SELECT m.robot_id, m.session_id, m.seq, m.payload FROM measurements m "
+                "JOIN keyframes k USING (robot_id, session_id, seq) "
+                "WHERE k.rowid > ? AND k.rowid <= ? AND m.anchored = 1 "
+                "ORDER BY k.rowid, m.measurement_id",
+                (after, int(rows[-1][0])),
+            ):
+                by_key.setdefault((str(robot_id), str(session_id), int(seq)), []).append(
+                    unpack_measurement(payload))
+        out = []
+        for rowid, robot_id, session_id, seq, pose, camera in rows:
+            key = (str(robot_id), str(session_id), int(seq))
+            out.append(AnchoredKeyframe(int(rowid), *key, pose_from_blob(pose), camera_from_json(camera),
+                                        by_key.get(key, [])))
+        return out
+
+    def count_measurements(self) -> int:
+        """See :meth:`~wardmap.server.store.protocol.MappingStore.count_measurements`."""
+        with self._read("mapping: measurements") as conn:
+            return int(conn.execute("SELECT COUNT(*) FROM measurements").fetchone()[0])
+
+    def close_sessions(self, sessions: Sequence[tuple[str, str]], at_rowid: int) -> None:
+        """See :meth:`~wardmap.server.store.protocol.MappingStore.close_sessions`."""
+        with self._write("mapping: close idle sessions") as conn:
+            conn.executemany(
+                "INSERT OR IGNORE INTO closed_sessions (robot_id, session_id, at_rowid) VALUES (?, ?, ?)",
+                [(robot_id, session_id, at_rowid) for robot_id, session_id in sessions],
+            )
+
+    def closed_sessions(self, first: int = 0, last: int | None = None) -> list[ClosedSession]:
+        """See :meth:`~wardmap.server.store.protocol.MappingStore.closed_sessions`."""
+        upto = "" if last is None else " AND at_rowid <= ?"
+        with self._read("mapping: closed sessions") as conn:
+            rows = conn.execute(
+                f"SELECT at_rowid, robot_id, session_id FROM closed_sessions WHERE at_rowid >= ?{upto} "
+                "ORDER BY at_rowid, robot_id, session_id",
+                (first,) if last is None else (first, last),
+            ).fetchall()
+        return [ClosedSession(int(r[0]), str(r[1]), str(r[2])) for r in rows]
+
+    def checkpoint(self) -> Checkpoint | None:
+        """See :meth:`~wardmap.server.store.protocol.MappingStore.checkpoint`."""
+        with self._read("mapping: association checkpoint") as conn:
+            row = conn.execute(
+                "SELECT last_rowid, config_key, state, written_s FROM association_checkpoint WHERE id = 1"
+            ).fetchone()
+        return None if row is None else Checkpoint(int(row[0]), str(row[1]), bytes(row[2]), float(row[3]))
+
+    def save_checkpoint(self, checkpoint: Checkpoint) -> None:
+        """See :meth:`~wardmap.server.store.protocol.MappingStore.save_checkpoint`."""
+        c = checkpoint
+        with self._write("mapping: association checkpoint") as conn:
+            conn.execute(
+                "INSERT INTO association_checkpoint (id, last_rowid, config_key, state, written_s) "
+                "VALUES (1, ?, ?, ?, ?) ON CONFLICT(id) DO UPDATE SET "
+                "last_rowid = excluded.last_rowid, config_key = excluded.config_key, "
+                "state = excluded.state, written_s = excluded.written_s",
+                (c.last_rowid, c.config_key, c.state, c.written_s))
+
+    # ------------------------------------------------------------------ internals
+
+    @staticmethod
+    def _cursor_position(
+        conn: sqlite3.Connection, robot_id: str, after: tuple[object, ...]
+    ) -> tuple[float, str, int]:
+        if len(after) != 2 or not isinstance(after[0], str):
+            raise StoreError(f"cursor must be (session_id, seq) or a stamp, got {after!r:.80}")
+        session_id, seq = after[0], _check_seq(after[1])
+        row = conn.execute(
+            "SELECT stamp FROM keyframes WHERE robot_id = ? AND session_id = ? AND seq = ?",
+            (robot_id, session_id, seq),
+        ).fetchone()
+        if row is None:
+            raise StoreError(f"cursor {after!r:.80} names no keyframe of robot {robot_id!r}")
+        return float(row[0]), session_id, seq
 
     # ------------------------------------------------------------------ error classification
 
@@ -889,23 +1040,6 @@ class SqliteKeyframeStore(sqlitedb.GuardedAccess):
         with self._health_lock:
             self._write_faults.pop(what, None)
 
-    # ------------------------------------------------------------------ internals
-
-    @staticmethod
-    def _cursor_position(
-        conn: sqlite3.Connection, robot_id: str, after: tuple[object, ...]
-    ) -> tuple[float, str, int]:
-        if len(after) != 2 or not isinstance(after[0], str):
-            raise StoreError(f"cursor must be (session_id, seq) or a stamp, got {after!r:.80}")
-        session_id, seq = after[0], _check_seq(after[1])
-        row = conn.execute(
-            "SELECT stamp FROM keyframes WHERE robot_id = ? AND session_id = ? AND seq = ?",
-            (robot_id, session_id, seq),
-        ).fetchone()
-        if row is None:
-            raise StoreError(f"cursor {after!r:.80} names no keyframe of robot {robot_id!r}")
-        return float(row[0]), session_id, seq
-
     def _connection(self) -> sqlite3.Connection:
         """This thread's connection, opened on first use."""
         if self._closed:
@@ -937,7 +1071,6 @@ class SqliteKeyframeStore(sqlitedb.GuardedAccess):
         return conn
 
 
-
 # ---------------------------------------------------------------------- helpers
 
 
@@ -960,3 +1093,191 @@ def _check_seconds(value: object, field: str, *, positive: bool = True) -> float
     if not math.isfinite(v) or (positive and v <= 0):
         raise StoreError(f"{field} must be a finite{' positive' if positive else ''} number, got {v}")
     return v
+
+
+# ---------------------------------------------------------------------- object map rows
+
+_OBJECT_COLUMNS: Final = (
+    "o.object_id, o.category, o.confidence, o.T_world_object, o.x, o.y, o.z, o.yaw, "
+    "o.qx, o.qy, o.qz, o.qw, o.size_x, o.size_y, o.size_z, "
+    "o.min_x, o.min_y, o.min_z, o.max_x, o.max_y, o.max_z, "
+    "o.color_r, o.color_g, o.color_b, o.n_observations, o.first_seen_s, o.last_seen_s, o.confirmed"
+)
+_OBS_COLUMNS: Final = (
+    "observation_id, added_s, object_id, robot_id, session_id, seq, stamp, category, confidence, "
+    "box_x1, box_y1, box_x2, box_y2, T_world_object, size_x, size_y, size_z"
+)
+_IN_IDS: Final = "(SELECT value FROM json_each(?))"
+"""A list of ids as one JSON parameter (no limit on the number of SQL variables)."""
+_INSERT_MAPPED: Final = ("INSERT OR REPLACE INTO mapped_keyframes (robot_id, session_id, seq, T_map_camera, "
+                         "camera) VALUES (?, ?, ?, ?, ?)")
+
+
+def find_sql(
+    *,
+    category: str | None,
+    near: Vec3 | None,
+    radius_m: float | None,
+    min_confidence: float | None,
+    robot: str | None,
+    include_unconfirmed: bool,
+    limit: int,
+    offset: int,
+) -> tuple[str, dict[str, Any]]:
+    """The SELECT (and its parameters) :meth:`SqliteMapStore.find_objects` runs: up to
+    ``limit + 1`` rows of the object columns, then the squared distance to ``near`` when given.
+
+    With ``radius_m`` the R*Tree selects candidates whose bounds meet the cube of half-side
+    ``radius_m`` around ``near``; the exact centre distance then decides.
+    """
+    where: list[str] = []
+    params: dict[str, Any] = {"limit": limit + 1, "offset": offset}
+    source = "objects AS o"
+    select = _OBJECT_COLUMNS
+    order = "o.object_id"
+    if near is not None:
+        params.update(px=near[0], py=near[1], pz=near[2])
+        d2 = "((o.x - :px) * (o.x - :px) + (o.y - :py) * (o.y - :py) + (o.z - :pz) * (o.z - :pz))"
+        select += f", {d2} AS d2"
+        order = "d2, o.object_id"
+        if radius_m is not None:
+            r = float(radius_m)
+            # CROSS JOIN: the R*Tree drives the loop (SQLite keeps the left table outermost).
+            source = "objects_rtree AS r CROSS JOIN objects AS o ON o.object_id = r.object_id"
+            where += [
+                "r.max_x >= :lo_x", "r.min_x <= :hi_x", "r.max_y >= :lo_y", "r.min_y <= :hi_y",
+                "r.max_z >= :lo_z", "r.min_z <= :hi_z", f"{d2} <= :r2",
+            ]
+            params.update(
+                lo_x=near[0] - r, hi_x=near[0] + r, lo_y=near[1] - r, hi_y=near[1] + r,
+                lo_z=near[2] - r, hi_z=near[2] + r, r2=r * r,
+            )
+    if category is not None:
+        where.append("o.category = :category")
+        params["category"] = category
+    if not include_unconfirmed:
+        where.append("o.confirmed = 1")
+    if min_confidence is not None:
+        where.append("o.confidence >= :min_confidence")
+        params["min_confidence"] = float(min_confidence)
+    if robot is not None:
+        where.append(
+            "EXISTS (SELECT 1 FROM object_robots AS ro WHERE ro.object_id = o.object_id "
+            "AND ro.robot_id = :robot)"
+        )
+        params["robot"] = robot
+    sql = f"SELECT {select} FROM {source}"
+    if where:
+        sql += " WHERE " + " AND ".join(where)
+    sql += f" ORDER BY {order} LIMIT :limit OFFSET :offset"
+    return sql, params
+
+
+def _object_params(o: ObjectRow, now_s: float) -> dict[str, Any]:
+    T = o.T_world_object
+    row: dict[str, Any] = {
+        "object_id": o.object_id, "category": o.category, "confidence": o.confidence,
+        "T": pose_blob(T), "x": T[0, 3], "y": T[1, 3], "z": T[2, 3], "yaw": o.yaw,
+        "qx": o.q_xyzw[0], "qy": o.q_xyzw[1], "qz": o.q_xyzw[2], "qw": o.q_xyzw[3],
+        "size_x": o.size[0], "size_y": o.size[1], "size_z": o.size[2],
+        "min_x": o.bounds_min[0], "min_y": o.bounds_min[1], "min_z": o.bounds_min[2],
+        "max_x": o.bounds_max[0], "max_y": o.bounds_max[1], "max_z": o.bounds_max[2],
+        "color_r": None, "color_g": None, "color_b": None, "confirmed": int(o.confirmed), "now": now_s,
+    }
+    if o.color_rgb is not None:
+        row.update(color_r=o.color_rgb[0], color_g=o.color_rgb[1], color_b=o.color_rgb[2])
+    return {k: float(v) if isinstance(v, np.floating) else v for k, v in row.items()}
+
+
+def _observation_params(obs: Observation, now_s: float) -> dict[str, Any]:
+    box, size = obs.box_xyxy, obs.size
+    return {
+        "object_id": obs.object_id, "robot_id": obs.robot_id, "session_id": obs.session_id,
+        "seq": int(obs.seq), "stamp": float(obs.stamp), "category": obs.category,
+        "confidence": float(obs.confidence),
+        "box_x1": float(box[0]), "box_y1": float(box[1]), "box_x2": float(box[2]), "box_y2": float(box[3]),
+        "T": pose_blob(obs.T_world_object),
+        "size_x": float(size[0]), "size_y": float(size[1]), "size_z": float(size[2]), "now": now_s,
+    }
+
+
+def _mapped_params(p: MappedPose) -> tuple[str, str, int, bytes | None, str | None]:
+    if p.T_map_camera is None or p.camera is None:
+        return p.robot_id, p.session_id, p.seq, None, None
+    return p.robot_id, p.session_id, p.seq, pose_blob(p.T_map_camera), camera_to_json(p.camera)
+
+
+def _existing(conn: sqlite3.Connection, ids: Sequence[int]) -> set[int]:
+    if not ids:
+        return set()
+    rows = conn.execute(f"SELECT object_id FROM objects WHERE object_id IN {_IN_IDS}", (json.dumps(ids),))
+    return {int(r[0]) for r in rows}
+
+
+def _refresh_derived(conn: sqlite3.Connection, ids: Sequence[int]) -> None:
+    """Recompute count, first/last seen and robots of ``ids`` from their observations."""
+    arg = (json.dumps(list(ids)),)
+    conn.execute(
+        "UPDATE objects SET "
+        "n_observations = (SELECT COUNT(*) FROM observations AS b "
+        "WHERE b.object_id = objects.object_id), "
+        "first_seen_s = min(first_seen_s, COALESCE((SELECT MIN(added_s) FROM observations AS b "
+        "WHERE b.object_id = objects.object_id), first_seen_s)), "
+        "last_seen_s = COALESCE((SELECT MAX(added_s) FROM observations AS b "
+        "WHERE b.object_id = objects.object_id), first_seen_s) "
+        f"WHERE object_id IN {_IN_IDS}",
+        arg,
+    )
+    conn.execute(f"DELETE FROM object_robots WHERE object_id IN {_IN_IDS}", arg)
+    conn.execute(
+        "INSERT INTO object_robots (object_id, robot_id) SELECT DISTINCT object_id, robot_id "
+        f"FROM observations WHERE object_id IN {_IN_IDS}",
+        arg,
+    )
+
+
+def _robots(conn: sqlite3.Connection, ids: Sequence[int]) -> dict[int, tuple[str, ...]]:
+    if not ids:
+        return {}
+    rows = conn.execute(
+        f"SELECT object_id, robot_id FROM object_robots WHERE object_id IN {_IN_IDS} "
+        "ORDER BY object_id, robot_id",
+        (json.dumps(list(ids)),),
+    ).fetchall()
+    out: dict[int, list[str]] = {}
+    for oid, robot in rows:
+        out.setdefault(int(oid), []).append(str(robot))
+    return {k: tuple(v) for k, v in out.items()}
+
+
+def _records(conn: sqlite3.Connection, ids: Sequence[int]) -> dict[int, ObjectRecord]:
+    rows = conn.execute(
+        f"SELECT {_OBJECT_COLUMNS} FROM objects AS o WHERE o.object_id IN {_IN_IDS}",
+        (json.dumps(list(ids)),),
+    ).fetchall()
+    robots = _robots(conn, [int(r[0]) for r in rows])
+    return {int(r[0]): _record(r, robots.get(int(r[0]), ())) for r in rows}
+
+
+def _record(r: Sequence[Any], robots: tuple[str, ...]) -> ObjectRecord:
+    color = None if r[21] is None else (float(r[21]), float(r[22]), float(r[23]))
+    return ObjectRecord(
+        object_id=int(r[0]), category=str(r[1]), confidence=float(r[2]), T_world_object=pose_from_blob(r[3]),
+        position=(float(r[4]), float(r[5]), float(r[6])), yaw=float(r[7]),
+        q_xyzw=(float(r[8]), float(r[9]), float(r[10]), float(r[11])),
+        size=(float(r[12]), float(r[13]), float(r[14])),
+        bounds_min=(float(r[15]), float(r[16]), float(r[17])),
+        bounds_max=(float(r[18]), float(r[19]), float(r[20])),
+        color_rgb=color, n_observations=int(r[24]), first_seen_s=float(r[25]), last_seen_s=float(r[26]),
+        robots=robots, confirmed=bool(r[27]),
+    )
+
+
+def _observation(r: Sequence[Any]) -> ObservationRecord:
+    return ObservationRecord(
+        observation_id=int(r[0]), added_s=float(r[1]), object_id=int(r[2]), robot_id=str(r[3]),
+        session_id=str(r[4]), seq=int(r[5]), stamp=float(r[6]), category=str(r[7]), confidence=float(r[8]),
+        box_xyxy=np.array([r[9], r[10], r[11], r[12]], dtype=np.float64),
+        T_world_object=pose_from_blob(r[13]),
+        size=np.array([r[14], r[15], r[16]], dtype=np.float64),
+    )

@@ -1,0 +1,83 @@
+"""How the store encodes values in blobs: poses, object measurements and cameras.
+
+Backends share these, so a file written by one reads the same in another.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any, Final
+
+import msgpack
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from wardmap.server.perception.types import ObjectMeasurement
+from wardmap.shared.camera import PinholeCamera
+from wardmap.shared.config import to_mapping
+from wardmap.shared.wire import array_to_wire
+
+_POSE_DTYPE: Final = np.dtype("<f8")
+_ARRAYS: Final = ("box_xyxy", "points_camera", "T_camera_object", "T_world_camera", "T_world_object",
+                  "size", "color_hist", "descriptors")
+
+
+def pose_blob(T: ArrayLike) -> bytes:
+    """A (4, 4) pose as the store keeps it: 16 little-endian float64, row-major (128 bytes)."""
+    return np.ascontiguousarray(T, dtype=_POSE_DTYPE).tobytes()
+
+
+def pose_from_blob(blob: bytes) -> NDArray[np.float64]:
+    """Inverse of :func:`pose_blob`: a read-only (4, 4) float64 array."""
+    T = np.frombuffer(bytes(blob), dtype=_POSE_DTYPE).astype(np.float64).reshape(4, 4)
+    T.flags.writeable = False
+    return T
+
+
+def poses_from_blobs(blobs: list[bytes]) -> NDArray[np.float64]:
+    """Many :func:`pose_blob` values as one (N, 4, 4) float64 array."""
+    poses = np.frombuffer(b"".join(bytes(b) for b in blobs), dtype=_POSE_DTYPE)
+    return poses.astype(np.float64).reshape(len(blobs), 4, 4)
+
+
+def pack_measurement(m: ObjectMeasurement) -> bytes:
+    """msgpack of a measurement without its mask (association does not read masks); arrays as
+    the wire's ``{dtype, shape, data}`` maps (:func:`~wardmap.shared.wire.array_to_wire`)."""
+    d: dict[str, Any] = {"keyframe": m.keyframe, "stamp": m.stamp, "category": m.category,
+                         "confidence": float(m.confidence), "gt_instance": m.gt_instance}
+    for name in _ARRAYS:
+        d[name] = array_to_wire(np.asarray(getattr(m, name)))
+    return bytes(msgpack.packb(d, use_bin_type=True))
+
+
+def unpack_measurement(blob: bytes) -> ObjectMeasurement:
+    """Inverse of :func:`pack_measurement` (the mask comes back empty, shape (0, 0))."""
+    d = msgpack.unpackb(blob, raw=False)
+    arrays = {name: _array(d[name]) for name in _ARRAYS}
+    return ObjectMeasurement(
+        keyframe=d["keyframe"], stamp=float(d["stamp"]), category=d["category"],
+        confidence=float(d["confidence"]), mask=np.zeros((0, 0), bool), gt_instance=d["gt_instance"],
+        **arrays,
+    )
+
+
+def _array(value: dict[str, Any]) -> NDArray[Any]:
+    """A writable array of a ``{dtype, shape, data}`` map. ``dtype`` is a wire name
+    (``"float64"``, data little-endian) or, in blobs written before the wire codec was used,
+    numpy's ``dtype.str`` (``"<f8"``, byte order in the name). The wire's own decoder allows
+    no float64, which measurements hold."""
+    label = str(value["dtype"])
+    dtype = np.dtype(label) if label[:1] in ("<", ">", "|", "=") else np.dtype(label).newbyteorder("<")
+    array = np.frombuffer(value["data"], dtype).reshape(value["shape"])
+    return array.astype(dtype.newbyteorder("="))
+
+
+def camera_to_json(camera: PinholeCamera) -> str:
+    """A camera as JSON text (its dataclass fields)."""
+    return json.dumps(to_mapping(camera))
+
+
+def camera_from_json(text: str) -> PinholeCamera:
+    """Inverse of :func:`camera_to_json`."""
+    d = json.loads(text)
+    return PinholeCamera(**{**d, "distortion": tuple(d["distortion"])})

@@ -1,0 +1,237 @@
+"""What the map server needs from its database: the Protocols every backend implements.
+
+:class:`MapStore` is the whole contract (``open_store`` returns one); its parts name what each
+user needs: ingest and the REST API read and write keyframes (:class:`KeyframeStore`), the
+object map its objects (:class:`ObjectStore`), the mapping stage its cursor, measurements,
+closures and checkpoint (:class:`MappingStore`). Nothing outside a backend sees its
+connections or writes its queries. The SQLite backend (``sqlite.py``) documents the
+guarantees (durability, threads) a backend must give.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from types import TracebackType
+from typing import Protocol
+
+from wardmap.server.perception.types import ObjectMeasurement
+from wardmap.server.store.records import (
+    AnchoredKeyframe,
+    Checkpoint,
+    ClosedSession,
+    Cursor,
+    InsertResult,
+    KeyframeKey,
+    KeyframePage,
+    MappedPose,
+    ObjectDetail,
+    ObjectPage,
+    ObjectRecord,
+    ObjectRow,
+    ObjectWrite,
+    Observation,
+    RobotSummary,
+    StoredKeyframe,
+    StoreStats,
+    Trajectory,
+    Vec3,
+)
+from wardmap.shared.wire import KeyframeMsg
+
+
+class KeyframeStore(Protocol):
+    """Keyframes as robots sent them, and the counters of rejected messages."""
+
+    def insert(self, msg: KeyframeMsg, payload: bytes, received_s: float) -> InsertResult:
+        """Store ``msg`` (encoded as ``payload``) durably, committed before this returns;
+        ``"duplicate"`` (and nothing changes) when its ``(robot_id, session_id, seq)`` is
+        stored already: the first copy wins."""
+        ...
+
+    def count_rejection(self, reason: str, n: int = 1) -> None:
+        """Add ``n`` to the counter of ``reason`` (1-200 characters), all or nothing."""
+        ...
+
+    def writable(self) -> tuple[bool, str]:
+        """Whether a write can commit now: ``(True, "ok")`` or ``(False, why)``; never raises."""
+        ...
+
+    def rejections(self) -> dict[str, int]:
+        """Every rejection reason with its count, by reason."""
+        ...
+
+    def robots(self) -> list[RobotSummary]:
+        """Every robot with at least one keyframe, by ``robot_id``."""
+        ...
+
+    def keyframes(self, robot_id: str, *, after: Cursor | None = None, limit: int = 100) -> KeyframePage:
+        """One page of a robot's keyframes by ``(stamp, session_id, seq)``."""
+        ...
+
+    def trajectory(self, robot_id: str, session_id: str | None = None) -> Trajectory:
+        """Stamps and camera poses of a robot's keyframes ordered by stamp."""
+        ...
+
+    def payload(self, robot_id: str, session_id: str, seq: int) -> bytes | None:
+        """The stored wire bytes of one keyframe, None if absent."""
+        ...
+
+    def stats(self) -> StoreStats:
+        """Totals over the whole store, from one consistent snapshot."""
+        ...
+
+    def close(self) -> None:
+        """Release the store (idempotent); every call after it raises ``StoreError``."""
+        ...
+
+
+class ObjectStore(Protocol):
+    """The object map's rows: objects, their observations, the robots that saw them.
+
+    Inputs are checked by the object map (``server/objectmap.py``) before they come here.
+    Every write is one transaction: on any error nothing is written.
+    """
+
+    def write_objects(
+        self, objects: Sequence[ObjectRow], observations: Sequence[Observation], now_s: float
+    ) -> list[ObjectWrite]:
+        """Create or replace ``objects``, then add ``observations``; an observation already
+        stored under the same keyframe and box is moved to its new object and refreshed.
+        New objects and new observations get ``now_s`` as their first-seen and added time.
+        Each touched object's count, first/last seen and robots are recomputed from its
+        observations.
+
+        Returns:
+            Every touched object: those of ``objects`` in their order, then objects that
+            gained or lost an observation.
+
+        Raises:
+            UnknownObjectError: an observation names an object neither given nor stored.
+        """
+        ...
+
+    def delete_object(
+        self, object_id: int, merged_into: int | None = None
+    ) -> tuple[ObjectRecord, ObjectRecord | None]:
+        """Remove an object; its observations move to ``merged_into`` (when given) or go with it.
+
+        Returns:
+            ``(the object before, merged_into after)``; the second is None without ``merged_into``.
+
+        Raises:
+            UnknownObjectError: ``object_id`` or ``merged_into`` is not stored.
+        """
+        ...
+
+    def find_objects(
+        self,
+        *,
+        category: str | None = None,
+        near: Vec3 | None = None,
+        radius_m: float | None = None,
+        min_confidence: float | None = None,
+        robot: str | None = None,
+        include_unconfirmed: bool = False,
+        limit: int = 100,
+        offset: int = 0,
+    ) -> ObjectPage:
+        """Objects matching every given filter, ``limit`` from ``offset``: nearest centre first
+        (ties by id) with their distance when ``near`` is given, else by id. ``radius_m``
+        (with ``near``) keeps centres within that distance; ``robot`` keeps objects some
+        observation of that robot supports; unconfirmed objects only with
+        ``include_unconfirmed``."""
+        ...
+
+    def object_detail(self, object_id: int, max_observations: int) -> ObjectDetail | None:
+        """One object with its latest ``max_observations`` observations (newest first) and the
+        keyframes they came from (by stamp), from one snapshot; None when unknown."""
+        ...
+
+    def count_objects(self, *, unconfirmed: bool | None = None) -> int:
+        """Stored objects; with ``unconfirmed`` True or False, only those (not) confirmed."""
+        ...
+
+    def category_counts(self, *, include_unconfirmed: bool = False) -> dict[str, int]:
+        """Stored objects per category (categories with none are absent)."""
+        ...
+
+    def observation_counts(self) -> dict[int, int]:
+        """Stored observations per object id (objects with none are absent)."""
+        ...
+
+
+class MappingStore(Protocol):
+    """What the mapping stage keeps besides keyframes: named cursors over the insertion order,
+    object measurements and map poses per keyframe, idle-session closures and the
+    association checkpoint."""
+
+    def cursor(self, name: str) -> int:
+        """The ``rowid`` up to which cursor ``name`` has processed keyframes (0: none)."""
+        ...
+
+    def next_keyframes(self, after: int, limit: int) -> list[StoredKeyframe]:
+        """Up to ``limit`` keyframes with ``rowid > after``, in insertion order."""
+        ...
+
+    def count_keyframes_after(self, after: int) -> int:
+        """Stored keyframes with ``rowid > after``."""
+        ...
+
+    def session_has_keyframes_after(self, robot_id: str, session_id: str, after: int) -> bool:
+        """Whether a keyframe of this session has ``rowid > after``."""
+        ...
+
+    def commit_keyframe(
+        self, cursor: str, rowid: int, pose: MappedPose, measurements: Sequence[ObjectMeasurement],
+        *, anchored: bool,
+    ) -> None:
+        """In one transaction: store the keyframe's ``measurements`` (their masks are not
+        kept; ``anchored``: of a session on the map, which replay reads), its map pose
+        (replacing any), and move cursor ``cursor`` to ``rowid``."""
+        ...
+
+    def unmapped_keyframes(self, upto: int, limit: int) -> list[KeyframeKey]:
+        """Up to ``limit`` keyframes with ``rowid <= upto`` that have no map pose recorded
+        (processed before map poses were stored), in insertion order."""
+        ...
+
+    def record_mapped(self, poses: Sequence[MappedPose]) -> None:
+        """Record map poses of processed keyframes (replacing any), in one transaction."""
+        ...
+
+    def anchored_keyframes(self, after: int, upto: int, limit: int) -> list[AnchoredKeyframe]:
+        """Up to ``limit`` keyframes with ``after < rowid <= upto`` that are on the map, in
+        insertion order, with their anchored measurements; keyframe payloads are not read."""
+        ...
+
+    def count_measurements(self) -> int:
+        """Stored object measurements (all keyframes, on the map or not)."""
+        ...
+
+    def close_sessions(self, sessions: Sequence[tuple[str, str]], at_rowid: int) -> None:
+        """Record ``(robot_id, session_id)`` closures at cursor ``at_rowid`` (one already
+        recorded stays as it is), in one transaction."""
+        ...
+
+    def closed_sessions(self, first: int = 0, last: int | None = None) -> list[ClosedSession]:
+        """Closures with ``first <= at_rowid <= last`` (None: no upper bound), ordered by
+        ``(at_rowid, robot_id, session_id)``."""
+        ...
+
+    def checkpoint(self) -> Checkpoint | None:
+        """The association checkpoint, None when none was saved."""
+        ...
+
+    def save_checkpoint(self, checkpoint: Checkpoint) -> None:
+        """Replace the association checkpoint (there is at most one)."""
+        ...
+
+
+class MapStore(KeyframeStore, ObjectStore, MappingStore, Protocol):
+    """The server's whole database: what a backend implements (see the module docstring)."""
+
+    def __enter__(self) -> MapStore: ...
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None: ...

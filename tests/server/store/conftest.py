@@ -1,0 +1,133 @@
+"""Fixtures of the store tests: every backend behind one fixture, and small valid keyframes.
+
+Protocol tests take ``backend`` (or ``store``) and run once per backend in :data:`BACKENDS`; a
+new backend adds its name there and a branch in :class:`Backend`. Keyframes are real
+``wardmap.shared.wire`` messages (a 64x48 JPEG, a 32x24 depth raster, a few keypoints)
+encoded with :func:`wire.encode`.
+"""
+
+from __future__ import annotations
+
+import sqlite3
+from collections.abc import Iterator
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from wardmap.server.store import MapStore, open_store
+from wardmap.shared import wire
+from wardmap.shared.se3 import make_transform
+from wardmap.shared.wire import Intrinsics, KeyframeMsg, Keypoints, PackedRaster
+
+BACKENDS = ("sqlite",)
+"""Store backends the Protocol tests run against."""
+
+W, H = 64, 48
+T0 = 1_714_557_600.0  # 2024-05-01 10:00 UTC
+
+
+class Backend:
+    """One store backend holding one empty database for a test.
+
+    Attributes:
+        name: the backend (an entry of :data:`BACKENDS`).
+        url: the URL :func:`open_store` opens it with.
+    """
+
+    def __init__(self, name: str, tmp_path: Path) -> None:
+        if name != "sqlite":
+            raise ValueError(f"unknown store backend {name!r}")
+        self.name = name
+        self.path = tmp_path / "map.db"
+        self.url = f"sqlite:///{self.path}"
+
+    def open(self) -> MapStore:
+        """A new handle on the test's database (a reopened store sees what was committed)."""
+        return open_store(self.url)
+
+    def integrity_ok(self) -> bool:
+        """Whether the backend's own consistency check passes."""
+        with sqlite3.connect(self.path) as conn:
+            return str(conn.execute("PRAGMA integrity_check").fetchone()[0]) == "ok"
+
+
+@pytest.fixture(params=BACKENDS)
+def backend(request: pytest.FixtureRequest, tmp_path: Path) -> Backend:
+    return Backend(request.param, tmp_path)
+
+
+@pytest.fixture
+def store(backend: Backend) -> Iterator[MapStore]:
+    with backend.open() as s:
+        yield s
+
+
+# --------------------------------------------------------------------------- keyframes
+
+
+def _pose(stamp: float) -> np.ndarray:
+    """A rigid pose that depends on ``stamp`` (yaw and translation), so values can be checked."""
+    a = 0.1 * stamp
+    R = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    return make_transform(R, [stamp % 7.0, -1.0, 0.5])
+
+
+_BASE: KeyframeMsg | None = None
+
+
+def base_keyframe() -> KeyframeMsg:
+    """A valid tiny keyframe (built once; others are ``replace``d copies)."""
+    global _BASE
+    if _BASE is None:
+        rng = np.random.default_rng(0)
+        ok, jpg = cv2.imencode(".jpg", rng.integers(0, 256, (H, W, 3), dtype=np.uint8))
+        assert ok
+        n = 5
+        _BASE = KeyframeMsg(
+            robot_id="r1",
+            session_id="s1",
+            seq=0,
+            stamp=T0,
+            T_odom_camera=np.eye(4),
+            pose_source="rgb",
+            keypoints=Keypoints(
+                uv=(rng.random((n, 2)) * [W - 1, H - 1]).astype(np.float32),
+                octave=np.zeros(n, np.int8),
+                angle_deg=(rng.random(n) * 360).astype(np.float32),
+                depth_m=rng.uniform(0.5, 4.0, n).astype(np.float32),
+                descriptors=rng.integers(0, 256, (n, 32), dtype=np.uint8),
+            ),
+            rgb_jpeg=bytes(jpg.tobytes()),
+            depth=PackedRaster(*wire.encode_depth(rng.uniform(0.5, 4.0, (H // 2, W // 2)))),
+            intrinsics=Intrinsics(W, H, 50.0, 50.0, 31.5, 23.5, (0.0, 0.0, 0.0, 0.0, 0.0), 5000.0),
+        )
+    return _BASE
+
+
+def keyframe(
+    robot: str = "r1",
+    session: str = "s1",
+    seq: int = 0,
+    stamp: float | None = None,
+    pose_source: wire.PoseSource = "rgb",
+) -> tuple[KeyframeMsg, bytes]:
+    """A keyframe with this key (stamp ``T0 + seq`` unless given) and its wire bytes."""
+    t = T0 + seq if stamp is None else stamp
+    msg = replace(
+        base_keyframe(),
+        robot_id=robot,
+        session_id=session,
+        seq=seq,
+        stamp=t,
+        T_odom_camera=_pose(t - T0),
+        pose_source=pose_source,
+    )
+    return msg, wire.encode(msg)
+
+
+def pose_at(stamp: float) -> np.ndarray:
+    """The ``T_odom_camera`` of :func:`keyframe` at ``stamp``."""
+    return _pose(stamp - T0)
