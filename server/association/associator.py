@@ -97,9 +97,7 @@ class AssociationConfig:
     """A landmark's pose prior (Eq. 2-3), pose refinement (Eq. 4-6) and size use its most recent
     this many measurements (``keep_measurements`` says whether the older ones stay in memory).
     Eq. 4-6 compares every pair, so without a bound a robot that passes the same objects all
-    day would slow association down without end (bench/association_revisits.py, a route
-    driven 8 times: 101.3 ms per keyframe on the eighth pass and growing, against 17.8 ms with
-    the bound). Beyond the paper."""
+    day would slow association down without end (docs/decisions/0010). Beyond the paper."""
     merge_inside: float = 0.8
     """``hierarchical``: after each group, two landmarks of one class are merged when this share
     of the smaller one's world box (volume) lies inside the other's box; 0 never merges. Two
@@ -107,18 +105,14 @@ class AssociationConfig:
     split: fragments of it measured in the same keyframes (which can never share a landmark)
     or a part seen alone. The larger landmark (more measurements) takes the other's
     measurements, and :meth:`Associator.add_keyframe` reports the other as ``merged``. Beyond
-    the paper. On the held-out seed-1002 worlds (model measurements) it removed 10 of the 68
-    landmarks too many for 0.07 points of association accuracy (0.7: 12, for 0.46 points)."""
+    the paper (docs/decisions/0004)."""
     merge_fragments: float = 0.3
     """``hierarchical``: two landmarks of one class are also merged when this share of the
     smaller one's world box lies inside the other's and the box holding both fits the class's
     size bound (``HdpConfig.class_size_m``): together they are no larger than one object, so
-    they are two parts of it (a chair's backrest cut off its seat in some views, whose box
-    lay 47 % inside the chair's; a 16 cm piece of a chair inside it in the demo). Two
+    they are two parts of it (a chair's backrest cut off its seat in some views). Two
     neighbouring objects hardly overlap and together exceed the bound. 0 turns it off.
-    Beyond the paper; on the 35 sequences of seeds 1001-1005 (model measurements) five
-    changed, each for the better (summed count error 27 -> 24, better than both 22 -> 23, no
-    accuracy lower), and with oracle measurements none (docs/association.md, Merging)."""
+    Beyond the paper (docs/decisions/0004)."""
     merge_across: float = 0.5
     """``hierarchical``: the same for two landmarks of different classes, at this share; 0 never.
     The network calls part of an object by a neighbouring class now and then (the foot of a bed
@@ -128,36 +122,25 @@ class AssociationConfig:
     class's size bound (a bed seen in parts has a median box of one part). Classes the
     knowledge graph relates (a cup ``placed_on`` a cart, a chair ``stands_beside`` a bed) are
     found together and never merged. The merged landmark takes the class most of its
-    measurements were measured as (a bed's foot seen first, as a cart, becomes part of a
-    bed once the bed has more measurements). The box holding both hulls must fit the surviving
-    class's size bound (``HdpConfig.class_size_m``): an IV pole in front of a sink is no part of
-    a sink 1.95 m tall. Beyond the paper; on the
-    held-out seed-1002 worlds (model measurements) it took the landmarks too many from 58 to
-    38 at the same accuracy, and no pair it merged held two objects."""
+    measurements were measured as. The box holding both hulls must fit the surviving class's
+    size bound (``HdpConfig.class_size_m``): an IV pole in front of a sink is no part of a sink.
+    Beyond the paper (docs/decisions/0004)."""
     merge_by_footprint: tuple[str, ...] = ("bed", "cabinet", "cart", "chair", "desk", "iv_pole", "wheelchair")
     """``hierarchical``: classes of objects that stand on the floor. For two landmarks of these
     classes the merge shares above are taken over their footprints (the horizontal overlap of
     their boxes or hulls) instead of their volumes; the box holding both must still fit the
     surviving class's size bound, height included. The network often finds only part of such an
-    object in a view: a chair's legs in most views and its seat and back once, called a
-    wheelchair; an IV pole's stand apart from its pole. Those parts lie one above the other,
-    their boxes barely overlap in volume, and each became a landmark; two objects cannot stand
-    on the same floor. Empty: volumes for every class. Beyond the paper; on the model
-    measurements of seeds 1001-1005 (35 sequences) it merged eight such pairs (summed count
-    error 28 -> 20), with no accuracy lower (docs/association.md, Merging)."""
+    object in a view (a chair's legs, and its seat called a wheelchair; an IV pole's stand apart
+    from its pole); those parts lie one above the other and barely overlap in volume, while two
+    objects cannot stand on the same floor. Empty: volumes for every class. Beyond the paper
+    (docs/decisions/0004)."""
     merge_within_m: tuple[tuple[str, float], ...] = (("chair", 0.35),)
     """``hierarchical``: ``(class, metres)`` pairs. Two landmarks of a listed class whose
     centres lie closer than this horizontally are merged as well: two objects of the class
     cannot stand that close (hospital chairs are at least 0.4 m wide, the simulator's 0.465 m).
-    The shares above miss a chair whose views split between two landmarks 0.15-0.3 m apart
-    when one of them holds masks that run onto the wall beside the chair: the box holding both
-    is then wider than any chair. Beyond the paper; on the model measurements of seeds 1001-1005
-    (35 sequences) counts equal to the ground truth went from 20 to 24 (summed count error 20
-    -> 13), better than both baselines 25 -> 26, mean accuracy 98.71 % unchanged; of the 58
-    merges of chair landmarks within 0.3 m (by this rule or the shares), 56 joined one chair's
-    landmarks (docs/association.md, Merging). 0.35 m since ``nearest_held_share``, which keeps a
-    chair's spill views on their own landmark 0.31-0.32 m off more often (counts equal 23 -> 24
-    of 35, mean accuracy 98.95 -> 98.94 %). Empty: off."""
+    The shares above miss a chair whose views split between two landmarks when one of them
+    holds masks that run onto the wall beside the chair: the box holding both is then wider
+    than any chair. Empty: off. Beyond the paper (docs/decisions/0005)."""
     nearest_centre: bool = True
     """``hierarchical``: after each group, a measurement of the group of a class seen whole (a
     horizontal size bound under ``HdpConfig.parts_min_m``, or none: chairs, IV poles, cups)
@@ -165,50 +148,40 @@ class AssociationConfig:
     of the in-group tracker follows a mask that slides along a row of identical chairs, and
     the whole track goes to one landmark; the refined centres, held by many measurements, do
     not slide. Large classes (beds, doors) are seen in parts, whose centres lie far from the
-    object's, and keep the association's choice. Beyond the paper."""
+    object's, and keep the association's choice. Beyond the paper (docs/decisions/0002)."""
     nearest_held_share: float = 0.5
     """``hierarchical``, with ``nearest_centre``: the nearest refined centre is overruled by the
     measurement's own 3D points. When the box of the landmark with the nearest centre holds less
-    than this share of the points and the box of another landmark of the class within reach
-    holds at least this share, the measurement goes to the one holding most. A mask that lies
-    mostly over one chair of a row and partly over the next has its box centre between the two,
-    often nearer the next one (the part on the next chair lies farther back, so it spans more
-    metres per pixel); most of its points lie on the chair it belongs to. The boxes are the
-    landmarks' own (refined pose and size), grown by ``held_margin_m``. 0: centres only, as
-    before. Beyond the paper; on the model measurements of seeds 1001-1005 (35 sequences,
-    with ``merge_fitting``) mean accuracy 98.71 -> 98.95 %, better than both baselines 26 -> 31
-    (docs/association.md, stage 4); shares 0.4 and 0.6 gave 98.82 and 98.84 %."""
+    than this share (0..1) of the points and the box of another landmark of the class within
+    reach holds at least this share, the measurement goes to the one holding most. A mask that
+    lies mostly over one chair of a row and partly over the next has its box centre between the
+    two, often nearer the next one (the part on the next chair lies farther back, so it spans
+    more metres per pixel); most of its points lie on the chair it belongs to. The boxes are the
+    landmarks' own (refined pose and size), grown by ``held_margin_m``. 0: centres only. Beyond
+    the paper (docs/decisions/0003)."""
     held_margin_m: float = 0.05
     """Growth of a landmark's box on every side for ``nearest_held_share``, metres: depth noise
     and a refined pose taken from one measurement put a surface point a few centimetres outside
-    the box. 0 to 0.08 m gave the same figures within 0.05 points of accuracy."""
+    the box."""
     merge_fitting: tuple[str, ...] = ("chair",)
     """``hierarchical``: classes whose two landmarks are merged whenever the box holding both
     fits one object of the class (``HdpConfig.class_size_m``), however little they overlap. The
     network sometimes finds a chair's backrest and its seat and legs apart, and the two
-    landmarks' boxes (a 7 cm slab at the back, the seat 0.3-0.4 m in front of it) share no
-    footprint, so ``merge_fragments`` kept them apart; the box holding both is one chair. Two
-    chairs of a row (0.55 m apart, 0.47 m wide) give a box about 1 m wide, above the 0.6 m
-    bound. Classes without a size bound are refused. Beyond the paper (docs/association.md,
-    Merging)."""
+    landmarks' boxes share no footprint, so ``merge_fragments`` keeps them apart; the box
+    holding both is one chair. Two chairs of a row give a box wider than the class bound.
+    Classes without a size bound are refused. Beyond the paper (docs/decisions/0005)."""
     size_percentile: float = 90.0
-    """Every method but ``per_keyframe_hdp``: a landmark's height is this percentile of its recent
-    measurements' heights, and so are its horizontal extents for ``full_extent_classes``; the
-    other horizontal extents are the median (:func:`landmark_size`). A view that sees less of
-    an object measures it smaller, never larger (a chair's legs only, a bed cut by the image
-    border), so the median of the sizes was short. On the model measurements of seeds
-    1001-1005 (35 sequences, hierarchical; landmarks on an object of their class), median
-    absolute height errors: chairs 5 -> 3 cm, IV poles 23 -> 1 cm, sinks 14 -> 3 cm,
-    wheelchairs 12 -> 2 cm, doors 3 -> 1 cm; association accuracy and counts unchanged (summed
-    count error 20 -> 20). 50: the median everywhere. Beyond the paper (docs/association.md,
-    stage 4)."""
+    """Every method but ``per_keyframe_hdp``: a landmark's height is this percentile (0..100) of
+    its recent measurements' heights, and so are its horizontal extents for
+    ``full_extent_classes``; the other horizontal extents are the median (:func:`landmark_size`).
+    A view that sees less of an object measures it smaller, never larger (a chair's legs only, a
+    bed cut by the image border), so the median of the sizes is short. 50: the median
+    everywhere. Beyond the paper (docs/decisions/0001)."""
     full_extent_classes: tuple[str, ...] = ("bed", "cabinet", "cart", "desk", "sink", "wheelchair")
     """Classes whose horizontal extents take ``size_percentile`` as well: objects the network
-    mostly sees in parts. On the same landmarks a bed's length was 52 cm off with the median and
-    3 cm with the 90th percentile, a cabinet's depth 11 -> 1 cm, a wheelchair's width 10 -> 5 cm.
-    Doors and wall monitors are left out: their masks spill onto the wall beside them, and the
-    90th percentile made doors 8-9 cm too wide instead of 4; chairs and IV poles are seen whole
-    and their median width is within 1-6 cm."""
+    mostly sees in parts. Doors and wall monitors are left out because their masks spill onto
+    the wall beside them, which a high percentile would count as width; chairs and IV poles
+    are seen whole (docs/decisions/0001)."""
     completed_when_cut: tuple[str, ...] = ("door",)
     """Classes whose measurements count as whole views when their box touches the image border:
     the in-group tracker keeps ``MotConfig.max_distance_m`` for them and the GMM
@@ -216,12 +189,9 @@ class AssociationConfig:
     The perception completes a door cut by a side border to the usual door width beyond it
     (``[perception.measure] clipped_width_m``, doors), so its centre is where a whole door's is;
     a cut at the top or bottom (a door seen close by) moves the centre in height only, where the
-    partial-view slack already allows for the shorter box. Widening the gate and sigma again let
-    a door's sliver at the left border join the neighbouring door's track (seed 1001
-    ward_chairs). Keep it to the classes of ``clipped_width_m``. Empty: every border-touching
-    view is partial. Beyond the paper; on the model measurements of seeds 1001-1005 (35
-    sequences) two sequences changed, both for the better (better than both baselines 24 -> 25;
-    docs/association.md)."""
+    partial-view slack already allows for the shorter box. Keep it to the classes of
+    ``clipped_width_m``. Empty: every border-touching view is partial. Beyond the paper
+    (docs/decisions/0009)."""
     keep_measurements: bool = True
     """Keep every measurement of a landmark in memory (the offline runner writes them all to
     landmarks.json). False: only the most recent ``max_history`` (plus the first, for
@@ -233,13 +203,11 @@ class AssociationConfig:
     view not cut by the left or right image border (``HdpConfig.border_px``), or one deeper
     than ``flat_m``, and in either case no wider than the class's largest object
     (``HdpConfig.class_size_m``) nor, when whole, narrower than its smallest (``min_width_m``).
-    The network takes a wall at the edge of the view, close by, for a cabinet
-    now and then; such a landmark holds only flat slivers cut by the image border, and a real
-    cabinet, bed or cart is soon seen whole or with depth. Unconfirmed landmarks stay in the
-    association and in the database; the map's queries leave them out unless asked
-    (``include_unconfirmed``). Empty: every landmark is confirmed. Beyond the paper; on the
-    model measurements of three sets of worlds (seeds 1001-1003, 21 sequences) it left 13
-    landmarks unconfirmed, all of them on no object."""
+    The network takes a wall at the edge of the view, close by, for a cabinet now and then;
+    such a landmark holds only flat slivers cut by the image border, and a real cabinet, bed or
+    cart is soon seen whole or with depth. Unconfirmed landmarks stay in the association and in
+    the database; the map's queries leave them out unless asked (``include_unconfirmed``).
+    Empty: every landmark is confirmed. Beyond the paper (docs/decisions/0006)."""
     flat_m: float = 0.05
     """The depth (the shorter horizontal extent, ``ObjectMeasurement.size[1]``) up to which a
     measurement cut by the image border counts as flat, metres (see ``confirm_classes``)."""
@@ -252,32 +220,24 @@ class AssociationConfig:
     class not in ``confirm_classes`` (doors) needs one such view too. For these classes and
     ``confirm_classes`` a view wider than the class's largest object (``HdpConfig.class_size_m``)
     holds parts of several and confirms nothing. The network takes a door frame or a strip of
-    wall for a door or a bed, whole in view but 0.04-0.39 m wide. Chairs are not listed: a chair
-    can be seen only as its legs (6-10 cm). Beyond the paper; on the model measurements of five
-    sets of worlds (seeds 1001-1005, 35 sequences; docs/association.md, Confirmation) counts
-    equal to the ground truth went from 15 to 21, no real object lost. Empty: no lower bound."""
+    wall for a door or a bed, whole in view but too narrow. Chairs are not listed: a chair can
+    be seen only as its legs. Empty: no lower bound. Beyond the paper (docs/decisions/0006)."""
     min_height_m: tuple[tuple[str, float], ...] = ()
     """``(class, metres)``: a view clear of the top and bottom image borders
     (``HdpConfig.border_px``) confirms a landmark of the class only when its height
     (``ObjectMeasurement.size[2]``) is at least this; a view cut at the top or bottom cannot
     show the height and is judged as before. A listed class needs such a view to be confirmed.
-    For a site whose wall posters the network takes for doors (the 20-epoch network does on the
-    simulator's corridor posters, 0.6 x 0.8 m, 1.55 m up): ``[["door", 1.0]]``. Not the
-    default: on the model measurements of seeds 1001-1005 (35 sequences, docs/association.md,
-    Confirmation) it left the seven door landmarks on no object unconfirmed, but also three
-    real doors seen once with only their upper 0.61-0.83 m, two of them on the benchmark's seed.
-    Empty: no lower bound."""
+    For a site whose wall posters the network takes for doors: ``[["door", 1.0]]``. Off by
+    default because it also unconfirms real doors seen once with only their upper part
+    (docs/decisions/0007). Empty: no lower bound."""
     max_range_m: float = 6.0
     """Measurements whose centre lies farther than this along the camera axis
     (``T_camera_object`` z, metres) are not associated (:func:`beyond_range`; every method).
-    Far views are the noisiest and the most often wrong: a corridor corner seen once from 7.9 m
-    taken for a cabinet, two neighbouring doors at a grazing view in one mask. They stay stored
+    Far views are the noisiest and the most often wrong (a corridor corner seen once from far
+    taken for a cabinet, two neighbouring doors at a grazing view in one mask). They stay stored
     with their keyframe, and :attr:`Associator.beyond_range` counts them; an object enters the
-    map once the robot sees it from nearer. Beyond the paper. Chosen on pickled model
-    measurements of the tuning worlds (seeds 1002 and 1003, 14 sequences): landmark count equal
-    to the ground truth 3 -> 5, better than both baselines 3 -> 10 at 6.0 m (7.0: 3 and 5, 6.5: 5
-    and 7, 5.5: 6 and 7); accuracy over seeds 1001-1003 97.4 -> 98.4 %. A large value turns it
-    off."""
+    map once the robot sees it from nearer. A large value turns it off. Beyond the paper
+    (docs/decisions/0008)."""
 
     def __post_init__(self) -> None:
         if self.max_history < 1:
@@ -613,9 +573,9 @@ class Associator:
     def _add(self, lm: _LandmarkState, mid: int, m: ObjectMeasurement, keyframe: int) -> None:
         """Give measurement ``mid`` to ``lm``. Without ``keep_measurements`` the landmark keeps it
         without its appearance (ORB descriptors, colour histogram): only the in-group tracker
-        compares appearance, on the keyframes' own measurements, and the two were 1.7 of a
-        measurement's 3.0 kB (pickled, mean over ward_chairs at seed 1001, masks and points
-        already dropped by the server). The change still reports ``m`` as given."""
+        compares appearance, on the keyframes' own measurements, and the two are most of a
+        measurement's memory once the server has dropped masks and points (docs/decisions/0010).
+        The change still reports ``m`` as given."""
         self._owner[mid] = lm.id
         kept = m if self.config.keep_measurements else \
             dataclasses.replace(m, descriptors=_NO_DESCRIPTORS, color_hist=_NO_HISTOGRAM)

@@ -92,11 +92,8 @@ class HdpConfig:
     parts_min_m: float = 0.8
     """Two partial views may lie ``S - (E_a + E_b) / 2`` apart (``class_size_m``) across groups
     only for classes at least this large horizontally (beds, doors, carts; the in-group tracker,
-    whose keyframes are consecutive, uses it for every listed class). Two partial views of a
-    chair in different groups are as often two of a row of chairs: on seed-1001 worlds with
-    oracle measurements it cost 0.3 points on two sequences and, with perturbed poses, 6.6
-    points on ward_chairs; with model measurements the tuning worlds (seed 1002) scored the
-    same accuracy either way."""
+    whose keyframes are consecutive, uses it for every listed class), metres. Two partial views
+    of a chair in different groups are as often two of a row of chairs (docs/decisions/0011)."""
     join_fragments: bool = True
     """Two different measurements of one keyframe stop a landmark (or two group landmarks) from
     holding both, unless their joint box fits within the class's size bound: then they may be
