@@ -41,18 +41,16 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _report import git_rev, machine, publish
 
-from wardmap.server.perception.instances import attach_gt_instances, id_to_class, oracle_instances
-from wardmap.server.perception.measure import MeasureConfig, measure_instances
-from wardmap.server.perception.models import (
-    OnnxSegmenter,
-    PerceptionConfig,
-    drop_misplaced,
-    floor_under,
-    make_segmenter,
-    measure_config_for,
-    packaged_model_path,
+from wardmap.server.perception.config import PerceptionConfig, measure_config_for
+from wardmap.server.perception.floor import drop_misplaced, floor_under
+from wardmap.server.perception.instances import (
+    attach_gt_instances,
+    id_to_class,
+    oracle_instances,
     split_instances,
 )
+from wardmap.server.perception.measure import MeasureConfig, measure_instances
+from wardmap.server.perception.models import OnnxSegmenter, make_segmenter, packaged_model_path
 from wardmap.server.perception.types import Instance, ObjectMeasurement
 from wardmap.shared.dataset import DatasetReader, Frame
 from wardmap.shared.knowledge import KnowledgeGraph

@@ -34,14 +34,15 @@ from numpy.typing import NDArray
 from wardmap.server.association.associator import METHODS, AssociationConfig, Associator, Method, beyond_range
 from wardmap.server.association.evaluate import score_landmarks
 from wardmap.server.association.types import Landmark
-from wardmap.server.perception.instances import attach_gt_instances, id_to_class, oracle_instances
-from wardmap.server.perception.measure import SKIP_KINDS, MeasureConfig, mean_rgb, measure_instances_report
-from wardmap.server.perception.models import (
-    PerceptionConfig,
-    drop_misplaced,
-    floor_under,
+from wardmap.server.perception.config import PerceptionConfig
+from wardmap.server.perception.floor import drop_misplaced, floor_under
+from wardmap.server.perception.instances import (
+    attach_gt_instances,
+    id_to_class,
+    oracle_instances,
     split_instances,
 )
+from wardmap.server.perception.measure import SKIP_KINDS, MeasureConfig, mean_rgb, measure_instances_report
 from wardmap.server.perception.types import Instance, ObjectMeasurement
 from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.config import load_config, to_mapping

@@ -47,7 +47,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from wardmap.server.perception.instances import clipped_side, densest_window, principal_direction, ring_around
+from wardmap.server.perception.masks import clipped_side, densest_window, principal_direction, ring_around
 from wardmap.server.perception.types import CLASS_SIZE_M, Instance, ObjectMeasurement
 from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.errors import ConfigError, GeometryError

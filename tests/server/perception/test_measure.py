@@ -7,28 +7,25 @@ import math
 import numpy as np
 import pytest
 
+from wardmap.server.perception.config import PerceptionConfig
+from wardmap.server.perception.floor import flat_on_floor, floating_above_floor, part_of_taller_surface
 from wardmap.server.perception.instances import (
     attach_gt_instances,
-    box_of_mask,
-    densest_window,
-    flat_on_floor,
-    floating_above_floor,
     gt_instance_of,
     id_to_class,
     instances_from_classes,
     merge_stacked,
     off_background_planes,
     oracle_instances,
-    part_of_taller_surface,
     split_side_by_side,
 )
+from wardmap.server.perception.masks import box_of_mask, densest_window
 from wardmap.server.perception.measure import (
     MeasureConfig,
     mean_rgb,
     measure_instances,
     measure_instances_report,
 )
-from wardmap.server.perception.models import PerceptionConfig
 from wardmap.server.perception.types import Instance
 from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.errors import ConfigError, DatasetError, GeometryError
@@ -693,7 +690,8 @@ def test_a_chair_floating_on_the_wall_is_flagged() -> None:
 
 
 def test_drop_floating_needs_a_known_floor() -> None:
-    from wardmap.server.perception.models import PerceptionConfig, drop_floating, floor_under
+    from wardmap.server.perception.config import PerceptionConfig
+    from wardmap.server.perception.floor import drop_floating, floor_under
 
     depth = corridor_depth()
     depth[106:152, 150:166] = 2.9
@@ -753,7 +751,7 @@ def test_a_strip_of_wall_taken_for_a_cabinet_is_a_piece_of_a_taller_surface() ->
 
 
 def test_drop_wall_pieces_by_default_and_only_with_a_floor() -> None:
-    from wardmap.server.perception.models import PerceptionConfig, drop_wall_pieces
+    from wardmap.server.perception.floor import drop_wall_pieces
 
     strip = box_instance("cabinet", slice(130, 200), slice(0, 20))
     chair = box_instance("chair", slice(150, 199), slice(100, 140))
@@ -802,7 +800,7 @@ def test_a_strip_of_floor_taken_for_a_cart_lies_flat_on_the_floor() -> None:
 
 
 def test_drop_floor_pieces_by_default_and_only_with_a_floor() -> None:
-    from wardmap.server.perception.models import PerceptionConfig, drop_floor_pieces
+    from wardmap.server.perception.floor import drop_floor_pieces
 
     strip = box_instance("cart", slice(222, 230), slice(100, 160))
     depth = corridor_depth(wall_m=4.0)
@@ -840,7 +838,7 @@ def test_drop_misplaced_runs_the_three_floor_checks_and_counts_each() -> None:
     """One call for the server, the offline runner and the bench: a floating "chair", a
     "cabinet" strip of wall and a "cart" strip on the floor are each left out by their own
     check and counted there; a standing chair stays; no floor keeps all four."""
-    from wardmap.server.perception.models import LeftOut, PerceptionConfig, drop_misplaced
+    from wardmap.server.perception.floor import LeftOut, drop_misplaced
 
     depth = room_depth()
     depth[150:199, 100:140] = 3.0  # a chair-high box on the floor, 1 m in front of the wall
