@@ -41,28 +41,23 @@ class PerceptionConfig:
     flip_average: bool = True
     """Segmentation network: run it on the image and on its mirror image and average the two
     logit maps (test-time augmentation; twice the network time). The network was trained on
-    flipped crops, so both views are as good and their errors partly cancel. Shipped model,
-    benchmark frames (seed 1001): mIoU 67.5 -> 69.1 %, every class up; validation worlds
-    (seed 1000): 62.5 -> 63.6 %, frames on robot trajectories 68.8 -> 70.8 %."""
+    flipped crops, so both views are as good and their errors partly cancel."""
     refine_edges: bool = True
     """Segmentation network: a pixel on a class boundary takes its class from the bilinearly
     upsampled logits instead of its nearest network cell (``upsample_classes`` in
     ``wardmap.shared.segmentation``; exact where a pixel's four cells agree, so only boundary
-    pixels are computed, about 3 ms a frame). Shipped model, benchmark frames (seed 1001):
-    mIoU +0.25 points, every class up or equal. The class map only: instances are cut from
-    the nearest cells' classes, as before (with the refined masks the association's object
-    counts fell, docs/perception.md)."""
+    pixels are computed). The class map only: instances are cut from the nearest cells'
+    classes, whose boundaries do not straddle depth edges."""
     placement_check: bool = True
     """Segmentation network: a region of a class the knowledge graph places on furniture
     (``placed_on``: cups and temperature guns on desks, cabinets, carts) that touches neither
     such furniture nor a person who carries it takes its next most likely class
-    (``PlacementRule``, docs/perception.md). The shipped network paints cups and temperature
-    guns on a sink's tap in the robot's views."""
+    (``PlacementRule``, docs/perception.md): a cup painted on a sink's tap is no cup."""
     min_region_confidence: float = 0.35
     """Segmentation network: a connected region of a class (not background) whose mean
     softmax confidence is lower takes its cells' next most likely classes, checked again until
-    none is vetoed, before the placement check (``drop_unsure_regions``, docs/perception.md;
-    chosen on the validation worlds). 0 turns it off."""
+    none is vetoed, before the placement check (``drop_unsure_regions``, docs/perception.md).
+    0 turns it off."""
     min_pixels: int = 400
     """Instances with fewer pixels are left out."""
     depth_jump_m: float = 0.15
@@ -70,52 +65,37 @@ class PerceptionConfig:
     depth_jump_relative: float = 0.05
     """... as a fraction of depth, when larger."""
     min_confidence: float = 0.7
-    """Segmentation network: instances whose mean softmax confidence is lower are left out
-    (on held-out seed-1002 worlds, 0.7 with ``min_pixels`` 400 raised the share of instances
-    on a real object from 57 % to 78 % and kept 70 % of those)."""
+    """Segmentation network: instances whose mean softmax confidence (0..1) is lower are left
+    out: the ragged fringes a network leaves where it hesitates between classes."""
     trim_classes: tuple[str, ...] = ("wheelchair", "cart", "iv_pole", "chair", "bed", "sink", "cabinet")
     """Segmentation network: classes whose regions lose the pixels on the wall and floor
     planes around them and split into the pieces that remain
     (``instances.off_background_planes``). The network's masks bleed onto the wall, which
-    joins a row of chairs into one region. On held-out seed-1002 worlds the share of
-    measurements on a real object went from 80.6 % to 90.1 % (chairs on ward_chairs: 67 of 170
-    to 455 of 552). Cabinets: seen along a corridor wall, their masks run onto the wall beside
-    them; trimmed, the cabinet centroid median on seeds 1001 / 1002 / 1003 went 23.5 / 20.6 /
-    15.1 -> 17.8 / 14.5 / 11.3 cm; over 35 association sequences counts equal to ground truth
-    went 21 -> 20 and better than both baselines stayed 23. Not for classes flush with a wall
-    (doors, wall monitors): trimming doors too (kept whole when trimming left under half,
-    pieces kept as one instance) brought the door centroid to 7.8 / 8.3 / 8.0 cm, but the
-    masks of two neighbouring doors then came apart in some keyframes and not in others, and
-    counts equal fell 21 -> 17 (docs/perception.md)."""
+    joins a row of chairs into one region and runs a cabinet's mask along a corridor wall.
+    Not for classes flush with a wall (doors, wall monitors): their pixels lie on the wall's
+    plane, so trimming cuts into the object itself."""
     split_width_m: tuple[tuple[str, float], ...] = (("chair", 0.5), ("door", 1.4))
-    """Segmentation network: ``[class, width]`` pairs. An instance of the class as wide as two
-    or more objects of ``width`` metres is cut into side-by-side pieces
-    (``instances.split_side_by_side``, needs the camera, so it runs where instances are
-    measured). Touching chairs in a row stay one region after trimming (a chair: 0.45-0.55 m;
-    0.5 cuts a region from 0.75 m, a mask over one and a half chairs, which 0.6 left whole and
-    whose measurement sat between two chairs: on the tuning worlds association accuracy 92.2 ->
-    94.6 %, chairs without a landmark of their own 5 -> 1);
-    the network's mask runs over the 0.4 m of wall between two neighbouring doors (a door
-    leaf is at most 1.3 m, so a door region of 2.1 m or more holds two). A class with a usual
-    width in ``measure.clipped_width_m`` (doors) is first cut at the gaps below its top line and,
+    """Segmentation network: ``[class, width]`` pairs, metres. An instance of the class as wide
+    as two or more objects of ``width`` is cut into side-by-side pieces
+    (``instances.split_side_by_side``): touching chairs in a row stay one region after
+    trimming (a chair is 0.45-0.55 m wide), and the network's mask runs over the wall between
+    two neighbouring doors (a door leaf is at most 1.3 m). A class with a usual width in
+    ``MeasureConfig.clipped_width_m`` (doors) is first cut at the gaps below its top line and,
     when its mask reaches a side border of the image, from its far end in steps of that width
     (``usual_width_m`` of ``split_side_by_side``; docs/perception.md, "Instances")."""
     stack_gap_m: tuple[tuple[str, float], ...] = (("chair", 0.1), ("iv_pole", 1.0))
-    """Segmentation network: ``[class, gap]`` pairs. Pieces of the class one above the other
-    with at most ``gap`` metres between them are joined (``instances.merge_stacked``): a
+    """Segmentation network: ``[class, gap]`` pairs, metres. Pieces of the class one above the
+    other with at most ``gap`` between them are joined (``instances.merge_stacked``): a
     chair's open back and its seat; an IV pole's bag and its base, the thin pole between
     them unsegmented."""
     floor_gap_m: tuple[tuple[str, float], ...] = (("chair", 0.6),)
-    """``[class, gap]`` pairs of floor-standing classes. An instance of the class whose lowest
-    point is more than ``gap`` metres above the floor, with the wall or floor in plain view
-    right below it, is not that object and is left out (``instances.floating_above_floor``;
-    every segmenter). Only where the floor is known: keyframes of a robot base
-    (``T_odom_base``), data sets with a ``[base]`` calibration. The network takes the red
-    fire extinguishers on the simulator's walls for red chairs: on the tuning worlds (seed
-    1002) 36 of the 68 chair measurements on no object floated, against 2 of 1,773 on a
-    chair, and association accuracy went 96.58 -> 97.43 % with 8 fewer landmarks. Doors,
-    cabinets, IV poles and wheelchairs are not in it: true ones float too often (a door
-    whose lower part is cut off, an IV pole whose thin lower pole is missed)."""
+    """``[class, gap]`` pairs of floor-standing classes, metres. An instance of the class whose
+    lowest point is more than ``gap`` above the floor, with the wall or floor in plain view
+    right below it, is not that object and is left out (``floor.floating_above_floor``; every
+    segmenter, where the floor is known: keyframes of a robot base (``T_odom_base``), data
+    sets with a ``[base]`` calibration): a red fire extinguisher on a wall taken for a red
+    chair. Classes whose true objects often seem to float are not in it: a door whose lower
+    part is out of view, an IV pole whose thin lower pole is missed."""
     max_top_m: tuple[tuple[str, float], ...] = tuple(
         (name, height) for name, _, height in CLASS_SIZE_M if name in _FLOOR_STANDING
     )
@@ -123,23 +103,17 @@ class PerceptionConfig:
     than ``top`` metres above the floor (the heights in ``types.CLASS_SIZE_M``). An instance of
     the class whose pixels lie on a surface that goes on, without a step in depth, above the
     mask to more than ``top`` + 0.3 m is a piece of a wall and is left out
-    (``instances.part_of_taller_surface``; every segmenter, where the floor is known). The
-    network now and then takes a strip of corridor wall at the image border for a cabinet;
-    above a real cabinet the camera sees the wall behind it, 0.5 m further away. On the
-    association bench's worlds (seeds 1001-1005, 35 sequences, model measurements) it left
-    out 14 cabinet measurements, 13 of them on no object; landmark counts and "better than
-    both" stayed the same. Doors are not in it: a door is flush with the wall above it."""
+    (``floor.part_of_taller_surface``; every segmenter, where the floor is known): a strip of
+    corridor wall at the image border taken for a cabinet. Above a real cabinet the camera
+    sees the wall behind it, a step further away. Doors are not in it: a door is flush with
+    the wall above it."""
     min_top_m: tuple[tuple[str, float], ...] = tuple((name, 0.2) for name in _ON_FLOOR_BODY)
     """``[class, top]`` pairs of floor-standing classes: every object of the class reaches at
-    least ``top`` metres above the floor. An instance of the class whose top lies lower is
-    left out (``instances.flat_on_floor``; every segmenter, where the floor is known). The
-    network calls the dark gap under a bed's footboard a cart now and then: in the demo's
-    ward (seed 0) it became a cart 6 cm tall on the map, 16 m from any cart. Objects of these
-    classes stand 0.4 m tall or more (0.93 m or more in the simulator's worlds). IV poles are
-    not in it (the network may find only a pole's base), nor doors and sinks (they do not
-    stand on the floor). On the association bench's worlds (seeds 1001-1005, 35 sequences)
-    it left out 103 network instances, each on an object of another class (96 "carts" on the
-    low part of beds); the landmark counts' summed error went 28 -> 27, the rest stayed."""
+    least ``top`` metres above the floor (they stand 0.4 m tall or more). An instance of the
+    class whose top lies lower is left out (``floor.flat_on_floor``; every segmenter, where the
+    floor is known): the dark gap under a bed's footboard taken for a cart. IV poles are not in
+    it (the network may find only a pole's base), nor doors and sinks (they do not stand on the
+    floor)."""
     score_threshold: float = 0.3
     """YOLOX: smallest detection score used."""
     nms_iou: float = 0.45

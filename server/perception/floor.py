@@ -83,7 +83,7 @@ def drop_floating(instances: Sequence[Instance], depth_m: NDArray[np.float32], c
                   config: PerceptionConfig, T_world_camera: NDArray[np.float64],
                   floor_z_m: float | None) -> tuple[list[Instance], int]:
     """``instances`` without those of the ``floor_gap_m`` classes that float above the floor
-    (:func:`~wardmap.server.perception.instances.floating_above_floor`), and how many were
+    (:func:`floating_above_floor`), and how many were
     left out. ``floor_z_m``: the floor's height in the frame of ``T_world_camera`` (world z
     up), metres; None (floor unknown: a hand-held camera) keeps every instance."""
     return _drop(instances, floor_z_m, config.floor_gap_m, lambda floor, table: floating_above_floor(
@@ -94,7 +94,7 @@ def drop_wall_pieces(instances: Sequence[Instance], depth_m: NDArray[np.float32]
                      config: PerceptionConfig, T_world_camera: NDArray[np.float64],
                      floor_z_m: float | None) -> tuple[list[Instance], int]:
     """``instances`` without those of the ``max_top_m`` classes that are a piece of a taller
-    surface (:func:`~wardmap.server.perception.instances.part_of_taller_surface`), and how
+    surface (:func:`part_of_taller_surface`), and how
     many were left out. ``floor_z_m`` as for :func:`drop_floating`; None keeps every instance."""
     return _drop(instances, floor_z_m, config.max_top_m, lambda floor, table: part_of_taller_surface(
         instances, depth_m, camera, T_world_camera, floor_z_m=floor, max_top_m=table))
@@ -104,7 +104,7 @@ def drop_floor_pieces(instances: Sequence[Instance], depth_m: NDArray[np.float32
                       config: PerceptionConfig, T_world_camera: NDArray[np.float64],
                       floor_z_m: float | None) -> tuple[list[Instance], int]:
     """``instances`` without those of the ``min_top_m`` classes that lie flat on the floor
-    (:func:`~wardmap.server.perception.instances.flat_on_floor`), and how many were left out.
+    (:func:`flat_on_floor`), and how many were left out.
     ``floor_z_m`` as for :func:`drop_floating`; None keeps every instance."""
     return _drop(instances, floor_z_m, config.min_top_m, lambda floor, table: flat_on_floor(
         instances, depth_m, camera, T_world_camera, floor_z_m=floor, min_top_m=table))
@@ -143,15 +143,13 @@ def floating_above_floor(
     class's ``max_gap_m`` above the floor and nothing hides what lies below them.
 
     A chair stands on the floor. A "chair" whose bottom is 0.65 m up a wall, with the wall
-    visible right below it, is something else: in the simulator a red fire extinguisher the
-    network takes for a red chair, which became a landmark of its own.
+    visible right below it, is something else: a red fire extinguisher taken for a red chair.
 
     The bottom height (metres above ``floor_z_m`` along ``up``) is the 10th percentile over
     the mask's columns of the ray through the column's lowest mask pixel, taken at the
     instance's median depth: chair legs without depth still reach the floor, and a mask
     nearer at the bottom than its median (an object seen lengthwise) comes out lower, not
-    higher. (The 2nd percentile of the back-projected depth pixels as a second estimate
-    changed nothing on the tuning worlds.)
+    higher.
     For each column, the valid depth ``band_px`` rows below its lowest mask pixel tells
     whether the view below is *hidden* (an occluder more than ``occluder_m`` nearer than
     the instance's median depth, or the mask reaches the image's last rows) or *open*
@@ -356,10 +354,10 @@ def flat_on_floor(
     the class's ``min_top_m`` above the floor.
 
     A cart is about a metre tall. A "cart" 6 cm tall along the floor is the dark gap under a
-    bed's footboard, which the network calls a cart now and then (it became a cart on the
-    demo's map, 16 m from any cart). The top is the ``top_percentile`` of the heights above
-    the floor of the mask's pixels with depth. A mask that reaches within ``edge_px`` of the
-    image's top row may go on above the view and is never flagged. An occluder above the mask
+    bed's footboard, which the network calls a cart now and then. The top is the
+    ``top_percentile`` of the heights above the floor of the mask's pixels with depth. A mask
+    that reaches within ``edge_px`` of the image's top row may go on above the view and is
+    never flagged. An occluder above the mask
     is no reason to keep it: what shows under a bed's footboard or a desk's front panel that
     low is no more than the feet of an object, and the gap under a footboard is nearer the
     floor than the footboard itself.

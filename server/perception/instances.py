@@ -402,11 +402,12 @@ def attach_gt_instances(
 
 def split_instances(instances: Sequence[Instance], depth_m: NDArray[np.float32], camera: PinholeCamera,
                     config: PerceptionConfig, spec: str) -> list[Instance]:
-    """The segmentation network's (``model`` specs) instances of the ``split_width_m`` classes cut
-    into side-by-side objects (:func:`~wardmap.server.perception.instances.split_side_by_side`),
-    then pieces of the ``stack_gap_m`` classes one above the other joined
-    (:func:`~wardmap.server.perception.instances.merge_stacked`: a chair's open back and its
-    seat); other segmenters' instances are returned unchanged (a detector boxes each chair)."""
+    """One instance per object: the segmentation network's (``model`` specs) instances of the
+    ``split_width_m`` classes cut into side-by-side objects (:func:`split_side_by_side`), then
+    pieces of the ``stack_gap_m`` classes one above the other joined (:func:`merge_stacked`: a
+    chair's open back and its seat); other segmenters' instances are returned unchanged (a
+    detector boxes each chair). ``depth_m``: float32 (H, W) metres, registered to the colour
+    image of ``camera``."""
     out = list(instances)
     if not spec.strip().startswith("model"):
         return out
@@ -421,8 +422,8 @@ def split_instances(instances: Sequence[Instance], depth_m: NDArray[np.float32],
 
 _LEAST_PART: float = 1 / 3
 """``split_side_by_side`` with a usual width: the least share of that width a piece at a side
-border of the image must span to be cut off and kept (session 31: 1/2 kept fewer real doors,
-docs/perception.md)."""
+border of the image must span to be cut off and kept; a narrower piece is a sliver (a door
+frame, a cabinet's side) that would be widened beyond the border into a door of its own."""
 
 
 def split_side_by_side(
@@ -461,8 +462,6 @@ def split_side_by_side(
             axis holds at least this share of its pixels with depth: one object, with a thin
             spill beyond it (a door's mask run along the flush wall at a grazing view), which
             the measurement's widest-object bound handles better than a cut through the object.
-            Seed-1002 worlds with 0.8 against none: association accuracy 97.47 -> 97.75 %, door
-            centroid median 11.1 -> 10.3 cm; seed 1003 door 17.7 cm both ways.
         usual_width_m: the usual width of one object (a site's doors, metres; None: the even
             cut above only). The mask is first cut at its gap columns, where it is a low strip
             below the objects' common top line (the wall between two doors; see
