@@ -152,21 +152,23 @@ def measure_keyframe(
     T = check_transform(T_world_camera, "T_world_camera")
     spec = config.segmenter if source is None else source
     truth = spec == ORACLE
-    given = list(instances(image, depth) if callable(instances) else instances)
+    given = list(instances(image, depth) if callable(instances) else instances)  # 1. find
     if not truth:
-        given = split_instances(given, depth, camera, config, spec)
-    kept = [inst for inst in given if inst.category not in moving]
+        given = split_instances(given, depth, camera, config, spec)  # 2. split
+    kept = [inst for inst in given if inst.category not in moving]  # 3. moving classes
     n_moving = len(given) - len(kept)
     left_out = LeftOut(0, 0, 0)
-    if not truth:
+    if not truth:  # 4. floor checks
         kept, left_out = drop_misplaced(kept, depth, camera, config, T, floor_z_m)
         if any(left_out):
             log.debug("keyframe %s: %d instance(s) float above the floor, %d lie on a taller surface, "
                       "%d lie flat on the floor; left out", keyframe, *left_out)
-    if instance_ids is not None:
+    if instance_ids is not None:  # 5. ground-truth ids
         kept = attach_gt_instances(kept, instance_ids)
-    report = measure_instances_report(kept, bgr=image, depth_m=depth, camera=camera, T_world_camera=T,
-                                      keyframe=keyframe, stamp=stamp, config=measure_config_for(config, spec))
+    report = measure_instances_report(  # 6. measurement
+        kept, bgr=image, depth_m=depth, camera=camera, T_world_camera=T, keyframe=keyframe, stamp=stamp,
+        config=measure_config_for(config, spec),
+    )
     return KeyframePerception(report.measurements, len(given), n_moving, left_out, report.skipped)
 
 
