@@ -41,19 +41,13 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _report import git_rev, machine, publish
 
-from wardmap.server.perception.instances import attach_gt_instances, id_to_class, oracle_instances
+from wardmap.server.perception.config import PerceptionConfig, measure_config_for
+from wardmap.server.perception.floor import floor_under
+from wardmap.server.perception.instances import id_to_class, oracle_instances
+from wardmap.server.perception.keyframe import ORACLE, measure_keyframe
 from wardmap.server.perception.measure import MeasureConfig, measure_instances
-from wardmap.server.perception.models import (
-    OnnxSegmenter,
-    PerceptionConfig,
-    drop_misplaced,
-    floor_under,
-    make_segmenter,
-    measure_config_for,
-    packaged_model_path,
-    split_instances,
-)
-from wardmap.server.perception.types import Instance, ObjectMeasurement
+from wardmap.server.perception.models import OnnxSegmenter, make_segmenter, packaged_model_path
+from wardmap.server.perception.types import ObjectMeasurement
 from wardmap.shared.dataset import DatasetReader, Frame
 from wardmap.shared.knowledge import KnowledgeGraph
 from wardmap.sim.runner import generate
@@ -175,17 +169,6 @@ def bgr_of(frame: Frame) -> np.ndarray:
     return np.ascontiguousarray(frame.rgb[..., ::-1])
 
 
-def measure(reader: DatasetReader, frame: Frame, instances: list[Instance]
-            ) -> tuple[list[ObjectMeasurement], int]:
-    keep = [i for i in instances if i.category != "person"]
-    assert frame.T_world_camera is not None
-    ms = measure_instances(keep, bgr=bgr_of(frame), depth_m=frame.depth_m, camera=reader.calibration.rgb,
-                           T_world_camera=frame.T_world_camera,
-                           keyframe=f"{reader.root.name}/{frame.stamp:.6f}",
-                           stamp=frame.stamp)
-    return ms, len(keep) - len(ms)
-
-
 def class_image(labels: np.ndarray, truth: Truth, names: tuple[str, ...]) -> np.ndarray:
     """Knowledge-graph class index per pixel from the instance-id label image."""
     lut = np.zeros(int(labels.max()) + 1, np.uint8)
@@ -276,11 +259,14 @@ def main() -> int:
     kg = KnowledgeGraph.load()
     names = ("background", *kg.names)
     model_path = args.model or packaged_model_path()
+    model_spec = f"model:{model_path}"
     model: OnnxSegmenter | None = None
     if model_path.is_file():
-        seg = make_segmenter(f"model:{model_path}", threads=1)
+        seg = make_segmenter(model_spec, threads=1)
         assert isinstance(seg, OnnxSegmenter)
         model = seg
+    perception = PerceptionConfig()
+    moving = kg.moving_classes()
     oracle, learned = Scores(), Scores()
     floating = walls = floors = 0
     confusion = np.zeros((len(names), len(names)), np.int64)
@@ -292,16 +278,23 @@ def main() -> int:
         reader = dataset(args.data, scene, args.seed, args.frames)
         truth = Truth.load(reader)
         cam = reader.calibration.rgb
+        T_base_rgb = reader.calibration.T_base_rgb
         for i in range(0, len(reader), args.every):
             frame = reader.frame(i)
             if frame.labels is None or frame.T_world_camera is None:
                 continue
             keyframes += 1
+            key = f"{reader.root.name}/{frame.stamp:.6f}"
             started = time.perf_counter()
-            ms, skipped = measure(reader, frame, oracle_instances(frame.labels, truth.classes))
+            # The server's perception steps (keyframe.measure_keyframe): people left out, the
+            # ground truth neither split nor checked against the floor.
+            seen = measure_keyframe(bgr_of(frame), frame.depth_m, cam, frame.T_world_camera, keyframe=key,
+                                    stamp=frame.stamp, floor_z_m=None,
+                                    instances=oracle_instances(frame.labels, truth.classes),
+                                    config=perception, moving=moving, source=ORACLE)
             measure_ms.append((time.perf_counter() - started) * 1e3)
-            oracle.skipped += skipped
-            for m in ms:
+            oracle.skipped += len(seen.skipped)
+            for m in seen.measurements:
                 oracle.add(m, truth, cam.width, cam.height)
             if model is None:
                 continue
@@ -313,18 +306,18 @@ def main() -> int:
             gt = class_image(frame.labels, truth, names)
             confusion += np.bincount(gt.ravel().astype(np.int64) * len(names) + classes.ravel(),
                                      minlength=len(names) ** 2).reshape(len(names), len(names))
-            # As the server does: touching chairs in one mask are cut apart before measuring.
-            cut = split_instances(out.instances, frame.depth_m, cam, PerceptionConfig(), "model")
-            T_base_rgb = reader.calibration.T_base_rgb
+            # As the server does (keyframe.measure_keyframe): touching chairs in one mask cut
+            # apart, people left out, misplaced instances left out where the floor is known.
             floor = None if T_base_rgb is None else floor_under(frame.T_world_camera, T_base_rgb)
-            T_wc = frame.T_world_camera
-            cut, left = drop_misplaced(cut, frame.depth_m, cam, PerceptionConfig(), T_wc, floor)
-            floating += left.floating
-            walls += left.walls
-            floors += left.floors
-            ms, skipped = measure(reader, frame, attach_gt_instances(cut, frame.labels))
-            learned.skipped += skipped
-            for m in ms:
+            seen = measure_keyframe(bgr_of(frame), frame.depth_m, cam, frame.T_world_camera, keyframe=key,
+                                    stamp=frame.stamp, floor_z_m=floor, instances=out.instances,
+                                    config=perception, moving=moving, source=model_spec,
+                                    instance_ids=frame.labels)
+            floating += seen.left_out.floating
+            walls += seen.left_out.walls
+            floors += seen.left_out.floors
+            learned.skipped += len(seen.skipped)
+            for m in seen.measurements:
                 learned.add(m, truth, cam.width, cam.height)
         print(f"{scene}: done", file=sys.stderr)
 

@@ -3,10 +3,12 @@
 For each data set: choose keyframes from the camera poses (ground truth, or a TUM
 trajectory given with ``--poses``), find object instances (``oracle``: the simulator's
 label images and ``objects.json``; ``model``: the trained segmenter, ground-truth
-instance ids attached from the labels when present), measure them in 3D
-(``server/perception/measure.py``), leave out ``moving`` classes (people), then feed the
-keyframes to an :class:`~wardmap.server.association.associator.Associator` (the same
-code the live server runs) and write ``landmarks.json`` (format in docs/association.md).
+instance ids attached from the labels when present) and measure them in 3D with the
+server's perception steps (``server/perception/keyframe.py``: ``moving`` classes such as
+people left out, and for the model its instances split and checked against the floor when
+the data set has a ``[base]`` calibration), then feed the keyframes to an
+:class:`~wardmap.server.association.associator.Associator` (the same code the live server
+runs) and write ``landmarks.json`` (format in docs/association.md).
 
 Several data sets are associated into one map in the order given; their poses must be
 in one world frame (true for the simulator's robots of one world). No group spans two
@@ -34,14 +36,11 @@ from numpy.typing import NDArray
 from wardmap.server.association.associator import METHODS, AssociationConfig, Associator, Method, beyond_range
 from wardmap.server.association.evaluate import score_landmarks
 from wardmap.server.association.types import Landmark
-from wardmap.server.perception.instances import attach_gt_instances, id_to_class, oracle_instances
-from wardmap.server.perception.measure import SKIP_KINDS, MeasureConfig, mean_rgb, measure_instances_report
-from wardmap.server.perception.models import (
-    PerceptionConfig,
-    drop_misplaced,
-    floor_under,
-    split_instances,
-)
+from wardmap.server.perception.config import PerceptionConfig
+from wardmap.server.perception.floor import floor_under
+from wardmap.server.perception.instances import id_to_class, oracle_instances
+from wardmap.server.perception.keyframe import FindInstances, measure_keyframe
+from wardmap.server.perception.measure import SKIP_KINDS, MeasureConfig, mean_rgb
 from wardmap.server.perception.types import Instance, ObjectMeasurement
 from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.config import load_config, to_mapping
@@ -178,16 +177,13 @@ def _frame_poses(reader: DatasetReader, poses: Path | None) -> list[F64 | None]:
     return [pose_at(stamps, T, float(t)) for t in reader.stamps]
 
 
-Segmenter = Callable[[NDArray[np.uint8], NDArray[np.float32]], list[Instance]]
-
-
-def _segmenter(source: MeasurementSource) -> Segmenter:
+def _segmenter(source: MeasurementSource) -> FindInstances:
     try:
         from wardmap.server.perception.models import make_segmenter
     except ImportError as exc:
         raise WardmapError(f"--measurements model: the segmentation model adapter is not available ({exc})") \
             from exc
-    seg: Segmenter = make_segmenter(source)
+    seg: FindInstances = make_segmenter(source)
     return seg
 
 
@@ -253,6 +249,7 @@ def measure_dataset(
     moving = floating = walls = floors = 0
     skipped: Counter[str] = Counter()
     T_base_rgb = reader.calibration.T_base_rgb
+    moving_classes = kg.moving_classes()
     for done, i in enumerate(chosen):
         frame = reader.frame(i)
         T = frame_poses[i]
@@ -260,27 +257,26 @@ def measure_dataset(
             raise DatasetError(f"{reader.root}: frame {i} has no pose")
         bgr: NDArray[np.uint8] = np.ascontiguousarray(cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR),
                                                       dtype=np.uint8)
+        found: FindInstances | list[Instance]
         if segment is None:
             if frame.labels is None or gt_classes is None:
                 raise DatasetError(f"{reader.root}: frame {frame.stamp:.6f} has no label image")
-            instances = oracle_instances(frame.labels, gt_classes, min_pixels=cfg.min_pixels)
+            found = oracle_instances(frame.labels, gt_classes, min_pixels=cfg.min_pixels)
         else:
-            instances = split_instances(segment(bgr, frame.depth_m), frame.depth_m, camera, perception,
-                                        "model")
-            floor_z = None if T_base_rgb is None else floor_under(T, T_base_rgb)
-            instances, left = drop_misplaced(instances, frame.depth_m, camera, perception, T, floor_z)
-            floating += left.floating
-            walls += left.walls
-            floors += left.floors
-            if frame.labels is not None:
-                instances = attach_gt_instances(instances, frame.labels)
-        kept = [inst for inst in instances if not kg.is_moving(inst.category)]
-        moving += len(instances) - len(kept)
+            found = segment
         key = f"{name}/{frame.stamp:.6f}"
-        report = measure_instances_report(kept, bgr=bgr, depth_m=frame.depth_m, camera=camera,
-                                          T_world_camera=T, keyframe=key, stamp=frame.stamp, config=mcfg)
-        ms = report.measurements
-        skipped.update(skip.kind for skip in report.skipped)
+        seen = measure_keyframe(
+            bgr, frame.depth_m, camera, T, keyframe=key, stamp=frame.stamp,
+            floor_z_m=None if T_base_rgb is None else floor_under(T, T_base_rgb),
+            instances=found, config=perception, moving=moving_classes, source=measurements,
+            instance_ids=frame.labels if segment is not None else None,
+        )
+        moving += seen.moving
+        floating += seen.left_out.floating
+        walls += seen.left_out.walls
+        floors += seen.left_out.floors
+        skipped.update(seen.skipped_by_kind())
+        ms = seen.measurements
         keyframes.append(KeyframeMeasurements(key, frame.stamp, T, tuple(_slim(m, cfg.keep_points)
                                                                           for m in ms)))
         if progress is not None:

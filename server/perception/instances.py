@@ -1,30 +1,32 @@
-"""Instances from label images: simulator ground truth and per-pixel class maps.
+"""Instances: found in a segmentation network's class map or read from the simulator's
+ground truth, then split into one instance per object.
 
-- :func:`oracle_instances`: one instance per simulator instance id (``labels/<stamp>.png``,
-  ``docs/dataset.md``), confidence 1, class from ``objects.json``.
-- :func:`instances_from_classes`: per-class connected components of a segmentation
-  network's class map, split where the depth jumps (issue 5 "Inference"): two chairs of
-  the same class that overlap in the image but stand at different depths become two
-  instances.
+From a network's class map (:class:`~wardmap.server.perception.models.OnnxSegmenter`):
+
+- :func:`instances_from_classes`: per-class connected components of the class map, split
+  where the depth jumps: two chairs of the same class that overlap in the image but stand at
+  different depths become two instances;
 - :func:`off_background_planes`: the pixels of a mask that lie on the wall or floor around
   it; :func:`instances_from_classes` drops them for the classes it is told to trim, which
   splits chairs that the network's bleed onto the wall joined into one region.
-- :func:`split_side_by_side`: an instance as wide as two or more objects of its class (touching
-  chairs in a row) cut into side-by-side pieces at the gaps, using depth and the camera;
-  doors also where the mask drops below their common top line, and from the far end when the
-  mask is cut by the image border.
-- :func:`merge_stacked`: pieces of one object that trimming cut apart one above the other (a
-  chair's open back above its seat) joined again.
-- :func:`floating_above_floor`: instances of floor-standing classes that end in mid-air with
-  free space below them (a red fire extinguisher on the wall taken for a chair).
-- :func:`part_of_taller_surface`: instances of floor-standing classes whose pixels lie on a
-  surface that rises, unbroken, higher than any object of the class (a strip of corridor wall
-  at the image border taken for a cabinet).
+
+Ground truth (the simulator's label images, ``docs/dataset.md``):
+
+- :func:`oracle_instances`: one instance per simulator instance id, confidence 1, class
+  from ``objects.json`` (:func:`id_to_class`);
 - :func:`attach_gt_instances`: the simulator id most of each mask covers, for scoring
   model or detector instances against ground truth.
 
-Pixel boxes follow ``shared/detection.py``: ``(x1, y1, x2, y2)`` with the top-left image
-corner at (0, 0), so a mask reaching the last column has ``x2 = W``.
+One instance per object (:func:`split_instances`, the network's instances only):
+
+- :func:`split_side_by_side`: an instance as wide as two or more objects of its class
+  (touching chairs in a row) cut into side-by-side pieces at the gaps, using depth and the
+  camera; doors also where the mask drops below their common top line, and from the far end
+  when the mask is cut by the image border;
+- :func:`merge_stacked`: pieces of one object that trimming cut apart one above the other (a
+  chair's open back above its seat) joined again.
+
+Pixel boxes follow ``shared/detection.py`` (``masks.box_of_mask``).
 """
 
 from __future__ import annotations
@@ -40,36 +42,388 @@ from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
 from scipy.stats import siegelslopes
 
+from wardmap.server.perception.config import PerceptionConfig
+from wardmap.server.perception.masks import (
+    Mask,
+    box_of_mask,
+    clipped_side,
+    densest_window,
+    fit_inverse_depth_plane,
+    principal_direction,
+    ring_around,
+)
 from wardmap.server.perception.types import Instance
 from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.errors import DatasetError, GeometryError
 
 __all__ = [
     "attach_gt_instances",
-    "box_of_mask",
-    "clipped_side",
-    "flat_on_floor",
-    "floating_above_floor",
     "gt_instance_of",
     "id_to_class",
     "instances_from_classes",
     "merge_stacked",
     "off_background_planes",
     "oracle_instances",
-    "part_of_taller_surface",
-    "principal_direction",
-    "ring_around",
+    "split_instances",
     "split_side_by_side",
 ]
 
 log = logging.getLogger(__name__)
 
-Mask = NDArray[np.bool_]
+
+
+def instances_from_classes(
+    class_map: NDArray[np.uint8],
+    depth_m: NDArray[np.float32],
+    class_names: Sequence[str],
+    confidences: NDArray[np.float32] | None = None,
+    *,
+    depth_jump_m: float = 0.15,
+    depth_jump_relative: float = 0.05,
+    min_pixels: int = 200,
+    min_confidence: float = 0.0,
+    trim_classes: Sequence[int] = (),
+) -> list[Instance]:
+    """Instances of a per-pixel class map: per-class connected components split at depth jumps.
+
+    A pixel is cut from its class region when a 4-neighbour of the same class is nearer
+    by more than ``max(depth_jump_m, depth_jump_relative * depth)`` (the far side of a
+    discontinuity; the relative term follows the depth noise of structured-light
+    sensors). The remaining pixels form 4-connected components; cut pixels then join a
+    neighbouring component of similar depth. Pixels without depth (0) never cut.
+
+    Args:
+        class_map: uint8 (H, W) class index per pixel, 0 = background.
+        depth_m: float32 (H, W) depth along the camera z axis in metres, 0 = no data.
+        class_names: index -> class name; ``class_names[0]`` is the background.
+        confidences: float32 (H, W) per-pixel score in 0..1 (e.g. softmax max), or None
+            for confidence 1. An instance's confidence is the mean over its mask.
+        depth_jump_m: smallest depth step (metres) that separates instances.
+        depth_jump_relative: the step threshold as a fraction of depth, when larger.
+        min_pixels: components with fewer pixels are left out (logged at debug).
+        min_confidence: components whose mean confidence is lower are left out (logged at
+            debug): the ragged fringes a network leaves where it hesitates between classes.
+        trim_classes: class indices whose components lose the pixels on the planes around
+            them (:func:`off_background_planes`; chairs, carts, not doors flush with a wall);
+            what remains is split into 4-connected pieces, each one instance when it has
+            ``min_pixels``.
+
+    Returns:
+        Instances ordered by class index, then by component size (largest first).
+
+    Raises:
+        GeometryError: shapes or dtypes do not match, or a class index has no name.
+    """
+    classes = _check_image("instances_from_classes: class_map", class_map, (np.uint8,))
+    depth = np.asarray(depth_m, dtype=np.float32)
+    if depth.shape != classes.shape:
+        raise GeometryError(f"instances_from_classes: depth {depth.shape} != class map {classes.shape}")
+    conf = None
+    if confidences is not None:
+        conf = np.asarray(confidences, dtype=np.float32)
+        if conf.shape != classes.shape:
+            raise GeometryError(
+                f"instances_from_classes: confidences {conf.shape} != class map {classes.shape}"
+            )
+    if not (depth_jump_m > 0 and depth_jump_relative >= 0):
+        raise GeometryError("instances_from_classes: depth_jump_m must be > 0, depth_jump_relative >= 0")
+    if not 0.0 <= min_confidence <= 1.0:
+        raise GeometryError(f"instances_from_classes: min_confidence must lie in 0..1, got {min_confidence}")
+    depth = np.where(np.isfinite(depth) & (depth > 0), depth, np.float32(0.0)).astype(np.float32)
+    jump = np.maximum(np.float32(depth_jump_m), np.float32(depth_jump_relative) * depth)
+    present = np.unique(classes)
+    if present.size and int(present[-1]) >= len(class_names):
+        raise GeometryError(
+            f"instances_from_classes: class index {int(present[-1])} but only {len(class_names)} class names"
+        )
+    cut = _far_side_of_jump(classes, depth, jump)
+    labels = np.zeros(classes.shape, np.int32)
+    class_of: list[int] = [0]  # class index of each label
+    for index in present.tolist():
+        if index == 0:
+            continue
+        region = classes == index
+        rows = np.flatnonzero(region.any(axis=1))
+        cols = np.flatnonzero(region.any(axis=0))
+        window = np.s_[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1]
+        inside = (region[window] & ~cut[window]).astype(np.uint8)
+        count, comp = cv2.connectedComponents(inside, connectivity=4)
+        comp = comp.astype(np.int32)
+        comp[comp > 0] += len(class_of) - 1
+        labels[window] = np.where(comp > 0, comp, labels[window])
+        class_of.extend([index] * (count - 1))
+    _grow_into(labels, classes, depth, cut & (labels == 0), jump)
+    sizes = np.bincount(labels.ravel(), minlength=len(class_of))
+    out: list[Instance] = []
+    small = unsure = 0
+    for index in present.tolist():
+        if index == 0:
+            continue
+        ks = [k for k in range(1, len(class_of)) if class_of[k] == index]
+        for k in sorted(ks, key=lambda k: -sizes[k]):
+            if sizes[k] < min_pixels:
+                small += 1 if sizes[k] > 0 else 0
+                continue
+            mask = labels == k
+            pieces = [mask]
+            if index in trim_classes:
+                pieces = _pieces(mask & ~off_background_planes(mask, depth), min_pixels)
+                small += not pieces
+            for piece in pieces:
+                score = float(conf[piece].mean()) if conf is not None else 1.0
+                if score < min_confidence:
+                    unsure += 1
+                    continue
+                out.append(Instance(class_names[index], score, piece, box_of_mask(piece)))
+    if small or unsure:
+        log.debug("instances_from_classes: left out %d component(s) below %d pixels and %d below "
+                  "confidence %.2f", small, min_pixels, unsure, min_confidence)
+    return out
+
+
+_NEIGHBOURS = (
+    # (p, q) slices pairing every pixel p with its left, right, upper and lower neighbour q.
+    (np.s_[:, 1:], np.s_[:, :-1]),
+    (np.s_[:, :-1], np.s_[:, 1:]),
+    (np.s_[1:, :], np.s_[:-1, :]),
+    (np.s_[:-1, :], np.s_[1:, :]),
+)
+
+
+def _far_side_of_jump(classes: NDArray[np.uint8], depth_m: NDArray[np.float32],
+                      jump: NDArray[np.float32]) -> Mask:
+    """Pixels that have a 4-neighbour of the same (non-background) class nearer by more than their jump."""
+    cut = np.zeros(depth_m.shape, dtype=bool)
+    valid = (depth_m > 0) & (classes > 0)
+    for p, q in _NEIGHBOURS:
+        ok = valid[p] & valid[q] & (classes[p] == classes[q])
+        cut[p] |= ok & (depth_m[p] - depth_m[q] > jump[p])
+    return cut
+
+
+def _grow_into(labels: NDArray[np.int32], classes: NDArray[np.uint8], depth_m: NDArray[np.float32],
+               todo: Mask, jump: NDArray[np.float32]) -> None:
+    """Give each ``todo`` pixel the label of a same-class labelled 4-neighbour within its jump (in place)."""
+    for _ in range(2):
+        if not todo.any():
+            return
+        for p, q in _NEIGHBOURS:
+            take = todo[p] & (labels[q] > 0) & (classes[p] == classes[q])
+            take &= np.abs(depth_m[p] - depth_m[q]) <= jump[p]
+            labels[p][take] = labels[q][take]
+            todo[p] &= ~take
+
+
+def off_background_planes(
+    mask: Mask,
+    depth_m: NDArray[np.float32],
+    *,
+    ring_px: int = 8,
+    tolerance_m: float = 0.03,
+    tolerance_relative: float = 0.01,
+    min_share: float = 0.25,
+    max_planes: int = 2,
+    iterations: int = 48,
+    max_ring_samples: int = 600,
+    seed: int = 0,
+) -> Mask:
+    """Pixels of ``mask`` that lie on a plane of the surfaces around it (wall, floor).
+
+    A network's mask bleeds a few pixels onto the wall and floor an object stands by; where
+    identical chairs stand in a row, the bleed joins them into one region. The surroundings
+    are a ring of pixels ``ring_px`` wide starting 2 px outside the mask. Up to ``max_planes``
+    planes are fitted to the ring's depth by RANSAC, each one explaining at least
+    ``min_share`` of the ring. A plane is affine in inverse depth over the image
+    (``1/z = a u + b v + c`` for a pinhole camera; lens distortion is ignored), so no
+    intrinsics are needed. A mask pixel lies on a plane when its depth is within
+    ``max(tolerance_m, tolerance_relative * z)`` of the plane's. At most
+    ``max_ring_samples`` ring pixels (a seeded random subset) are used for the fit.
+
+    Args:
+        mask: bool (H, W) one instance.
+        depth_m: float32 (H, W) metres, 0 = no data (such pixels are never on a plane).
+
+    Returns:
+        bool (H, W): the mask's pixels on a background plane (all False when the ring has
+        too little depth or no plane explains enough of it).
+    """
+    out = np.zeros(mask.shape, dtype=bool)
+    around = ring_around(mask, ring_px)
+    if around is None:
+        return out
+    window, m, ring = around
+    d = depth_m[window].astype(np.float64)
+    ring &= d > 0
+    rr, rc = np.nonzero(ring)
+    if rr.size < 50:
+        return out
+    rng = np.random.default_rng(seed)
+    if rr.size > max_ring_samples:
+        keep = rng.choice(rr.size, size=max_ring_samples, replace=False)
+        rr, rc = rr[keep], rc[keep]
+    z = d[rr, rc]
+    u, v = rc.astype(np.float64), rr.astype(np.float64)
+    tol = np.maximum(tolerance_m, tolerance_relative * z)
+    mr, mc = np.nonzero(m & (d > 0))
+    zm = d[mr, mc]
+    tol_m = np.maximum(tolerance_m, tolerance_relative * zm)
+    on = np.zeros(mr.size, dtype=bool)
+    left = np.ones(rr.size, dtype=bool)
+    for _ in range(max_planes):
+        if left.sum() < max(50, min_share * rr.size):
+            break
+        idx = np.flatnonzero(left)
+        coef, inl = fit_inverse_depth_plane(u[idx], v[idx], z[idx], tol[idx], rng, iterations)
+        if coef is None or inl.sum() < min_share * rr.size:
+            break
+        left[idx[inl]] = False
+        wp = coef[0] * mc + coef[1] * mr + coef[2]
+        on |= (wp > 0) & (np.abs(1.0 / np.where(wp > 0, wp, 1.0) - zm) <= tol_m)
+    out[window][mr[on], mc[on]] = True
+    return out
+
+
+def _pieces(mask: Mask, min_pixels: int) -> list[Mask]:
+    """4-connected pieces of ``mask`` with at least ``min_pixels`` pixels, largest first."""
+    rows = np.flatnonzero(mask.any(axis=1))
+    cols = np.flatnonzero(mask.any(axis=0))
+    if rows.size == 0:
+        return []
+    window = np.s_[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1]
+    count, comp = cv2.connectedComponents(mask[window].astype(np.uint8), connectivity=4)
+    sizes = np.bincount(comp.ravel(), minlength=count)
+    out = []
+    for k in np.argsort(-sizes[1:], kind="stable") + 1:
+        if sizes[k] < min_pixels:
+            break
+        piece = np.zeros(mask.shape, dtype=bool)
+        piece[window] = comp == k
+        out.append(piece)
+    return out
+
+
+def _check_image(name: str, image: ArrayLike, dtypes: tuple[type, ...]) -> NDArray[Any]:
+    a = np.asarray(image)
+    if a.ndim != 2 or 0 in a.shape or a.dtype.type not in dtypes:
+        want = "/".join(np.dtype(d).name for d in dtypes)
+        raise GeometryError(f"{name}: expected a non-empty {want} (H, W) image, got {a.dtype} {a.shape}")
+    return a
+
+
+def id_to_class(objects_document: Mapping[str, Any]) -> dict[int, str]:
+    """Instance id -> class name from a parsed ``objects.json`` (``DatasetReader.objects()``).
+
+    Raises:
+        DatasetError: the document has no ``objects`` list or an object lacks ``id``/``class``.
+    """
+    objects = objects_document.get("objects")
+    if not isinstance(objects, list):
+        raise DatasetError("objects.json: 'objects' must be a list")
+    out: dict[int, str] = {}
+    for i, obj in enumerate(objects):
+        try:
+            out[int(obj["id"])] = str(obj["class"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise DatasetError(f"objects.json: objects[{i}] needs an integer 'id' and a 'class'") from exc
+    return out
+
+
+def oracle_instances(
+    instance_ids: NDArray[np.uint16],
+    id_to_class: Mapping[int, str],
+    *,
+    min_pixels: int = 200,
+) -> list[Instance]:
+    """Ground-truth instances of one simulator label image.
+
+    Args:
+        instance_ids: uint16 (H, W) simulator instance ids, 0 = no object.
+        id_to_class: instance id -> knowledge-graph class (:func:`id_to_class`).
+        min_pixels: instances covering fewer pixels are left out (logged at debug).
+
+    Returns:
+        One :class:`Instance` per id with at least ``min_pixels`` pixels, in increasing id
+        order, every class included (callers filter ``person`` etc.); confidence 1 and
+        ``gt_instance`` = the id.
+
+    Raises:
+        GeometryError: ``instance_ids`` is not a 2-D integer image.
+        DatasetError: an id in the image has no class in ``id_to_class``.
+    """
+    ids = _check_image("oracle_instances", instance_ids, (np.uint16, np.uint8, np.int32, np.int64))
+    values, counts = np.unique(ids, return_counts=True)
+    out: list[Instance] = []
+    small = 0
+    for value, count in zip(values.tolist(), counts.tolist(), strict=True):
+        if value == 0:
+            continue
+        category = id_to_class.get(int(value))
+        if category is None:
+            raise DatasetError(f"label image: instance id {value} has no object in objects.json")
+        if count < min_pixels:
+            small += 1
+            continue
+        mask = ids == value
+        out.append(Instance(category, 1.0, mask, box_of_mask(mask), gt_instance=int(value)))
+    if small:
+        log.debug("oracle_instances: %d instance(s) below %d pixels left out", small, min_pixels)
+    return out
+
+
+def gt_instance_of(mask: Mask, instance_ids: NDArray[np.uint16], min_fraction: float = 0.5) -> int | None:
+    """The most frequent non-zero simulator id under ``mask`` if it covers ``min_fraction`` of it, else None.
+
+    Pixels with id 0 ("no object") count in the denominator, so a mask mostly on the wall gives None.
+    """
+    if mask.shape != instance_ids.shape:
+        raise GeometryError(f"gt_instance_of: mask {mask.shape} != labels {instance_ids.shape}")
+    under = instance_ids[mask]
+    if under.size == 0:
+        return None
+    values, counts = np.unique(under[under != 0], return_counts=True)
+    if values.size == 0:
+        return None
+    best = int(np.argmax(counts))
+    if counts[best] < min_fraction * under.size:
+        return None
+    return int(values[best])
+
+
+def attach_gt_instances(
+    instances: Sequence[Instance], instance_ids: NDArray[np.uint16], min_fraction: float = 0.5
+) -> list[Instance]:
+    """Copies of ``instances`` with ``gt_instance`` set by :func:`gt_instance_of` (model or detector)."""
+    ids = _check_image("attach_gt_instances", instance_ids, (np.uint16, np.uint8, np.int32, np.int64))
+    return [
+        dataclasses.replace(inst, gt_instance=gt_instance_of(inst.mask, ids, min_fraction))
+        for inst in instances
+    ]
+
+
+def split_instances(instances: Sequence[Instance], depth_m: NDArray[np.float32], camera: PinholeCamera,
+                    config: PerceptionConfig, spec: str) -> list[Instance]:
+    """One instance per object: the segmentation network's (``model`` specs) instances of the
+    ``split_width_m`` classes cut into side-by-side objects (:func:`split_side_by_side`), then
+    pieces of the ``stack_gap_m`` classes one above the other joined (:func:`merge_stacked`: a
+    chair's open back and its seat); other segmenters' instances are returned unchanged (a
+    detector boxes each chair). ``depth_m``: float32 (H, W) metres, registered to the colour
+    image of ``camera``."""
+    out = list(instances)
+    if not spec.strip().startswith("model"):
+        return out
+    usual = dict(config.measure.clipped_width_m)
+    for name, width in config.split_width_m:
+        out = split_side_by_side(out, depth_m, camera, classes=(name,), width_m=width,
+                                 min_pixels=config.min_pixels, usual_width_m=usual.get(name))
+    for name, gap in config.stack_gap_m:
+        out = merge_stacked(out, depth_m, camera, classes=(name,), max_gap_m=gap)
+    return out
+
 
 _LEAST_PART: float = 1 / 3
 """``split_side_by_side`` with a usual width: the least share of that width a piece at a side
-border of the image must span to be cut off and kept (session 31: 1/2 kept fewer real doors,
-docs/perception.md)."""
+border of the image must span to be cut off and kept; a narrower piece is a sliver (a door
+frame, a cabinet's side) that would be widened beyond the border into a door of its own."""
 
 
 def split_side_by_side(
@@ -108,8 +462,6 @@ def split_side_by_side(
             axis holds at least this share of its pixels with depth: one object, with a thin
             spill beyond it (a door's mask run along the flush wall at a grazing view), which
             the measurement's widest-object bound handles better than a cut through the object.
-            Seed-1002 worlds with 0.8 against none: association accuracy 97.47 -> 97.75 %, door
-            centroid median 11.1 -> 10.3 cm; seed 1003 door 17.7 cm both ways.
         usual_width_m: the usual width of one object (a site's doors, metres; None: the even
             cut above only). The mask is first cut at its gap columns, where it is a low strip
             below the objects' common top line (the wall between two doors; see
@@ -222,323 +574,6 @@ def merge_stacked(
                                        gt_instance=None)
         out.append(inst)
     return out
-
-
-def _height_above_floor(T_world_camera: ArrayLike, up: ArrayLike, floor_z_m: float,
-                        who: str) -> tuple[NDArray[np.float64], float]:
-    """``(h_axis, h_zero)``: the height above the floor of camera-frame points p (N, 3), metres,
-    is ``p @ h_axis + h_zero`` (``up . (R p + t) - floor_z_m``).
-
-    Raises:
-        GeometryError: not a (4, 4) pose or not a (3,) non-zero up vector (``who`` names the caller).
-    """
-    T = np.asarray(T_world_camera, dtype=np.float64)
-    u = np.asarray(up, dtype=np.float64).reshape(-1)
-    if T.shape != (4, 4) or u.shape != (3,) or not np.linalg.norm(u) > 0:
-        raise GeometryError(f"{who}: need a (4, 4) pose and a (3,) non-zero up vector, "
-                            f"got {T.shape}, {u.shape}")
-    u = u / np.linalg.norm(u)
-    return T[:3, :3].T @ u, float(u @ T[:3, 3]) - floor_z_m
-
-
-def _with_depth(ys: NDArray[np.intp], xs: NDArray[np.intp], depth: NDArray[np.float32], least: int = 20
-                ) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.float32]] | None:
-    """Rows, columns and depths (N,) of the pixels (``ys``, ``xs``: a mask's ``np.nonzero``) that have
-    depth; None when fewer than ``least``."""
-    z = depth[ys, xs]
-    has = np.isfinite(z) & (z > 0)
-    if int(has.sum()) < least:
-        return None
-    return ys[has], xs[has], z[has]
-
-
-def floating_above_floor(
-    instances: Sequence[Instance],
-    depth_m: NDArray[np.float32],
-    camera: PinholeCamera,
-    T_world_camera: ArrayLike,
-    *,
-    floor_z_m: float,
-    max_gap_m: Mapping[str, float],
-    up: ArrayLike = (0.0, 0.0, 1.0),
-    occluder_m: float = 0.15,
-    band_px: tuple[int, int] = (2, 8),
-    open_fraction: float = 0.5,
-) -> list[bool]:
-    """Which instances of floor-standing classes float: their lowest part is more than the
-    class's ``max_gap_m`` above the floor and nothing hides what lies below them.
-
-    A chair stands on the floor. A "chair" whose bottom is 0.65 m up a wall, with the wall
-    visible right below it, is something else: in the simulator a red fire extinguisher the
-    network takes for a red chair, which became a landmark of its own.
-
-    The bottom height (metres above ``floor_z_m`` along ``up``) is the 10th percentile over
-    the mask's columns of the ray through the column's lowest mask pixel, taken at the
-    instance's median depth: chair legs without depth still reach the floor, and a mask
-    nearer at the bottom than its median (an object seen lengthwise) comes out lower, not
-    higher. (The 2nd percentile of the back-projected depth pixels as a second estimate
-    changed nothing on the tuning worlds.)
-    For each column, the valid depth ``band_px`` rows below its lowest mask pixel tells
-    whether the view below is *hidden* (an occluder more than ``occluder_m`` nearer than
-    the instance's median depth, or the mask reaches the image's last rows) or *open*
-    (the wall or floor at or behind the instance). An instance floats when its bottom is
-    above the gap and at least ``open_fraction`` of the columns with depth below are open.
-
-    Args:
-        instances: instances of one colour image (H, W).
-        depth_m: float32 (H, W) depth, metres, registered to the colour image; 0 = none.
-        camera: the colour camera.
-        T_world_camera: (4, 4) camera pose in a world frame whose floor is the plane
-            ``up . x = floor_z_m``.
-        floor_z_m: floor height along ``up`` in that frame, metres.
-        max_gap_m: class -> largest height of its lowest point above the floor (metres);
-            classes not in it never float.
-        up: (3,) world up (``-gravity_world``).
-
-    Returns:
-        One flag per instance, in order (False for instances without 20 depth pixels).
-    """
-    lo, hi = band_px
-    if not (occluder_m >= 0 and 0 <= lo < hi and 0 < open_fraction <= 1):
-        raise GeometryError("floating_above_floor: need occluder_m >= 0, 0 <= band_px[0] < band_px[1], "
-                            "0 < open_fraction <= 1")
-    h_axis, h_zero = _height_above_floor(T_world_camera, up, floor_z_m, "floating_above_floor")
-    depth = np.asarray(depth_m, dtype=np.float32)
-    H = depth.shape[0]
-    out: list[bool] = []
-    for inst in instances:
-        gap = max_gap_m.get(inst.category)
-        if gap is None:
-            out.append(False)
-            continue
-        ys, xs = np.nonzero(inst.mask)
-        seen = _with_depth(ys, xs, depth)
-        if seen is None:
-            out.append(False)
-            continue
-        z_obj = float(np.median(seen[2]))
-        cols = np.unique(xs)
-        lowest = np.full(inst.mask.shape[1], -1, dtype=np.int64)
-        np.maximum.at(lowest, xs, ys)
-        y_low = lowest[cols]
-        rays = camera.unproject(np.stack([cols, y_low], axis=1), np.full(len(cols), z_obj))
-        if float(np.percentile(rays @ h_axis + h_zero, 10)) <= gap:
-            out.append(False)
-            continue
-        rows = y_low[:, None] + np.arange(lo, hi)[None, :]
-        inside = rows < H
-        below = np.where(inside, depth[np.minimum(rows, H - 1), cols[:, None]], 0.0)
-        below = np.where(np.isfinite(below) & (below > 0), below, np.nan)
-        known = ~np.all(np.isnan(below), axis=1)
-        at_edge = y_low + lo >= H - 1  # cut by the image: the band starts at its last row or past it
-        hidden = at_edge.copy()
-        if known.any():
-            near = np.nanmedian(below[known], axis=1) < z_obj - occluder_m
-            hidden[np.flatnonzero(known)[near]] = True
-        n_open = int(np.sum(known & ~hidden))
-        n_known = int(np.sum(known | at_edge))
-        out.append(n_known > 0 and n_open >= open_fraction * n_known)
-    return out
-
-
-def flat_on_floor(
-    instances: Sequence[Instance],
-    depth_m: NDArray[np.float32],
-    camera: PinholeCamera,
-    T_world_camera: ArrayLike,
-    *,
-    floor_z_m: float,
-    min_top_m: Mapping[str, float],
-    up: ArrayLike = (0.0, 0.0, 1.0),
-    top_percentile: float = 90.0,
-    edge_px: int = 2,
-) -> list[bool]:
-    """Which instances of floor-standing classes lie flat on the floor: their top is less than
-    the class's ``min_top_m`` above the floor.
-
-    A cart is about a metre tall. A "cart" 6 cm tall along the floor is the dark gap under a
-    bed's footboard, which the network calls a cart now and then (it became a cart on the
-    demo's map, 16 m from any cart). The top is the ``top_percentile`` of the heights above
-    the floor of the mask's pixels with depth. A mask that reaches within ``edge_px`` of the
-    image's top row may go on above the view and is never flagged. An occluder above the mask
-    is no reason to keep it: what shows under a bed's footboard or a desk's front panel that
-    low is no more than the feet of an object, and the gap under a footboard is nearer the
-    floor than the footboard itself.
-
-    Args:
-        instances: instances of one colour image (H, W).
-        depth_m: float32 (H, W) depth, metres, registered to the colour image; 0 = none.
-        camera: the colour camera.
-        T_world_camera: (4, 4) camera pose in a world frame whose floor is the plane
-            ``up . x = floor_z_m``.
-        floor_z_m: floor height along ``up`` in that frame, metres.
-        min_top_m: class -> height above the floor (metres) that every object of the class
-            reaches; classes not in it are never flagged.
-        up: (3,) world up (``-gravity_world``).
-
-    Returns:
-        One flag per instance, in order (False for instances without 20 depth pixels).
-    """
-    if not (0 < top_percentile <= 100 and edge_px >= 0):
-        raise GeometryError("flat_on_floor: need 0 < top_percentile <= 100 and edge_px >= 0")
-    h_axis, h_zero = _height_above_floor(T_world_camera, up, floor_z_m, "flat_on_floor")
-    depth = np.asarray(depth_m, dtype=np.float32)
-    out: list[bool] = []
-    for inst in instances:
-        least = min_top_m.get(inst.category)
-        if least is None or inst.mask[: edge_px + 1].any():
-            out.append(False)
-            continue
-        ys, xs = np.nonzero(inst.mask)
-        seen = _with_depth(ys, xs, depth)
-        if seen is None:
-            out.append(False)
-            continue
-        ys, xs, z = seen
-        points = camera.unproject(np.stack([xs, ys], axis=1), z.astype(np.float64))
-        out.append(float(np.percentile(points @ h_axis + h_zero, top_percentile)) < least)
-    return out
-
-
-def part_of_taller_surface(
-    instances: Sequence[Instance],
-    depth_m: NDArray[np.float32],
-    camera: PinholeCamera,
-    T_world_camera: ArrayLike,
-    *,
-    floor_z_m: float,
-    max_top_m: Mapping[str, float],
-    up: ArrayLike = (0.0, 0.0, 1.0),
-    margin_m: float = 0.3,
-    step_m: float = 0.05,
-    step_relative: float = 0.02,
-    on_share: float = 0.5,
-    tolerance_m: float = 0.03,
-    tolerance_relative: float = 0.01,
-    max_samples: int = 600,
-    iterations: int = 48,
-    seed: int = 0,
-) -> list[bool]:
-    """Which instances of floor-standing classes are a piece of a taller surface: the surface
-    goes on, unbroken, above the mask's top to higher than any object of the class, and most
-    of the mask lies on that surface's plane.
-
-    A cabinet ends at its top, and above it the camera sees the wall behind, a step away in
-    depth. A "cabinet" that is a strip of corridor wall cut by the image border (the network
-    does this now and then) goes on above its mask up to the ceiling, in one plane with the
-    mask. In each column of the mask the walk starts 2 px inside the mask's top pixel (past
-    the mixed depth at its border) and climbs row by row while the depth changes by at most
-    ``max(step_m, step_relative * z)`` between neighbouring rows; the climb's end is taken at
-    its depth and put in the world. The surface rises too high when the median over columns of
-    that height above the floor exceeds the class's ``max_top_m`` plus ``margin_m``. Then a
-    plane (affine in inverse depth, as in :func:`off_background_planes`) is fitted by RANSAC
-    to the climbed pixels above the mask (at most ``max_samples``, a seeded subset), and the
-    instance is a piece of that surface when at least ``on_share`` of its pixels with depth
-    lie on the plane (within ``max(tolerance_m, tolerance_relative * z)``). A low cabinet
-    against a wall goes on into the wall above it too, but only its back edge lies in the
-    wall's plane. A cabinet whose mask stops short of its top is climbed up to its real top,
-    where the step to the wall behind it ends the climb. Doors are no such class: a door is
-    flush with the wall that goes on above it.
-
-    Args:
-        instances: instances of one colour image (H, W).
-        depth_m: float32 (H, W) depth, metres, registered to the colour image; 0 = none.
-        camera: the colour camera.
-        T_world_camera: (4, 4) camera pose in a world frame whose floor is the plane
-            ``up . x = floor_z_m``.
-        floor_z_m: floor height along ``up`` in that frame, metres.
-        max_top_m: class -> height above the floor (metres) that no object of the class
-            reaches; classes not in it are never flagged.
-        up: (3,) world up (``-gravity_world``).
-
-    Returns:
-        One flag per instance, in order (False when fewer than 3 columns have depth at their
-        start, the climb leaves fewer than 50 pixels, or no plane is found).
-    """
-    if not (margin_m >= 0 and step_m > 0 and step_relative >= 0 and 0 < on_share <= 1
-            and tolerance_m > 0 and tolerance_relative >= 0 and max_samples >= 3 and iterations >= 1):
-        raise GeometryError("part_of_taller_surface: need margin_m >= 0, step_m > 0, step_relative >= 0, "
-                            "0 < on_share <= 1, tolerance_m > 0, tolerance_relative >= 0, "
-                            "max_samples >= 3, iterations >= 1")
-    h_axis, h_zero = _height_above_floor(T_world_camera, up, floor_z_m, "part_of_taller_surface")
-    depth = np.asarray(depth_m, dtype=np.float32)
-    out: list[bool] = []
-    for inst in instances:
-        top_m = max_top_m.get(inst.category)
-        out.append(top_m is not None and _on_taller_surface(
-            inst.mask, depth, camera, h_axis, h_zero, top_m + margin_m, step_m, step_relative, on_share,
-            tolerance_m, tolerance_relative, max_samples, iterations, seed))
-    return out
-
-
-def _on_taller_surface(mask: Mask, depth: NDArray[np.float32], camera: PinholeCamera,
-                       h_axis: NDArray[np.float64], h_zero: float, limit_m: float, step_m: float,
-                       step_relative: float, on_share: float, tolerance_m: float, tolerance_relative: float,
-                       max_samples: int, iterations: int, seed: int) -> bool:
-    """:func:`part_of_taller_surface` for one mask; ``limit_m``: the class's top plus the margin."""
-    H = mask.shape[0]
-    cols = np.flatnonzero(mask.any(axis=0))
-    top = np.argmax(mask[:, cols], axis=0)  # first mask row of each column
-    start = np.minimum(top + 2, H - 1)
-    z = depth[start, cols].astype(np.float64)
-    ok = np.isfinite(z) & (z > 0) & (top > 0)  # a mask at the image's top row cannot be climbed
-    cols, top, start, z = cols[ok], top[ok], start[ok], z[ok]
-    if cols.size < 3:
-        return False
-    reach = start.copy()
-    climbing = np.ones(cols.size, dtype=bool)
-    for r in range(int(start.max()) - 1, -1, -1):
-        act = climbing & (r < reach)
-        if not act.any():
-            break
-        zr = depth[r, cols].astype(np.float64)
-        on = act & np.isfinite(zr) & (zr > 0) & (np.abs(zr - z) <= np.maximum(step_m, step_relative * z))
-        climbing[act & ~on] = False
-        reach[on] = r
-        z[on] = zr[on]
-    ends = camera.unproject(np.stack([cols, reach], axis=1), z)
-    if float(np.median(ends @ h_axis + h_zero)) <= limit_m:
-        return False
-    above = [(np.arange(a, t), np.full(t - a, c)) for a, t, c in zip(reach, top, cols, strict=True) if t > a]
-    if not above:
-        return False
-    rr = np.concatenate([a for a, _ in above])
-    cc = np.concatenate([c for _, c in above])
-    if rr.size < 50:
-        return False
-    rng = np.random.default_rng(seed)
-    if rr.size > max_samples:
-        keep = rng.choice(rr.size, size=max_samples, replace=False)
-        rr, cc = rr[keep], cc[keep]
-    zs = depth[rr, cc].astype(np.float64)
-    coef, _ = _fit_inverse_depth_plane(cc.astype(np.float64), rr.astype(np.float64), zs,
-                                       np.maximum(tolerance_m, tolerance_relative * zs), rng, iterations)
-    if coef is None:
-        return False
-    mr, mc = np.nonzero(mask & (depth > 0))
-    if mr.size == 0:
-        return False
-    zm = depth[mr, mc].astype(np.float64)
-    wp = coef[0] * mc + coef[1] * mr + coef[2]
-    on_plane = (wp > 0) & (np.abs(1.0 / np.where(wp > 0, wp, 1.0) - zm)
-                           <= np.maximum(tolerance_m, tolerance_relative * zm))
-    return bool(on_plane.mean() >= on_share)
-
-
-def principal_direction(xy: NDArray[np.float64]) -> NDArray[np.float64]:
-    """First principal axis (2,) (unit length) of points (N, 2)."""
-    centred = xy - xy.mean(axis=0)
-    _, vecs = np.linalg.eigh(centred.T @ centred)
-    return np.asarray(vecs[:, -1], dtype=np.float64)
-
-
-def densest_window(along: NDArray[np.float64], width: float) -> NDArray[np.bool_]:
-    """Points (N,) of coordinates ``along`` (metres) inside the ``width``-wide interval that
-    holds the most of them (the first such interval when several tie)."""
-    x = np.sort(along)
-    ends = np.searchsorted(x, x + width, side="right")  # window [x[i], x[i] + width]
-    start = int(np.argmax(ends - np.arange(x.size)))
-    return np.asarray((along >= x[start]) & (along <= x[start] + width), dtype=bool)
 
 
 def _side_by_side(mask: Mask, depth: NDArray[np.float32], camera: PinholeCamera, width_m: float,
@@ -681,13 +716,6 @@ def _columns(mask: Mask, u0: int, u1: int) -> Mask:
     return out
 
 
-def clipped_side(mask: Mask) -> int:
-    """-1 when an (H, W) mask reaches the left image border only, +1 the right only, else 0
-    (neither or both: the object's width is in view, or cannot be placed)."""
-    left, right = bool(mask[:, 0].any()), bool(mask[:, -1].any())
-    return -1 if left and not right else 1 if right and not left else 0
-
-
 def _pieces_from_far_end(mask: Mask, solid: NDArray[np.bool_], depth: NDArray[np.float32],
                          camera: PinholeCamera, usual_width_m: float, side: int,
                          min_pixels: int) -> list[Mask]:
@@ -718,389 +746,3 @@ def _pieces_from_far_end(mask: Mask, solid: NDArray[np.bool_], depth: NDArray[np
     if rest.any() and np.ptp(np.quantile(along[rest], [0.02, 0.98])) < _LEAST_PART * usual_width_m:
         v, u, along = v[~rest], u[~rest], along[~rest]  # a sliver at the border: dropped
     return _pieces_at(mask, v, u, along, cuts, min_pixels)
-
-
-def box_of_mask(mask: Mask) -> NDArray[np.float64]:
-    """Pixel box (4,) float64 ``x1, y1, x2, y2`` enclosing a non-empty (H, W) bool mask."""
-    rows = np.flatnonzero(mask.any(axis=1))
-    cols = np.flatnonzero(mask.any(axis=0))
-    if rows.size == 0:
-        raise GeometryError("box_of_mask: the mask is empty")
-    return np.array([cols[0], rows[0], cols[-1] + 1, rows[-1] + 1], dtype=np.float64)
-
-
-def id_to_class(objects_document: Mapping[str, Any]) -> dict[int, str]:
-    """Instance id -> class name from a parsed ``objects.json`` (``DatasetReader.objects()``).
-
-    Raises:
-        DatasetError: the document has no ``objects`` list or an object lacks ``id``/``class``.
-    """
-    objects = objects_document.get("objects")
-    if not isinstance(objects, list):
-        raise DatasetError("objects.json: 'objects' must be a list")
-    out: dict[int, str] = {}
-    for i, obj in enumerate(objects):
-        try:
-            out[int(obj["id"])] = str(obj["class"])
-        except (KeyError, TypeError, ValueError) as exc:
-            raise DatasetError(f"objects.json: objects[{i}] needs an integer 'id' and a 'class'") from exc
-    return out
-
-
-def _check_image(name: str, image: ArrayLike, dtypes: tuple[type, ...]) -> NDArray[Any]:
-    a = np.asarray(image)
-    if a.ndim != 2 or 0 in a.shape or a.dtype.type not in dtypes:
-        want = "/".join(np.dtype(d).name for d in dtypes)
-        raise GeometryError(f"{name}: expected a non-empty {want} (H, W) image, got {a.dtype} {a.shape}")
-    return a
-
-
-def oracle_instances(
-    instance_ids: NDArray[np.uint16],
-    id_to_class: Mapping[int, str],
-    *,
-    min_pixels: int = 200,
-) -> list[Instance]:
-    """Ground-truth instances of one simulator label image.
-
-    Args:
-        instance_ids: uint16 (H, W) simulator instance ids, 0 = no object.
-        id_to_class: instance id -> knowledge-graph class (:func:`id_to_class`).
-        min_pixels: instances covering fewer pixels are left out (logged at debug).
-
-    Returns:
-        One :class:`Instance` per id with at least ``min_pixels`` pixels, in increasing id
-        order, every class included (callers filter ``person`` etc.); confidence 1 and
-        ``gt_instance`` = the id.
-
-    Raises:
-        GeometryError: ``instance_ids`` is not a 2-D integer image.
-        DatasetError: an id in the image has no class in ``id_to_class``.
-    """
-    ids = _check_image("oracle_instances", instance_ids, (np.uint16, np.uint8, np.int32, np.int64))
-    values, counts = np.unique(ids, return_counts=True)
-    out: list[Instance] = []
-    small = 0
-    for value, count in zip(values.tolist(), counts.tolist(), strict=True):
-        if value == 0:
-            continue
-        category = id_to_class.get(int(value))
-        if category is None:
-            raise DatasetError(f"label image: instance id {value} has no object in objects.json")
-        if count < min_pixels:
-            small += 1
-            continue
-        mask = ids == value
-        out.append(Instance(category, 1.0, mask, box_of_mask(mask), gt_instance=int(value)))
-    if small:
-        log.debug("oracle_instances: %d instance(s) below %d pixels left out", small, min_pixels)
-    return out
-
-
-_NEIGHBOURS = (
-    # (p, q) slices pairing every pixel p with its left, right, upper and lower neighbour q.
-    (np.s_[:, 1:], np.s_[:, :-1]),
-    (np.s_[:, :-1], np.s_[:, 1:]),
-    (np.s_[1:, :], np.s_[:-1, :]),
-    (np.s_[:-1, :], np.s_[1:, :]),
-)
-
-
-def _far_side_of_jump(classes: NDArray[np.uint8], depth_m: NDArray[np.float32],
-                      jump: NDArray[np.float32]) -> Mask:
-    """Pixels that have a 4-neighbour of the same (non-background) class nearer by more than their jump."""
-    cut = np.zeros(depth_m.shape, dtype=bool)
-    valid = (depth_m > 0) & (classes > 0)
-    for p, q in _NEIGHBOURS:
-        ok = valid[p] & valid[q] & (classes[p] == classes[q])
-        cut[p] |= ok & (depth_m[p] - depth_m[q] > jump[p])
-    return cut
-
-
-def _grow_into(labels: NDArray[np.int32], classes: NDArray[np.uint8], depth_m: NDArray[np.float32],
-               todo: Mask, jump: NDArray[np.float32]) -> None:
-    """Give each ``todo`` pixel the label of a same-class labelled 4-neighbour within its jump (in place)."""
-    for _ in range(2):
-        if not todo.any():
-            return
-        for p, q in _NEIGHBOURS:
-            take = todo[p] & (labels[q] > 0) & (classes[p] == classes[q])
-            take &= np.abs(depth_m[p] - depth_m[q]) <= jump[p]
-            labels[p][take] = labels[q][take]
-            todo[p] &= ~take
-
-
-def _fit_inverse_depth_plane(
-    u: NDArray[np.float64], v: NDArray[np.float64], z: NDArray[np.float64], tol: NDArray[np.float64],
-    rng: np.random.Generator, iterations: int,
-) -> tuple[NDArray[np.float64] | None, Mask]:
-    """RANSAC: coefficients ``(a, b, c)`` of ``1/z = a u + b v + c`` with the most inliers
-    (``|z - z_plane| <= tol``), refined by least squares on them; None when no sample works.
-    All ``iterations`` hypotheses are solved and scored at once."""
-    n = u.size
-    A = np.column_stack([u, v, np.ones(n)])
-    w = 1.0 / z
-    picks = np.stack([rng.choice(n, size=3, replace=False) for _ in range(iterations)])
-    As, ws = A[picks], w[picks]  # (k, 3, 3), (k, 3)
-    ok = np.abs(np.linalg.det(As)) > 1e-12
-    if not ok.any():
-        return None, np.zeros(n, dtype=bool)
-    coefs = np.linalg.solve(As[ok], ws[ok][..., None])[..., 0]  # (k', 3)
-    wp = coefs @ A.T  # (k', n)
-    inl = (wp > 0) & (np.abs(1.0 / np.where(wp > 0, wp, 1.0) - z) <= tol)
-    best = int(np.argmax(inl.sum(axis=1)))
-    best_in = inl[best]
-    if best_in.sum() < 3:
-        return None, best_in
-    coef = np.linalg.lstsq(A[best_in], w[best_in], rcond=None)[0]
-    return coef, best_in
-
-
-def ring_around(mask: Mask, ring_px: int) -> tuple[tuple[slice, slice], Mask, Mask] | None:
-    """The surroundings of a non-empty mask: ``(window, mask[window], ring)``.
-
-    ``window`` is the mask's bounding box grown to hold the ring; ``ring`` (in the window) is
-    ``ring_px`` wide and starts 2 px outside the mask, past the mixed depth at its border.
-    None for an empty mask.
-    """
-    h, w = mask.shape
-    rows = np.flatnonzero(mask.any(axis=1))
-    cols = np.flatnonzero(mask.any(axis=0))
-    if rows.size == 0:
-        return None
-    pad = ring_px + 3
-    window = np.s_[max(0, rows[0] - pad):min(h, rows[-1] + 1 + pad),
-                   max(0, cols[0] - pad):min(w, cols[-1] + 1 + pad)]
-    m = mask[window]
-    m8 = m.astype(np.uint8)
-    near = cv2.dilate(m8, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))).astype(bool)
-    side = 2 * ring_px + 5
-    far = cv2.dilate(m8, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (side, side))).astype(bool)
-    return window, m, far & ~near
-
-
-def off_background_planes(
-    mask: Mask,
-    depth_m: NDArray[np.float32],
-    *,
-    ring_px: int = 8,
-    tolerance_m: float = 0.03,
-    tolerance_relative: float = 0.01,
-    min_share: float = 0.25,
-    max_planes: int = 2,
-    iterations: int = 48,
-    max_ring_samples: int = 600,
-    seed: int = 0,
-) -> Mask:
-    """Pixels of ``mask`` that lie on a plane of the surfaces around it (wall, floor).
-
-    A network's mask bleeds a few pixels onto the wall and floor an object stands by; where
-    identical chairs stand in a row, the bleed joins them into one region. The surroundings
-    are a ring of pixels ``ring_px`` wide starting 2 px outside the mask. Up to ``max_planes``
-    planes are fitted to the ring's depth by RANSAC, each one explaining at least
-    ``min_share`` of the ring. A plane is affine in inverse depth over the image
-    (``1/z = a u + b v + c`` for a pinhole camera; lens distortion is ignored), so no
-    intrinsics are needed. A mask pixel lies on a plane when its depth is within
-    ``max(tolerance_m, tolerance_relative * z)`` of the plane's. At most
-    ``max_ring_samples`` ring pixels (a seeded random subset) are used for the fit.
-
-    Args:
-        mask: bool (H, W) one instance.
-        depth_m: float32 (H, W) metres, 0 = no data (such pixels are never on a plane).
-
-    Returns:
-        bool (H, W): the mask's pixels on a background plane (all False when the ring has
-        too little depth or no plane explains enough of it).
-    """
-    out = np.zeros(mask.shape, dtype=bool)
-    around = ring_around(mask, ring_px)
-    if around is None:
-        return out
-    window, m, ring = around
-    d = depth_m[window].astype(np.float64)
-    ring &= d > 0
-    rr, rc = np.nonzero(ring)
-    if rr.size < 50:
-        return out
-    rng = np.random.default_rng(seed)
-    if rr.size > max_ring_samples:
-        keep = rng.choice(rr.size, size=max_ring_samples, replace=False)
-        rr, rc = rr[keep], rc[keep]
-    z = d[rr, rc]
-    u, v = rc.astype(np.float64), rr.astype(np.float64)
-    tol = np.maximum(tolerance_m, tolerance_relative * z)
-    mr, mc = np.nonzero(m & (d > 0))
-    zm = d[mr, mc]
-    tol_m = np.maximum(tolerance_m, tolerance_relative * zm)
-    on = np.zeros(mr.size, dtype=bool)
-    left = np.ones(rr.size, dtype=bool)
-    for _ in range(max_planes):
-        if left.sum() < max(50, min_share * rr.size):
-            break
-        idx = np.flatnonzero(left)
-        coef, inl = _fit_inverse_depth_plane(u[idx], v[idx], z[idx], tol[idx], rng, iterations)
-        if coef is None or inl.sum() < min_share * rr.size:
-            break
-        left[idx[inl]] = False
-        wp = coef[0] * mc + coef[1] * mr + coef[2]
-        on |= (wp > 0) & (np.abs(1.0 / np.where(wp > 0, wp, 1.0) - zm) <= tol_m)
-    out[window][mr[on], mc[on]] = True
-    return out
-
-
-def instances_from_classes(
-    class_map: NDArray[np.uint8],
-    depth_m: NDArray[np.float32],
-    class_names: Sequence[str],
-    confidences: NDArray[np.float32] | None = None,
-    *,
-    depth_jump_m: float = 0.15,
-    depth_jump_relative: float = 0.05,
-    min_pixels: int = 200,
-    min_confidence: float = 0.0,
-    trim_classes: Sequence[int] = (),
-) -> list[Instance]:
-    """Instances of a per-pixel class map: per-class connected components split at depth jumps.
-
-    A pixel is cut from its class region when a 4-neighbour of the same class is nearer
-    by more than ``max(depth_jump_m, depth_jump_relative * depth)`` (the far side of a
-    discontinuity; the relative term follows the depth noise of structured-light
-    sensors). The remaining pixels form 4-connected components; cut pixels then join a
-    neighbouring component of similar depth. Pixels without depth (0) never cut.
-
-    Args:
-        class_map: uint8 (H, W) class index per pixel, 0 = background.
-        depth_m: float32 (H, W) depth along the camera z axis in metres, 0 = no data.
-        class_names: index -> class name; ``class_names[0]`` is the background.
-        confidences: float32 (H, W) per-pixel score in 0..1 (e.g. softmax max), or None
-            for confidence 1. An instance's confidence is the mean over its mask.
-        depth_jump_m: smallest depth step (metres) that separates instances.
-        depth_jump_relative: the step threshold as a fraction of depth, when larger.
-        min_pixels: components with fewer pixels are left out (logged at debug).
-        min_confidence: components whose mean confidence is lower are left out (logged at
-            debug): the ragged fringes a network leaves where it hesitates between classes.
-        trim_classes: class indices whose components lose the pixels on the planes around
-            them (:func:`off_background_planes`; chairs, carts, not doors flush with a wall);
-            what remains is split into 4-connected pieces, each one instance when it has
-            ``min_pixels``.
-
-    Returns:
-        Instances ordered by class index, then by component size (largest first).
-
-    Raises:
-        GeometryError: shapes or dtypes do not match, or a class index has no name.
-    """
-    classes = _check_image("instances_from_classes: class_map", class_map, (np.uint8,))
-    depth = np.asarray(depth_m, dtype=np.float32)
-    if depth.shape != classes.shape:
-        raise GeometryError(f"instances_from_classes: depth {depth.shape} != class map {classes.shape}")
-    conf = None
-    if confidences is not None:
-        conf = np.asarray(confidences, dtype=np.float32)
-        if conf.shape != classes.shape:
-            raise GeometryError(
-                f"instances_from_classes: confidences {conf.shape} != class map {classes.shape}"
-            )
-    if not (depth_jump_m > 0 and depth_jump_relative >= 0):
-        raise GeometryError("instances_from_classes: depth_jump_m must be > 0, depth_jump_relative >= 0")
-    if not 0.0 <= min_confidence <= 1.0:
-        raise GeometryError(f"instances_from_classes: min_confidence must lie in 0..1, got {min_confidence}")
-    depth = np.where(np.isfinite(depth) & (depth > 0), depth, np.float32(0.0)).astype(np.float32)
-    jump = np.maximum(np.float32(depth_jump_m), np.float32(depth_jump_relative) * depth)
-    present = np.unique(classes)
-    if present.size and int(present[-1]) >= len(class_names):
-        raise GeometryError(
-            f"instances_from_classes: class index {int(present[-1])} but only {len(class_names)} class names"
-        )
-    cut = _far_side_of_jump(classes, depth, jump)
-    labels = np.zeros(classes.shape, np.int32)
-    class_of: list[int] = [0]  # class index of each label
-    for index in present.tolist():
-        if index == 0:
-            continue
-        region = classes == index
-        rows = np.flatnonzero(region.any(axis=1))
-        cols = np.flatnonzero(region.any(axis=0))
-        window = np.s_[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1]
-        inside = (region[window] & ~cut[window]).astype(np.uint8)
-        count, comp = cv2.connectedComponents(inside, connectivity=4)
-        comp = comp.astype(np.int32)
-        comp[comp > 0] += len(class_of) - 1
-        labels[window] = np.where(comp > 0, comp, labels[window])
-        class_of.extend([index] * (count - 1))
-    _grow_into(labels, classes, depth, cut & (labels == 0), jump)
-    sizes = np.bincount(labels.ravel(), minlength=len(class_of))
-    out: list[Instance] = []
-    small = unsure = 0
-    for index in present.tolist():
-        if index == 0:
-            continue
-        ks = [k for k in range(1, len(class_of)) if class_of[k] == index]
-        for k in sorted(ks, key=lambda k: -sizes[k]):
-            if sizes[k] < min_pixels:
-                small += 1 if sizes[k] > 0 else 0
-                continue
-            mask = labels == k
-            pieces = [mask]
-            if index in trim_classes:
-                pieces = _pieces(mask & ~off_background_planes(mask, depth), min_pixels)
-                small += not pieces
-            for piece in pieces:
-                score = float(conf[piece].mean()) if conf is not None else 1.0
-                if score < min_confidence:
-                    unsure += 1
-                    continue
-                out.append(Instance(class_names[index], score, piece, box_of_mask(piece)))
-    if small or unsure:
-        log.debug("instances_from_classes: left out %d component(s) below %d pixels and %d below "
-                  "confidence %.2f", small, min_pixels, unsure, min_confidence)
-    return out
-
-
-def _pieces(mask: Mask, min_pixels: int) -> list[Mask]:
-    """4-connected pieces of ``mask`` with at least ``min_pixels`` pixels, largest first."""
-    rows = np.flatnonzero(mask.any(axis=1))
-    cols = np.flatnonzero(mask.any(axis=0))
-    if rows.size == 0:
-        return []
-    window = np.s_[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1]
-    count, comp = cv2.connectedComponents(mask[window].astype(np.uint8), connectivity=4)
-    sizes = np.bincount(comp.ravel(), minlength=count)
-    out = []
-    for k in np.argsort(-sizes[1:], kind="stable") + 1:
-        if sizes[k] < min_pixels:
-            break
-        piece = np.zeros(mask.shape, dtype=bool)
-        piece[window] = comp == k
-        out.append(piece)
-    return out
-
-
-def gt_instance_of(mask: Mask, instance_ids: NDArray[np.uint16], min_fraction: float = 0.5) -> int | None:
-    """The most frequent non-zero simulator id under ``mask`` if it covers ``min_fraction`` of it, else None.
-
-    Pixels with id 0 ("no object") count in the denominator, so a mask mostly on the wall gives None.
-    """
-    if mask.shape != instance_ids.shape:
-        raise GeometryError(f"gt_instance_of: mask {mask.shape} != labels {instance_ids.shape}")
-    under = instance_ids[mask]
-    if under.size == 0:
-        return None
-    values, counts = np.unique(under[under != 0], return_counts=True)
-    if values.size == 0:
-        return None
-    best = int(np.argmax(counts))
-    if counts[best] < min_fraction * under.size:
-        return None
-    return int(values[best])
-
-
-def attach_gt_instances(
-    instances: Sequence[Instance], instance_ids: NDArray[np.uint16], min_fraction: float = 0.5
-) -> list[Instance]:
-    """Copies of ``instances`` with ``gt_instance`` set by :func:`gt_instance_of` (model or detector)."""
-    ids = _check_image("attach_gt_instances", instance_ids, (np.uint16, np.uint8, np.int32, np.int64))
-    return [
-        dataclasses.replace(inst, gt_instance=gt_instance_of(inst.mask, ids, min_fraction))
-        for inst in instances
-    ]

@@ -9,10 +9,10 @@ module measures them for each :class:`Instance` of one keyframe:
    ``max(depth_gap_m, depth_gap_relative * depth)`` and keep the layer holding the median
    depth (background seen through or beside the object, occluders in front), then
    radius outlier removal (isolated points: fewer than ``radius_min_neighbours`` within
-   ``radius_m``). A median/MAD depth band and k-NN statistical removal (mean + 2 std)
-   were tried first; both cut real surfaces seen at grazing angles, which span much
-   depth and are sparse (a box top seen from the side). Optionally (``cluster_gap_m``)
-   keep only the largest 3D piece, for leaky detector masks;
+   ``radius_m``). Layers rather than a band around the median depth, and neighbour
+   counts rather than distance statistics, because real surfaces seen at grazing angles
+   span much depth and are sparse (a box top seen from the side). Optionally
+   (``cluster_gap_m``) keep only the largest 3D piece, for leaky detector masks;
 3. pose, gravity-aligned (object z = world up = ``-gravity_world``): yaw from the
    dominant vertical plane (RANSAC on the points projected on the ground, a line there
    is a plane with a horizontal normal) when it holds at least ``plane_min_fraction``
@@ -47,7 +47,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from wardmap.server.perception.instances import clipped_side, densest_window, principal_direction, ring_around
+from wardmap.server.perception.masks import clipped_side, densest_window, principal_direction, ring_around
 from wardmap.server.perception.types import CLASS_SIZE_M, Instance, ObjectMeasurement
 from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.errors import ConfigError, GeometryError
@@ -116,32 +116,22 @@ class MeasureConfig:
         for name, horizontal, _ in CLASS_SIZE_M if name in _STATIC_BOUNDED
     )
     """``[class, width]`` pairs: the widest an object of the class can be, metres (the static
-    classes' horizontal bounds in ``types.CLASS_SIZE_M``, but doors 1.25 m rather than 1.3 m:
-    the window then leaves at most 9 cm of a spill in a 1.16 m door's box, its centre at most
-    4.5 cm off; seeds 1001 / 1002 / 1003, network instances: static objects 8.1 / 10.0 / 8.6 ->
-    7.5 / 8.8 / 8.1 cm with ``clipped_width_m``. 1.2 m gave 7.1 / 7.6 / 6.7 cm, but the
-    association benchmark was better than both baselines on 19 of its 35 sequences, against
-    21 with 1.25 m (docs/perception.md)). When the points of an
-    instance of the class span more than that along the box's x axis, only the points inside
-    the ``width``-wide window holding the most of them are kept (:func:`densest_window`) and
-    the box is fitted to those; its centre can still lie up to half the slack (bound minus the
-    true width) towards the extra points. The network's door mask runs onto the flush wall
-    beside the door at grazing views: a few hundred wall pixels spread up to 1.2 m along the
-    wall stretched the box to 1.5-2.3 m for a 1.16 m door. Tuning worlds (seed 1002; network
-    instances, every 10th frame of aisle_slow_1, aisle_quick_2, ward_chairs): door centroid
-    median 18.5 -> 11.1 cm, cabinet 21.8 -> 18.9 cm; seed 1003: door 17.9 -> 17.7, cabinet
-    17.7 -> 18.3 cm (its errors are mostly doors cut by the image border)."""
+    classes' horizontal bounds in ``types.CLASS_SIZE_M``, but doors 1.25 m rather than 1.3 m,
+    so that a spill in a 1.16 m door's box is at most 9 cm and its centre at most 4.5 cm off).
+    When the points of an instance of the class span more than that along the box's x axis,
+    only the points inside the ``width``-wide window holding the most of them are kept
+    (:func:`densest_window`) and the box is fitted to those; its centre can still lie up to
+    half the slack (bound minus the true width) towards the extra points. The network's door
+    mask runs onto the flush wall beside the door at grazing views, and a few hundred wall
+    pixels would stretch the box along the wall."""
     clipped_width_m: tuple[tuple[str, float], ...] = (("door", 1.2),)
     """``[class, width]`` pairs: the usual width of an object of the class, metres. An instance
     of the class whose mask reaches the left or the right image border (not both) and whose box
     is narrower than that is taken to continue beyond the border: its box is widened to
     ``width`` along its x axis on the side of the border, and its centre moves by half the
-    difference (:func:`_widen_at_border`). A door leaf and frame are 1.1-1.25 m wide in
-    hospitals (1.16 m in the simulator); a door cut by the border measured 20-30 cm off along
-    the wall, the visible part's centre. Seeds 1001 / 1002 / 1003 (network instances, the
-    benchmark's frames, a 1.3 m door bound): 40 / 35 / 29 doors widened, their median centroid
-    error 25.0 / 21.7 / 29.3 -> 6.7 / 5.2 / 5.9 cm (docs/perception.md, "Door widths,
-    measured"). ``[]`` turns it off; set it to your building's doors."""
+    difference (:func:`_widen_at_border`); otherwise a door cut by the border is measured at
+    its visible part's centre, off along the wall. A door leaf and frame are 1.1-1.25 m wide in
+    hospitals (1.16 m in the simulator). ``[]`` turns it off; set it to your building's doors."""
     plane_threshold_m: float = 0.02
     """RANSAC: distance of an inlier to the vertical plane."""
     plane_min_fraction: float = 0.3

@@ -23,7 +23,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from wardmap.server.perception.models import PerceptionConfig, make_segmenter
+from wardmap.server.perception.config import PerceptionConfig
+from wardmap.server.perception.models import make_segmenter
 from wardmap.shared.dataset import DatasetReader
 from wardmap.shared.errors import ConfigError, DatasetError
 

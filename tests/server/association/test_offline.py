@@ -156,3 +156,46 @@ def test_errors(small: Path, tmp_path: Path) -> None:
         run_map([small], tmp_path / "o", poses=[traj])
     with pytest.raises(WardmapError, match="one trajectory per data set"):
         run_map([small, small], tmp_path / "o", poses=[traj])
+
+
+def test_model_measurements_take_the_servers_perception_steps(small: Path,
+                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    """``--measurements model`` runs each keyframe through ``keyframe.measure_keyframe``: with a
+    segmenter that finds a person and, as a cabinet, the largest object of the first frame's
+    label image in every image, each person is counted as moving, each cabinet is measured,
+    skipped or left out by a floor check once, and measurements carry the simulator id most
+    of their mask covers in their own frame."""
+    from wardmap.server.association import offline
+    from wardmap.server.perception.instances import gt_instance_of
+    from wardmap.server.perception.masks import box_of_mask
+    from wardmap.server.perception.types import Instance
+    from wardmap.shared.dataset import DatasetReader
+
+    reader = DatasetReader(small)
+    first = reader.frame(0).labels
+    assert first is not None
+    ids, counts = np.unique(first[first > 0], return_counts=True)
+    largest = int(ids[np.argmax(counts)])
+    cabinet = first == largest
+    person = np.zeros_like(cabinet)
+    person[:40, :40] = True
+
+    def finds(bgr: np.ndarray, depth_m: np.ndarray | None) -> list[Instance]:
+        return [Instance("person", 0.9, person, box_of_mask(person)),
+                Instance("cabinet", 0.8, cabinet, box_of_mask(cabinet))]
+
+    monkeypatch.setattr(offline, "_segmenter", lambda source: finds)
+    cfg = MapConfig(keyframe_min_translation_m=0.0, keyframe_min_rotation_deg=0.0)
+    ds = measure_dataset(small, measurements="model", config=cfg)
+    n = len(ds.keyframes)
+    assert n == FRAMES and ds.moving_left_out == n
+    measured = sum(len(k.measurements) for k in ds.keyframes)
+    left_out = ds.floating_left_out + ds.wall_pieces_left_out + ds.floor_pieces_left_out
+    assert measured + sum(ds.skipped.values()) + left_out == n
+    ids_seen = []
+    for i, kf in enumerate(ds.keyframes):
+        for m in kf.measurements:
+            assert m.category == "cabinet" and m.confidence == 0.8
+            assert m.gt_instance == gt_instance_of(cabinet, reader.frame(i).labels)
+            ids_seen.append(m.gt_instance)
+    assert largest in ids_seen

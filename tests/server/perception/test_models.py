@@ -11,20 +11,8 @@ import cv2
 import numpy as np
 import pytest
 
-from wardmap.server.perception.instances import box_of_mask
-from wardmap.server.perception.models import (
-    OnnxSegmenter,
-    PerceptionConfig,
-    YoloxDetector,
-    load_perception_config,
-    make_segmenter,
-    measure_config_for,
-    packaged_model_path,
-    split_instances,
-)
-from wardmap.server.perception.types import Instance
-from wardmap.shared.camera import PinholeCamera
-from wardmap.shared.config import to_mapping
+from wardmap.server.perception.config import PerceptionConfig
+from wardmap.server.perception.models import OnnxSegmenter, YoloxDetector, make_segmenter, packaged_model_path
 from wardmap.shared.errors import ConfigError, GeometryError
 
 pytest.importorskip("onnx", reason="building test models needs the onnx package (dev dependency)")
@@ -213,33 +201,6 @@ def test_make_segmenter_specs(tmp_path: Path) -> None:
             make_segmenter("model")
 
 
-def test_perception_config_toml(tmp_path: Path) -> None:
-    """deploy/perception.toml holds the defaults; unknown keys and bad values are named."""
-    assert to_mapping(load_perception_config(REPO / "deploy" / "perception.toml")) == to_mapping(
-        PerceptionConfig()
-    )
-    bad = tmp_path / "p.toml"
-    for text, named in (
-        ("[perception.measure]\nmin_pointz = 3\n", "min_pointz"),
-        ("[perception]\nthreads = 0\n", "threads"),
-        ("[perception]\ndetector_cluster_gap_m = -1\n", "detector_cluster_gap_m"),
-        ("[perception]\nsplit_width_m = 0\n", "split_width_m"),
-        ('[perception]\nsplit_width_m = [["door", 0]]\n', "split_width_m of 'door'"),
-        ('[perception]\nstack_gap_m = [["iv_pole"]]\n', "stack_gap_m"),
-        ("[perception]\nmin_region_confidence = 1.5\n", "min_region_confidence"),
-    ):
-        bad.write_text(text)
-        with pytest.raises(ConfigError, match=named):
-            load_perception_config(bad)
-    bad.write_text('[perception]\nsegmenter = "yolox:x.onnx"\n[perception.measure]\nmin_points = 80\n')
-    cfg = load_perception_config(bad)
-    assert cfg.segmenter == "yolox:x.onnx" and cfg.measure.min_points == 80
-    # A yolox: detector's measurements keep their largest 3D piece by default; the network's do not;
-    # an explicit [perception.measure] cluster_gap_m wins.
-    assert measure_config_for(cfg, cfg.segmenter).cluster_gap_m == 0.05
-    assert measure_config_for(cfg, "model").cluster_gap_m == 0.0
-    bad.write_text('[perception]\nsegmenter = "yolox:x.onnx"\n[perception.measure]\ncluster_gap_m = 0.1\n')
-    assert measure_config_for(load_perception_config(bad), "yolox:x.onnx").cluster_gap_m == 0.1
 
 
 @pytest.mark.skipif(not (YOLOX.is_file() and TUM.is_dir()), reason="needs ../shared (YOLOX, TUM excerpt)")
@@ -262,33 +223,3 @@ def test_yolox_finds_the_monitor_on_a_real_tum_frame() -> None:
     index = seg.class_names.index("wall_monitor")
     assert np.all(out.class_map[monitors[0].mask] == index)
     assert np.all(out.confidence[monitors[0].mask] == pytest.approx(monitors[0].confidence))
-
-
-def test_split_instances_cuts_door_pairs_and_joins_iv_pole_parts() -> None:
-    """Default config, 3 m away (1 px = 3 cm): one door mask 2.7 m wide (two doors and the wall
-    between) becomes two pieces; a single door (1.2 m) stays whole; an IV pole's bag 0.8 m above
-    its base joins it, while two chair pieces as far apart stay two; a detector's instances are
-    returned as they are."""
-    camera = PinholeCamera(400, 300, 100.0, 100.0, 200.0, 150.0)
-    depth = np.full((300, 400), 3.0, np.float32)
-
-    def inst(cat: str, rows: slice, cols: slice) -> Instance:
-        m = np.zeros((300, 400), bool)
-        m[rows, cols] = True
-        return Instance(cat, 0.9, m, box_of_mask(m))
-
-    cfg = PerceptionConfig()
-    pair = inst("door", slice(40, 110), slice(100, 190))
-    pieces = split_instances([pair], depth, camera, cfg, "model")
-    assert len(pieces) == 2 and all(p.category == "door" for p in pieces)
-    widths = sorted(float(p.box_xyxy[2] - p.box_xyxy[0]) * 0.03 for p in pieces)
-    assert widths[0] >= 1.0 and widths[1] <= 1.7, widths
-    single = inst("door", slice(40, 110), slice(100, 140))
-    assert split_instances([single], depth, camera, cfg, "model") == [single]
-    upper, lower = (slice(230, 243), slice(195, 205)), (slice(270, 280), slice(190, 210))
-    bag, base = inst("iv_pole", *upper), inst("iv_pole", *lower)
-    (pole,) = split_instances([base, bag], depth, camera, cfg, "model")
-    assert np.array_equal(pole.mask, base.mask | bag.mask)
-    back, seat = inst("chair", *upper), inst("chair", *lower)
-    assert len(split_instances([seat, back], depth, camera, cfg, "model")) == 2
-    assert split_instances([pair, base, bag], depth, camera, cfg, "yolox:x.onnx") == [pair, base, bag]
