@@ -32,7 +32,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from wardmap.server.perception.models import load_perception_config
+    from wardmap.server.perception.config import load_perception_config
     from wardmap.server.perception.segment import segment_dataset
 
     config = load_perception_config(args.config)

@@ -159,7 +159,8 @@ class MapServer:
         """
         from wardmap.server.association.associator import AssociationConfig
         from wardmap.server.mapping import MapPipeline, PipelineConfig
-        from wardmap.server.perception.models import PerceptionConfig, make_segmenter
+        from wardmap.server.perception.config import PerceptionConfig
+        from wardmap.server.perception.models import make_segmenter
         from wardmap.server.store import MapStore
         from wardmap.shared.config import load_config
 

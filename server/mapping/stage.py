@@ -59,21 +59,14 @@ from wardmap.server.association.associator import AssociationConfig, Associator
 from wardmap.server.mapping.checkpoint import checkpoint_key, decode_state, encode_state
 from wardmap.server.mapping.writer import MappedKeyframe, MapWriter, WriterState
 from wardmap.server.objectmap import ObjectMap
-from wardmap.server.perception.measure import measure_instances_report
-from wardmap.server.perception.models import (
-    PerceptionConfig,
-    Segmenter,
-    drop_misplaced,
-    make_segmenter,
-    measure_config_for,
-    split_instances,
-)
+from wardmap.server.perception.config import PerceptionConfig, measure_config_for
+from wardmap.server.perception.keyframe import keyframe_camera, keyframe_map_pose, measure_keyframe_msg
+from wardmap.server.perception.models import Segmenter, make_segmenter
 from wardmap.server.perception.types import ObjectMeasurement
 from wardmap.server.store import Checkpoint, MappedPose, MapStore
-from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.errors import ConfigError, WardmapError, WireError
 from wardmap.shared.knowledge import KnowledgeGraph
-from wardmap.shared.wire import KeyframeMsg, decode_depth, decode_keyframe
+from wardmap.shared.wire import KeyframeMsg, decode_keyframe
 
 log = logging.getLogger(__name__)
 
@@ -376,32 +369,25 @@ class MapPipeline:
             with self._lock:
                 self._counts.unanchored += 1
             return
-        self.associate([MappedKeyframe(f"{msg.robot_id}/{msg.session_id}", map_pose(msg), camera_of(msg),
-                                       measurements)])
+        stream = f"{msg.robot_id}/{msg.session_id}"
+        self.associate([MappedKeyframe(stream, keyframe_map_pose(msg), keyframe_camera(msg), measurements)])
 
     def _measure(self, msg: KeyframeMsg, key: str) -> list[ObjectMeasurement]:
-        bgr, depth, camera = decode_images(msg)
+        """The keyframe's object measurements in the map frame (:func:`measure_keyframe_msg`);
+        what perception left out is counted."""
         assert self._segmenter is not None
-        instances = split_instances(self._segmenter(bgr, depth), depth, camera, self.perception,
-                                    self.perception.segmenter)
-        instances = [i for i in instances if i.category not in self._moving]
-        T_map_camera, floor = map_pose(msg), floor_height(msg)
-        instances, left = drop_misplaced(instances, depth, camera, self.perception, T_map_camera, floor)
+        result = measure_keyframe_msg(msg, key, segmenter=self._segmenter, config=self.perception,
+                                      moving=self._moving)
+        left = result.left_out
         if any(left):
             log.debug("keyframe %s: %d instance(s) float above the floor, %d lie on a taller surface, "
                       "%d lie flat on the floor; left out", key, *left)
-            with self._lock:
-                self._counts.floating += left.floating
-                self._counts.wall_pieces += left.walls
-                self._counts.floor_pieces += left.floors
-        report = measure_instances_report(
-            instances, bgr=bgr, depth_m=depth, camera=camera, T_world_camera=T_map_camera,
-            keyframe=key, stamp=msg.stamp, config=self._measure_config,
-        )
-        if report.skipped:
-            with self._lock:
-                self._counts.skipped.update(skip.kind for skip in report.skipped)
-        return report.measurements
+        with self._lock:
+            self._counts.floating += left.floating
+            self._counts.wall_pieces += left.walls
+            self._counts.floor_pieces += left.floors
+            self._counts.skipped.update(skip.kind for skip in result.skipped)
+        return list(result.measurements)
 
     def associate(self, keyframes: Iterable[MappedKeyframe]) -> None:
         """Feed measured keyframes of anchored sessions to the writer in order and write the
@@ -610,47 +596,7 @@ def _mapped_pose(robot_id: str, session_id: str, seq: int, msg: KeyframeMsg | No
     (unanchored, undecodable, no intrinsics)."""
     if msg is None or msg.T_map_odom is None or msg.intrinsics is None:
         return MappedPose(robot_id, session_id, seq, None, None)
-    return MappedPose(robot_id, session_id, seq, map_pose(msg), camera_of(msg))
-
-
-def camera_of(msg: KeyframeMsg) -> PinholeCamera:
-    """The colour camera of a keyframe (its intrinsics; ``calib_ref`` is not resolvable yet)."""
-    i = msg.intrinsics
-    if i is None:
-        raise WireError("calib_ref", "keyframes with calib_ref are not supported by the mapping stage yet")
-    return PinholeCamera(i.width, i.height, i.fx, i.fy, i.cx, i.cy, tuple(i.distortion))  # type: ignore[arg-type]
-
-
-def decode_images(msg: KeyframeMsg) -> tuple[NDArray[np.uint8], NDArray[np.float32], PinholeCamera]:
-    """``(bgr (H, W, 3) uint8, depth (H, W) float32 metres at colour size, camera)``.
-
-    Depth sent at 1/s resolution is upsampled by repetition: colour pixel (y, x) takes depth
-    pixel (y // s, x // s) (docs/wire.md, ``depth``).
-    """
-    camera = camera_of(msg)
-    bgr = cv2.imdecode(np.frombuffer(msg.rgb_jpeg, np.uint8), cv2.IMREAD_COLOR)
-    if bgr is None or bgr.shape[:2] != (camera.height, camera.width):
-        raise WireError("rgb_jpeg", "cannot decode the colour image at the intrinsics' size")
-    depth = decode_depth(msg.depth.data, msg.depth.meta)
-    s = camera.height // depth.shape[0]
-    if s > 1:
-        depth = np.repeat(np.repeat(depth, s, axis=0), s, axis=1)
-    return np.ascontiguousarray(bgr, np.uint8), np.ascontiguousarray(depth, np.float32), camera
-
-
-def floor_height(msg: KeyframeMsg) -> float | None:
-    """Height (m) of the floor in the map frame: that of the robot base, whose frame sits on the
-    floor (``T_odom_base``); None for keyframes without a base (a hand-held camera)."""
-    if msg.T_odom_base is None:
-        return None
-    T_map_odom = msg.T_map_odom if msg.T_map_odom is not None else np.eye(4)
-    return float((T_map_odom @ msg.T_odom_base)[2, 3])
-
-
-def map_pose(msg: KeyframeMsg) -> F64:
-    """``T_map_camera`` (4, 4) of an anchored keyframe (identity map frame otherwise)."""
-    T_map_odom = msg.T_map_odom if msg.T_map_odom is not None else np.eye(4)
-    return np.asarray(T_map_odom @ msg.T_odom_camera, np.float64)
+    return MappedPose(robot_id, session_id, seq, keyframe_map_pose(msg), keyframe_camera(msg))
 
 
 PipelineFactory = Callable[[MapStore, ObjectMap], MapPipeline]

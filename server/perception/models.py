@@ -44,9 +44,8 @@ from typing import Any, Final, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from wardmap.server.perception.config import PerceptionConfig, load_perception_config, measure_config_for
-from wardmap.server.perception.floor import drop_misplaced
-from wardmap.server.perception.instances import instances_from_classes, split_instances
+from wardmap.server.perception.config import PerceptionConfig
+from wardmap.server.perception.instances import instances_from_classes
 from wardmap.server.perception.masks import box_of_mask
 from wardmap.server.perception.types import Instance
 from wardmap.shared.detection import CocoMap, MaskConfig, decode_yolox, labels_from_detections, letterbox
@@ -54,23 +53,14 @@ from wardmap.shared.errors import ConfigError, GeometryError
 from wardmap.shared.knowledge import BACKGROUND, KnowledgeGraph
 from wardmap.shared.segmentation import INPUT_NAME, OUTPUT_NAME, Decoded, PlacementRule, SegContract
 
-# PerceptionConfig, load_perception_config and measure_config_for (config.py), split_instances
-# (instances.py) and drop_misplaced (floor.py) are re-exported for the modules that still import
-# them from here (server/pipeline.py, server/app.py, cli/segment_cmd.py,
-# tests/server/test_pipeline.py); remove them once those import from their own modules.
 __all__ = [
     "DEFAULT_MODEL",
     "OnnxSegmenter",
-    "PerceptionConfig",
     "Segmentation",
     "Segmenter",
     "YoloxDetector",
-    "drop_misplaced",
-    "load_perception_config",
     "make_segmenter",
-    "measure_config_for",
     "packaged_model_path",
-    "split_instances",
 ]
 
 log = logging.getLogger(__name__)

@@ -22,7 +22,7 @@ from wardmap.server.association.associator import AssociationConfig, beyond_rang
 from wardmap.server.mapping import MappedKeyframe, MapPipeline, MapWriter, PipelineConfig, PipelineCounters
 from wardmap.server.mapping.stage import CURSOR_NAME
 from wardmap.server.objectmap import MAX_LIMIT, ObjectMap
-from wardmap.server.perception.models import PerceptionConfig
+from wardmap.server.perception.config import PerceptionConfig
 from wardmap.server.store import MappedPose, MapStore, SqliteMapStore
 from wardmap.shared import wire
 from wardmap.shared.camera import PinholeCamera
