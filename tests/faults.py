@@ -13,12 +13,11 @@ import sqlite3
 from dataclasses import replace
 from pathlib import Path
 
-import cv2
+import factories
 import numpy as np
 
 from wardmap.shared import wire
 from wardmap.shared.se3 import make_transform
-from wardmap.shared.wire import Intrinsics, KeyframeMsg, Keypoints, PackedRaster
 
 W, H = 64, 48
 T0 = 1_714_557_600.0  # 2024-05-01 10:00 UTC
@@ -26,28 +25,7 @@ T0 = 1_714_557_600.0  # 2024-05-01 10:00 UTC
 
 def small_keyframes(robot: str, n: int, *, session: str = "s1", seed: int = 0) -> list[bytes]:
     """``n`` valid 64x48 keyframes of ``robot`` (seq 0..n-1, stamps T0 + seq), encoded."""
-    rng = np.random.default_rng(seed)
-    ok, jpg = cv2.imencode(".jpg", rng.integers(0, 256, (H, W, 3), dtype=np.uint8))
-    assert ok
-    k = 4
-    base = KeyframeMsg(
-        robot_id=robot,
-        session_id=session,
-        seq=0,
-        stamp=T0,
-        T_odom_camera=np.eye(4),
-        pose_source="rgb",
-        keypoints=Keypoints(
-            uv=(rng.random((k, 2)) * [W - 1, H - 1]).astype(np.float32),
-            octave=np.zeros(k, np.int8),
-            angle_deg=(rng.random(k) * 360).astype(np.float32),
-            depth_m=rng.uniform(0.5, 4.0, k).astype(np.float32),
-            descriptors=rng.integers(0, 256, (k, 32), dtype=np.uint8),
-        ),
-        rgb_jpeg=bytes(jpg.tobytes()),
-        depth=PackedRaster(*wire.encode_depth(rng.uniform(0.5, 4.0, (H // 2, W // 2)))),
-        intrinsics=Intrinsics(W, H, 50.0, 50.0, 31.5, 23.5, (0.0, 0.0, 0.0, 0.0, 0.0), 5000.0),
-    )
+    base = factories.keyframe(np.random.default_rng(seed), robot_id=robot, session_id=session)
     return [
         wire.encode(replace(base, seq=i, stamp=T0 + i, T_odom_camera=make_transform(np.eye(3), [i, 0, 0])))
         for i in range(n)

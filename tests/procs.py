@@ -11,8 +11,11 @@ import socket
 import subprocess
 import sys
 import threading
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
 from typing import IO
 
 import pytest
@@ -136,3 +139,45 @@ def prometheus_samples(text: str) -> dict[str, float]:
             name, value = line.rsplit(" ", 1)
             out[name] = float(value)
     return out
+
+
+@dataclass
+class Proc:
+    """A subprocess whose stderr goes to a file (a full pipe must never block it)."""
+
+    popen: subprocess.Popen[str]
+    stderr_path: Path
+
+    def stderr(self) -> str:
+        return self.stderr_path.read_text(errors="replace")
+
+
+def spawn_logged(cmd: list[str], log_dir: Path, name: str) -> Proc:
+    """Start ``cmd`` with :func:`child_env`, stdout piped, stderr to a file in ``log_dir``."""
+    err_path = log_dir / f"{name}.{time.monotonic_ns()}.stderr"
+    with err_path.open("w") as err:
+        popen = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err, text=True, env=child_env())
+    return Proc(popen, err_path)
+
+
+def kill_proc(proc: Proc) -> None:
+    """SIGKILL ``proc`` if it still runs, and close its stdout."""
+    if proc.popen.poll() is None:
+        proc.popen.kill()
+        proc.popen.wait(timeout=10)
+    if proc.popen.stdout is not None:
+        proc.popen.stdout.close()
+
+
+def stop_proc(proc: Proc, timeout_s: float = 15.0) -> int:
+    """SIGTERM ``proc`` if it still runs (SIGKILL if it ignores it); its exit code."""
+    if proc.popen.poll() is None:
+        proc.popen.terminate()
+        try:
+            proc.popen.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            proc.popen.kill()
+            proc.popen.wait(timeout=5)
+    if proc.popen.stdout is not None:
+        proc.popen.stdout.close()
+    return int(proc.popen.returncode)

@@ -28,9 +28,8 @@ import numpy as np
 import pytest
 from factories import FUZZ_LEAVES, keyframe, mutate, walk
 from peers import ALL_ACKS, matched_publisher, open_client
-from procs import child_env as _env
+from procs import Proc, kill_proc, prometheus_samples, spawn_logged, stop_proc, wardmap_cmd
 from procs import free_port as _free_port
-from procs import prometheus_samples, wardmap_cmd
 from procs import read_line as _read_line
 
 pytest.importorskip("zenoh")
@@ -56,55 +55,15 @@ EDGE_CONFIG = "[agent]\nflush_timeout_s = 40.0\nresend_after_s = 1.0\n"
 # --------------------------------------------------------------------------- processes
 
 
-@dataclass
-class Proc:
-    """A subprocess whose stderr goes to a file (a full pipe must never block it)."""
-
-    popen: subprocess.Popen[str]
-    stderr_path: Path
-
-    def stderr(self) -> str:
-        return self.stderr_path.read_text(errors="replace")
-
-
-def _spawn(cmd: list[str], log_dir: Path, name: str) -> Proc:
-    err_path = log_dir / f"{name}.{time.monotonic_ns()}.stderr"
-    with err_path.open("w") as err:
-        popen = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err, text=True, env=_env())
-    return Proc(popen, err_path)
-
-
 def _start(cmd: list[str], expect: str, log_dir: Path, name: str) -> Proc:
     """Start ``cmd``, wait for its ready line ``expect``; fail with its stderr otherwise."""
-    proc = _spawn(cmd, log_dir, name)
+    proc = spawn_logged(cmd, log_dir, name)
     assert proc.popen.stdout is not None
     line = _read_line(proc.popen.stdout, READY_TIMEOUT_S)
     if line is None or line.strip() != expect:
-        _kill(proc)
+        kill_proc(proc)
         pytest.fail(f"{name} not ready ({line!r}); stderr: {proc.stderr()[-2000:]!r}")
     return proc
-
-
-def _kill(proc: Proc) -> None:
-    if proc.popen.poll() is None:
-        proc.popen.kill()
-        proc.popen.wait(timeout=10)
-    if proc.popen.stdout is not None:
-        proc.popen.stdout.close()
-
-
-def _stop(proc: Proc, timeout_s: float = 15.0) -> int:
-    """SIGTERM ``proc`` if it still runs (SIGKILL if it ignores it); its exit code."""
-    if proc.popen.poll() is None:
-        proc.popen.terminate()
-        try:
-            proc.popen.wait(timeout=timeout_s)
-        except subprocess.TimeoutExpired:
-            proc.popen.kill()
-            proc.popen.wait(timeout=5)
-    if proc.popen.stdout is not None:
-        proc.popen.stdout.close()
-    return int(proc.popen.returncode)
 
 
 def _start_router(endpoint: str, log_dir: Path) -> Proc:
@@ -143,14 +102,14 @@ def stack(tmp_path: Path) -> Iterator[Stack]:
     try:
         server = _start_server(endpoint, db, port, tmp_path)
     except BaseException:
-        _stop(router)
+        stop_proc(router)
         raise
     s = Stack(endpoint, port, db, tmp_path, router, server)
     try:
         yield s
     finally:
-        _stop(s.server)  # whichever instance is current
-        _stop(s.router)
+        stop_proc(s.server)  # whichever instance is current
+        stop_proc(s.router)
 
 
 @pytest.fixture(scope="module")
@@ -173,11 +132,11 @@ def _start_edge(robot: str, dataset: Path, stack: Stack, tmp_path: Path) -> tupl
     outbox_dir = tmp_path / "outbox"
     cmd = wardmap_cmd("edge", "--robot", robot, "--source", str(dataset), "--connect", stack.endpoint,
                       "--outbox", str(outbox_dir), "--rate", "10", "--config", str(config))
-    proc = _spawn(cmd, tmp_path, "edge")
+    proc = spawn_logged(cmd, tmp_path, "edge")
     assert proc.popen.stdout is not None
     ready = _read_line(proc.popen.stdout, READY_TIMEOUT_S)
     if ready is None or " ready: session " not in ready:
-        _kill(proc)
+        kill_proc(proc)
         pytest.fail(f"edge not ready ({ready!r}); stderr: {proc.stderr()[-2000:]!r}")
     return proc, outbox_dir / OUTBOX_FILE
 
@@ -187,7 +146,7 @@ def _edge_summary(proc: Proc) -> dict[str, Any]:
     try:
         out, _ = proc.popen.communicate(timeout=RUN_TIMEOUT_S)
     except subprocess.TimeoutExpired:
-        _kill(proc)
+        kill_proc(proc)
         pytest.fail(f"edge did not finish within {RUN_TIMEOUT_S} s; stderr: {proc.stderr()[-2000:]!r}")
     assert proc.popen.returncode == 0, proc.stderr()[-2000:]
     assert "Traceback" not in proc.stderr()
@@ -271,7 +230,7 @@ def test_server_sigkill_mid_stream_loses_and_duplicates_nothing(
             _wait_stored(stack.url, robot, 3)
             stack.server.popen.send_signal(signal.SIGKILL)
             assert stack.server.popen.wait(timeout=10) == -signal.SIGKILL
-            _kill(stack.server)
+            kill_proc(stack.server)
             stored_at_kill, _, _ = _db_counts(stack.db, robot)  # nobody writes the file now
             # Restart only once the agent produced a keyframe the dead server never stored (so
             # never acked): it was published to nobody and must be re-sent to the new server.
@@ -281,12 +240,12 @@ def test_server_sigkill_mid_stream_loses_and_duplicates_nothing(
             stack.server = _start_server(stack.endpoint, stack.db, stack.port, stack.log_dir)
             summary = _edge_summary(edge)
         finally:
-            _kill(edge)
+            kill_proc(edge)
     assert stored_at_kill >= 3
     assert summary["frames"] == FRAMES  # the kill happened mid-stream, not after the last frame
     assert summary["resent"] >= 1, summary
     _assert_delivered_exactly_once(stack, robot, summary, outbox)
-    assert _stop(stack.server) == 0
+    assert stop_proc(stack.server) == 0
     assert "Traceback" not in stack.server.stderr()
 
 
@@ -305,15 +264,15 @@ def test_router_restart_agents_reconnect_and_deliver_exactly_once(
     edge, outbox = _start_edge(robot, dataset, stack, tmp_path)
     try:
         stored_before = _wait_stored(stack.url, robot, 3)
-        assert _stop(stack.router) == 0
+        assert stop_proc(stack.router) == 0
         stack.router = _start_router(stack.endpoint, stack.log_dir)
         summary = _edge_summary(edge)
     finally:
-        _kill(edge)
+        kill_proc(edge)
     assert stored_before < summary["keyframes"]  # some keyframes had to cross the new router
     _assert_delivered_exactly_once(stack, robot, summary, outbox)
     assert stack.server.popen.poll() is None, "the server must survive a router restart"
-    assert _stop(stack.server) == 0
+    assert stop_proc(stack.server) == 0
     assert "Traceback" not in stack.server.stderr()
 
 
@@ -399,7 +358,7 @@ def test_malformed_and_mutated_payloads_are_rejected_and_counted(stack: Stack) -
         assert set(robots) <= {FUZZ_ROBOT}
         assert robots.get(FUZZ_ROBOT, 0) == metrics["wardmap_keyframes_stored_total"]
 
-    assert _stop(stack.server) == 0
+    assert stop_proc(stack.server) == 0
     assert "Traceback" not in stack.server.stderr()
     with contextlib.closing(sqlite3.connect(stack.db)) as con:
         assert con.execute("PRAGMA integrity_check").fetchall() == [("ok",)]

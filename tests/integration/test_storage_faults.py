@@ -24,14 +24,13 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import httpx
 import pytest
 from faults import garble_index_page, repair_by_dump, small_keyframes
-from procs import child_env as _env
+from procs import Proc, kill_proc, spawn_logged, stop_proc
 from procs import free_port as _free_port
 from procs import read_line as _read_line
 
@@ -67,52 +66,14 @@ Key = tuple[str, str, int]
 # --------------------------------------------------------------------------- processes
 
 
-@dataclass
-class Proc:
-    """A subprocess whose stderr goes to a file (a full pipe must never block it)."""
-
-    popen: subprocess.Popen[str]
-    stderr_path: Path
-
-    def stderr(self) -> str:
-        return self.stderr_path.read_text(errors="replace")
-
-
-def _spawn(cmd: list[str], log_dir: Path, name: str) -> Proc:
-    err_path = log_dir / f"{name}.{time.monotonic_ns()}.stderr"
-    with err_path.open("w") as err:
-        popen = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err, text=True, env=_env())
-    return Proc(popen, err_path)
-
-
-def _kill(proc: Proc) -> None:
-    if proc.popen.poll() is None:
-        proc.popen.kill()
-        proc.popen.wait(timeout=10)
-    if proc.popen.stdout is not None:
-        proc.popen.stdout.close()
-
-
-def _stop(proc: Proc, timeout_s: float = 15.0) -> int:
-    """SIGTERM ``proc`` if it still runs (SIGKILL if it ignores it); its exit code."""
-    if proc.popen.poll() is None:
-        proc.popen.terminate()
-        try:
-            proc.popen.wait(timeout=timeout_s)
-        except subprocess.TimeoutExpired:
-            proc.popen.kill()
-            proc.popen.wait(timeout=5)
-    if proc.popen.stdout is not None:
-        proc.popen.stdout.close()
-    return int(proc.popen.returncode)
 
 
 def _start(cmd: list[str], ready: Callable[[str], bool], log_dir: Path, name: str) -> Proc:
-    proc = _spawn(cmd, log_dir, name)
+    proc = spawn_logged(cmd, log_dir, name)
     assert proc.popen.stdout is not None
     line = _read_line(proc.popen.stdout, READY_TIMEOUT_S)
     if line is None or not ready(line.strip()):
-        _kill(proc)
+        kill_proc(proc)
         pytest.fail(f"{name} not ready ({line!r}); stderr: {proc.stderr()[-2000:]!r}")
     return proc
 
@@ -129,7 +90,7 @@ def router(tmp_path: Path) -> Iterator[str]:
     try:
         yield endpoint
     finally:
-        _stop(proc)
+        stop_proc(proc)
 
 
 @pytest.fixture(scope="module")
@@ -165,7 +126,7 @@ def _edge_summary(proc: Proc) -> dict[str, Any]:
     try:
         out, _ = proc.popen.communicate(timeout=RUN_TIMEOUT_S)
     except subprocess.TimeoutExpired:
-        _kill(proc)
+        kill_proc(proc)
         pytest.fail(f"edge did not finish within {RUN_TIMEOUT_S} s; stderr: {proc.stderr()[-2000:]!r}")
     assert proc.popen.returncode == 0, proc.stderr()[-2000:]
     assert "Traceback" not in proc.stderr()
@@ -293,7 +254,7 @@ def test_disk_full_keeps_keyframes_on_the_robot_until_the_store_has_room(
             edge = _start_edge(router, dataset, tmp_path)
             try:
                 watch.wait("3 retry acks", lambda w: w.statuses()["retry"] >= 3)
-                assert _stop(server) == 0
+                assert stop_proc(server) == 0
                 assert "Traceback" not in server.stderr()
                 assert "cannot store" in server.stderr()
                 rows, in_db = _db_keys(db)
@@ -303,10 +264,10 @@ def test_disk_full_keeps_keyframes_on_the_robot_until_the_store_has_room(
                 server = _start_server(router, f"sqlite:///{db}", port, tmp_path)
                 summary = _edge_summary(edge)
             finally:
-                _kill(edge)
+                kill_proc(edge)
         _report(record_property, "disk full", summary, db, watch)
     finally:
-        assert _stop(server) == 0
+        assert stop_proc(server) == 0
     assert "Traceback" not in server.stderr()
 
 
@@ -341,11 +302,11 @@ def test_database_locked_past_the_busy_timeout_loses_nothing(
                 record_property("lock_held_s", round(held_s, 2))
                 summary = _edge_summary(edge)
             finally:
-                _kill(edge)
+                kill_proc(edge)
         _report(record_property, "database locked", summary, db, watch)
         assert "database is locked" in server.stderr()
     finally:
-        assert _stop(server) == 0
+        assert stop_proc(server) == 0
     assert "Traceback" not in server.stderr()
 
 
@@ -381,7 +342,7 @@ def test_corrupted_index_page_is_never_acked_rejected_and_the_edge_keeps_its_key
                 kept = [h for h in watch.heartbeats if h["keyframes"] >= 3]
                 assert all(h["pending"] == h["keyframes"] and h["acked"] == 0 for h in kept), kept
                 assert set(watch.statuses()) == {"retry"}
-                assert _stop(server) == 0
+                assert stop_proc(server) == 0
                 damage_lines = [ln for ln in server.stderr().splitlines() if "database file is damaged" in ln]
                 assert len(damage_lines) == 1, damage_lines
                 assert ".recover" in damage_lines[0] and "backup" in damage_lines[0]
@@ -389,11 +350,11 @@ def test_corrupted_index_page_is_never_acked_rejected_and_the_edge_keeps_its_key
                 server = _start_server(router, f"sqlite:///{db}", port, tmp_path)
                 summary = _edge_summary(edge)
             finally:
-                _kill(edge)
+                kill_proc(edge)
         _report(record_property, "corrupted index", summary, db, watch)
         assert _db_keys(db, "seed")[0] == 5
     finally:
-        assert _stop(server) == 0
+        assert stop_proc(server) == 0
     assert "Traceback" not in server.stderr()
 
 

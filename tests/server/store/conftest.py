@@ -13,14 +13,14 @@ from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
 
-import cv2
+import factories
 import numpy as np
 import pytest
 
 from wardmap.server.store import MapStore, open_store
 from wardmap.shared import wire
 from wardmap.shared.se3 import make_transform
-from wardmap.shared.wire import Intrinsics, KeyframeMsg, Keypoints, PackedRaster
+from wardmap.shared.wire import KeyframeMsg
 
 BACKENDS = ("sqlite",)
 """Store backends the Protocol tests run against."""
@@ -82,28 +82,7 @@ def base_keyframe() -> KeyframeMsg:
     """A valid tiny keyframe (built once; others are ``replace``d copies)."""
     global _BASE
     if _BASE is None:
-        rng = np.random.default_rng(0)
-        ok, jpg = cv2.imencode(".jpg", rng.integers(0, 256, (H, W, 3), dtype=np.uint8))
-        assert ok
-        n = 5
-        _BASE = KeyframeMsg(
-            robot_id="r1",
-            session_id="s1",
-            seq=0,
-            stamp=T0,
-            T_odom_camera=np.eye(4),
-            pose_source="rgb",
-            keypoints=Keypoints(
-                uv=(rng.random((n, 2)) * [W - 1, H - 1]).astype(np.float32),
-                octave=np.zeros(n, np.int8),
-                angle_deg=(rng.random(n) * 360).astype(np.float32),
-                depth_m=rng.uniform(0.5, 4.0, n).astype(np.float32),
-                descriptors=rng.integers(0, 256, (n, 32), dtype=np.uint8),
-            ),
-            rgb_jpeg=bytes(jpg.tobytes()),
-            depth=PackedRaster(*wire.encode_depth(rng.uniform(0.5, 4.0, (H // 2, W // 2)))),
-            intrinsics=Intrinsics(W, H, 50.0, 50.0, 31.5, 23.5, (0.0, 0.0, 0.0, 0.0, 0.0), 5000.0),
-        )
+        _BASE = factories.keyframe(np.random.default_rng(0), n_keypoints=5)
     return _BASE
 
 

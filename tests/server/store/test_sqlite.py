@@ -11,13 +11,13 @@ import dataclasses
 import os
 import signal
 import sqlite3
-import subprocess
 import sys
 from contextlib import closing
 from pathlib import Path
 
 import numpy as np
 import pytest
+from procs import sigkill_after
 
 from wardmap.server.objectmap import ObjectMap, ObjectState
 from wardmap.server.store import MIGRATIONS, SqliteMapStore, StoreError, open_store
@@ -150,7 +150,7 @@ def test_relative_url(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
 _CHILD = """
 import sys
 from contextlib import closing
-sys.path.insert(0, sys.argv[2])
+sys.path[:0] = [sys.argv[2], sys.argv[3]]
 from conftest import keyframe
 from wardmap.server.store import open_store
 with open_store("sqlite:///" + sys.argv[1]) as st:
@@ -171,29 +171,10 @@ def test_crash_safety_sigkill(tmp_path: Path) -> None:
     line it managed to write before dying. At most the one insert in flight may be there unreported.
     """
     path = tmp_path / "map.db"
-    proc = subprocess.Popen(
-        [sys.executable, "-c", _CHILD, str(path), str(Path(__file__).parent)],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    assert proc.stdout is not None
-    reported: list[int] = []
-    try:
-        while len(reported) < 50:
-            line = proc.stdout.readline()
-            if not line:
-                pytest.fail(f"child exited early: {proc.wait()} {proc.stderr.read() if proc.stderr else ''}")
-            reported.append(int(line))
-        os.kill(proc.pid, signal.SIGKILL)
-        reported += [int(ln) for ln in proc.stdout.read().split()]
-    finally:
-        proc.kill()
-        proc.wait()
-        proc.stdout.close()
-        if proc.stderr is not None:
-            proc.stderr.close()
-    assert proc.returncode == -signal.SIGKILL
+    tests_dir = Path(__file__).parents[2]  # tests/: factories.py, which the store's conftest imports
+    reported, returncode = sigkill_after(
+        [sys.executable, "-c", _CHILD, str(path), str(Path(__file__).parent), str(tests_dir)], 50)
+    assert returncode == -signal.SIGKILL
     assert reported == list(range(len(reported)))
 
     assert _integrity(path) == "ok"
