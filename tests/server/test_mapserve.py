@@ -18,7 +18,6 @@ from typing import Any
 import msgpack
 import numpy as np
 import pytest
-from procs import free_port
 
 zenoh = pytest.importorskip("zenoh")
 
@@ -30,7 +29,6 @@ from wardmap.server.mapserve import (  # noqa: E402
     MapServeError,
 )
 from wardmap.server.objectmap import ObjectMap, ObjectState  # noqa: E402
-from wardmap.server.router import run_router  # noqa: E402
 from wardmap.server.store import SqliteKeyframeStore, open_store  # noqa: E402
 from wardmap.server.zenoh_session import open_session  # noqa: E402
 from wardmap.shared.knowledge import KnowledgeGraph  # noqa: E402
@@ -53,29 +51,6 @@ def _obj(oid: int, category: str, x: float, y: float, confidence: float = 0.9, *
     return ObjectState(
         oid, category, confidence, yaw_transform(x, y, 0.1 * oid, 0.0), np.array([1.0, 0.5, 2.0]), **kw
     )
-
-
-@pytest.fixture
-def router() -> Iterator[str]:
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    stop, ready = threading.Event(), threading.Event()
-    errors: list[BaseException] = []
-
-    def target() -> None:
-        try:
-            run_router([endpoint], stop=stop, on_ready=lambda _e: ready.set())
-        except BaseException as exc:  # surfaced below
-            errors.append(exc)
-            ready.set()
-
-    worker = threading.Thread(target=target, daemon=True)
-    worker.start()
-    try:
-        assert ready.wait(15) and not errors, errors
-        yield endpoint
-    finally:
-        stop.set()
-        worker.join(10)
 
 
 @pytest.fixture
