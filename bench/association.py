@@ -55,18 +55,18 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _report import git_rev, machine, publish
 
 from wardmap.server.association.associator import AssociationConfig
-from wardmap.server.association.evaluate import (
-    AssociationScore,
-    LandmarkError,
-    landmark_errors,
-    score_landmarks,
-)
-from wardmap.server.association.offline import DatasetMeasurements, associate, measure_dataset
 from wardmap.server.association.types import Landmark
 from wardmap.shared.dataset import DatasetReader
 from wardmap.shared.knowledge import KnowledgeGraph
 from wardmap.shared.se3 import se3_exp, transform_to_tum
 from wardmap.sim.runner import generate
+from wardmap.tools.evaluate import (
+    AssociationScore,
+    LandmarkError,
+    landmark_errors,
+    score_landmarks,
+)
+from wardmap.tools.offline_map import DatasetMeasurements, associate, measure_dataset
 from wardmap.tools.training.segdata import EVAL_SEED_MIN
 
 ROOT = Path(__file__).resolve().parents[1]

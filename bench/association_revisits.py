@@ -36,9 +36,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _report import git_rev, machine, publish
 
 from wardmap.server.association.associator import AssociationConfig, Associator
-from wardmap.server.association.offline import measure_dataset
 from wardmap.server.mapping import for_association
 from wardmap.sim.runner import generate
+from wardmap.tools.offline_map import measure_dataset
 
 ROOT = Path(__file__).resolve().parents[1]
 

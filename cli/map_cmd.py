@@ -40,7 +40,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from wardmap.server.association.offline import run_map
+    from wardmap.tools.offline_map import run_map
 
     last = [time.monotonic()]
 

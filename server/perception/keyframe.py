@@ -1,7 +1,7 @@
 """One keyframe through server perception: images -> instances -> 3D object measurements.
 
 :func:`measure_keyframe` is the one order of steps that the server's mapping stage,
-``wardmap map`` (``server/association/offline.py``) and ``bench/perception.py`` run:
+``wardmap map`` (``tools/offline_map.py``) and ``bench/perception.py`` run:
 
 1. find instances: run the segmenter (``models.py``), or take the instances given;
 2. split them into one instance per object (``instances.split_instances``: the

@@ -6,8 +6,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
-import pytest
-from factories import CAMERA, MeasurementFactory, measurement
+from factories import CAMERA
 
 from wardmap.server.association.associator import AssociationConfig
 from wardmap.server.association.types import Landmark
@@ -18,13 +17,6 @@ from wardmap.server.store import MapStore
 
 Scene = Sequence[tuple[Sequence[ObjectMeasurement], np.ndarray]]
 """Per keyframe: its measurements and T_world_camera (4, 4), in keyframe order."""
-
-
-@pytest.fixture
-def make_measurement() -> MeasurementFactory:
-    """Factory: a measurement of a box seen from a camera, with optional position noise
-    (:func:`factories.measurement`)."""
-    return measurement
 
 
 def map_scene(store: MapStore, scene: Scene, association: AssociationConfig | None = None,

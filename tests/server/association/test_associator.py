@@ -9,12 +9,12 @@ import pytest
 from factories import CAMERA, MeasurementFactory, camera_looking_along_y, object_pose
 
 from wardmap.server.association.associator import AssociationConfig, Associator
-from wardmap.server.association.evaluate import score_landmarks
 from wardmap.server.association.geometry import cut_at_side, cut_at_top_or_bottom
 from wardmap.server.association.types import LandmarkChange
 from wardmap.server.perception.types import ObjectMeasurement
 from wardmap.shared.config import from_mapping
 from wardmap.shared.errors import ConfigError, GeometryError
+from wardmap.tools.evaluate import score_landmarks
 
 DOOR = np.array([0.06, 1.16, 2.18])
 
@@ -167,8 +167,8 @@ def test_example_config_is_the_defaults() -> None:
     """deploy/association.toml loads and equals the dataclass defaults (documented values are true)."""
     from pathlib import Path
 
-    from wardmap.server.association.offline import MapConfig
     from wardmap.shared.config import load_config
+    from wardmap.tools.offline_map import MapConfig
 
     path = Path(__file__).resolve().parents[3] / "deploy" / "association.toml"
     assert load_config(AssociationConfig, path, section="association") == AssociationConfig()

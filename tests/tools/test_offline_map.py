@@ -10,8 +10,12 @@ import numpy as np
 import pytest
 
 from wardmap.server.association.associator import AssociationConfig
-from wardmap.server.association.evaluate import score_landmarks
-from wardmap.server.association.offline import (
+from wardmap.shared.errors import DatasetError, WardmapError
+from wardmap.shared.knowledge import KnowledgeGraph
+from wardmap.shared.se3 import yaw_transform
+from wardmap.sim.runner import generate
+from wardmap.tools.evaluate import score_landmarks
+from wardmap.tools.offline_map import (
     MapConfig,
     associate,
     landmarks_document,
@@ -20,10 +24,6 @@ from wardmap.server.association.offline import (
     score_against_truth,
     select_keyframes,
 )
-from wardmap.shared.errors import DatasetError, WardmapError
-from wardmap.shared.knowledge import KnowledgeGraph
-from wardmap.shared.se3 import yaw_transform
-from wardmap.sim.runner import generate
 
 FRAMES = 10
 
@@ -165,11 +165,11 @@ def test_model_measurements_take_the_servers_perception_steps(small: Path,
     label image in every image, each person is counted as moving, each cabinet is measured,
     skipped or left out by a floor check once, and measurements carry the simulator id most
     of their mask covers in their own frame."""
-    from wardmap.server.association import offline
     from wardmap.server.perception.instances import gt_instance_of
     from wardmap.server.perception.masks import box_of_mask
     from wardmap.server.perception.types import Instance
     from wardmap.shared.dataset import DatasetReader
+    from wardmap.tools import offline_map as offline
 
     reader = DatasetReader(small)
     first = reader.frame(0).labels

@@ -34,7 +34,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from wardmap.server.association.associator import METHODS, AssociationConfig, Associator, Method, beyond_range
-from wardmap.server.association.evaluate import score_landmarks
 from wardmap.server.association.types import Landmark
 from wardmap.server.perception.config import PerceptionConfig
 from wardmap.server.perception.floor import floor_under
@@ -48,6 +47,7 @@ from wardmap.shared.dataset import DatasetReader, pose_at, read_tum_trajectory
 from wardmap.shared.errors import ConfigError, DatasetError, WardmapError
 from wardmap.shared.knowledge import KnowledgeGraph
 from wardmap.shared.se3 import rotation_angle
+from wardmap.tools.evaluate import score_landmarks
 
 __all__ = [
     "DatasetMeasurements",

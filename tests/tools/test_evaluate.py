@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from factories import CHAIR_SIZE, MeasurementFactory, camera_looking_along_y, object_pose
 
-from wardmap.server.association.evaluate import AssociationScore, landmark_errors, score_landmarks
 from wardmap.server.association.types import Landmark
+from wardmap.tools.evaluate import AssociationScore, landmark_errors, score_landmarks
 
 
 def _landmarks(make_measurement: MeasurementFactory, groups: list[list[int | None]]) -> list[Landmark]:
