@@ -60,7 +60,9 @@ class ServerLifecycle(Protocol):
         ...
 
 
-def get_services(request: Request) -> Services:
+# The getters are ``async`` although they only read attributes: FastAPI runs a plain ``def``
+# dependency in its worker thread pool, and each such hop costs about a millisecond a request.
+async def get_services(request: Request) -> Services:
     services: Services | None = getattr(request.app.state, "services", None)
     if services is None:  # only outside the lifespan: a route called before start-up
         raise RuntimeError("the map server is not started")
@@ -70,23 +72,23 @@ def get_services(request: Request) -> Services:
 ServicesDep = Annotated[Services, Depends(get_services)]
 
 
-def get_store(services: ServicesDep) -> KeyframeStore:
+async def get_store(services: ServicesDep) -> KeyframeStore:
     return services.store
 
 
-def get_objectmap(services: ServicesDep) -> ObjectMap:
+async def get_objectmap(services: ServicesDep) -> ObjectMap:
     return services.objects
 
 
-def get_ingest(services: ServicesDep) -> Ingest | None:
+async def get_ingest(services: ServicesDep) -> Ingest | None:
     return services.ingest
 
 
-def get_pipeline(services: ServicesDep) -> MapPipeline | None:
+async def get_pipeline(services: ServicesDep) -> MapPipeline | None:
     return services.pipeline
 
 
-def get_metrics(request: Request) -> CollectorRegistry:
+async def get_metrics(request: Request) -> CollectorRegistry:
     registry: CollectorRegistry = request.app.state.metrics
     return registry
 
