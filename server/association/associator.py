@@ -440,6 +440,9 @@ class Associator:
         self._extent: dict[int, F64] = {}  # measurement id -> world-axis extents (metres)
         self._box: dict[int, tuple[F64, F64]] = {}  # measurement id -> world-axis box corners (metres)
         self._solid: dict[int, bool] = {}  # measurement id -> confirms its landmark (_shows_object)
+        # Measurement ids pruned from their landmark (max_history) while a stream's open group still
+        # holds them (the overlap of the next group): their entries above stay until that group is done.
+        self._retired: set[int] = set()
         radius = cfg.nearest.max_distance_m if cfg.method == "nearest" else cfg.hdp.candidate_radius_m
         self._grid = SpatialGrid(radius)
         # Merging looks this far: the largest candidate search radius of any class.
@@ -518,6 +521,7 @@ class Associator:
                 self._hdp_group([st.views[k] for k in group], changed)
         for k in [k for k in st.views if k <= local - self.config.group_size]:
             del st.views[k]
+        self._forget_retired()
         return self._changes(changed)
 
     def flush(self, stream: str | None = None) -> list[LandmarkChange]:
@@ -534,6 +538,7 @@ class Associator:
             for group in st.grouper.flush():
                 self._hdp_group([st.views[k] for k in group], changed)
             st.views.clear()
+        self._forget_retired()
         return self._changes(changed)
 
     def landmarks(self) -> list[Landmark]:
@@ -593,9 +598,20 @@ class Associator:
                 lm = self._landmarks[lid]
                 for old in lm.prune(self.config.max_history):
                     if old != lm.first_mid:  # per_keyframe_hdp's topic is the first measurement
-                        del self._owner[old], self._sigma[old], self._extent[old], self._box[old]
-                        del self._solid[old]
+                        self._retired.add(old)
+            self._forget_retired()
         self._grown.clear()
+
+    def _forget_retired(self) -> None:
+        """Drop the entries of pruned measurement ids that no open group of any stream holds any
+        more (another robot can fill a landmark's history while this one's group is still open)."""
+        if not self._retired:
+            return
+        pending = {mid for st in self._streams.values() for v in st.views.values() for mid in v.mids}
+        for old in self._retired - pending:
+            del self._owner[old], self._sigma[old], self._extent[old], self._box[old]
+            del self._solid[old]
+        self._retired &= pending
 
     def _mark(self, lid: int, changed: dict[int, str]) -> None:
         changed.setdefault(lid, "updated")

@@ -94,7 +94,7 @@ __all__ = ["FORMAT", "REGISTRY", "VERSION", "CheckpointError", "decode", "encode
 
 FORMAT: Final = "wardmap.association.state"
 """The format's name, first in the header."""
-VERSION: Final = 1
+VERSION: Final = 2
 """Bumped when the layout or a registry entry's fields change; :func:`decode` reads this one only."""
 
 
@@ -181,7 +181,8 @@ def _rebuild_grid(grid: SpatialGrid) -> None:
 _ASSOCIATOR_FIELDS: Final = (
     "config", "_checked", "_min_width", "_min_height", "_together", "_on_floor", "_full_extent",
     "_completed", "_within", "_fitting", "_group_shape", "_streams", "_next_keyframe", "_next_mid",
-    "_next_id", "_groups_done", "_landmarks", "_owner", "_sigma", "_extent", "_box", "_solid", "_grid",
+    "_next_id", "_groups_done", "_landmarks", "_owner", "_sigma", "_extent", "_box", "_solid", "_retired",
+    "_grid",
     "_merge_radius", "_poses_cache", "_grown", "_fresh", "_merged", "beyond_range",
 )
 

@@ -408,3 +408,25 @@ def test_a_door_cut_by_the_border_keeps_the_whole_view_sigma(make_measurement: M
     assert AssociationConfig().completed_when_cut == ("door",)
     with pytest.raises(ValueError, match="completed_when_cut: not knowledge-graph classes: gate"):
         Associator(AssociationConfig(completed_when_cut=("door", "gate")))
+
+
+def test_another_robot_filling_a_landmark_while_a_group_is_open(make_measurement: MeasurementFactory) -> None:
+    """Robot a's last group is still open (its overlap keyframes wait for the next group) while
+    robot b adds more than ``max_history`` measurements of the same chair: the measurements a's
+    group still holds leave the landmark's history, yet a's group is associated when it closes
+    (it used to raise KeyError on their dropped entries) and every measurement ends in the one
+    chair."""
+    assoc = Associator(AssociationConfig(keep_measurements=False, max_history=20))
+
+    def feed(stream: str, n: int) -> None:
+        for i in range(n):
+            T = camera_looking_along_y(0.01 * (i % 5))
+            assoc.add_keyframe([make_measurement(object_pose(0.0, 3.0), T, gt=1)], T, CAMERA, stream=stream)
+
+    feed("a", 7)
+    feed("b", 30)
+    assoc.flush("a")
+    feed("a", 3)
+    assoc.flush()
+    (chair,) = assoc.landmarks()
+    assert chair.category == "chair" and chair.n_measurements == 40

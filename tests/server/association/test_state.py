@@ -332,7 +332,7 @@ CONFIG_FIELDS = [f.name for f in dataclasses.fields(AssociationConfig)]
     (b"\x80\x04\x95 not msgpack", "not a wardmap.association.state blob"),
     (pickle.dumps({"x": 1}), "not a wardmap.association.state blob"),
     (_blob(["other.format", 1], [[], None]), "not a wardmap.association.state blob"),
-    (_blob([FORMAT, VERSION + 1], [[], None]), "version 2 is not supported"),
+    (_blob([FORMAT, VERSION + 1], [[], None]), f"version {VERSION + 1} is not supported"),
     (_blob([FORMAT, True], [[], None]), "version True is not supported"),
     (_blob([FORMAT, VERSION], [[], [42, 1]]), "unknown node tag 42"),
     (_blob([FORMAT, VERSION], [[], ["LIST", 1]]), "unknown node tag LIST"),
