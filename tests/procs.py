@@ -3,6 +3,7 @@ and read what they answer."""
 
 from __future__ import annotations
 
+import json
 import os
 import queue
 import shlex
@@ -16,7 +17,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO
+from typing import IO, Any
 
 import pytest
 
@@ -181,3 +182,20 @@ def stop_proc(proc: Proc, timeout_s: float = 15.0) -> int:
     if proc.popen.stdout is not None:
         proc.popen.stdout.close()
     return int(proc.popen.returncode)
+
+
+def edge_summary(proc: Proc, timeout_s: float) -> dict[str, Any]:
+    """Wait for a ``wardmap edge`` whose ready line was read to finish on its own; its JSON
+    summary, the one line left on its stdout. Fails the test on a timeout, an exit code other
+    than 0 or a traceback."""
+    try:
+        out, _ = proc.popen.communicate(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        kill_proc(proc)
+        pytest.fail(f"edge did not finish within {timeout_s} s; stderr: {proc.stderr()[-2000:]!r}")
+    assert proc.popen.returncode == 0, proc.stderr()[-2000:]
+    assert "Traceback" not in proc.stderr()
+    lines = out.strip().splitlines()
+    assert len(lines) == 1, out
+    summary: dict[str, Any] = json.loads(lines[0])
+    return summary

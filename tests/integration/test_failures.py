@@ -11,11 +11,9 @@ deadline, never on sleeps. Agent restart (SIGTERM, resume from the outbox) is co
 from __future__ import annotations
 
 import contextlib
-import json
 import queue
 import signal
 import sqlite3
-import subprocess
 import threading
 import time
 from collections.abc import Iterator
@@ -28,7 +26,7 @@ import numpy as np
 import pytest
 from factories import FUZZ_LEAVES, keyframe, mutate, walk
 from peers import ALL_ACKS, matched_publisher, open_client
-from procs import Proc, kill_proc, prometheus_samples, spawn_logged, stop_proc, wardmap_cmd
+from procs import Proc, edge_summary, kill_proc, prometheus_samples, spawn_logged, stop_proc, wardmap_cmd
 from procs import free_port as _free_port
 from procs import read_line as _read_line
 
@@ -141,21 +139,6 @@ def _start_edge(robot: str, dataset: Path, stack: Stack, tmp_path: Path) -> tupl
     return proc, outbox_dir / OUTBOX_FILE
 
 
-def _edge_summary(proc: Proc) -> dict[str, Any]:
-    """Wait for the agent to finish on its own; its JSON summary line."""
-    try:
-        out, _ = proc.popen.communicate(timeout=RUN_TIMEOUT_S)
-    except subprocess.TimeoutExpired:
-        kill_proc(proc)
-        pytest.fail(f"edge did not finish within {RUN_TIMEOUT_S} s; stderr: {proc.stderr()[-2000:]!r}")
-    assert proc.popen.returncode == 0, proc.stderr()[-2000:]
-    assert "Traceback" not in proc.stderr()
-    lines = out.strip().splitlines()
-    assert len(lines) == 1, out  # the ready line was read already; the summary remains
-    summary: dict[str, Any] = json.loads(lines[0])
-    return summary
-
-
 def _wait_stored(url: str, robot: str, at_least: int) -> int:
     """Poll GET /v1/robots until ``robot`` has ``at_least`` keyframes (deadline EVENT_TIMEOUT_S)."""
     deadline = time.monotonic() + EVENT_TIMEOUT_S
@@ -238,7 +221,7 @@ def test_server_sigkill_mid_stream_loses_and_duplicates_nothing(
             while produced <= stored_at_kill:
                 produced = decode_heartbeat(heartbeats.get(timeout=EVENT_TIMEOUT_S)).stats["keyframes"]
             stack.server = _start_server(stack.endpoint, stack.db, stack.port, stack.log_dir)
-            summary = _edge_summary(edge)
+            summary = edge_summary(edge, RUN_TIMEOUT_S)
         finally:
             kill_proc(edge)
     assert stored_at_kill >= 3
@@ -266,7 +249,7 @@ def test_router_restart_agents_reconnect_and_deliver_exactly_once(
         stored_before = _wait_stored(stack.url, robot, 3)
         assert stop_proc(stack.router) == 0
         stack.router = _start_router(stack.endpoint, stack.log_dir)
-        summary = _edge_summary(edge)
+        summary = edge_summary(edge, RUN_TIMEOUT_S)
     finally:
         kill_proc(edge)
     assert stored_before < summary["keyframes"]  # some keyframes had to cross the new router

@@ -18,7 +18,6 @@ import contextlib
 import json
 import logging
 import sqlite3
-import subprocess
 import sys
 import threading
 import time
@@ -30,7 +29,7 @@ from typing import Any
 import httpx
 import pytest
 from faults import garble_index_page, repair_by_dump, small_keyframes
-from procs import Proc, kill_proc, spawn_logged, stop_proc
+from procs import Proc, edge_summary, kill_proc, spawn_logged, stop_proc
 from procs import free_port as _free_port
 from procs import read_line as _read_line
 
@@ -119,21 +118,6 @@ def _start_edge(endpoint: str, dataset: Path, tmp_path: Path) -> Proc:
     cmd = _wardmap("edge", "--robot", ROBOT, "--source", str(dataset), "--connect", endpoint,
                    "--outbox", str(tmp_path / "outbox"), "--rate", "10", "--config", str(config))
     return _start(cmd, lambda ln: " ready: session " in ln, tmp_path, "edge")
-
-
-def _edge_summary(proc: Proc) -> dict[str, Any]:
-    """Wait for the agent to finish on its own; its JSON summary line."""
-    try:
-        out, _ = proc.popen.communicate(timeout=RUN_TIMEOUT_S)
-    except subprocess.TimeoutExpired:
-        kill_proc(proc)
-        pytest.fail(f"edge did not finish within {RUN_TIMEOUT_S} s; stderr: {proc.stderr()[-2000:]!r}")
-    assert proc.popen.returncode == 0, proc.stderr()[-2000:]
-    assert "Traceback" not in proc.stderr()
-    lines = out.strip().splitlines()
-    assert len(lines) == 1, out
-    summary: dict[str, Any] = json.loads(lines[0])
-    return summary
 
 
 # --------------------------------------------------------------------------- watching
@@ -262,7 +246,7 @@ def test_disk_full_keeps_keyframes_on_the_robot_until_the_store_has_room(
                 assert rows < 20  # the cap held; the rest waits on the robot
                 record_property("stored_while_full", rows)
                 server = _start_server(router, f"sqlite:///{db}", port, tmp_path)
-                summary = _edge_summary(edge)
+                summary = edge_summary(edge, RUN_TIMEOUT_S)
             finally:
                 kill_proc(edge)
         _report(record_property, "disk full", summary, db, watch)
@@ -300,7 +284,7 @@ def test_database_locked_past_the_busy_timeout_loses_nothing(
                     holder.execute("ROLLBACK")
                 assert held_s >= BUSY_TIMEOUT_S
                 record_property("lock_held_s", round(held_s, 2))
-                summary = _edge_summary(edge)
+                summary = edge_summary(edge, RUN_TIMEOUT_S)
             finally:
                 kill_proc(edge)
         _report(record_property, "database locked", summary, db, watch)
@@ -348,7 +332,7 @@ def test_corrupted_index_page_is_never_acked_rejected_and_the_edge_keeps_its_key
                 assert ".recover" in damage_lines[0] and "backup" in damage_lines[0]
                 repair_by_dump(db)
                 server = _start_server(router, f"sqlite:///{db}", port, tmp_path)
-                summary = _edge_summary(edge)
+                summary = edge_summary(edge, RUN_TIMEOUT_S)
             finally:
                 kill_proc(edge)
         _report(record_property, "corrupted index", summary, db, watch)

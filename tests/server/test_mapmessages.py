@@ -49,6 +49,9 @@ def test_stored_objects_become_the_same_messages_the_checks_would_make(store: Ma
 
 
 def test_unknown_fields_are_refused() -> None:
-    """The unchecked constructor still takes exactly the message's fields."""
+    """The unchecked constructor still takes exactly the message's fields: none missing, none extra."""
     with pytest.raises((KeyError, TypeError)):
         MapObject.checked_elsewhere(object_id=1)
+    fields = {f.name: None for f in dataclasses.fields(MapObject)}
+    with pytest.raises(TypeError, match="colour"):
+        MapObject.checked_elsewhere(**fields, colour=(1, 2, 3))
