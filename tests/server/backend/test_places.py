@@ -24,8 +24,8 @@ def _scene(rng: np.random.Generator, width: int = W) -> tuple[np.ndarray, np.nda
     """A smooth random colour image (BGR uint8 (H, width, 3)) and depth (float32, 0.8-4.5 m)."""
     coarse = rng.uniform(0, 255, (12, width // 40, 3)).astype(np.float32)
     fine = rng.normal(0, 25, (48, width // 10, 3)).astype(np.float32)
-    img = cv2.resize(coarse, (width, H), interpolation=cv2.INTER_CUBIC)
-    img += cv2.resize(fine, (width, H), interpolation=cv2.INTER_CUBIC)
+    img = np.asarray(cv2.resize(coarse, (width, H), interpolation=cv2.INTER_CUBIC), np.float32)
+    img += np.asarray(cv2.resize(fine, (width, H), interpolation=cv2.INTER_CUBIC), np.float32)
     depth = cv2.resize(rng.uniform(0.8, 4.5, (6, width // 80)).astype(np.float32), (width, H))
     return np.clip(img, 0, 255).astype(np.uint8), depth.astype(np.float32)
 
@@ -193,7 +193,7 @@ def test_encoder_rejects_bad_arrays() -> None:
 def test_config_rejects_bad_values(field: str, value: object) -> None:
     """Out-of-range settings raise ConfigError naming the field."""
     with pytest.raises(ConfigError, match=field):
-        FernConfig(**{field: value})  # type: ignore[arg-type]
+        FernConfig(**{field: value})
 
 
 def test_query_ranks_the_true_keyframe_first() -> None:
