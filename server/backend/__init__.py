@@ -1,1 +1,1 @@
-"""SLAM back-end: place recognition, geometric verification and the pose graph."""
+"""SLAM back-end: place recognition, geometric verification, the pose graph and the stage that runs them."""
