@@ -136,7 +136,8 @@ def test_failed_start_stops_what_started(router: str, tmp_path: Path, events: li
                        pipeline_factory=lambda store, objects: _Pipeline(events, fail[0]))  # type: ignore[arg-type,return-value]
     with pytest.raises(ConfigError, match="pipeline cannot start"):
         server.start()
-    assert events == ["session opened", "corrections wired", "mapserve stopped", "ingest stopped", "session closed"]
+    assert events == ["session opened", "corrections wired", "mapserve stopped", "ingest stopped",
+                      "session closed"]
     assert server.services is None
     fail[0] = False
     with server, pytest.raises(ServerError, match="already started"):
