@@ -13,7 +13,17 @@ One :class:`EdgeAgent` runs one robot. Threads and the state each one owns:
   reliable with congestion control ``BLOCK``, marks them sent, and publishes a
   :class:`~wardmap.shared.wire.HeartbeatMsg` every ``heartbeat_period_s``.
 - the Zenoh ack-subscriber callback only enqueues the raw payload into the sender's
-  bounded inbox (policy :data:`INBOX_POLICY`).
+  bounded inbox (policy :data:`INBOX_POLICY`); so do the correction subscriber's and the
+  correction query's callbacks.
+
+Corrections (docs/wire.md, ``wardmap.correction``): the sender subscribes to the robot's
+correction key, queries it at start and every :attr:`AgentConfig.correction_query_s` (a robot
+that reconnected, or missed a put, learns its correction) and hands each payload to its
+:class:`~wardmap.edge.corrections.Corrections`, which applies the running session's newest and
+counts what it refuses by reason. The heartbeat reports ``anchored``, ``corrections``,
+``bad_corrections`` and the map pose ``map_x map_y map_z map_yaw_deg`` of the latest keyframe's
+base (its camera without odometry); the summary the same, with the refusals by reason.
+Keyframes keep carrying only the ``--map-pose`` prior as their ``T_map_odom``.
 
 Acks: ``stored`` and ``duplicate`` remove the item from the outbox. ``rejected`` also
 removes it (the server validated it and will never accept that payload, so resending it
@@ -66,6 +76,7 @@ from typing import Any, Final
 import numpy as np
 from numpy.typing import NDArray
 
+from wardmap.edge.corrections import Corrections
 from wardmap.edge.keyframes import build_keyframe_msg, thermal_due
 from wardmap.edge.labels import LabelSource, make_label_source
 from wardmap.edge.offline import odom_at
@@ -85,6 +96,7 @@ from wardmap.shared.wire import (
 from wardmap.shared.zenoh_config import (
     ack_key,
     client_config,
+    correction_key,
     heartbeat_key,
     keyframe_key,
     liveliness_key,
@@ -98,10 +110,18 @@ INBOX_POLICY: Final = "drop-newest"
 """Policy of the sender's bounded inbox (acks and wake-ups). When full, a new entry is
 dropped and counted (``inbox_dropped``). Safe: a dropped ack leaves its item in the
 outbox, it is re-sent after ``resend_after_s`` and the server answers ``duplicate``; a
-dropped wake-up only delays the next send by at most ``poll_s``."""
+dropped wake-up only delays the next send by at most ``poll_s``; a dropped correction makes
+the sender query the server for the latest one at once."""
 
 _KICK: Final = b""  # inbox entry that only wakes the sender
 MAX_LATENCY_SAMPLES: Final = 1_000_000
+
+
+@dataclass(frozen=True)
+class _Correction:
+    """Inbox entry: a correction payload as received (the subscription or a query reply)."""
+
+    payload: bytes
 
 
 @dataclass(frozen=True)
@@ -125,6 +145,8 @@ class AgentConfig:
         send_batch: outbox items read per send round.
         inbox_size: capacity of the sender's inbox (policy :data:`INBOX_POLICY`).
         poll_s: longest the sender sleeps without a wake-up (resend and heartbeat checks).
+        correction_query_s: query the server for this session's correction this often (it is
+            also subscribed to and queried at start); 0 = only at start.
         outbox_max_items, outbox_max_bytes: outbox capacity (OutboxFull beyond: backpressure).
     """
 
@@ -144,6 +166,7 @@ class AgentConfig:
     send_batch: int = 16
     inbox_size: int = 1024
     poll_s: float = 0.1
+    correction_query_s: float = 10.0
     outbox_max_items: int = 10_000
     outbox_max_bytes: int = 2 << 30
 
@@ -155,6 +178,9 @@ class AgentConfig:
         for name in ("resend_after_s", "heartbeat_period_s", "poll_s"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"agent.{name} must be > 0, got {getattr(self, name)}")
+        if not (np.isfinite(self.correction_query_s) and self.correction_query_s >= 0):
+            raise ConfigError(f"agent.correction_query_s must be >= 0 (0 = only at start), "
+                              f"got {self.correction_query_s}")
         if not self.flush_timeout_s >= 0:
             raise ConfigError(f"agent.flush_timeout_s must be >= 0, got {self.flush_timeout_s}")
         if self.depth_stride not in (1, 2, 4):
@@ -243,11 +269,15 @@ class EdgeAgent:
         self._sender_stop = threading.Event()  # set once: end the sender thread
         self._drained = threading.Event()  # set by the sender when the outbox is empty
         self._space = threading.Event()  # set by the sender after it removed items
-        self._inbox: queue.Queue[bytes] = queue.Queue(maxsize=self.cfg.inbox_size)
+        self._inbox: queue.Queue[bytes | _Correction] = queue.Queue(maxsize=self.cfg.inbox_size)
         self._inbox_dropped = 0  # guarded by _dropped_lock (enqueuers run on several threads)
         self._dropped_lock = threading.Lock()
         self._progress: tuple[int, int, int] = (0, 0, 0)  # (frames, keyframes, lost): atomic swap
         self._sender_stats = _SenderStats()
+        self._corrections = Corrections(self.robot_id, T_map_odom_prior=self.T_map_odom)  # sender's
+        self._query_correction = threading.Event()  # set when a correction was dropped: ask again
+        # (T_odom_base, T_odom_camera) of the latest keyframe put: swapped whole by the tracker
+        self._latest_pose: tuple[NDArray[np.float64] | None, NDArray[np.float64]] | None = None
         self._sender_error: BaseException | None = None
 
     # ------------------------------------------------------------------ control
@@ -256,13 +286,15 @@ class EdgeAgent:
         """Ask the agent to stop tracking, flush and exit (thread and signal safe)."""
         self._stop.set()
 
-    def _enqueue(self, entry: bytes) -> None:
+    def _enqueue(self, entry: bytes | _Correction) -> None:
         """Put into the sender's inbox without blocking (policy :data:`INBOX_POLICY`)."""
         try:
             self._inbox.put_nowait(entry)
         except queue.Full:
             with self._dropped_lock:
                 self._inbox_dropped += 1
+            if isinstance(entry, _Correction):
+                self._query_correction.set()
 
     # ------------------------------------------------------------------ run
 
@@ -270,7 +302,7 @@ class EdgeAgent:
         """Track the data set, send keyframes, flush on stop; return a JSON-able summary.
 
         ``on_ready(session_id, pending_items)`` is called once the session, the
-        publishers, the ack subscriber and the liveliness token are declared.
+        publishers, the ack and correction subscribers and the liveliness token are declared.
         """
         import zenoh  # the only zenoh user on the edge; imported here, not at module import
 
@@ -293,6 +325,9 @@ class EdgeAgent:
                 raise WardmapError(f"cannot connect to {', '.join(self.connect)}: {detail}") from exc
             with session, contextlib.ExitStack() as decl:
                 decl.enter_context(session.declare_subscriber(ack_key(self.robot_id), self._on_ack))
+                decl.enter_context(
+                    session.declare_subscriber(correction_key(self.robot_id), self._on_correction)
+                )
                 token = session.liveliness().declare_token(liveliness_key(self.robot_id))
                 decl.callback(token.undeclare)
                 sender = threading.Thread(
@@ -334,6 +369,7 @@ class EdgeAgent:
             "bytes_per_keyframe": round(track.payload_bytes / track.keyframes) if track.keyframes else 0,
             "thermal_keyframes": track.thermal_sent,
             "latency_ms": _percentiles(lat),
+            **self._corrections.summary(**self._pose_args()),  # the sender has stopped
             "seconds": round(time.monotonic() - t_start, 3),
         }
 
@@ -416,6 +452,7 @@ class EdgeAgent:
                 continue
             if seq != msg.seq:  # only this thread puts into this session
                 raise WardmapError(f"outbox seq {seq} differs from the message's {msg.seq}")
+            self._latest_pose = (msg.T_odom_base, msg.T_odom_camera)
             self._drained.clear()
             self._enqueue(_KICK)
             return True
@@ -436,6 +473,17 @@ class EdgeAgent:
     def _on_ack(self, sample: Any) -> None:
         """Ack subscriber callback: enqueue the raw payload, nothing else."""
         self._enqueue(sample.payload.to_bytes())
+
+    def _on_correction(self, sample: Any) -> None:
+        """Correction subscriber callback: enqueue the raw payload, nothing else."""
+        self._enqueue(_Correction(sample.payload.to_bytes()))
+
+    def _on_correction_reply(self, reply: Any) -> None:
+        """Correction query callback: enqueue an answer's raw payload (an error reply is logged)."""
+        if reply.ok is not None:
+            self._enqueue(_Correction(reply.ok.payload.to_bytes()))
+        else:
+            log.warning("correction query answered with an error: %r", reply.err.payload.to_bytes()[:200])
 
     # ------------------------------------------------------------------ sender thread
 
@@ -473,9 +521,14 @@ class EdgeAgent:
                     congestion_control=zenoh.CongestionControl.BLOCK,
                 )
             )
-            next_heartbeat = time.monotonic()
+            next_heartbeat = next_query = time.monotonic()
             while not self._sender_stop.is_set():
-                self._apply_acks(outbox, stats)
+                if time.monotonic() >= next_query or self._query_correction.is_set():
+                    self._query_correction.clear()
+                    self._request_correction(zenoh, session, ids)
+                    period = cfg.correction_query_s
+                    next_query = time.monotonic() + period if period > 0 else float("inf")
+                self._apply_acks(outbox, ids, stats)
                 due = outbox.pending(cfg.send_batch, resend_after_s=cfg.resend_after_s)
                 if due:
                     self._publish(publisher, outbox, due, stats)
@@ -487,24 +540,37 @@ class EdgeAgent:
                     next_heartbeat = now + cfg.heartbeat_period_s
                 if len(due) == cfg.send_batch:
                     continue  # more are due: keep sending
-                wait = max(0.0, min(cfg.poll_s, next_heartbeat - time.monotonic()))
+                now = time.monotonic()
+                wait = max(0.0, min(cfg.poll_s, next_heartbeat - now, next_query - now))
                 try:
                     entry = self._inbox.get(timeout=wait)
                 except queue.Empty:
                     continue
-                self._handle_entry(entry, outbox, stats)
-            self._apply_acks(outbox, stats)
+                self._handle_entry(entry, outbox, ids, stats)
+            self._apply_acks(outbox, ids, stats)
             self._heartbeat(heartbeat, outbox, ids, stats)
 
-    def _apply_acks(self, outbox: Outbox, stats: _SenderStats) -> None:
+    def _request_correction(self, zenoh: Any, session: Any, ids: SessionIds) -> None:
+        """Ask the server for this session's latest correction; replies reach the inbox."""
+        selector = f"{correction_key(self.robot_id)}?session_id={ids.session_id}"
+        try:
+            session.get(selector, self._on_correction_reply)
+        except zenoh.ZError as exc:  # the next period asks again
+            log.warning("cannot query %s: %s", selector, str(exc).split(" at /", 1)[0])
+
+    def _apply_acks(self, outbox: Outbox, ids: SessionIds, stats: _SenderStats) -> None:
         while True:
             try:
                 entry = self._inbox.get_nowait()
             except queue.Empty:
                 return
-            self._handle_entry(entry, outbox, stats)
+            self._handle_entry(entry, outbox, ids, stats)
 
-    def _handle_entry(self, entry: bytes, outbox: Outbox, stats: _SenderStats) -> None:
+    def _handle_entry(self, entry: bytes | _Correction, outbox: Outbox, ids: SessionIds,
+                      stats: _SenderStats) -> None:
+        if isinstance(entry, _Correction):
+            self._corrections.handle(entry.payload, ids.session_id)
+            return
         if entry == _KICK:
             return
         try:
@@ -571,10 +637,18 @@ class EdgeAgent:
                 "rejected": sum(stats.rejected.values()),
                 "retry_later": stats.retry_later,
                 "inbox_dropped": self._inbox_dropped,
+                **self._corrections.stats(**self._pose_args()),
             },
         )
         pub.put(encode(msg))
         stats.heartbeats += 1
+
+    def _pose_args(self) -> dict[str, NDArray[np.float64] | None]:
+        """The latest keyframe's odom-frame poses as keyword arguments of the map-pose methods."""
+        latest = self._latest_pose
+        if latest is None:
+            return {}
+        return {"T_odom_base": latest[0], "T_odom_camera": latest[1]}
 
 
 def _percentiles(values: NDArray[np.float64]) -> dict[str, float] | None:

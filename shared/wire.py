@@ -905,16 +905,7 @@ def decode(payload: bytes, *, max_bytes: int = MAX_MESSAGE_BYTES) -> Message:
             unknown ``schema`` or ``version``, a missing, unknown, mistyped or out-of-range
             field. ``.field`` names the field (dotted wire path; ``""`` for the whole payload).
     """
-    if not isinstance(payload, bytes | bytearray | memoryview):
-        raise WireError("", f"expected bytes, got {type(payload).__name__}")
-    if len(payload) > max_bytes:
-        raise WireError("", f"payload of {len(payload)} bytes exceeds the limit of {max_bytes}")
-    try:
-        obj = msgpack.unpackb(payload, raw=False, strict_map_key=True, use_list=True,
-                              max_bin_len=max_bytes, **_UNPACK_LIMITS)
-    except (msgpack.UnpackException, ValueError, TypeError, OverflowError, RecursionError) as exc:
-        raise WireError("", f"not a valid msgpack payload: {type(exc).__name__}: {exc}"[:300]) from exc
-    f = _Fields(obj, "")
+    f = _Fields(unpack_payload(payload, max_bytes=max_bytes), "")
     schema = f.get("schema")
     if not isinstance(schema, str) or schema not in _READERS:
         raise WireError("schema", f"unknown schema {schema!r:.60}; expected one of {sorted(_READERS)}")
@@ -955,3 +946,47 @@ def decode_ack(payload: bytes, *, max_bytes: int = MAX_MESSAGE_BYTES) -> AckMsg:
 def decode_heartbeat(payload: bytes, *, max_bytes: int = MAX_MESSAGE_BYTES) -> HeartbeatMsg:
     """:func:`decode` that also requires schema ``wardmap.heartbeat``."""
     return _decode_as(payload, HeartbeatMsg, SCHEMA_HEARTBEAT, max_bytes)
+
+
+# --------------------------------------------------------------------------- for other schemas
+# This schema's readers and checks, public for the other message schemas of ``shared/``
+# (``robotwire.py``), so that every wardmap message is unpacked, validated and refused alike.
+
+Fields = _Fields
+"""Read a wire map once: :meth:`~_Fields.get` / :meth:`~_Fields.optional` each key, then
+:meth:`~_Fields.done` raises :class:`WireError` on any key left unread (unknown field)."""
+check_id = _check_id
+"""``check_id(value, field) -> str``: 1-64 characters ``[A-Za-z0-9_.-]`` (robot and session ids)."""
+check_int = _check_int
+"""``check_int(value, field, lo, hi) -> int``: an int in ``[lo, hi)``; bools are refused."""
+check_float = _check_float
+"""``check_float(value, field, *, positive=False) -> float``: finite; bools are refused."""
+check_text = _check_text
+"""``check_text(value, field, max_len=MAX_TEXT_LEN) -> str``."""
+check_pose = _check_pose
+"""``check_pose(T, field) -> F64``: a read-only copy of a rigid (4, 4) transform."""
+pose_to_wire = _pose_to_wire
+"""``pose_to_wire(T) -> {"t": [x, y, z], "q_xyzw": [x, y, z, w]}``, the wire's pose form."""
+pose_from_wire = _pose_from_wire
+"""``pose_from_wire(value, field) -> F64``: the pose form read back (quaternion norm within
+:data:`QUAT_NORM_TOL` of 1, then renormalised)."""
+
+
+def unpack_payload(payload: object, *, max_bytes: int) -> object:
+    """Unpack untrusted msgpack bytes with this schema's limits (docs/wire.md, "Validation").
+
+    Payloads over ``max_bytes`` are refused before unpacking; strings, arrays, maps and binaries
+    are bounded and ext types refused, so hostile input cannot allocate much.
+
+    Raises:
+        WireError: (field ``""``) not bytes, oversize, truncated or not msgpack.
+    """
+    if not isinstance(payload, bytes | bytearray | memoryview):
+        raise WireError("", f"expected bytes, got {type(payload).__name__}")
+    if len(payload) > max_bytes:
+        raise WireError("", f"payload of {len(payload)} bytes exceeds the limit of {max_bytes}")
+    try:
+        return msgpack.unpackb(payload, raw=False, strict_map_key=True, use_list=True,
+                               max_bin_len=max_bytes, **_UNPACK_LIMITS)
+    except (msgpack.UnpackException, ValueError, TypeError, OverflowError, RecursionError) as exc:
+        raise WireError("", f"not a valid msgpack payload: {type(exc).__name__}: {exc}"[:300]) from exc

@@ -7,7 +7,8 @@ adapters that own a session (``server/router.py``, the edge daemon) hand them to
 layout without importing zenoh.
 
 Key expressions (docs/ARCHITECTURE.md, "Conventions") all start with
-``wardmap/v1/``; one robot owns the subtree ``wardmap/v1/robot/<robot_id>/``.
+``wardmap/v1/``; one robot owns the subtree ``wardmap/v1/robot/<robot_id>/``; the map server
+owns ``wardmap/v1/robots/<robot_id>/`` (what it tells that robot, e.g. its correction).
 """
 
 from __future__ import annotations
@@ -20,12 +21,14 @@ from typing import Any, Literal
 from wardmap.shared.errors import ConfigError
 
 __all__ = [
+    "ALL_CORRECTIONS",
     "ALL_KEYFRAMES",
     "ALL_LIVELINESS",
     "KEY_PREFIX",
     "ack_key",
     "client_config",
     "config_leaves",
+    "correction_key",
     "heartbeat_key",
     "keyframe_key",
     "liveliness_key",
@@ -43,6 +46,9 @@ ALL_KEYFRAMES = f"{KEY_PREFIX}/robot/*/keyframe"
 
 ALL_LIVELINESS = f"{KEY_PREFIX}/robot/*/alive"
 """Liveliness-subscriber key for the presence tokens of every robot."""
+
+ALL_CORRECTIONS = f"{KEY_PREFIX}/robots/*/correction"
+"""Key of the server's correction queryable: the corrections of every robot."""
 
 _ROBOT_ID_RE = re.compile(r"[A-Za-z0-9_.-]{1,64}")
 _ROBOT_KEY_RE = re.compile(rf"{re.escape(KEY_PREFIX)}/robot/([A-Za-z0-9_.-]{{1,64}})/[A-Za-z0-9_.-]+")
@@ -202,6 +208,12 @@ def heartbeat_key(robot_id: str) -> str:
 def liveliness_key(robot_id: str) -> str:
     """Key of the liveliness token that shows robot ``robot_id`` is connected."""
     return _robot_key(robot_id, "alive")
+
+
+def correction_key(robot_id: str) -> str:
+    """Key on which the server publishes the corrections (``wardmap.correction``) of robot
+    ``robot_id``, in the server-owned subtree ``wardmap/v1/robots/<robot_id>/``."""
+    return f"{KEY_PREFIX}/robots/{validate_robot_id(robot_id)}/correction"
 
 
 def robot_id_from_key(key_expr: str) -> str:

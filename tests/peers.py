@@ -76,13 +76,15 @@ class Acker:
     """Stands in for the server: acks every keyframe it decodes with ``status`` (and ``reason``).
 
     The subscriber callback only enqueues (bounded queue, blocking: the test must see every
-    keyframe); a worker thread decodes, records ``(session_id, seq)`` and publishes the ack.
+    keyframe); a worker thread decodes, records ``(session_id, seq)`` and the keyframe's poses
+    (``poses``: ``(T_odom_base, T_odom_camera, T_map_odom)``) and publishes the ack.
     """
 
     def __init__(self, endpoint: str, status: AckStatus = "stored", reason: str = "") -> None:
         self.endpoint = endpoint
         self.status, self.reason = status, reason
         self.received: list[tuple[str, int]] = []  # owned by the worker; read under _lock
+        self.poses: dict[tuple[str, int], tuple[Any, Any, Any]] = {}  # likewise
         self._lock = threading.Lock()
         self._changed = threading.Condition(self._lock)
         self._queue: queue.Queue[bytes | None] = queue.Queue(maxsize=256)
@@ -110,6 +112,7 @@ class Acker:
             self._session.put(ack_key(msg.robot_id), encode(ack))
             with self._changed:
                 self.received.append((msg.session_id, msg.seq))
+                self.poses[(msg.session_id, msg.seq)] = (msg.T_odom_base, msg.T_odom_camera, msg.T_map_odom)
                 self._changed.notify_all()
 
     def keys(self) -> set[tuple[str, int]]:

@@ -33,6 +33,8 @@ def test_example_config_matches_the_defaults() -> None:
         ("jpeg_quality = 0", "jpeg_quality"),
         ("label_threads = 0", "label_threads"),
         ("rate_hz = -1.0", "rate_hz"),
+        ("correction_query_s = -1.0", "correction_query_s"),
+        ("correction_query_s = inf", "correction_query_s"),
         ("jpg_quality = 80", "jpg_quality"),
     ],
 )
