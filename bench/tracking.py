@@ -40,7 +40,7 @@ from wardmap.shared.dataset import Calibration, DatasetReader
 from wardmap.shared.metrics import ate
 from wardmap.shared.se3 import transform_from_tum
 from wardmap.sim.runner import generate
-from wardmap.sim.scenarios import SCENARIOS
+from wardmap.sim.scenarios import SCENARIOS, build_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 TUM = ROOT.parent / "shared" / "data" / "tum_fr1_rpy_s3_first100"
@@ -132,14 +132,12 @@ def main() -> int:
                 folders = [("tum_fr1_rpy_s3_first100", TUM)]
             else:
                 out = args.data / f"{name}_s{args.seed}"
-                if not (out / "sim.json").exists() and not (out / "robot_0" / "sim.json").exists():
+                runs = [p.parent for p in sorted(out.glob("*/sim.json"))]  # a multi-robot scenario
+                if not (out / "sim.json").exists() and len(runs) < len(build_scene(name, args.seed).robots):
                     print(f"generating {name} ...", file=sys.stderr)
                     generate(name, args.seed, out, overwrite=True)
-                folders = (
-                    [(f"{name}/{p.name}", p) for p in sorted(out.glob("robot_*"))]
-                    if (out / "robot_0").exists()
-                    else [(name, out)]
-                )
+                    runs = [p.parent for p in sorted(out.glob("*/sim.json"))]
+                folders = [(f"{name}/{p.name}", p) for p in runs] if runs else [(name, out)]
             for label, folder in folders:
                 label_specs = ["none"]
                 if name == "walking_staff":

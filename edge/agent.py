@@ -39,7 +39,8 @@ Sources: a data-set folder (:class:`~wardmap.shared.dataset.DatasetReader`) or a
 
 Keypoints: the tracker's own features of the keyframe, after dynamic-point removal (what
 its map was built from), the strongest :attr:`AgentConfig.max_keypoints` of them. A
-keyframe the tracker made without RGB features (rare) gets ORB extracted here.
+keyframe the tracker made without RGB features (rare) gets ORB extracted. The message is
+built by :func:`wardmap.edge.keyframes.build_keyframe_msg`, which the offline tools share.
 
 Size budget (docs/wire.md, "Budget"; goal: mean <= 100 KB): JPEG quality
 :attr:`AgentConfig.jpeg_quality`, depth at 1/:attr:`AgentConfig.depth_stride`
@@ -72,15 +73,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Final
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from wardmap.edge.corrections import Corrections
+from wardmap.edge.keyframes import build_keyframe_msg, thermal_due
 from wardmap.edge.labels import LabelSource, make_label_source
 from wardmap.edge.offline import odom_at
 from wardmap.edge.outbox import Outbox, OutboxFull, OutboxItem, SessionIds
-from wardmap.edge.tracker import Tracker, TrackerConfig, TrackInput, TrackResult
+from wardmap.edge.tracker import Tracker, TrackerConfig, TrackInput
 from wardmap.shared.dataset import DatasetReader, Frame, FrameSource
 from wardmap.shared.errors import ConfigError, DatasetError, WardmapError, WireError
 from wardmap.shared.knowledge import KnowledgeGraph
@@ -89,12 +90,8 @@ from wardmap.shared.wire import (
     HeartbeatMsg,
     Intrinsics,
     KeyframeMsg,
-    Keypoints,
-    PackedRaster,
     decode_ack,
     encode,
-    encode_depth,
-    encode_thermal,
 )
 from wardmap.shared.zenoh_config import (
     ack_key,
@@ -421,72 +418,18 @@ class EdgeAgent:
             track.frames += 1
             track.lost += int(res.lost)
             if res.keyframe and frame is not None:
-                msg = self._keyframe_msg(tracker, frame, res, T_odom_base, intrinsics, ids, track)
+                msg = build_keyframe_msg(
+                    frame, res, tracker, T_odom_base=T_odom_base, intrinsics=intrinsics,
+                    robot_id=self.robot_id, session_id=ids.session_id, seq=ids.next_seq, config=self.cfg,
+                    with_thermal=thermal_due(res.source, track.keyframes, self.cfg.thermal_every),
+                    T_map_odom=self.T_map_odom,
+                )
+                track.thermal_sent += int(msg.thermal is not None)
                 if not self._put_with_backpressure(ids, msg, track):
                     break
                 track.keyframes += 1
             self._progress = (track.frames, track.keyframes, track.lost)
         self._progress = (track.frames, track.keyframes, track.lost)
-
-    def _keyframe_msg(
-        self,
-        tracker: Tracker,
-        frame: Frame,
-        res: TrackResult,
-        T_odom_base: NDArray[np.float64] | None,
-        intrinsics: Intrinsics,
-        ids: SessionIds,
-        track: _TrackStats,
-    ) -> KeyframeMsg:
-        """The wire message of a keyframe; its seq is the session's next one (put right after)."""
-        depth = np.nan_to_num(frame.depth_m, nan=0.0, posinf=0.0, neginf=0.0)
-        feats = res.features
-        if feats is None:
-            feats = tracker.orb.extract(np.asarray(cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2GRAY), np.uint8))
-        if len(feats.uv) > self.cfg.max_keypoints:
-            strongest = np.argsort(-feats.response, kind="stable")[: self.cfg.max_keypoints]
-            feats = feats.select(np.sort(strongest))
-        h, w = depth.shape
-        col = np.clip(np.rint(feats.uv[:, 0]).astype(np.int64), 0, w - 1)
-        row = np.clip(np.rint(feats.uv[:, 1]).astype(np.int64), 0, h - 1)
-        kp_depth = np.maximum(depth[row, col], 0.0).astype(np.float32)
-        keypoints = Keypoints(
-            uv=np.ascontiguousarray(feats.uv, np.float32),
-            octave=feats.octave.astype(np.int16),
-            angle_deg=np.clip(feats.angle_deg, 0.0, 360.0).astype(np.float32),
-            depth_m=kp_depth,
-            descriptors=np.ascontiguousarray(feats.descriptors, np.uint8),
-        )
-        bgr = cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR)
-        ok, jpeg = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, self.cfg.jpeg_quality])
-        if not ok:
-            raise WardmapError(f"cannot JPEG-encode the colour image of frame {frame.index}")
-        s = self.cfg.depth_stride if h % self.cfg.depth_stride == 0 and w % self.cfg.depth_stride == 0 else 1
-        thermal = None
-        every = self.cfg.thermal_every
-        due = res.source == "thermal" or (every > 0 and track.keyframes % every == 0)
-        if frame.thermal_k is not None and due:
-            th = np.nan_to_num(frame.thermal_k, nan=0.0, posinf=0.0, neginf=0.0)
-            ts = self.cfg.thermal_stride
-            if th.shape[0] % ts or th.shape[1] % ts:
-                ts = 1
-            thermal = PackedRaster(*encode_thermal(th[::ts, ::ts], unit_k=self.cfg.thermal_unit_k))
-            track.thermal_sent += 1
-        return KeyframeMsg(
-            robot_id=self.robot_id,
-            session_id=ids.session_id,
-            seq=ids.next_seq,
-            stamp=float(frame.stamp),
-            T_odom_camera=res.T_world_camera,
-            pose_source=res.source,
-            keypoints=keypoints,
-            rgb_jpeg=jpeg.tobytes(),
-            depth=PackedRaster(*encode_depth(depth[::s, ::s])),
-            intrinsics=intrinsics,
-            T_odom_base=T_odom_base,
-            thermal=thermal,
-            T_map_odom=self.T_map_odom,
-        )
 
     def _put_with_backpressure(self, ids: SessionIds, msg: KeyframeMsg, track: _TrackStats) -> bool:
         """Put ``msg`` into the outbox; while it is full, wait for acks (never drop); True if stored.

@@ -76,6 +76,13 @@ class TriangleSoup:
     def __len__(self) -> int:
         return int(self.vertices.shape[0])
 
+    def select(self, keep: NDArray[np.bool_]) -> TriangleSoup:
+        """The triangles where ``keep`` (T,) is True, in their order."""
+        return TriangleSoup(
+            self.vertices[keep], self.uv[keep], self.texture[keep], self.instance[keep], self.material[keep],
+            self.shade[keep],
+        )
+
     @staticmethod
     def concat(parts: list[TriangleSoup]) -> TriangleSoup:
         parts = [p for p in parts if len(p)]

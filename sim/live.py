@@ -125,7 +125,8 @@ class LiveRun:
         scene: Scene | None = None,
         sensors: SensorSimulator | None = None,
     ) -> None:
-        """Build the scene (or reuse ``scene``/``sensors`` of the same scenario and seed).
+        """Build the scene (or reuse ``scene``/``sensors`` of the same scenario and seed; ``sensors``
+        must render this run's world, :meth:`Scene.world_of`).
 
         Raises:
             SimulationError: unknown scenario or robot, bad frame count.
@@ -165,7 +166,7 @@ class LiveRun:
     def sensors(self) -> SensorSimulator:
         """The renderer (built on first use: it holds the world's texture atlas)."""
         if self._sensors is None:
-            world = self.scene.world
+            world = self.scene.world_of(self.run)
             self._sensors = SensorSimulator(world.static, world.bank.stack(), self.rig)
         return self._sensors
 
@@ -211,7 +212,8 @@ class LiveRun:
     def _capture(self, i: int) -> Frame:
         t = float(self.t_cam[i])
         scene = self.scene
-        dyn = TriangleSoup.concat([soup_of(*a.at(t), a.id, scene.world.bank) for a in scene.actors])
+        bank = scene.world_of(self.run).bank
+        dyn = TriangleSoup.concat([soup_of(*a.at(t), a.id, bank) for a in scene.actors])
         T_world_rgb = self.T_world_base[i] @ self.rig.T_base_rgb
         f = self.sensors.capture(T_world_rgb, dyn, scene.light(t), self._rng)
         stamp = float(self.stamps[i])
@@ -263,4 +265,4 @@ class LiveRun:
         """The ``objects.json`` document of the scene (docs/dataset.md)."""
         from wardmap.sim.runner import objects_document
 
-        return objects_document(self.scene, self.stamps, KnowledgeGraph.load())
+        return objects_document(self.scene, self.stamps, KnowledgeGraph.load(), self.scene.world_of(self.run))

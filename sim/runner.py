@@ -2,8 +2,9 @@
 
 Output (``docs/dataset.md``): one data-set folder per robot. A single-robot scenario
 writes into ``out`` itself; a multi-robot scenario writes ``out/<robot>/`` for each
-robot, all sharing one world frame and identical ``objects.json``. The same scenario
-and seed give byte-identical files.
+robot run, all sharing one world frame; each ``objects.json`` describes its run's world
+(identical unless the scenario moves objects between runs, as ``hospital_days`` does
+between its two days). The same scenario and seed give byte-identical files.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from wardmap.sim.live import (
 )
 from wardmap.sim.scenarios import Scene, build_scene
 from wardmap.sim.sensors import SensorRig, SensorSimulator
+from wardmap.sim.world import World
 
 log = logging.getLogger(__name__)
 
@@ -53,10 +55,16 @@ class RobotSummary:
     length_m: float
 
 
-def objects_document(scene: Scene, stamps: F64, kg: KnowledgeGraph) -> dict[str, object]:
-    """``objects.json``: every instance with class, mobility, pose, size; moving ones per frame."""
+def objects_document(
+    scene: Scene, stamps: F64, kg: KnowledgeGraph, world: World | None = None
+) -> dict[str, object]:
+    """``objects.json``: every instance with class, mobility, pose, size; moving ones per frame.
+
+    ``world``: the run's world (:meth:`Scene.world_of`); None: the scene's.
+    """
+    world = scene.world if world is None else world
     objects: list[dict[str, object]] = []
-    for o in scene.world.objects:
+    for o in world.objects:
         objects.append(
             {
                 "id": o.id,
@@ -91,7 +99,7 @@ def objects_document(scene: Scene, stamps: F64, kg: KnowledgeGraph) -> dict[str,
     return {
         "format_version": FORMAT_VERSION,
         "world": {
-            "name": scene.world.name,
+            "name": world.name,
             "scenario": scene.name,
             "seed": scene.seed,
             "frame": "world",
@@ -128,13 +136,18 @@ def generate(
     scene = build_scene(scenario, seed)
     rig = rig or SensorRig()
     kg = KnowledgeGraph.load()
-    sensors = SensorSimulator(scene.world.static, scene.world.bank.stack(), rig)
+    sensors: dict[int, SensorSimulator] = {}  # id(world) -> its renderer (one per distinct world)
     out = Path(out)
     multi = len(scene.robots) > 1
     summaries = []
     for run in scene.robots:
+        world = scene.world_of(run)
+        if id(world) not in sensors:
+            sensors[id(world)] = SensorSimulator(world.static, world.bank.stack(), rig)
         root = out / run.name if multi else out
-        live = LiveRun(scenario, seed, run.name, frames=frames, rig=rig, scene=scene, sensors=sensors)
+        live = LiveRun(
+            scenario, seed, run.name, frames=frames, rig=rig, scene=scene, sensors=sensors[id(world)]
+        )
         n = len(live)
         started = time.perf_counter()
         with DatasetWriter(root, live.calibration, overwrite=overwrite) as writer:
@@ -149,7 +162,7 @@ def generate(
             odo_stamps, T_odom_base, encoders = live.odometry_run()
             writer.write_odometry(odo_stamps, T_odom_base)
             writer.write_encoders(encoders)
-            writer.write_objects(objects_document(scene, live.stamps, kg))
+            writer.write_objects(objects_document(scene, live.stamps, kg, world))
         t_cam = live.t_cam
         (root / "sim.json").write_text(
             json.dumps(

@@ -12,6 +12,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+from numpy.typing import NDArray
 
 from wardmap.shared.errors import SimulationError
 from wardmap.shared.se3 import yaw_transform
@@ -20,16 +21,22 @@ from wardmap.sim.actors import Actor, Carried, Pushed, Walker
 from wardmap.sim.motion import Track, concat, hold, plan_path
 from wardmap.sim.world import World, WorldBuilder
 
+F64 = NDArray[np.float64]
 SLOW_MPS = 0.4
 QUICK_MPS = 0.8
 
 
 @dataclass(frozen=True)
 class RobotRun:
-    """One robot's drive: its name (data-set folder) and base track in the world frame."""
+    """One robot's drive: its name (data-set folder) and base track in the world frame.
+
+    ``world`` is this run's own world when it differs from the scene's (the same floor on
+    another day, some objects moved: :meth:`World.with_objects_moved`); None: the scene's.
+    """
 
     name: str
     track: Track
+    world: World | None = None
 
 
 @dataclass
@@ -47,6 +54,10 @@ class Scene:
     @property
     def duration(self) -> float:
         return max(r.track.t[-1] for r in self.robots)
+
+    def world_of(self, run: RobotRun) -> World:
+        """The world ``run`` drives in: its own, else the scene's."""
+        return self.world if run.world is None else run.world
 
 
 @dataclass(frozen=True)
@@ -163,6 +174,88 @@ def _two_robots_meet(seed: int) -> Scene:
         b.finish(),
         [RobotRun("robot_0", a), RobotRun("robot_1", c)],
         description="two robots starting apart; after 15 s the second follows the first's path",
+    )
+
+
+DAY_S = 86_400.0
+DAYS_MOVED = ("wheelchair", "cart", "chair")
+"""Classes of the objects moved between the two days of ``hospital_days`` (one of each)."""
+
+
+def _south_or_east(x: float, y: float) -> bool:
+    """In the loop world's south or east corridor (the part both days of hospital_days drive)."""
+    return y <= 3.0 or x >= 21.0
+
+
+def _moves_between_days(b: WorldBuilder) -> dict[int, F64]:
+    """One object of each :data:`DAYS_MOVED` class in the south or east corridor, and a new place
+    for it on another wall there: ``id -> T_world_model``. An object of a class the furnishing did
+    not put there is added first (it stands there on day 1)."""
+    rng = b.rng
+    walls = [
+        k for k, w in enumerate(b.walls)
+        if w.room == "corridor" and w.length >= 3.0 and _south_or_east(*(w.p0 + w.p1) / 2)
+    ]
+    width = {"wheelchair": 0.7, "cart": 0.85, "chair": 0.55}
+    offset = {"wheelchair": 0.4, "cart": 0.3, "chair": 0.3}
+    moves: dict[int, F64] = {}
+    for cls in DAYS_MOVED:
+        here = [
+            o for o in b.objects
+            if o.cls == cls and not o.note and _south_or_east(*o.T_world_model[:2, 3])
+        ]
+        if here:
+            obj = here[int(rng.integers(len(here)))]
+        else:
+            parts = {
+                "wheelchair": models.wheelchair,
+                "cart": lambda: models.cart(
+                    b.texture("cart_front", lambda g: textures.panelled(g, (200, 215, 230), 4, 1))
+                ),
+                "chair": lambda: models.chair(furnish.seat_texture(b, 1)),
+            }[cls]()
+            for k in rng.permutation(walls):
+                s = b.free_interval(int(k), width[cls])
+                if s is not None:
+                    b.reserve(int(k), s, width[cls])
+                    obj = b.add_object(cls, parts, b.on_wall(int(k), s, offset[cls]))
+                    break
+            else:
+                raise SimulationError(f"hospital_days: no free wall for a {cls}")
+        # Another wall if one has room, else at least 2 m along its own.
+        own, s_own = b.wall_near(*obj.T_world_model[:2, 3])
+        for k in [*(int(k) for k in rng.permutation(walls) if k != own), own, own, own]:
+            s = b.free_interval(k, width[cls], margin=0.5, tries=100)
+            if s is not None and (k != own or abs(s - s_own) >= 2.0):
+                b.reserve(k, s, width[cls])
+                moves[obj.id] = b.on_wall(k, s, offset[cls])
+                break
+        else:
+            raise SimulationError(f"hospital_days: no free wall to move the {cls} to")
+    return moves
+
+
+def _hospital_days(seed: int) -> Scene:
+    b = _loop_world("hospital_days", seed)
+    furnish.furnish(b, b.rng)
+    moves = _moves_between_days(b)
+    day_1 = b.finish()
+    day_2 = day_1.with_objects_moved(moves)
+    # Day 1 starts in the south corridor and drives east, north, then west along the north
+    # corridor; day 2, a day later, starts in the west corridor (never seen on day 1), drives
+    # south, then east along the whole south corridor and north up the east one: 24 m of
+    # day 1's path again in the same direction, seen again after the objects moved.
+    a = plan_path([[4.0, 1.5], [22.5, 1.5], [22.5, 12.5], [10.0, 12.5]], speed=0.5, turn_radius=1.0)
+    c = plan_path(
+        [[1.5, 10.0], [1.5, 1.5], [22.5, 1.5], [22.5, 7.0]], speed=0.5, turn_radius=1.0, t0=DAY_S
+    )
+    return Scene(
+        "hospital_days",
+        seed,
+        day_1,
+        [RobotRun("day_1", a), RobotRun("day_2", c, world=day_2)],
+        description="one robot on two days, started in different places; a wheelchair, a cart and "
+        "a chair moved in between",
     )
 
 
@@ -346,6 +439,11 @@ SCENARIOS: dict[str, ScenarioSpec] = {
             "two_robots_meet",
             "two robots starting apart in one world; the second joins the first's path (anchoring)",
             _two_robots_meet,
+        ),
+        ScenarioSpec(
+            "hospital_days",
+            "one robot on two days from different starts, some objects moved in between",
+            _hospital_days,
         ),
     )
 }

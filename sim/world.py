@@ -11,12 +11,13 @@ and a size for ``objects.json``.
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
+from wardmap.shared.errors import SimulationError
 from wardmap.shared.se3 import yaw_transform
 from wardmap.sim import textures
 from wardmap.sim.geometry import Part, TriangleSoup, box_soup, part_transform, parts_bounds, quad_soup
@@ -118,6 +119,34 @@ class World:
     free: list[Rect]
     walls: list[WallSegment]
     next_id: int
+
+    def with_objects_moved(self, moves: Mapping[int, F64], note: str = "moved") -> World:
+        """A copy of this world with objects placed anew (e.g. a robot's next day).
+
+        Args:
+            moves: object id -> its new ``T_world_model`` (4, 4). Only objects whose triangles
+                all carry their own instance id can move (no decor of instance 0 attached).
+            note: the moved objects' new ``note`` (``objects.json``).
+
+        Raises:
+            SimulationError: an id that is no object of this world.
+        """
+        known = {o.id for o in self.objects}
+        unknown = sorted(set(moves) - known)
+        if unknown:
+            raise SimulationError(f"cannot move objects {unknown}: no such object in world {self.name!r}")
+        keep = ~np.isin(self.static.instance, np.fromiter(moves, np.int64, len(moves)))
+        soups = [self.static.select(keep)]
+        objects = []
+        for o in self.objects:
+            if o.id in moves:
+                T_world_model = np.asarray(moves[o.id], np.float64)
+                T_obj, size = object_pose(o.parts, T_world_model)
+                o = PlacedObject(o.id, o.cls, o.parts, T_world_model, T_obj, size, note)
+                soups.append(soup_of(o.parts, T_world_model, o.id, self.bank))
+            objects.append(o)
+        return World(self.name, self.bank, TriangleSoup.concat(soups), objects, list(self.free),
+                     list(self.walls), self.next_id)
 
 
 class WorldBuilder:

@@ -174,3 +174,18 @@ def test_two_robots_write_two_data_sets_in_one_world(tmp_path: Path) -> None:
     f0, f1 = r0.frame(0), r1.frame(0)
     assert f0.T_world_camera is not None and f1.T_world_camera is not None
     assert np.linalg.norm(f0.T_world_camera[:3, 3] - f1.T_world_camera[:3, 3]) > 1.0
+
+
+def test_hospital_days_writes_each_days_world(tmp_path: Path) -> None:
+    """hospital_days writes day_1/ and day_2/; each objects.json is its day's world (the moved
+    objects differ, every other object is the same); day 2's stamps are a day later."""
+    generate("hospital_days", 0, tmp_path / "days", frames=2)
+    d1 = DatasetReader(tmp_path / "days" / "day_1")
+    d2 = DatasetReader(tmp_path / "days" / "day_2")
+    assert len(d1) == len(d2) == 2
+    assert d2.stamps[0] - d1.stamps[0] > 80_000.0
+    o1, o2 = d1.objects()["objects"], d2.objects()["objects"]
+    assert [o["id"] for o in o1] == [o["id"] for o in o2]
+    differ = [b for a, b in zip(o1, o2, strict=True) if a != b]
+    assert sorted(o["class"] for o in differ) == ["cart", "chair", "wheelchair"]
+    assert all(o["note"] == "moved" for o in differ)

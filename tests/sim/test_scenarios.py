@@ -100,3 +100,57 @@ def test_two_robots_share_a_world_and_overlap() -> None:
     pb = np.column_stack([b.track.x, b.track.y])[::20]
     d = np.linalg.norm(pa[:, None] - pb[None], axis=2).min(axis=1)
     assert (d < 0.5).sum() * 20 * 0.01 > 5.0  # metres of a's path near b's
+
+
+def _looking_at(T_world_model: np.ndarray, distance: float = 2.5) -> np.ndarray:
+    """A camera ``distance`` metres in front of a wall object (along its model x axis), 1 m above
+    the floor, looking back at it (camera x right, y down, z forward)."""
+    x_model = T_world_model[:3, 0] / np.linalg.norm(T_world_model[:3, 0])
+    z_cam = -np.array([x_model[0], x_model[1], 0.0]) / np.hypot(x_model[0], x_model[1])
+    y_cam = np.array([0.0, 0.0, -1.0])
+    T = np.eye(4)
+    T[:3, :3] = np.column_stack([np.cross(y_cam, z_cam), y_cam, z_cam])
+    T[:3, 3] = T_world_model[:3, 3] - distance * z_cam
+    T[2, 3] = 1.0
+    return T
+
+
+def test_hospital_days_moves_a_few_objects_between_two_days() -> None:
+    """hospital_days: one world, two runs a day apart from places more than 5 m apart, driving
+    more than 15 m of the same corridor in the same direction; on day 2 one wheelchair, one
+    cart and one chair stand elsewhere (same ids, more than 1 m away), everything else as on
+    day 1; the day-2 world renders the moved objects at their new places only."""
+    from wardmap.sim.scenarios import DAY_S, DAYS_MOVED
+    from wardmap.sim.sensors import SensorSimulator
+
+    scene = build_scene("hospital_days", 4)
+    day_1, day_2 = scene.robots
+    assert (day_1.name, day_2.name) == ("day_1", "day_2")
+    assert day_1.world is None and day_2.world is not None
+    assert day_2.track.t[0] - day_1.track.t[-1] > 0.5 * DAY_S
+    assert np.hypot(day_2.track.x[0] - day_1.track.x[0], day_2.track.y[0] - day_1.track.y[0]) > 5.0
+    # Same corridor, same direction: day-2 samples within 0.3 m and 20 deg of a day-1 sample.
+    p1 = np.column_stack([day_1.track.x, day_1.track.y])[::10]
+    p2 = np.column_stack([day_2.track.x, day_2.track.y])[::10]
+    close = np.linalg.norm(p2[:, None] - p1[None], axis=2) < 0.3
+    dyaw = np.abs(np.angle(np.exp(1j * (day_2.track.yaw[::10, None] - day_1.track.yaw[None, ::10]))))
+    assert (close & (dyaw < np.radians(20))).any(axis=1).sum() * 0.1 > 15.0
+
+    w1, w2 = scene.world, scene.world_of(day_2)
+    assert [o.id for o in w1.objects] == [o.id for o in w2.objects]
+    moved = [(a, b) for a, b in zip(w1.objects, w2.objects, strict=True)
+             if not np.array_equal(a.T_world_model, b.T_world_model)]
+    assert sorted(a.cls for a, _ in moved) == sorted(DAYS_MOVED)
+    for a, b in moved:
+        assert np.linalg.norm(a.T_world_object[:2, 3] - b.T_world_object[:2, 3]) > 1.0
+        assert b.note == "moved" and np.allclose(a.size, b.size)
+    assert len(w1.static) == len(w2.static)
+
+    rng = np.random.default_rng(0)
+    render_1 = SensorSimulator(w1.static, w1.bank.stack())
+    render_2 = SensorSimulator(w2.static, w2.bank.stack())
+    for a, b in moved:
+        old, new = _looking_at(a.T_world_model), _looking_at(b.T_world_model)
+        assert (render_1.capture(old, None, 1.0, rng).labels == a.id).sum() > 500
+        assert (render_2.capture(old, None, 1.0, rng).labels == a.id).sum() == 0
+        assert (render_2.capture(new, None, 1.0, rng).labels == a.id).sum() > 500

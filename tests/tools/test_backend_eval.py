@@ -1,0 +1,118 @@
+"""Back-end scores (tools/backend_eval.py) on synthetic trajectories with known answers."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from wardmap.shared.se3 import inverse, se3_exp, yaw_transform
+from wardmap.tools.backend_eval import (
+    RevisitEvent,
+    alignment_error,
+    check_closure,
+    pose_error,
+    recalled,
+    revisit_events,
+    trajectory_ate,
+)
+
+
+def circle(n: int, *, radius: float = 5.0, step_s: float = 1.0, speed: float = 0.5, t0: float = 0.0,
+           phase: float = 0.0) -> tuple[list[float], list[np.ndarray]]:
+    """Keyframes every ``step_s`` on a circle driven counter-clockwise at ``speed``, looking ahead."""
+    stamps, poses = [], []
+    for i in range(n):
+        a = phase + speed * step_s * i / radius
+        stamps.append(t0 + step_s * i)
+        poses.append(yaw_transform(radius * math.cos(a), radius * math.sin(a), a + math.pi / 2))
+    return stamps, poses
+
+
+def test_pose_error_is_the_relative_translation_and_angle() -> None:
+    """0.3 m along x and 10 deg about z between two poses."""
+    ref = se3_exp(np.array([0.1, -0.2, 0.3, 1.0, 2.0, 3.0]))
+    est = ref @ yaw_transform(0.3, 0.0, math.radians(10.0))
+    m, deg = pose_error(est, ref)
+    assert m == pytest.approx(0.3) and deg == pytest.approx(10.0)
+    assert pose_error(ref, ref) == pytest.approx((0.0, 0.0), abs=1e-7)
+
+
+def test_a_closure_to_a_twin_is_false() -> None:
+    """A loop edge measured at the right place is true; one that put keyframe b at the identical
+    twin door 1.24 m to the side is false."""
+    Ta = yaw_transform(2.0, 1.5, 0.0)
+    Tb = yaw_transform(5.0, 1.5, 0.05)
+    T_a_b = inverse(Ta) @ Tb
+    good = check_closure(("r", "s", 9), ("r", "s", 1), T_a_b @ yaw_transform(0.01, 0.0, 0.002), Ta, Tb)
+    assert good.true and good.error_m == pytest.approx(0.01, abs=1e-9)
+    twin = check_closure(("r", "s", 9), ("r", "s", 1), T_a_b @ yaw_transform(0.0, 1.24, 0.0), Ta, Tb)
+    assert not twin.true and twin.error_m == pytest.approx(1.24)
+
+
+def test_revisits_of_one_session_need_thirty_seconds() -> None:
+    """A 31.4 m circle at 0.5 m/s, 10 keyframes past the start: one event, starting at the first
+    keyframe back within 1 m of the start; the first half minute revisits nothing (it is the
+    recent past)."""
+    stamps, poses = circle(73)
+    keys = [("r", "s", i) for i in range(73)]
+    events = revisit_events(keys, stamps, poses)
+    assert len(events) == 1
+    first = events[0].first[2]
+    assert 60 <= first <= 63 and events[0].keys[-1] == keys[-1]
+    assert all(e.first[2] > 30 for e in events)
+
+
+def test_another_sessions_past_counts_at_once() -> None:
+    """A second session starting on the first one's path revisits from its first keyframe; one
+    driving the circle the other way round (views 180 deg apart) does not revisit."""
+    s1, p1 = circle(40)
+    s2, p2 = circle(10, t0=5.0, phase=0.5)
+    keys = [("r", "a", i) for i in range(40)] + [("r", "b", i) for i in range(10)]
+    events = revisit_events(keys, s1 + s2, p1 + p2)
+    assert [e.first for e in events] == [("r", "b", 0)]
+    back = [T @ yaw_transform(0.0, 0.0, math.pi) for T in p2]
+    assert revisit_events(keys, s1 + s2, p1 + back) == []
+
+
+def test_short_gaps_join_and_short_runs_do_not_count() -> None:
+    """Two revisiting runs 2 keyframes apart are one event; a run of 2 keyframes is none."""
+    s1, p1 = circle(20)
+    far = yaw_transform(100.0, 100.0, 0.0)
+    p2 = [p1[i] for i in range(5)] + [far, far] + [p1[i] for i in range(8, 12)] + [far] * 6 + p1[:2]
+    s2 = [100.0 + i for i in range(len(p2))]
+    keys = [("r", "a", i) for i in range(20)] + [("r", "b", i) for i in range(len(p2))]
+    events = revisit_events(keys, s1 + s2, p1 + p2)
+    assert len(events) == 1
+    assert [k[2] for k in events[0].keys] == list(range(11))
+
+
+def test_recall_window() -> None:
+    """A closure counts for an event only from its first ``window`` keyframes."""
+    event = RevisitEvent(tuple(("r", "s", i) for i in range(20, 40)))
+    assert recalled(event, {("r", "s", 25)}, window=10)
+    assert not recalled(event, {("r", "s", 31)}, window=10)
+    assert not recalled(event, set())
+
+
+def test_alignment_error_ignores_the_map_gauge() -> None:
+    """The map frame is any rigid motion G of the world: the relative alignment of two sessions
+    is unaffected; an error of robot 1's T_map_odom by 2 cm and 0.5 deg is reported as such."""
+    rng = np.random.default_rng(3)
+    W0, W1 = se3_exp(rng.normal(size=6)), se3_exp(rng.normal(size=6))
+    G = se3_exp(rng.normal(size=6))
+    assert alignment_error(G @ W1, G @ W0, W1, W0) == pytest.approx((0.0, 0.0), abs=1e-6)
+    off = yaw_transform(0.02, 0.0, math.radians(0.5))
+    m, deg = alignment_error(G @ W1 @ off, G @ W0, W1, W0)
+    assert m == pytest.approx(0.02) and deg == pytest.approx(0.5)
+
+
+def test_ate_aligns_a_rigidly_moved_trajectory() -> None:
+    """The estimate in another frame (a rigid motion of the truth) has no ATE; 3 cm of noise does."""
+    stamps, truth = circle(40)
+    G = se3_exp(np.array([0.0, 0.0, 1.0, 4.0, -2.0, 0.5]))
+    assert trajectory_ate(stamps, [G @ T for T in truth], truth) == pytest.approx(0.0, abs=1e-6)
+    rng = np.random.default_rng(0)
+    noisy = [T @ yaw_transform(*rng.normal(0, 0.03, 2), 0.0) for T in truth]
+    assert 0.02 < trajectory_ate(stamps, noisy, truth) < 0.06

@@ -1,0 +1,184 @@
+"""Scores of the SLAM back-end against simulator ground truth (``bench/backend.py``).
+
+Pure functions on poses; keyframes are ``(robot_id, session_id, seq)`` keys and every pose is
+(4, 4) float64 ``T_a_b`` (docs/ARCHITECTURE.md "Conventions"). Ground truth is each keyframe's
+camera ``T_world_camera``; the estimate of the back-end is ``T_map_camera``.
+
+- **Pose error** of an estimate ``T_est`` against ``T_ref``: the translation (m) and rotation
+  angle (deg) of ``inv(T_ref) @ T_est``.
+- **Closure truth**: a loop edge ``T_a_b`` (keyframe b's camera in keyframe a's) is *true* when
+  its pose error against ``inv(T_world_a) @ T_world_b`` is within ``max_m`` and ``max_deg``
+  (default 0.3 m, 5 deg: a verified match to the right place is off by centimetres; one to an
+  identical twin door or chair by the twin's spacing, >= 0.5 m).
+- **Revisit events and recall at the first revisit**: a keyframe *revisits* when an earlier
+  processed keyframe (any robot, any session) had a ground-truth camera within ``radius_m``
+  (1 m) and ``max_deg`` (30 deg) of its own, and that earlier keyframe is of another session
+  or at least ``min_gap_s`` (30 s) older. A session's revisiting keyframes, in seq order,
+  form runs (gaps of up to ``max_gap`` non-revisiting keyframes joined); a run of at least
+  ``min_keyframes`` (3) is a *revisit event*. An event is *recalled* when a true loop edge
+  from one of its first ``window`` (10) keyframes entered the graph. Recall = recalled
+  events / events.
+- **Session alignment**: a session's ground-truth ``T_world_odom`` at keyframe k is
+  ``T_world_camera_k @ inv(T_odom_camera_k)``; its estimate ``T_map_odom`` at k is
+  ``T_map_camera_k @ inv(T_odom_camera_k)``. The alignment error of session s relative to a
+  reference session r (the one that anchored the map) is the pose error of
+  ``inv(T_map_odom_r) @ T_map_odom_s`` against ``inv(T_world_odom_r) @ T_world_odom_s``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from wardmap.shared.errors import WardmapError
+from wardmap.shared.metrics import ate
+from wardmap.shared.se3 import inverse
+
+__all__ = [
+    "ClosureCheck",
+    "RevisitEvent",
+    "alignment_error",
+    "check_closure",
+    "pose_error",
+    "recalled",
+    "revisit_events",
+    "trajectory_ate",
+]
+
+F64 = NDArray[np.float64]
+NodeKey = tuple[str, str, int]
+
+
+def pose_error(T_est: ArrayLike, T_ref: ArrayLike) -> tuple[float, float]:
+    """Translation (m) and rotation angle (deg) of ``inv(T_ref) @ T_est``; both (4, 4)."""
+    D = inverse(np.asarray(T_ref, np.float64)) @ np.asarray(T_est, np.float64)
+    R = D[:3, :3]
+    # atan2 of sin and cos stays accurate near 0 (arccos of the trace loses ~1e-6 deg there)
+    sin = 0.5 * float(np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]))
+    cos = 0.5 * (float(np.trace(R)) - 1.0)
+    return float(np.linalg.norm(D[:3, 3])), math.degrees(math.atan2(sin, cos))
+
+
+@dataclass(frozen=True)
+class ClosureCheck:
+    """One loop edge scored against ground truth.
+
+    Attributes:
+        a, b: its keyframes; error_m, error_deg: pose error of its ``T_a_b``; true: within the limits.
+    """
+
+    a: NodeKey
+    b: NodeKey
+    error_m: float
+    error_deg: float
+    true: bool
+
+
+def check_closure(a: NodeKey, b: NodeKey, T_a_b: ArrayLike, T_world_a: ArrayLike, T_world_b: ArrayLike,
+                  *, max_m: float = 0.3, max_deg: float = 5.0) -> ClosureCheck:
+    """Score loop edge ``T_a_b`` (4, 4) against the ground-truth cameras ``T_world_a``, ``T_world_b``."""
+    m, deg = pose_error(T_a_b, inverse(np.asarray(T_world_a, np.float64)) @ np.asarray(T_world_b, np.float64))
+    return ClosureCheck(a, b, m, deg, m <= max_m and deg <= max_deg)
+
+
+@dataclass(frozen=True)
+class RevisitEvent:
+    """A session's return to a place seen before: its revisiting keyframes in seq order."""
+
+    keys: tuple[NodeKey, ...]
+
+    @property
+    def first(self) -> NodeKey:
+        return self.keys[0]
+
+
+def revisit_events(
+    order: Sequence[NodeKey],
+    stamps: Sequence[float],
+    truth: Sequence[ArrayLike],
+    *,
+    radius_m: float = 1.0,
+    max_deg: float = 30.0,
+    min_gap_s: float = 30.0,
+    max_gap: int = 3,
+    min_keyframes: int = 3,
+) -> list[RevisitEvent]:
+    """Revisit events (module docstring) of keyframes processed in ``order``.
+
+    Args:
+        order: keyframes in processing order (N); within a session in seq order.
+        stamps: (N,) their stamps, seconds.
+        truth: (N) ground-truth ``T_world_camera`` (4, 4) of each.
+
+    Returns:
+        Events ordered by their first keyframe's position in ``order``.
+    """
+    n = len(order)
+    if len(stamps) != n or len(truth) != n:
+        raise WardmapError(f"revisit_events: {n} keys, {len(stamps)} stamps, {len(truth)} poses")
+    T = np.asarray(truth, np.float64).reshape(n, 4, 4)
+    t = np.asarray(stamps, np.float64)
+    sessions = [(k[0], k[1]) for k in order]
+    sid = np.array([sorted(set(sessions)).index(s) for s in sessions]) if n else np.zeros(0, int)
+    centres = T[:, :3, 3]
+    cos_max = math.cos(math.radians(max_deg))
+    revisits = np.zeros(n, bool)
+    for q in range(1, n):
+        near = np.linalg.norm(centres[:q] - centres[q], axis=1) <= radius_m
+        # rotation angle of inv(R_p) @ R_q: trace(R_p^T R_q) = sum of elementwise products
+        cos = (np.einsum("pij,ij->p", T[:q, :3, :3], T[q, :3, :3]) - 1.0) / 2.0
+        apart = (sid[:q] != sid[q]) | (t[:q] <= t[q] - min_gap_s)
+        revisits[q] = bool(np.any(near & (cos >= cos_max - 1e-12) & apart))
+    events: list[tuple[int, list[int]]] = []
+    for s in sorted(set(sid.tolist())):
+        rows = [i for i in range(n) if sid[i] == s]
+        run: list[int] = []
+        gap = 0
+        for i in rows:
+            if revisits[i]:
+                run.append(i)
+                gap = 0
+            elif run:
+                gap += 1
+                if gap > max_gap:
+                    events.append((run[0], run))
+                    run, gap = [], 0
+        if run:
+            events.append((run[0], run))
+    out = []
+    for first, run in sorted(events):
+        # the event spans the run's keyframes in seq order, joined gaps included
+        rows = [i for i in range(n) if sid[i] == sid[first] and run[0] <= i <= run[-1]]
+        if len(run) >= min_keyframes:
+            out.append(RevisitEvent(tuple(order[i] for i in rows)))
+    return out
+
+
+def recalled(event: RevisitEvent, true_closure_keys: set[NodeKey], window: int = 10) -> bool:
+    """Whether a true loop edge starts at one of the event's first ``window`` keyframes."""
+    return any(k in true_closure_keys for k in event.keys[:window])
+
+
+def alignment_error(T_map_odom: ArrayLike, T_map_odom_ref: ArrayLike, T_world_odom: ArrayLike,
+                    T_world_odom_ref: ArrayLike) -> tuple[float, float]:
+    """Error (m, deg) of a session's alignment relative to the reference session (module docstring).
+
+    Args:
+        T_map_odom, T_map_odom_ref: (4, 4) estimated odom frames of the session and the reference.
+        T_world_odom, T_world_odom_ref: (4, 4) their ground truth.
+    """
+    est = inverse(np.asarray(T_map_odom_ref, np.float64)) @ np.asarray(T_map_odom, np.float64)
+    ref = inverse(np.asarray(T_world_odom_ref, np.float64)) @ np.asarray(T_world_odom, np.float64)
+    return pose_error(est, ref)
+
+
+def trajectory_ate(stamps: Sequence[float], T_est: Sequence[ArrayLike], T_ref: Sequence[ArrayLike]) -> float:
+    """ATE RMSE (m) of ``T_est`` against ``T_ref`` (each (N) (4, 4), one pose per stamp), after an
+    SE3 (Umeyama) alignment (evo, :func:`wardmap.shared.metrics.ate`)."""
+    s = np.asarray(stamps, np.float64)
+    return ate(s, np.asarray(T_est, np.float64), s, np.asarray(T_ref, np.float64), max_diff_s=1e-6).rmse
+
