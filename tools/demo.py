@@ -432,7 +432,8 @@ def format_anchoring(anchoring: list[Anchoring]) -> str:
                          "its objects wait")
             continue
         err = alignment_error(a, T_map_world)
-        how = "sets the map" if a.sets_map else f"anchored through {a.anchored_to}"
+        through = (a.anchored_to or "?").split("/", 1)[0]
+        how = "sets the map" if a.sets_map else f"anchored through {through}'s map"
         when = "" if a.after_s is None else f" {a.after_s:.1f} s after its first keyframe"
         if err is None:
             lines.append(f"ANCHOR {a.robot_id}: {how}{when}")
