@@ -67,8 +67,8 @@ def test_demo_two_robots_exits_cleanly() -> None:
         assert 0 < int(m.group(6).replace(",", "")) <= 100_000, (robot, done.stdout)  # bytes/keyframe
         assert 0 < int(m.group(7)) <= int(m.group(8)), (robot, done.stdout)  # latency p50 <= p99, ms
     assert re.search(r"^ANCHOR robot_0: sets the map", done.stdout, re.M), done.stdout
-    anchor = re.search(r"^ANCHOR robot_1: anchored through robot_0's map ([\d.]+) s after its first keyframe; "
-                       r"alignment error ([\d.]+) cm, ([\d.]+) deg", done.stdout, re.M)
+    anchor = re.search(r"^ANCHOR robot_1: anchored through robot_0's map ([\d.]+) s after its first "
+                       r"keyframe; alignment error ([\d.]+) cm, ([\d.]+) deg", done.stdout, re.M)
     assert anchor, done.stdout
     assert float(anchor[2]) <= 5.0 and float(anchor[3]) <= 1.0, done.stdout
     assert "map server: http://127.0.0.1:" in done.stdout
