@@ -268,7 +268,7 @@ class GraphStore(Protocol):
         ...
 
     def latest_nodes(self) -> dict[str, GraphNodeRow]:
-        """Per robot, its latest node (greatest stamp; codes empty)."""
+        """Per robot, the node the back-end added last (codes empty)."""
         ...
 
     def map_trajectory(self, robot_id: str, session_id: str | None = None) -> Trajectory:

@@ -1125,8 +1125,8 @@ class SqliteMapStore(sqlitedb.GuardedAccess):
         """See :meth:`~wardmap.server.store.protocol.GraphStore.latest_nodes`."""
         with self._read("back-end: latest nodes") as conn:
             rows = conn.execute(
-                "SELECT robot_id, session_id, seq, MAX(stamp), pose_source, T_odom_camera, T_map_camera, "
-                "prior FROM graph_nodes GROUP BY robot_id").fetchall()
+                "SELECT robot_id, session_id, seq, stamp, pose_source, T_odom_camera, T_map_camera, prior, "
+                "MAX(node_order) FROM graph_nodes GROUP BY robot_id").fetchall()
         return {str(r[0]): GraphNodeRow((str(r[0]), str(r[1]), int(r[2])), float(r[3]), pose_from_blob(r[5]),
                                         str(r[4]), None if r[6] is None else pose_from_blob(r[6]),
                                         None if r[7] is None else pose_from_blob(r[7]), b"")
