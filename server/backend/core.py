@@ -19,8 +19,8 @@ one pose graph of all of them (``graph.py``, gtsam iSAM2). For each keyframe:
    of identical chairs);
 4. a verified match from a session that is not on the map (it started without a known map
    pose) to a keyframe on the map is a vote for that session's ``T_map_odom``; the session is
-   anchored when ``anchor_votes`` votes from keyframes at least ``vote_spacing_m`` apart
-   agree (within ``agree_m`` / ``agree_deg``): one match could be an identical twin of the
+   anchored when ``anchor_votes`` votes from keyframes ``vote_spacing_m`` or
+   ``vote_spacing_deg`` apart agree (within ``agree_m`` / ``agree_deg``): one match could be an identical twin of the
    place, several agreeing ones from different places hardly;
 5. the keyframe's node (odometry edge from its predecessor) and any accepted loop edge go
    into the graph, and iSAM2 updates it incrementally.
@@ -74,7 +74,8 @@ class BackendConfig:
             between them when in one session, else ``gate_cross_m`` in total) and
             ``gate_deg`` degrees.
         anchor_votes: agreeing verified matches that anchor a session.
-        vote_spacing_m: least distance driven between two votes' keyframes.
+        vote_spacing_m, vote_spacing_deg: two votes count apart when their keyframes are at
+            least this far apart in distance driven or in camera rotation (different views).
         rebuild_move_m: a graph update that moves any keyframe more than this (metres), or
             anchors a session, asks the mapping stage to rebuild the object map.
     """
@@ -95,6 +96,7 @@ class BackendConfig:
     gate_deg: float = 10.0
     anchor_votes: int = 3
     vote_spacing_m: float = 0.3
+    vote_spacing_deg: float = 10.0
     rebuild_move_m: float = 0.02
 
     def __post_init__(self) -> None:
@@ -103,7 +105,7 @@ class BackendConfig:
         if not 0.0 <= self.min_similarity <= 1.0:
             raise ConfigError(f"backend.min_similarity must be in [0, 1], got {self.min_similarity}")
         for name in ("recent_s", "recent_path_m", "agree_m", "agree_deg", "gate_m", "gate_per_m",
-                     "gate_cross_m", "gate_deg", "vote_spacing_m", "rebuild_move_m"):
+                     "gate_cross_m", "gate_deg", "vote_spacing_m", "vote_spacing_deg", "rebuild_move_m"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ConfigError(f"backend.{name} must be >= 0, got {value}")
@@ -161,6 +163,7 @@ class _Node:
     stamp: float
     T_odom_camera: F64
     path_m: float  # distance driven in its session up to it (camera centre), metres
+    turn_deg: float  # camera rotation accumulated in its session up to it, degrees
 
 
 @dataclass
@@ -168,6 +171,7 @@ class _Vote:
     T_map_odom: F64
     closure: Closure
     path_m: float
+    turn_deg: float
 
 
 FeatureLoader = Callable[[NodeKey], KeyframeFeatures | None]
@@ -297,12 +301,13 @@ class BackendCore:
         session = (key[0], key[1])
         sid = self._sessions.setdefault(session, len(self._sessions))
         rows = self._session_rows.setdefault(sid, [])
-        path = 0.0
+        path = turn = 0.0
         if rows:
             prev = self._nodes[rows[-1]]
             path = prev.path_m + float(np.linalg.norm(T_odom_camera[:3, 3] - prev.T_odom_camera[:3, 3]))
+            turn = prev.turn_deg + _angle_deg(np.linalg.inv(prev.T_odom_camera) @ T_odom_camera)
         row = len(self._nodes)
-        self._nodes.append(_Node(key, float(stamp), np.asarray(T_odom_camera, np.float64), path))
+        self._nodes.append(_Node(key, float(stamp), np.asarray(T_odom_camera, np.float64), path, turn))
         self._session_of_row.append(sid)
         rows.append(row)
         self._row[key] = row
@@ -406,11 +411,12 @@ class BackendCore:
             if T_map_odom is None:
                 return None
             votes = self._votes.setdefault(floating, [])
-            path = self._nodes[row_f].path_m
+            node_f = self._nodes[row_f]
             agreeing = [v for v in votes
                         if _agree(v.T_map_odom, T_map_odom, self.cfg.agree_m, self.cfg.agree_deg)
-                        and abs(v.path_m - path) >= self.cfg.vote_spacing_m]
-            votes.append(_Vote(T_map_odom, closure, path))
+                        and (abs(v.path_m - node_f.path_m) >= self.cfg.vote_spacing_m
+                             or abs(v.turn_deg - node_f.turn_deg) >= self.cfg.vote_spacing_deg)]
+            votes.append(_Vote(T_map_odom, closure, node_f.path_m, node_f.turn_deg))
             if len(agreeing) + 1 < self.cfg.anchor_votes:
                 rejected["anchor vote"] += 1
                 return None
@@ -438,11 +444,15 @@ class BackendCore:
         return np.asarray(T_map_b @ np.linalg.inv(self._nodes[self._row[b]].T_odom_camera), np.float64)
 
 
+def _angle_deg(T: F64) -> float:
+    """Rotation angle of a pose, degrees."""
+    return math.degrees(math.acos(float(np.clip((np.trace(T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))))
+
+
 def _agree(T1: F64, T2: F64, max_m: float, max_deg: float) -> bool:
     """Whether two poses differ by at most ``max_m`` metres and ``max_deg`` degrees."""
     D = np.linalg.inv(T1) @ T2
-    angle = math.degrees(math.acos(float(np.clip((np.trace(D[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))))
-    return float(np.linalg.norm(D[:3, 3])) <= max_m and angle <= max_deg
+    return float(np.linalg.norm(D[:3, 3])) <= max_m and _angle_deg(D) <= max_deg
 
 
 __all__ = ["BackendConfig", "BackendCore", "Closure", "EdgeRecord", "FeatureLoader", "KeyframeResult",
