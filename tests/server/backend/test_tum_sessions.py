@@ -1,8 +1,8 @@
 """Real data: the TUM fr1/rpy excerpt (``../shared/data``, 100 frames, no loop) split into two
 overlapping sessions of one camera (frames 0-59 and 40-99), the second without a map pose. The
 back-end anchors the second to the first by place recognition, and where both sessions have a
-keyframe of the same frame, their relative pose on the map equals ground truth's (2 cm, 0.5 deg). Skipped when
-the data is absent."""
+keyframe of the same frame, their relative pose on the map equals ground truth's (2 cm, 0.5 deg).
+Skipped when the data is absent."""
 
 from __future__ import annotations
 
