@@ -20,8 +20,8 @@ one pose graph of all of them (``graph.py``, gtsam iSAM2). For each keyframe:
 4. a verified match from a session that is not on the map (it started without a known map
    pose) to a keyframe on the map is a vote for that session's ``T_map_odom``; the session is
    anchored when ``anchor_votes`` votes from keyframes ``vote_spacing_m`` or
-   ``vote_spacing_deg`` apart agree (within ``agree_m`` / ``agree_deg``): one match could be an identical twin of the
-   place, several agreeing ones from different places hardly;
+   ``vote_spacing_deg`` apart agree (within ``agree_m`` / ``agree_deg``): one match could be
+   an identical twin of the place, several agreeing ones from different places hardly;
 5. the keyframe's node (odometry edge from its predecessor) and any accepted loop edge go
    into the graph, and iSAM2 updates it incrementally.
 
