@@ -30,7 +30,7 @@ def test_knn2_equals_brute_force(n: int, m: int) -> None:
 
 
 def test_empty_and_bad_shapes() -> None:
-    best, d1, _, back = knn2(np.zeros((0, 32), np.uint8), np.zeros((3, 32), np.uint8))
+    best, _, _, back = knn2(np.zeros((0, 32), np.uint8), np.zeros((3, 32), np.uint8))
     assert best.shape == (0,) and (back == -1).all()
     with pytest.raises(ValueError, match="32"):
         knn2(np.zeros((2, 16), np.uint8), np.zeros((2, 16), np.uint8))
