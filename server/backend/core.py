@@ -19,9 +19,11 @@ one pose graph of all of them (``graph.py``, gtsam iSAM2). For each keyframe:
    of identical chairs);
 4. a verified match from a session that is not on the map (it started without a known map
    pose) to a keyframe on the map is a vote for that session's ``T_map_odom``; the session is
-   anchored when ``anchor_votes`` votes from keyframes ``vote_spacing_m`` or
-   ``vote_spacing_deg`` apart agree (within ``agree_m`` / ``agree_deg``): one match could be
-   an identical twin of the place, several agreeing ones from different places hardly;
+   anchored when at least ``anchor_votes`` votes agree (within ``agree_m`` / ``agree_deg``),
+   come from keyframes spread over ``anchor_span_m`` of driving or ``anchor_span_deg`` of
+   turning, and no rival group of votes (at least half as many, and two) implies another
+   ``T_map_odom``: one match could be an identical twin of the place, agreeing ones from
+   different places hardly;
 5. the keyframe's node (odometry edge from its predecessor) and any accepted loop edge go
    into the graph, and iSAM2 updates it incrementally.
 
@@ -74,8 +76,14 @@ class BackendConfig:
             between them when in one session, else ``gate_cross_m`` in total) and
             ``gate_deg`` degrees.
         anchor_votes: agreeing verified matches that anchor a session.
-        vote_spacing_m, vote_spacing_deg: two votes count apart when their keyframes are at
-            least this far apart in distance driven or in camera rotation (different views).
+        anchor_span_m, anchor_span_deg: the agreeing votes must come from keyframes spread
+            over at least this distance driven or this camera rotation (different views: an
+            aliased stretch, such as two corridors that look alike, rarely lasts).
+        check_keyframes, check_m, check_deg: before anchoring, up to this many other
+            keyframes of the session are put on the map by the candidate ``T_map_odom``; each
+            with a map keyframe within ``check_m`` metres looking the same way (optical axes
+            within ``check_deg``) is verified against it; the anchoring is refused when at
+            least two fail and fewer agree (the views the map holds there contradict it).
         rebuild_move_m: a graph update that moves any keyframe more than this (metres), or
             anchors a session, asks the mapping stage to rebuild the object map.
     """
@@ -95,8 +103,11 @@ class BackendConfig:
     gate_cross_m: float = 0.6
     gate_deg: float = 10.0
     anchor_votes: int = 3
-    vote_spacing_m: float = 0.3
-    vote_spacing_deg: float = 10.0
+    anchor_span_m: float = 1.0
+    anchor_span_deg: float = 20.0
+    check_keyframes: int = 6
+    check_m: float = 1.0
+    check_deg: float = 30.0
     rebuild_move_m: float = 0.02
 
     def __post_init__(self) -> None:
@@ -105,7 +116,8 @@ class BackendConfig:
         if not 0.0 <= self.min_similarity <= 1.0:
             raise ConfigError(f"backend.min_similarity must be in [0, 1], got {self.min_similarity}")
         for name in ("recent_s", "recent_path_m", "agree_m", "agree_deg", "gate_m", "gate_per_m",
-                     "gate_cross_m", "gate_deg", "vote_spacing_m", "vote_spacing_deg", "rebuild_move_m"):
+                     "gate_cross_m", "gate_deg", "anchor_span_m", "anchor_span_deg", "check_m", "check_deg",
+                     "rebuild_move_m"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ConfigError(f"backend.{name} must be >= 0, got {value}")
@@ -175,6 +187,8 @@ class _Vote:
 
 
 FeatureLoader = Callable[[NodeKey], KeyframeFeatures | None]
+MAX_VOTES = 64
+"""Anchoring votes kept per floating session (the most recent)."""
 
 
 class BackendCore:
@@ -412,21 +426,75 @@ class BackendCore:
                 return None
             votes = self._votes.setdefault(floating, [])
             node_f = self._nodes[row_f]
-            agreeing = [v for v in votes
-                        if _agree(v.T_map_odom, T_map_odom, self.cfg.agree_m, self.cfg.agree_deg)
-                        and (abs(v.path_m - node_f.path_m) >= self.cfg.vote_spacing_m
-                             or abs(v.turn_deg - node_f.turn_deg) >= self.cfg.vote_spacing_deg)]
             votes.append(_Vote(T_map_odom, closure, node_f.path_m, node_f.turn_deg))
-            if len(agreeing) + 1 < self.cfg.anchor_votes:
+            del votes[:-MAX_VOTES]
+            cluster = [v for v in votes
+                       if _agree(v.T_map_odom, T_map_odom, self.cfg.agree_m, self.cfg.agree_deg)]
+            span_m = max(v.path_m for v in cluster) - min(v.path_m for v in cluster)
+            span_deg = max(v.turn_deg for v in cluster) - min(v.turn_deg for v in cluster)
+            if len(cluster) < self.cfg.anchor_votes or (span_m < self.cfg.anchor_span_m
+                                                         and span_deg < self.cfg.anchor_span_deg):
                 rejected["anchor vote"] += 1
                 return None
-            for v in agreeing:
+            rivals = [v for v in votes if all(v is not c for c in cluster)]
+            rival = max((sum(_agree(w.T_map_odom, v.T_map_odom, self.cfg.agree_m, self.cfg.agree_deg)
+                             for w in rivals) for v in rivals), default=0)
+            if rival >= max(2, len(cluster) // 2):
+                rejected["ambiguous anchor"] += 1
+                return None
+            if self._contradicted(floating, T_map_odom, cluster):
+                rejected["anchor contradicted"] += 1
+                del self._votes[floating]
+                return None
+            for v in cluster[:-1]:
                 self.graph.add_loop(v.closure.a, v.closure.b, v.closure.T_a_b, inliers=v.closure.inliers)
             self.graph.add_loop(a, b, T_a_b, inliers=found.inliers)
             del self._votes[floating]
             return closure
         self.graph.add_loop(a, b, T_a_b, inliers=found.inliers)
         return Closure(a, b, T_a_b, found.inliers, "floating")
+
+    def _contradicted(self, floating: Session, T_map_odom: F64, cluster: list[_Vote]) -> bool:
+        """Whether the floating session's other keyframes, put on the map by ``T_map_odom``,
+        fail to match the map where it has keyframes seeing the same (within ``check_m`` and
+        ``check_deg``): up to ``check_keyframes`` of them, spread over the session; a
+        contradiction is a failed verification, a support one that agrees. Contradicted when
+        at least two fail and fewer agree."""
+        sid = self._sessions[floating]
+        voters = {v.closure.a if v.closure.a[:2] == floating else v.closure.b for v in cluster}
+        rows = [r for r in self._session_rows[sid] if self._nodes[r].key not in voters]
+        if not rows:
+            return False
+        anchored = [n for n in self._nodes if self.anchored((n.key[0], n.key[1]))]
+        if not anchored:
+            return False
+        T_map = self.graph.estimates([n.key for n in anchored])
+        keys = [n.key for n, T in zip(anchored, T_map, strict=True) if T is not None]
+        poses = np.stack([T for T in T_map if T is not None])
+        step = max(1, len(rows) // self.cfg.check_keyframes)
+        fails = agrees = 0
+        for r in rows[::step][: self.cfg.check_keyframes]:
+            node = self._nodes[r]
+            T = T_map_odom @ node.T_odom_camera
+            near = np.linalg.norm(poses[:, :3, 3] - T[:3, 3], axis=1)
+            # the same view: close, and looking the same way (optical axes, camera z)
+            cos_max = math.cos(math.radians(self.cfg.check_deg))
+            same_way = np.einsum("i,ni->n", T[:3, 2], poses[:, :3, 2]) >= cos_max
+            hits = np.flatnonzero((near <= self.cfg.check_m) & same_way)
+            if hits.size == 0:
+                continue
+            j = int(hits[np.argmin(near[hits])])
+            mine, theirs = self._features_of(node.key), self._features_of(keys[j])
+            if mine is None or theirs is None:
+                continue
+            found = verify_pair(mine, theirs, self.cfg.verify)
+            if isinstance(found, str):
+                fails += 1
+                continue
+            T_expected = np.linalg.inv(poses[j]) @ T
+            agrees += int(_agree(found.T_cand_query, np.asarray(T_expected, np.float64), 3 * self.cfg.agree_m,
+                                 3 * self.cfg.agree_deg))
+        return fails >= 2 and agrees < fails
 
     def _implied_T_map_odom(self, closure: Closure, floating: Session) -> F64 | None:
         """The floating session's ``T_map_odom`` that this match implies."""
