@@ -135,6 +135,7 @@ class Closure:
         inliers: EPnP inliers.
         kind: ``loop`` (both on one map), ``anchor`` (it anchored ``a``'s or ``b``'s session)
             or ``floating`` (between sessions not on the map yet: kept until one is).
+        sigmas: (6,) the verification's standard deviations of ``T_a_b`` (rad x3, m x3).
     """
 
     a: NodeKey
@@ -142,6 +143,7 @@ class Closure:
     T_a_b: F64
     inliers: int
     kind: Literal["loop", "anchor", "floating"]
+    sigmas: F64 | None = None
 
 
 @dataclass(eq=False)
@@ -416,11 +418,11 @@ class BackendCore:
                 if not _agree(predicted, T_a_b, limit, self.cfg.gate_deg):
                     rejected["inconsistent with the map"] += 1
                     return None
-            self.graph.add_loop(a, b, T_a_b, inliers=found.inliers)
-            return Closure(a, b, T_a_b, found.inliers, "loop")
+            self.graph.add_loop(a, b, T_a_b, inliers=found.inliers, sigmas=found.sigmas)
+            return Closure(a, b, T_a_b, found.inliers, "loop", found.sigmas)
         if on_a != on_b:
             floating, row_f = (sa, row) if not on_a else (sb, cand_row)
-            closure = Closure(a, b, T_a_b, found.inliers, "anchor")
+            closure = Closure(a, b, T_a_b, found.inliers, "anchor", found.sigmas)
             T_map_odom = self._implied_T_map_odom(closure, floating)
             if T_map_odom is None:
                 return None
@@ -447,12 +449,13 @@ class BackendCore:
                 del self._votes[floating]
                 return None
             for v in cluster[:-1]:
-                self.graph.add_loop(v.closure.a, v.closure.b, v.closure.T_a_b, inliers=v.closure.inliers)
-            self.graph.add_loop(a, b, T_a_b, inliers=found.inliers)
+                self.graph.add_loop(v.closure.a, v.closure.b, v.closure.T_a_b, inliers=v.closure.inliers,
+                                    sigmas=v.closure.sigmas)
+            self.graph.add_loop(a, b, T_a_b, inliers=found.inliers, sigmas=found.sigmas)
             del self._votes[floating]
             return closure
-        self.graph.add_loop(a, b, T_a_b, inliers=found.inliers)
-        return Closure(a, b, T_a_b, found.inliers, "floating")
+        self.graph.add_loop(a, b, T_a_b, inliers=found.inliers, sigmas=found.sigmas)
+        return Closure(a, b, T_a_b, found.inliers, "floating", found.sigmas)
 
     def _contradicted(self, floating: Session, T_map_odom: F64, cluster: list[_Vote]) -> bool:
         """Whether the floating session's other keyframes, put on the map by ``T_map_odom``,
