@@ -34,6 +34,7 @@ callback (the server reads them from the store; without one, the core keeps them
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from collections import Counter
@@ -48,8 +49,10 @@ from numpy.typing import NDArray
 from wardmap.server.backend.graph import EdgeRecord, GraphConfig, GraphUpdate, NodeRecord, PoseGraph
 from wardmap.server.backend.places import FernConfig, FernEncoder, FernIndex
 from wardmap.server.backend.verify import KeyframeFeatures, Verified, VerifyConfig, verify_pair
-from wardmap.shared.errors import ConfigError
+from wardmap.shared.errors import ConfigError, WardmapError
 from wardmap.shared.wire import KeyframeMsg, decode_depth
+
+log = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
 NodeKey = tuple[str, str, int]
@@ -189,6 +192,8 @@ class _Vote:
 
 
 FeatureLoader = Callable[[NodeKey], KeyframeFeatures | None]
+NO_CODE = 0xFF
+"""The block code of a keyframe without place recognition (equal to no real code: 0..15)."""
 MAX_VOTES = 64
 """Anchoring votes kept per floating session (the most recent)."""
 
@@ -238,20 +243,28 @@ class BackendCore:
     # ------------------------------------------------------------------ adding keyframes
 
     def add(self, msg: KeyframeMsg) -> KeyframeResult:
-        """Process one keyframe (see the module docstring); keyframes of a session must come in
-        ``seq`` order."""
+        """Process one keyframe (see the module docstring), in arrival order."""
         ms: dict[str, float] = {}
         t0 = time.perf_counter()
         key: NodeKey = (msg.robot_id, msg.session_id, msg.seq)
+        rejected: Counter[str] = Counter()
         camera = msg.camera
-        codes = self.encode(msg)
+        features: KeyframeFeatures | None = None
+        try:
+            codes = self.encode(msg)
+            if camera is not None:
+                features = KeyframeFeatures.from_keypoints(msg.keypoints, camera)
+        except (WardmapError, ValueError, cv2.error) as exc:
+            # A keyframe whose images or keypoints cannot be read still carries its pose: it
+            # joins the graph, and only place recognition skips it.
+            log.warning("keyframe %s/%s/%d: no place recognition: %s", *key, exc)
+            rejected["unreadable keyframe"] += 1
+            codes, features = np.full(self.cfg.ferns.blocks, NO_CODE, np.uint8), None
         t1 = time.perf_counter()
         ms["encode"] = (t1 - t0) * 1e3
         self.graph.add_keyframe(key, msg.T_odom_camera, pose_source=msg.pose_source,
                                 prior_T_map_odom=msg.T_map_odom)
-        features = None if camera is None else KeyframeFeatures.from_keypoints(msg.keypoints, camera)
         row = self._remember(key, msg.stamp, msg.T_odom_camera, codes, features)
-        rejected: Counter[str] = Counter()
         closures: list[Closure] = []
         n_cand = 0
         ms["query"] = ms["verify"] = 0.0
@@ -274,7 +287,8 @@ class BackendCore:
         ms["graph"] = (time.perf_counter() - t4) * 1e3
         # A session anchored at its first keyframe (the map's first, or a map-pose prior) moved
         # nothing that was mapped; one anchored later brings its waiting keyframes.
-        grown = any(len(self._session_rows.get(self._sessions.get(s, -1), [])) > 1 for s in update.anchored)
+        grown = any(len(self._session_rows.get(self._sessions.get(s, -1), [])) > 1
+                    for s in update.anchored)
         rebuild = grown or update.moved_m > self.cfg.rebuild_move_m
         return KeyframeResult(key, codes.tobytes(), n_cand, closures, rejected, update, rebuild, ms)
 
