@@ -23,26 +23,37 @@ camera ``T_world_camera``; the estimate of the back-end is ``T_map_camera``.
   ``T_map_camera_k @ inv(T_odom_camera_k)``. The alignment error of session s relative to a
   reference session r (the one that anchored the map) is the pose error of
   ``inv(T_map_odom_r) @ T_map_odom_s`` against ``inv(T_world_odom_r) @ T_world_odom_s``.
+- **Object maps compared**: the confirmed landmarks of two maps of one world are paired within
+  each category, nearest centres first (greedy), up to ``max_m`` apart; offsets are the
+  centre distances of the pairs. A ground-truth object is *duplicated* in a map when two or
+  more confirmed landmarks have it as their majority object (``gt_instance`` of their
+  measurements).
 """
 
 from __future__ import annotations
 
 import math
+from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from wardmap.server.association.types import Landmark
 from wardmap.shared.errors import WardmapError
 from wardmap.shared.metrics import ate
 from wardmap.shared.se3 import inverse
 
 __all__ = [
     "ClosureCheck",
+    "LandmarkPair",
     "RevisitEvent",
     "alignment_error",
     "check_closure",
+    "duplicated_objects",
+    "majority_object",
+    "pair_landmarks",
     "pose_error",
     "recalled",
     "revisit_events",
@@ -182,3 +193,48 @@ def trajectory_ate(stamps: Sequence[float], T_est: Sequence[ArrayLike], T_ref: S
     s = np.asarray(stamps, np.float64)
     return ate(s, np.asarray(T_est, np.float64), s, np.asarray(T_ref, np.float64), max_diff_s=1e-6).rmse
 
+
+
+@dataclass(frozen=True)
+class LandmarkPair:
+    """A landmark of map a and its partner in map b (same category), ``offset_m`` apart."""
+
+    a: Landmark
+    b: Landmark
+    offset_m: float
+
+
+def pair_landmarks(a: Sequence[Landmark], b: Sequence[Landmark], *, max_m: float = 1.0) -> list[LandmarkPair]:
+    """Pair the confirmed landmarks of two maps in one frame: per category, nearest centres
+    (``T_world_object`` translations) first, each landmark at most once, pairs up to ``max_m``."""
+    a = [lm for lm in a if lm.confirmed]
+    b = [lm for lm in b if lm.confirmed]
+    candidates = sorted(
+        (float(np.linalg.norm(la.T_world_object[:3, 3] - lb.T_world_object[:3, 3])), i, j)
+        for i, la in enumerate(a) for j, lb in enumerate(b) if la.category == lb.category
+    )
+    used_a: set[int] = set()
+    used_b: set[int] = set()
+    pairs = []
+    for d, i, j in candidates:
+        if d > max_m:
+            break
+        if i in used_a or j in used_b:
+            continue
+        used_a.add(i)
+        used_b.add(j)
+        pairs.append(LandmarkPair(a[i], b[j], d))
+    return pairs
+
+
+def majority_object(landmark: Landmark) -> int | None:
+    """The ground-truth object most of a landmark's measurements are on (None: none known)."""
+    votes = Counter(i for i in landmark.gt_instances if i is not None)
+    return votes.most_common(1)[0][0] if votes else None
+
+
+def duplicated_objects(landmarks: Sequence[Landmark]) -> dict[int, int]:
+    """Ground-truth object id -> number of confirmed landmarks it is the majority object of, for
+    every object with two or more."""
+    counts = Counter(majority_object(lm) for lm in landmarks if lm.confirmed)
+    return {i: n for i, n in counts.items() if i is not None and n > 1}
