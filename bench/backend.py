@@ -22,7 +22,9 @@ session anchors the map. Scores (definitions in ``wardmap.tools.backend_eval``):
   frontend's (the keyframes' ``T_odom_camera``), the server's final estimate (after the last
   keyframe, from the incrementally updated iSAM2 graph: no batch step), and the server's
   online estimate (each keyframe's ``T_map_camera`` right after its own update: what the map
-  knew then);
+  knew then); and unaligned, the error an object map has: the frontend's trajectory placed by
+  ground truth at the session's first keyframe, the server's in its map frame placed by ground
+  truth at the first session's first keyframe (``tools.backend_eval.frame_rmse``);
 - anchoring: when each session was anchored (its keyframes so far, seconds since its start),
   and its alignment error against ground truth relative to the session that anchored the map
   (map = that session's odom frame at its first keyframe), at its first keyframe and at its
@@ -43,8 +45,8 @@ session anchors the map. Scores (definitions in ``wardmap.tools.backend_eval``):
   session that anchored the map; sessions never anchored left out). The confirmed landmarks of
   (a) and (b) are paired by category and nearest centre (within 1 m); reported: counts, the
   pairs' offsets, each map's centre error against its objects' ground truth (median; moved
-  objects against the nearer of their places) and ground-truth objects with more than one
-  landmark (duplicates).
+  objects against the nearer of their places; also for (c), a map at ground-truth poses: the
+  measurement's own error) and ground-truth objects with more than one landmark (duplicates).
 
 One core: OpenCV, numba and BLAS threads = 1.
 
@@ -88,6 +90,7 @@ from wardmap.tools.backend_eval import (
     alignment_error,
     check_closure,
     duplicated_objects,
+    frame_rmse,
     majority_object,
     pair_landmarks,
     recalled,
@@ -197,6 +200,8 @@ class SessionScore:
     server_cm: float | None
     online_cm: float | None
     online_n: int
+    frontend_map_cm: float | None
+    server_map_cm: float | None
     anchored_kf: int | None
     anchored_s: float | None
     start: tuple[float, float] | None
@@ -233,6 +238,17 @@ def ate_cm(stamps: list[float], T_est: list[F64 | None], T_ref: list[F64 | None]
     return 100 * trajectory_ate(stamps, T_est, T_ref)
 
 
+def world_from_map(core: BackendCore, steps: list[Step]) -> F64 | None:
+    """Ground truth's ``T_world_map`` (4, 4): the map is anchored by the first session; at its first
+    keyframe ``T_world_map = T_world_odom @ inv(T_map_odom)`` (None without ground truth there)."""
+    first = steps[0]
+    est = core.estimate(first.key)
+    if first.truth is None or est is None:
+        return None
+    T_odom_inv = inverse(first.T_odom_camera)
+    return np.asarray(first.truth @ T_odom_inv @ inverse(est @ T_odom_inv), np.float64)
+
+
 def recog_ms(ms: dict[str, float]) -> float:
     return ms.get("encode", 0.0) + ms.get("query", 0.0) + ms.get("verify", 0.0)
 
@@ -257,6 +273,7 @@ def score(scenario: str, seed: int, core: BackendCore, steps: list[Step]) -> Run
     ref_est = core.estimate(ref[0].key)
     ref_map = None if ref_est is None else ref_est @ inverse(ref[0].T_odom_camera)
     ref_world = odom_truth(ref[0])
+    T_world_map = world_from_map(core, steps)
     out = []
     for session, ss in sessions.items():
         posed_ss = [s for s in ss if s.truth is not None]
@@ -265,6 +282,12 @@ def score(scenario: str, seed: int, core: BackendCore, steps: list[Step]) -> Run
         frontend = ate_cm(stamps, [s.T_odom_camera for s in posed_ss], gt)
         final = [core.estimate(s.key) for s in posed_ss]
         server = ate_cm(stamps, final, gt) if all(T is not None for T in final) else None
+        frontend_map = server_map = None
+        T_world_odom = odom_truth(posed_ss[0]) if posed_ss else None
+        if T_world_odom is not None:
+            frontend_map = 100 * frame_rmse(T_world_odom, [s.T_odom_camera for s in posed_ss], gt)
+            if T_world_map is not None and all(T is not None for T in final):
+                server_map = 100 * frame_rmse(T_world_map, final, gt)
         on = [s for s in posed_ss if s.online is not None]
         online = ate_cm([s.stamp for s in on], [s.online for s in on], [s.truth for s in on])
         at = next((i for i, s in enumerate(steps) if session in s.anchored), None)
@@ -281,7 +304,8 @@ def score(scenario: str, seed: int, core: BackendCore, steps: list[Step]) -> Run
                 start = alignment_error(est_first @ inverse(ss[0].T_odom_camera), ref_map, w_first, ref_world)
             if T_map_odom_end is not None and w_last is not None:
                 end = alignment_error(T_map_odom_end, ref_map, w_last, ref_world)
-        out.append(SessionScore(session, len(ss), frontend, server, online, len(on), kf, at_s, start, end))
+        out.append(SessionScore(session, len(ss), frontend, server, online, len(on), frontend_map, server_map,
+                                kf, at_s, start, end))
     closures: Counter[str] = Counter(c.kind for s in steps for c in s.closures)
     rejected: Counter[str] = Counter()
     for s in steps:
@@ -358,7 +382,7 @@ class ObjectScore:
     landmarks: tuple[int, int]  # confirmed landmarks: (a) ground-truth start, (b) back-end
     offsets_cm: list[float]
     unpaired: tuple[int, int]
-    truth_cm: tuple[float | None, float | None]  # median centre error against ground truth
+    truth_cm: tuple[float | None, float | None, float | None]  # median centre error vs truth, (a) (b) (c)
     duplicates: tuple[dict[int, int], dict[int, int]]
     moved: tuple[int, int]  # landmarks whose majority object was moved between runs
     left_out: list[str]  # sessions never anchored (not in map b)
@@ -398,12 +422,11 @@ def object_maps(scenario: str, seed: int, runs: list[Run], core: BackendCore,
     by_session: dict[Session, list[Step]] = {}
     for s in steps:
         by_session.setdefault((s.key[0], s.key[1]), []).append(s)
-    first = steps[0]
-    if first.truth is None:
+    T_world_map = world_from_map(core, steps)
+    if T_world_map is None:
         raise SystemExit(f"{scenario} s{seed}: the first keyframe has no ground truth")
-    T_world_map = first.truth @ inverse(first.T_odom_camera)
     cfg = MapConfig(keyframe_min_translation_m=0.0, keyframe_min_rotation_deg=0.0)
-    measured_a, measured_b, left_out = [], [], []
+    measured_a, measured_b, measured_c, left_out = [], [], [], []
     with tempfile.TemporaryDirectory() as tmpd:
         tmp = Path(tmpd)
         for run in runs:
@@ -416,6 +439,9 @@ def object_maps(scenario: str, seed: int, runs: list[Run], core: BackendCore,
             traj_a = write_tum(tmp / f"{run.name}_a.txt", start_poses)
             print(f"  objects of {scenario} s{seed} {run.name} ...", file=sys.stderr)
             measured_a.append(measure_dataset(folder, poses=traj_a, config=cfg))
+            truth = [(s.stamp, s.truth) for s in ss if s.truth is not None]
+            measured_c.append(measure_dataset(folder, poses=write_tum(tmp / f"{run.name}_c.txt", truth),
+                                              config=cfg))
             est = [(s.stamp, core.estimate(s.key)) for s in ss]
             posed = [(t, T_world_map @ T) for t, T in est if T is not None]
             if len(posed) < len(ss):
@@ -425,6 +451,7 @@ def object_maps(scenario: str, seed: int, runs: list[Run], core: BackendCore,
                 measured_b.append(measure_dataset(folder, poses=traj_b, config=cfg))
     a = associate(measured_a)
     b = associate(measured_b)
+    c = associate(measured_c)
     pairs = pair_landmarks(a, b)
     conf_a = [lm for lm in a if lm.confirmed]
     conf_b = [lm for lm in b if lm.confirmed]
@@ -437,7 +464,7 @@ def object_maps(scenario: str, seed: int, runs: list[Run], core: BackendCore,
     return ObjectScore(
         scenario, seed, (len(conf_a), len(conf_b)), [100 * p.offset_m for p in pairs],
         (len(conf_a) - len(pairs), len(conf_b) - len(pairs)),
-        (truth_error_cm(a, centres), truth_error_cm(b, centres)),
+        (truth_error_cm(a, centres), truth_error_cm(b, centres), truth_error_cm(c, centres)),
         (duplicated_objects(a), duplicated_objects(b)),
         (n_moved(conf_a), n_moved(conf_b)),
         left_out,
@@ -448,7 +475,8 @@ def object_rows(scores: list[ObjectScore]) -> list[str]:
     lines = [
         "| scenario | seed | landmarks (a) GT start / (b) back-end | paired "
         "| offset (b) vs (a) cm mean / max "
-        "| unpaired (a) / (b) | centre error vs truth cm median (a) / (b) | duplicated objects (a) / (b) "
+        "| unpaired (a) / (b) | centre error vs truth cm median (a) / (b) / (c) "
+        "| duplicated objects (a) / (b) "
         "| landmarks of moved objects (a) / (b) | sessions left out of (b) |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
@@ -457,7 +485,7 @@ def object_rows(scores: list[ObjectScore]) -> list[str]:
         lines.append(
             f"| {o.scenario} | {o.seed} | {o.landmarks[0]} / {o.landmarks[1]} | {len(o.offsets_cm)} | {off} "
             f"| {o.unpaired[0]} / {o.unpaired[1]} "
-            f"| {fmt(o.truth_cm[0], '.1f')} / {fmt(o.truth_cm[1], '.1f')} "
+            f"| {' / '.join(fmt(x, '.1f') for x in o.truth_cm)} "
             f"| {len(o.duplicates[0])} / {len(o.duplicates[1])} | {o.moved[0]} / {o.moved[1]} "
             f"| {', '.join(o.left_out) or '-'} |"
         )
@@ -501,9 +529,10 @@ def closure_rows(scores: list[RunScore]) -> list[str]:
 def session_rows(scores: list[RunScore]) -> list[str]:
     lines = [
         "| scenario | seed | session | keyframes | frontend ATE cm | server ATE cm (final) "
-        "| server ATE cm online (keyframes) | anchored at keyframe (s after start) "
+        "| server ATE cm online (keyframes) | frontend / server error cm, unaligned "
+        "| anchored at keyframe (s after start) "
         "| alignment at first keyframe cm / deg | alignment at last keyframe cm / deg |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for s in scores:
         for i, ss in enumerate(s.sessions):
@@ -511,7 +540,7 @@ def session_rows(scores: list[RunScore]) -> list[str]:
             lines.append(
                 f"| {s.scenario} | {s.seed} | {ss.session[0]}/{ss.session[1]} | {ss.keyframes} "
                 f"| {fmt(ss.frontend_cm)} | {fmt(ss.server_cm)} | {fmt(ss.online_cm)} ({ss.online_n}) "
-                f"| {anchored} "
+                f"| {fmt(ss.frontend_map_cm)} / {fmt(ss.server_map_cm)} | {anchored} "
                 f"| {'(map)' if i == 0 else err(ss.start)} | {err(ss.end)} |"
             )
     return lines
@@ -684,8 +713,9 @@ def main() -> int:
         *([
             "",
             "**Object maps** from the same keyframes: (a) ground-truth start poses + the frontend's "
-            "trajectory, (b) the back-end's final poses (oracle measurements, hierarchical association; "
-            "confirmed landmarks paired by category and nearest centre within 1 m)",
+            "trajectory, (b) the back-end's final poses, (c) ground-truth poses (oracle measurements, "
+            "hierarchical association; confirmed landmarks of (a) and (b) paired by category and nearest "
+            "centre within 1 m)",
             "",
             *object_rows(objects),
         ] if objects else []),

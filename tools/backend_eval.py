@@ -52,6 +52,7 @@ __all__ = [
     "alignment_error",
     "check_closure",
     "duplicated_objects",
+    "frame_rmse",
     "majority_object",
     "pair_landmarks",
     "pose_error",
@@ -185,6 +186,19 @@ def alignment_error(T_map_odom: ArrayLike, T_map_odom_ref: ArrayLike, T_world_od
     est = inverse(np.asarray(T_map_odom_ref, np.float64)) @ np.asarray(T_map_odom, np.float64)
     ref = inverse(np.asarray(T_world_odom_ref, np.float64)) @ np.asarray(T_world_odom, np.float64)
     return pose_error(est, ref)
+
+
+def frame_rmse(T_world_frame: ArrayLike, T_frame_camera: Sequence[ArrayLike],
+               T_world_camera: Sequence[ArrayLike]) -> float:
+    """Translation RMSE (m) of cameras given in a frame placed in the world by ``T_world_frame``
+    (4, 4), against ground truth ``T_world_camera`` (each (N) (4, 4)); no alignment: the error a
+    map built in that frame has."""
+    W = np.asarray(T_world_frame, np.float64)
+    est = np.einsum("ij,njk->nik", W, np.asarray(T_frame_camera, np.float64).reshape(-1, 4, 4))
+    ref = np.asarray(T_world_camera, np.float64).reshape(-1, 4, 4)
+    if est.shape != ref.shape or not len(est):
+        raise WardmapError(f"frame_rmse: {len(est)} estimates for {len(ref)} reference poses")
+    return float(np.sqrt(np.mean(np.sum((est[:, :3, 3] - ref[:, :3, 3]) ** 2, axis=1))))
 
 
 def trajectory_ate(stamps: Sequence[float], T_est: Sequence[ArrayLike], T_ref: Sequence[ArrayLike]) -> float:

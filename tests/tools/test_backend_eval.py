@@ -15,6 +15,7 @@ from wardmap.tools.backend_eval import (
     alignment_error,
     check_closure,
     duplicated_objects,
+    frame_rmse,
     majority_object,
     pair_landmarks,
     pose_error,
@@ -111,6 +112,15 @@ def test_alignment_error_ignores_the_map_gauge() -> None:
     off = yaw_transform(0.02, 0.0, math.radians(0.5))
     m, deg = alignment_error(G @ W1 @ off, G @ W0, W1, W0)
     assert m == pytest.approx(0.02) and deg == pytest.approx(0.5)
+
+
+def test_frame_rmse_does_not_align() -> None:
+    """Cameras in a frame placed at its true place have no error; the frame 2 cm off gives 2 cm."""
+    _, truth = circle(20)
+    G = se3_exp(np.array([0.0, 0.0, 1.0, 4.0, -2.0, 0.5]))
+    in_frame = [inverse(G) @ T for T in truth]
+    assert frame_rmse(G, in_frame, truth) == pytest.approx(0.0, abs=1e-9)
+    assert frame_rmse(G @ yaw_transform(0.0, 0.02, 0.0), in_frame, truth) == pytest.approx(0.02)
 
 
 def test_ate_aligns_a_rigidly_moved_trajectory() -> None:
