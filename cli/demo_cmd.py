@@ -21,6 +21,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--exit", action="store_true", help="stop everything after the summary")
     p.add_argument("--http", default="127.0.0.1:8080", metavar="HOST:PORT",
                    help="map server REST address; a free port is used if it is busy (default: %(default)s)")
+    p.add_argument("--map-poses", action="store_true",
+                   help="start each robot at its ground-truth map pose (--map-pose) instead of letting the "
+                        "server anchor it by place recognition")
     p.add_argument("--keep", type=Path, metavar="DIR",
                    help="work in DIR (new or empty) and keep it: data sets, outboxes, map.db, logs")
     p.set_defaults(func=run)
@@ -32,5 +35,5 @@ def run(args: argparse.Namespace) -> int:
 
     host, port = parse_http(args.http)
     opts = DemoOptions(robots=args.robots, duration_s=args.duration, seed=args.seed, exit_after=args.exit,
-                       http_host=host, http_port=port, keep=args.keep)
+                       http_host=host, http_port=port, keep=args.keep, map_poses=args.map_poses)
     return run_demo(opts)

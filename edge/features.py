@@ -31,6 +31,7 @@ from numba import njit
 from numpy.typing import NDArray
 
 from wardmap.shared.errors import ConfigError, GeometryError
+from wardmap.shared.hamming import popcount64
 
 FeatureKind = Literal["orb", "sift"]
 
@@ -794,15 +795,6 @@ def match_descriptors(
     return out
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _popcount64(x: np.uint64) -> int:
-    """Bits set in a 64-bit word (SWAR)."""
-    x = x - ((x >> np.uint64(1)) & np.uint64(0x5555555555555555))
-    x = (x & np.uint64(0x3333333333333333)) + ((x >> np.uint64(2)) & np.uint64(0x3333333333333333))
-    x = (x + (x >> np.uint64(4))) & np.uint64(0x0F0F0F0F0F0F0F0F)
-    return int((x * np.uint64(0x0101010101010101)) >> np.uint64(56))
-
-
 @njit(cache=True, nogil=True)
 def _match_projected_kernel(
     map_desc: NDArray[np.uint64],
@@ -877,7 +869,7 @@ def _match_projected_kernel(
                         continue
                     d = 0
                     for w in range(words):
-                        d += _popcount64(map_desc[i, w] ^ frame_desc[j, w])
+                        d += popcount64(map_desc[i, w] ^ frame_desc[j, w])
                     if d < d1:
                         d2 = d1
                         d1 = d

@@ -29,6 +29,7 @@ from contextlib import ExitStack, contextmanager
 from typing import TYPE_CHECKING, Any
 
 from wardmap.server.api import Services, create_app
+from wardmap.server.corrections import CorrectionPublisher
 from wardmap.server.ingest import Ingest
 from wardmap.server.mapserve import MapServe
 from wardmap.server.objectmap import ObjectMap
@@ -113,6 +114,7 @@ class MapServer:
             stack.callback(store.close)
             objects = ObjectMap(store)
             ingest: Ingest | None = None
+            corrections: CorrectionPublisher | None = None
             if self._connect is not None:
                 session = open_session(self._connect)
                 stack.callback(session.close)  # after ingest and map service undeclared theirs
@@ -122,10 +124,15 @@ class MapServer:
                 mapserve = MapServe(session, objects)
                 mapserve.start()
                 stack.callback(mapserve.stop)
+                corrections = CorrectionPublisher(session)
+                corrections.load(store.session_anchors())
+                stack.callback(corrections.close)
                 log.info("zenoh session via %s: ingest and map service", ", ".join(self._connect))
             pipeline = None
             if self._pipeline_factory is not None:
                 pipeline = self._pipeline_factory(store, objects)
+                if corrections is not None:
+                    pipeline.backend.set_publish(corrections.publish_anchor)
                 pipeline.start()
                 stack.callback(pipeline.stop)
             self._running = stack.pop_all()
@@ -158,6 +165,8 @@ class MapServer:
                 anything starts).
         """
         from wardmap.server.association.associator import AssociationConfig
+        from wardmap.server.backend.core import BackendConfig
+        from wardmap.server.backend.stage import BackendStage
         from wardmap.server.mapping import MapPipeline, PipelineConfig
         from wardmap.server.perception.config import PerceptionConfig
         from wardmap.server.perception.models import make_segmenter
@@ -167,6 +176,7 @@ class MapServer:
         pipeline_cfg = load_config(PipelineConfig, config_path, section="pipeline")
         perception_cfg = load_config(PerceptionConfig, config_path, section="perception")
         association_cfg = load_config(AssociationConfig, config_path, section="association")
+        backend_cfg = load_config(BackendConfig, config_path, section="backend")
         if not pipeline_cfg.enabled:
             return cls(db_url, connect=connect)
         # Build the segmenter now: a missing or bad model is one clear error before anything starts.
@@ -174,7 +184,8 @@ class MapServer:
 
         def make_pipeline(store: MapStore, objects: ObjectMap) -> MapPipeline:
             return MapPipeline(store, objects, config=pipeline_cfg, perception=perception_cfg,
-                               association=association_cfg, segmenter=segmenter)
+                               association=association_cfg, segmenter=segmenter,
+                               backend=BackendStage(store, backend_cfg))
 
         return cls(db_url, connect=connect, pipeline_factory=make_pipeline)
 

@@ -29,13 +29,14 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any, Final
 
 import numpy as np
 from numpy.typing import ArrayLike
 
+from wardmap.server.store import SessionAnchor
 from wardmap.server.zenoh_session import first_line
 from wardmap.shared.errors import ConfigError, WardmapError, WireError
 from wardmap.shared.robotwire import ENCODING, CorrectionMsg, encode_correction
@@ -195,6 +196,25 @@ class CorrectionPublisher:
         log.info("correction of %s/%s revision %d published (anchored to %s)",
                  robot_id, session_id, msg.revision, anchored_to or "-")
         return msg
+
+    def publish_anchor(self, anchor: SessionAnchor) -> CorrectionMsg | None:
+        """Publish a session's anchoring as the back-end committed it (None: not anchored)."""
+        if anchor.T_map_odom is None:
+            return None
+        return self.publish(anchor.robot_id, anchor.session_id, anchor.T_map_odom, revision=anchor.revision,
+                            anchored_to=anchor.anchored_to or None)
+
+    def load(self, anchors: Iterable[SessionAnchor]) -> None:
+        """Hold the stored anchored sessions as their latest corrections, without publishing them
+        (a restarted server answers queries with what robots may already hold)."""
+        for a in anchors:
+            if a.T_map_odom is None:
+                continue
+            msg = CorrectionMsg(a.robot_id, a.session_id, a.revision, self._clock(),
+                                np.asarray(a.T_map_odom, np.float64), "anchored", a.anchored_to or None)
+            with self._lock:
+                self._latest[(a.robot_id, a.session_id)] = (msg, encode_correction(msg))
+                self._recent[a.robot_id] = a.session_id
 
     def latest(self, robot_id: str, session_id: str | None = None) -> CorrectionMsg | None:
         """The latest correction of ``robot_id``'s session ``session_id`` (default: of the

@@ -498,6 +498,10 @@ class ObjectMap:
             )
         return self._store.object_detail(oid, int(max_observations))
 
+    def ids(self) -> list[int]:
+        """Every object id, ascending (unconfirmed ones too)."""
+        return self._store.object_ids()
+
     def categories(self, include_unconfirmed: bool = False) -> dict[str, int]:
         """Number of stored objects per knowledge-graph class (every class, in index order);
         confirmed ones only unless ``include_unconfirmed``."""

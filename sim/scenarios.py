@@ -163,6 +163,20 @@ def _two_robots(seed: int) -> Scene:
     )
 
 
+def _two_robots_meet(seed: int) -> Scene:
+    b = _loop_world("two_robots_meet", seed)
+    furnish.furnish(b, b.rng)
+    a = plan_path([[4.0, 1.5], [22.5, 1.5], [22.5, 12.5], [13.0, 12.5]], speed=0.5, turn_radius=1.0)
+    c = plan_path([[1.5, 9.0], [1.5, 1.5], [15.0, 1.5]], speed=0.5, turn_radius=1.0)
+    return Scene(
+        "two_robots_meet",
+        seed,
+        b.finish(),
+        [RobotRun("robot_0", a), RobotRun("robot_1", c)],
+        description="two robots starting apart; after 15 s the second follows the first's path",
+    )
+
+
 DAY_S = 86_400.0
 DAYS_MOVED = ("wheelchair", "cart", "chair")
 """Classes of the objects moved between the two days of ``hospital_days`` (one of each)."""
@@ -421,6 +435,11 @@ SCENARIOS: dict[str, ScenarioSpec] = {
         ),
         ScenarioSpec("dark_corridor", "the lights go out for 12 s (thermal keeps working)", _dark_corridor),
         ScenarioSpec("two_robots", "two robots in one world with overlapping paths", _two_robots),
+        ScenarioSpec(
+            "two_robots_meet",
+            "two robots starting apart in one world; the second joins the first's path (anchoring)",
+            _two_robots_meet,
+        ),
         ScenarioSpec(
             "hospital_days",
             "one robot on two days from different starts, some objects moved in between",

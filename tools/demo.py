@@ -74,6 +74,9 @@ class DemoOptions:
     http_port: int = 8080
     """Its port; a free port on ``http_host`` is used when this one is busy."""
     keep: Path | None = None
+    map_poses: bool = False
+    """Start each robot at its ground-truth map pose (``--map-pose``); default: none, the
+    server anchors robots by place recognition."""
 
     def __post_init__(self) -> None:
         if not 1 <= self.robots <= MAX_ROBOTS:
@@ -124,11 +127,12 @@ class RobotResult:
 
 
 def plan_robots(n: int, seed: int) -> list[RobotPlan]:
-    """Robots 0 and 1 from ``two_robots`` (one world, overlapping paths); 2.. from other scenarios."""
+    """Robots 0 and 1 from ``two_robots_meet`` (one world; they start apart and the second joins
+    the first's path after about 15 s, where the server can anchor it); 2.. from other scenarios."""
     plans = []
     for i in range(n):
         if i < 2:
-            plans.append(RobotPlan(f"robot_{i}", "two_robots", seed, f"robot_{i}"))
+            plans.append(RobotPlan(f"robot_{i}", "two_robots_meet", seed, f"robot_{i}"))
         else:
             scenario = EXTRA_SCENARIOS[(i - 2) % len(EXTRA_SCENARIOS)]
             plans.append(RobotPlan(f"robot_{i}", scenario, seed + i, None))
@@ -342,11 +346,112 @@ def _mapping_backlog(http: Any) -> int | None:
     return None
 
 
-def map_summary(plans: list[RobotPlan], http: Any, timeout_s: float = 120.0) -> str:
-    """Wait for the server's mapping stage to catch up, then the objects on the map, each checked
-    against the simulated objects of its category, and the doors it found against the simulated
-    world's doors (``GET /v1/objects?category=door``)."""
+@dataclass
+class Anchoring:
+    """How the server placed one robot's session on the map (``GET /v1/robots``).
+
+    Attributes:
+        robot_id: the robot.
+        anchored: its session is on the map.
+        after_s: seconds from its first keyframe to its anchoring (server clock).
+        anchored_to: the session it was anchored through (its own: it set the map).
+        T_map_odom: (4, 4) its odom frame on the map, as the server sent it.
+        T_world_odom: (4, 4) the simulator's ground truth of that frame.
+    """
+
+    robot_id: str
+    anchored: bool
+    after_s: float | None
+    anchored_to: str | None
+    T_map_odom: Any
+    T_world_odom: Any
+
+    @property
+    def sets_map(self) -> bool:
+        """Its session set the map frame (the first session) or came with a map pose."""
+        return self.anchored and (self.anchored_to or "").startswith(f"{self.robot_id}/")
+
+
+def robot_anchoring(plans: list[RobotPlan], http: Any, timeout_s: float = 60.0) -> list[Anchoring]:
+    """Each robot's anchoring once the server's back-end and mapping caught up."""
     import numpy as np
+
+    from wardmap.shared.se3 import transform_from_tum
+    from wardmap.sim.live import LiveRun
+
+    deadline = time.monotonic() + timeout_s
+    while (backlog := _mapping_backlog(http)) not in (0, None) and time.monotonic() < deadline:
+        _say(f"demo: mapping stage backlog {backlog} keyframes")
+        time.sleep(1.0)
+    r = http.get("/v1/robots")
+    r.raise_for_status()
+    by_id = {row["robot_id"]: row for row in r.json()["robots"]}
+    out = []
+    for p in plans:
+        row = by_id.get(p.robot_id, {})
+        T = row.get("T_map_odom")
+        T_map_odom = None if T is None else transform_from_tum([*T["t"], *T["q_xyzw"]])
+        at = row.get("anchored_at_s")
+        after = None if at is None or "first_seen_s" not in row else max(0.0, at - row["first_seen_s"])
+        gt = np.asarray(LiveRun(p.scenario, p.seed, p.sim_robot, frames=1).T_world_odom(), np.float64)
+        out.append(Anchoring(p.robot_id, bool(row.get("anchored")), after, row.get("anchored_to"), T_map_odom,
+                             gt))
+    return out
+
+
+def map_from_world(anchoring: list[Anchoring]) -> Any:
+    """``T_map_world`` (4, 4): the simulated world on the server's map, from the robot whose
+    session set the map (anchored through itself); identity when none did."""
+    import numpy as np
+
+    for a in anchoring:
+        if a.sets_map and a.T_map_odom is not None:
+            return a.T_map_odom @ np.linalg.inv(a.T_world_odom)
+    return np.eye(4)
+
+
+def alignment_error(a: Anchoring, T_map_world: Any) -> tuple[float, float] | None:
+    """Translation (m) and rotation (deg) between the robot's ``T_map_odom`` and the ground
+    truth's ``T_map_world @ T_world_odom``; None when it is not anchored."""
+    import numpy as np
+
+    if not a.anchored or a.T_map_odom is None:
+        return None
+    D = np.linalg.inv(a.T_map_odom) @ T_map_world @ a.T_world_odom
+    angle = math.degrees(math.acos(float(np.clip((np.trace(D[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))))
+    return float(np.linalg.norm(D[:3, 3])), angle
+
+
+def format_anchoring(anchoring: list[Anchoring]) -> str:
+    """One line per robot: whether and when the server anchored it, and the alignment error."""
+    T_map_world = map_from_world(anchoring)
+    lines = []
+    for a in anchoring:
+        if not a.anchored:
+            lines.append(f"ANCHOR {a.robot_id}: not anchored (its path has not met a mapped place yet); "
+                         "its objects wait")
+            continue
+        err = alignment_error(a, T_map_world)
+        through = (a.anchored_to or "?").split("/", 1)[0]
+        how = "sets the map" if a.sets_map else f"anchored through {through}'s map"
+        when = "" if a.after_s is None else f" {a.after_s:.1f} s after its first keyframe"
+        if err is None:
+            lines.append(f"ANCHOR {a.robot_id}: {how}{when}")
+        else:
+            lines.append(f"ANCHOR {a.robot_id}: {how}{when}; alignment error {100 * err[0]:.1f} cm, "
+                         f"{err[1]:.2f} deg against ground truth")
+    return "\n".join(lines)
+
+
+def map_summary(plans: list[RobotPlan], http: Any, timeout_s: float = 120.0,
+                T_map_world: Any = None) -> str:
+    """Wait for the server's mapping stage to catch up, then the objects on the map, each checked
+    against the simulated objects of its category (moved onto the map with ``T_map_world``,
+    (4, 4), identity when None), and the doors it found against the simulated world's doors
+    (``GET /v1/objects?category=door``)."""
+    import numpy as np
+
+    T_mw = np.eye(4) if T_map_world is None else np.asarray(T_map_world, np.float64)
 
     from wardmap.sim.live import LiveRun
 
@@ -364,7 +469,7 @@ def map_summary(plans: list[RobotPlan], http: Any, timeout_s: float = 120.0) -> 
     doors = [o["position"] for o in r.json()["objects"]]
     # Robots of one scenario and seed share its world: each object once.
     worlds = {(p.scenario, p.seed): p for p in plans}.values()
-    simulated = [(o["class"], np.asarray(o["T_world_object"])[:3, 3]) for p in worlds
+    simulated = [(o["class"], (T_mw @ np.asarray(o["T_world_object"]))[:3, 3]) for p in worlds
                  for o in LiveRun(p.scenario, p.seed, p.sim_robot, frames=1).objects()["objects"]]
     lines.extend(_map_check(http, simulated))
     lines.append(f"GET /v1/objects?category=door: {len(doors)} doors on the map; the simulated worlds have "
@@ -555,7 +660,9 @@ def _run(opts: DemoOptions, work: Path, children: list[Child], wait: Callable[[]
     for p in plans:
         args = ["edge", "--robot", p.robot_id, "--source", p.source, "--connect", endpoint,
                 "--outbox", str(work / "outbox" / p.robot_id), "--rate", f"{CAMERA_RATE_HZ:g}",
-                "--max-frames", str(opts.frames), "--map-pose", map_pose(p)]
+                "--max-frames", str(opts.frames)]
+        if opts.map_poses:
+            args += ["--map-pose", map_pose(p)]
         edges[p.robot_id] = start(f"edge {p.robot_id}", args, lambda s: " ready: session " in s)
 
     with httpx.Client(base_url=url, timeout=10.0) as http:
@@ -566,7 +673,9 @@ def _run(opts: DemoOptions, work: Path, children: list[Child], wait: Callable[[]
         short = [r.robot_id for r in results if r.delivered != r.produced or r.produced == 0]
         if short:
             raise DemoError(f"keyframes not all delivered (or none produced) for {', '.join(short)}")
-        print(map_summary(plans, http), flush=True)
+        anchoring = robot_anchoring(plans, http)
+        print(format_anchoring(anchoring), flush=True)
+        print(map_summary(plans, http, T_map_world=map_from_world(anchoring)), flush=True)
         print(f"map server: {url}  (try {url}/v1/objects?category=door, {url}/v1/categories, "
               f"{url}/v1/robots, {url}/metrics)", flush=True)
         if opts.exit_after:

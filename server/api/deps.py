@@ -18,7 +18,7 @@ from prometheus_client import CollectorRegistry
 from wardmap.server.ingest import Ingest
 from wardmap.server.mapping import MapPipeline
 from wardmap.server.objectmap import ObjectMap
-from wardmap.server.store import KeyframeStore
+from wardmap.server.store import MapStore
 
 __all__ = [
     "IngestDep",
@@ -42,7 +42,7 @@ class Services:
         pipeline: the mapping stage, or None when keyframes are stored but not mapped.
     """
 
-    store: KeyframeStore
+    store: MapStore
     objects: ObjectMap
     ingest: Ingest | None = None
     pipeline: MapPipeline | None = None
@@ -72,7 +72,7 @@ async def get_services(request: Request) -> Services:
 ServicesDep = Annotated[Services, Depends(get_services)]
 
 
-async def get_store(services: ServicesDep) -> KeyframeStore:
+async def get_store(services: ServicesDep) -> MapStore:
     return services.store
 
 
@@ -93,7 +93,7 @@ async def get_metrics(request: Request) -> CollectorRegistry:
     return registry
 
 
-StoreDep = Annotated[KeyframeStore, Depends(get_store)]
+StoreDep = Annotated[MapStore, Depends(get_store)]
 ObjectMapDep = Annotated[ObjectMap, Depends(get_objectmap)]
 IngestDep = Annotated[Ingest | None, Depends(get_ingest)]
 PipelineDep = Annotated[MapPipeline | None, Depends(get_pipeline)]

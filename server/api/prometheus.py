@@ -19,6 +19,7 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metri
 from prometheus_client.exposition import generate_latest
 from prometheus_client.registry import Collector
 
+from wardmap.server.backend.stage import BackendCounters
 from wardmap.server.ingest import Ingest, IngestCounters
 from wardmap.server.mapping import MapPipeline, PipelineCounters
 from wardmap.server.objectmap import ObjectMap
@@ -122,6 +123,32 @@ def pipeline_metrics(c: PipelineCounters) -> list[Metric]:
         _by("kind", CounterMetricFamily, "wardmap_mapping_instances_skipped_total",
             "Instances perception found but could not measure (stored keyframes), by kind.",
             [(k, c.skipped.get(k, 0)) for k in SKIP_KINDS]),
+        _counter("wardmap_mapping_rebuilds_total",
+                 "Object-map rebuilds after the back-end moved keyframes (loop closure, anchoring).",
+                 c.rebuilds),
+    ]
+
+
+def backend_metrics(c: BackendCounters) -> list[Metric]:
+    """The SLAM back-end's counters."""
+    return [
+        _gauge("wardmap_backend_backlog", "Stored keyframes the back-end has not put in the pose graph yet.",
+               c.backlog),
+        _counter("wardmap_backend_keyframes_total", "Keyframes this process added to the pose graph.",
+                 c.processed),
+        _gauge("wardmap_backend_graph_nodes", "Keyframes in the pose graph.", c.nodes),
+        _counter("wardmap_backend_loop_closures_total", "Verified place matches accepted into the graph.",
+                 c.loops),
+        _counter("wardmap_backend_sessions_anchored_total", "Robot sessions anchored on the map.",
+                 c.anchored),
+        _counter("wardmap_backend_candidates_total", "Place-recognition candidates verified.", c.candidates),
+        _by("reason", CounterMetricFamily, "wardmap_backend_candidates_rejected_total",
+            "Place-recognition candidates rejected, by reason.", sorted(c.rejected.items())),
+        _by("reason", CounterMetricFamily, "wardmap_backend_failures_total",
+            "Keyframes the back-end skipped, by reason.", sorted(c.failures.items())),
+        _counter("wardmap_backend_restarts_total",
+                 "Unexpected errors the back-end recovered from (see the server log).", c.restarts),
+        _gauge("wardmap_backend_index_bytes", "Memory of the place-recognition index.", c.index_bytes),
     ]
 
 
@@ -143,6 +170,7 @@ class ServerCollector(Collector):
         yield from map_metrics(self._objects.count(unconfirmed=False), self._objects.count(unconfirmed=True))
         if self._pipeline is not None:
             yield from pipeline_metrics(self._pipeline.counters())
+            yield from backend_metrics(self._pipeline.backend.counters())
 
 
 def metrics_registry(collector: Collector) -> CollectorRegistry:

@@ -54,6 +54,19 @@ class RobotOut(BaseModel):
     sessions: int
     first_seen_s: float
     last_seen_s: float
+    """Server time of its latest keyframe, Unix seconds."""
+    session_id: str | None = None
+    """Its latest session (the one the fields below describe); None before the back-end saw it."""
+    anchored: bool = False
+    """Whether that session is on the shared map (anchored by a verified place match, a map
+    pose given at start, or by being the first session of the map)."""
+    anchored_at_s: float | None = None
+    anchored_to: str | None = None
+    """The session (``robot/session``) it was anchored through; itself when it set the map."""
+    T_map_odom: TransformOut | None = None
+    """The session's odom frame on the map (what the robot was sent)."""
+    map_pose: PoseOut | None = None
+    """Its latest keyframe's camera pose on the map (back-end estimate)."""
 
 
 class RobotList(BaseModel):
@@ -79,12 +92,15 @@ class KeyframeList(BaseModel):
 class PoseOut(BaseModel):
     stamp: float
     t: list[float]
-    """Translation ``[x, y, z]`` of the camera in the session's odom frame, metres."""
+    """Translation ``[x, y, z]`` of the camera in the trajectory's frame, metres."""
     q_xyzw: list[float]
 
 
 class TrajectoryOut(BaseModel):
     robot_id: str
+    frame: str = "map"
+    """``map``: back-end estimates of the keyframes of anchored sessions; ``odom``: the poses
+    the robot tracked, each session in its own odom frame."""
     poses: list[PoseOut]
 
 

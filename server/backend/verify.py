@@ -33,6 +33,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.errors import ConfigError, GeometryError
+from wardmap.shared.hamming import knn2
 from wardmap.shared.se3 import inverse, make_transform
 from wardmap.shared.wire import Keypoints
 
@@ -212,35 +213,22 @@ class Verified:
 
 
 def _match(query: U8, cand: U8, config: VerifyConfig) -> tuple[I64, I64]:
-    """Indices (q, c) of matches query -> cand: ratio test, distance cap, optional mutual check."""
+    """Indices (q, c) of matches query -> cand: ratio test, distance cap, optional mutual check
+    (:func:`wardmap.shared.hamming.knn2`: one pass over all pairs gives both directions)."""
     if query.shape[0] == 0 or cand.shape[0] == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    matcher = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=False)
-    k = 2 if cand.shape[0] >= 2 else 1
-    qi: list[int] = []
-    ci: list[int] = []
-    for pair in matcher.knnMatch(query, cand, k=k):
-        if not pair:
-            continue
-        best = pair[0]
-        if best.distance > config.max_hamming:
-            continue
-        if len(pair) == 2 and not best.distance < config.ratio * pair[1].distance:
-            continue
-        qi.append(best.queryIdx)
-        ci.append(best.trainIdx)
-    q_idx, c_idx = np.asarray(qi, np.int64), np.asarray(ci, np.int64)
-    if config.mutual and q_idx.size:
-        back = np.full(cand.shape[0], -1, np.int64)
-        for m in matcher.match(cand, query):
-            back[m.queryIdx] = m.trainIdx
+    best, d1, d2, back = knn2(query, cand)
+    ok = (best >= 0) & (d1 <= config.max_hamming)
+    if cand.shape[0] >= 2:
+        ok &= d1 < config.ratio * d2
+    q_idx = np.flatnonzero(ok).astype(np.int64)
+    c_idx = best[q_idx]
+    if config.mutual:
         keep = back[c_idx] == q_idx
-        q_idx, c_idx = q_idx[keep], c_idx[keep]
     else:  # a candidate keypoint claimed by several query keypoints is ambiguous: drop it
         counts = np.bincount(c_idx, minlength=cand.shape[0])
         keep = counts[c_idx] == 1
-        q_idx, c_idx = q_idx[keep], c_idx[keep]
-    return q_idx, c_idx
+    return q_idx[keep], c_idx[keep]
 
 
 def _ideal_pixels(camera: PinholeCamera, uv: F64) -> F64:

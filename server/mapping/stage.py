@@ -47,8 +47,8 @@ import math
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field, replace
 from typing import Final
 
 import cv2
@@ -56,6 +56,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from wardmap.server.association.associator import AssociationConfig, Associator
+from wardmap.server.backend.stage import BackendStage
 from wardmap.server.mapping.checkpoint import checkpoint_key, decode_state, encode_state
 from wardmap.server.mapping.writer import MappedKeyframe, MapWriter, WriterState
 from wardmap.server.objectmap import ObjectMap
@@ -95,6 +96,8 @@ class PipelineConfig:
         checkpoint_s: the association state is saved at most this often while keyframes
             come (seconds) and when the stage stops, so a restart replays only what came
             after it; 0 = never (every restart replays every stored measurement).
+        rebuild_min_s: least time between two object-map rebuilds after the back-end moved
+            keyframes (seconds, stage clock); keyframes mapped meanwhile use the latest poses.
     """
 
     enabled: bool = True
@@ -105,6 +108,7 @@ class PipelineConfig:
     max_attempts: int = 3
     close_idle_s: float = 60.0
     checkpoint_s: float = 600.0
+    rebuild_min_s: float = 5.0
 
     def __post_init__(self) -> None:
         if not self.poll_s > 0:
@@ -117,6 +121,8 @@ class PipelineConfig:
             raise ConfigError(f"pipeline.max_attempts must be >= 1, got {self.max_attempts}")
         if not (math.isfinite(self.close_idle_s) and self.close_idle_s >= 0):
             raise ConfigError(f"pipeline.close_idle_s must be >= 0 (0 = never), got {self.close_idle_s}")
+        if not (math.isfinite(self.rebuild_min_s) and self.rebuild_min_s >= 0):
+            raise ConfigError(f"pipeline.rebuild_min_s must be >= 0, got {self.rebuild_min_s}")
         if not (math.isfinite(self.checkpoint_s) and self.checkpoint_s >= 0):
             raise ConfigError(f"pipeline.checkpoint_s must be >= 0 (0 = never), got {self.checkpoint_s}")
 
@@ -166,6 +172,7 @@ class PipelineCounters:
     skipped: dict[str, int] = field(default_factory=dict)
     wall_pieces: int = 0
     floor_pieces: int = 0
+    rebuilds: int = 0
 
 
 @dataclass
@@ -184,6 +191,7 @@ class _Counts:
     skipped: Counter[str] = field(default_factory=Counter)
     wall_pieces: int = 0
     floor_pieces: int = 0
+    rebuilds: int = 0
 
 
 class MapPipeline:
@@ -198,6 +206,8 @@ class MapPipeline:
         segmenter: a ready segmenter (tests); None builds ``perception.segmenter`` in
             :meth:`start`.
         clock: monotonic seconds, for idle sessions and checkpoint intervals.
+        backend: the back-end stage this one follows (started and stopped with it); None
+            builds one with default settings.
     """
 
     def __init__(
@@ -210,8 +220,10 @@ class MapPipeline:
         association: AssociationConfig | None = None,
         segmenter: Segmenter | None = None,
         clock: Callable[[], float] = time.monotonic,
+        backend: BackendStage | None = None,
     ) -> None:
         self.store = store
+        self.backend = backend if backend is not None else BackendStage(store)
         self.objects = objects
         self.cfg = config or PipelineConfig()
         self.perception = perception or PerceptionConfig()
@@ -221,6 +233,7 @@ class MapPipeline:
         self._measure_config = measure_config_for(self.perception, self.perception.segmenter)
         self._kg = KnowledgeGraph.load()
         self._moving = {c.name for c in self._kg.classes if str(c.mobility) == "moving"}
+        self._rebuild_after = 0.0
         self._reset()
         self._lock = threading.Lock()  # guards _counts and _backlog for counters()
         self._counts = _Counts()
@@ -228,6 +241,8 @@ class MapPipeline:
         # Rowid up to which keyframes are stored *and* associated and written to the object map
         # (the cursor moves before association): what wait_idle waits for.
         self._settled = -1
+        # The map epoch whose rebuild is complete (what wait_idle waits for; -1 before start).
+        self._done_epoch = -1
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._error: BaseException | None = None
@@ -242,8 +257,10 @@ class MapPipeline:
         """
         if self._segmenter is None:
             self._segmenter = make_segmenter(self.perception.segmenter, self.perception)
+        self.backend.start()
         self._replay()
         self._settle()
+        self._done_epoch = self._epoch
         self._thread = threading.Thread(target=self._main, name="map-pipeline", daemon=True)
         self._thread.start()
         log.info("mapping stage started (segmenter %s)", self.perception.segmenter)
@@ -254,6 +271,7 @@ class MapPipeline:
         if self._thread is not None:
             self._thread.join()
             self._thread = None
+        self.backend.stop()
 
     def counters(self) -> PipelineCounters:
         with self._lock:
@@ -261,18 +279,20 @@ class MapPipeline:
             return PipelineCounters(c.processed, c.measurements, c.mapped, c.unanchored, c.replayed,
                                     self._backlog, dict(c.failures), len(self._writer.landmarks()),
                                     c.restarts, c.last_error, c.closed_idle, c.floating, c.beyond_range,
-                                    dict(c.skipped), c.wall_pieces, c.floor_pieces)
+                                    dict(c.skipped), c.wall_pieces, c.floor_pieces, c.rebuilds)
 
     def wait_idle(self, timeout_s: float) -> bool:
-        """Block until every stored keyframe is measured, associated and on the object map (tests,
-        the demo); True if that happened in time. Idle-session closures are not waited for."""
+        """Block until every stored keyframe is measured, associated and on the object map at the
+        back-end's latest poses (tests, the demo); True if that happened in time. Idle-session
+        closures are not waited for."""
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             if self._error is not None:
                 raise WardmapError(f"mapping stage failed: {self._error}") from self._error
             with self._lock:
-                settled = self._settled
-            if settled >= 0 and self.store.count_keyframes_after(settled) == 0:
+                settled, epoch = self._settled, self._done_epoch
+            if (settled >= 0 and self.store.count_keyframes_after(settled) == 0
+                    and self.store.graph_epoch() == epoch):
                 return True
             time.sleep(0.05)
         return False
@@ -290,6 +310,8 @@ class MapPipeline:
         settled = True  # the writer holds exactly the keyframes up to the cursor
         while not self._stop.is_set():
             try:
+                if self.store.graph_epoch() != self._epoch and self._clock() >= self._rebuild_after:
+                    self._rebuild()
                 done = self._round()
                 self._settle()
                 self.close_idle()  # also while other robots keep the stage busy
@@ -318,6 +340,8 @@ class MapPipeline:
                     self._reset()
                     self._replay()
                     self._settle()
+                    with self._lock:
+                        self._done_epoch = self._epoch
                     settled = True
                 except Exception:  # e.g. the database is still unreadable
                     log.exception("mapping stage: recovery failed; retrying")
@@ -340,8 +364,29 @@ class MapPipeline:
         with self._lock:
             self._counts.failures[reason] += 1
 
+    def _rebuild(self) -> None:
+        """Re-associate every mapped keyframe at the back-end's current poses and replace the
+        object map with the result (objects association no longer finds are deleted): after a
+        loop closure or an anchoring moved keyframes (the graph epoch changed)."""
+        started = time.monotonic()
+        before = set(self.objects.ids())
+        self._reset()
+        self._replay()
+        after = {lm.id for lm in self._writer.landmarks()}
+        for gone in sorted(before - after):
+            self.objects.delete(gone)
+        self._settle()
+        self._rebuild_after = self._clock() + self.cfg.rebuild_min_s
+        with self._lock:
+            self._counts.rebuilds += 1
+            self._done_epoch = self._epoch
+        log.info("mapping stage: object map rebuilt at map epoch %d in %.1f s (%d objects, %d removed)",
+                 self._epoch, time.monotonic() - started, len(after), len(before - after))
+
     def _round(self) -> int:
-        rows = self.store.next_keyframes(self._cursor(), self.cfg.batch)
+        done_by_backend = self.backend.cursor()
+        rows = [kf for kf in self.store.next_keyframes(self._cursor(), self.cfg.batch)
+                if kf.rowid <= done_by_backend]
         for kf in rows:
             if self._stop.is_set():
                 break
@@ -365,12 +410,15 @@ class MapPipeline:
         with self._lock:
             self._counts.processed += 1
             self._counts.measurements += len(measurements)
-        if msg.T_map_odom is None:
+        node = (msg.robot_id, msg.session_id, msg.seq)
+        T_map_camera = self.store.graph_poses([node])[node]
+        if T_map_camera is None:
             with self._lock:
                 self._counts.unanchored += 1
             return
+        moved = on_map(measurements, keyframe_map_pose(msg), T_map_camera)
         stream = f"{msg.robot_id}/{msg.session_id}"
-        self.associate([MappedKeyframe(stream, keyframe_map_pose(msg), keyframe_camera(msg), measurements)])
+        self.associate([MappedKeyframe(stream, T_map_camera, keyframe_camera(msg), moved)])
 
     def _measure(self, msg: KeyframeMsg, key: str) -> list[ObjectMeasurement]:
         """The keyframe's object measurements in the map frame (:func:`measure_keyframe_msg`);
@@ -428,7 +476,8 @@ class MapPipeline:
         return quiet
 
     def _reset(self) -> None:
-        """A fresh writer, and no checkpoint written by it yet."""
+        """A fresh writer at the current map epoch, and no checkpoint written by it yet."""
+        self._epoch = self.store.graph_epoch()
         self._new_writer()
         self._checkpointed: tuple[int, int] | None = None  # (cursor, closures there) of the last one
         self._checkpoint_at = self._clock()
@@ -453,9 +502,8 @@ class MapPipeline:
     def _commit(self, rowid: int, key: str, msg: KeyframeMsg | None,
                 measurements: list[ObjectMeasurement]) -> None:
         robot_id, session_id, seq = key.split("/")
-        anchored = msg is not None and msg.T_map_odom is not None
         self.store.commit_keyframe(CURSOR_NAME, rowid, _mapped_pose(robot_id, session_id, int(seq), msg),
-                                   measurements, anchored=anchored)
+                                   measurements, anchored=msg is not None and msg.T_map_odom is not None)
 
     def _replay(self) -> None:
         """Rebuild the writer from stored measurements of anchored keyframes, in order.
@@ -489,7 +537,7 @@ class MapPipeline:
         log.info("mapping stage: replayed %d measurements of %d keyframes", replayed, keyframes)
 
     def _checkpoint_key(self) -> str:
-        return checkpoint_key(self.association, self._measure_config.hist_bins)
+        return f"{checkpoint_key(self.association, self._measure_config.hist_bins)} epoch={self._epoch}"
 
     def _checkpoint(self) -> None:
         """Save the association state at the current cursor, which it must match (a settled
@@ -555,7 +603,8 @@ class MapPipeline:
             if not rows:
                 break
             self.associate(MappedKeyframe(f"{kf.robot_id}/{kf.session_id}", kf.T_map_camera, kf.camera,
-                                          kf.measurements) for kf in rows)
+                                          on_map(kf.measurements, kf.T_measured_camera, kf.T_map_camera))
+                           for kf in rows)
             counts[0] += len(rows)
             counts[1] += sum(len(kf.measurements) for kf in rows)
             after = rows[-1].rowid
@@ -592,11 +641,26 @@ def _split_stream(stream: str) -> tuple[str, str]:
 
 
 def _mapped_pose(robot_id: str, session_id: str, seq: int, msg: KeyframeMsg | None) -> MappedPose:
-    """Where a processed keyframe is on the map; no pose when it is not on the map
-    (unanchored, undecodable, no intrinsics)."""
-    if msg is None or msg.T_map_odom is None or msg.intrinsics is None:
+    """The pose a processed keyframe's measurements were computed with (its map-pose prior, or
+    its odom frame); none when it was not measured (undecodable, no intrinsics)."""
+    if msg is None or msg.intrinsics is None:
         return MappedPose(robot_id, session_id, seq, None, None)
     return MappedPose(robot_id, session_id, seq, keyframe_map_pose(msg), keyframe_camera(msg))
+
+
+def on_map(measurements: Sequence[ObjectMeasurement], T_measured_camera: F64 | None,
+           T_map_camera: F64) -> list[ObjectMeasurement]:
+    """``measurements`` computed with the camera at ``T_measured_camera`` moved to the map, where
+    the back-end now puts that camera (``T_map_camera``): every world-frame pose is
+    premultiplied by ``T_map_camera @ inv(T_measured_camera)``, so measurements follow their
+    keyframe (relative poses, sizes and points in the camera frame are unchanged)."""
+    if T_measured_camera is None:
+        return list(measurements)
+    delta = np.asarray(T_map_camera, np.float64) @ np.linalg.inv(np.asarray(T_measured_camera, np.float64))
+    if np.allclose(delta, np.eye(4), atol=1e-12):
+        return list(measurements)
+    return [replace(m, T_world_camera=delta @ m.T_world_camera, T_world_object=delta @ m.T_world_object)
+            for m in measurements]
 
 
 PipelineFactory = Callable[[MapStore, ObjectMap], MapPipeline]

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Final
 
 from wardmap.server.store.codec import pose_blob, pose_from_blob
-from wardmap.server.store.protocol import KeyframeStore, MappingStore, MapStore, ObjectStore
+from wardmap.server.store.protocol import GraphStore, KeyframeStore, MappingStore, MapStore, ObjectStore
 from wardmap.server.store.records import (
     MAX_PAGE,
     MAX_REASON_LEN,
@@ -25,6 +25,9 @@ from wardmap.server.store.records import (
     Checkpoint,
     ClosedSession,
     Cursor,
+    GraphChange,
+    GraphEdgeRow,
+    GraphNodeRow,
     InsertResult,
     KeyCursor,
     KeyframeKey,
@@ -32,6 +35,7 @@ from wardmap.server.store.records import (
     KeyframeRef,
     KeyframeRow,
     MappedPose,
+    NodeKey,
     ObjectDetail,
     ObjectHit,
     ObjectPage,
@@ -41,6 +45,7 @@ from wardmap.server.store.records import (
     Observation,
     ObservationRecord,
     RobotSummary,
+    SessionAnchor,
     StoreDamagedError,
     StoredKeyframe,
     StoreError,
@@ -69,6 +74,10 @@ __all__ = [
     "Checkpoint",
     "ClosedSession",
     "Cursor",
+    "GraphChange",
+    "GraphEdgeRow",
+    "GraphNodeRow",
+    "GraphStore",
     "InsertResult",
     "KeyCursor",
     "KeyframeKey",
@@ -79,6 +88,7 @@ __all__ = [
     "MapStore",
     "MappedPose",
     "MappingStore",
+    "NodeKey",
     "ObjectDetail",
     "ObjectHit",
     "ObjectPage",
@@ -89,6 +99,7 @@ __all__ = [
     "Observation",
     "ObservationRecord",
     "RobotSummary",
+    "SessionAnchor",
     "SqliteKeyframeStore",
     "SqliteMapStore",
     "StoreDamagedError",

@@ -14,16 +14,23 @@ from collections.abc import Sequence
 from types import TracebackType
 from typing import Protocol
 
+import numpy as np
+from numpy.typing import NDArray
+
 from wardmap.server.perception.types import ObjectMeasurement
 from wardmap.server.store.records import (
     AnchoredKeyframe,
     Checkpoint,
     ClosedSession,
     Cursor,
+    GraphChange,
+    GraphEdgeRow,
+    GraphNodeRow,
     InsertResult,
     KeyframeKey,
     KeyframePage,
     MappedPose,
+    NodeKey,
     ObjectDetail,
     ObjectPage,
     ObjectRecord,
@@ -31,6 +38,7 @@ from wardmap.server.store.records import (
     ObjectWrite,
     Observation,
     RobotSummary,
+    SessionAnchor,
     StoredKeyframe,
     StoreStats,
     Trajectory,
@@ -155,6 +163,10 @@ class ObjectStore(Protocol):
         """Stored objects per category (categories with none are absent)."""
         ...
 
+    def object_ids(self) -> list[int]:
+        """Every stored object id, ascending."""
+        ...
+
     def observation_counts(self) -> dict[int, int]:
         """Stored observations per object id (objects with none are absent)."""
         ...
@@ -200,8 +212,9 @@ class MappingStore(Protocol):
         ...
 
     def anchored_keyframes(self, after: int, upto: int, limit: int) -> list[AnchoredKeyframe]:
-        """Up to ``limit`` keyframes with ``after < rowid <= upto`` that are on the map, in
-        insertion order, with their anchored measurements; keyframe payloads are not read."""
+        """Up to ``limit`` processed keyframes with ``after < rowid <= upto`` that are on the map
+        (the back-end has a ``T_map_camera`` estimate of them), in insertion order, with their
+        measurements and the pose those were computed with; keyframe payloads are not read."""
         ...
 
     def count_measurements(self) -> int:
@@ -227,7 +240,44 @@ class MappingStore(Protocol):
         ...
 
 
-class MapStore(KeyframeStore, ObjectStore, MappingStore, Protocol):
+class GraphStore(Protocol):
+    """What the SLAM back-end keeps (``server/backend/``): the pose graph (nodes with their
+    place-recognition codes and latest estimates, factors), each session's anchoring on the
+    map, and the graph epoch that tells the mapping stage to rebuild the object map."""
+
+    def commit_graph(self, cursor: str, rowid: int, change: GraphChange) -> None:
+        """In one transaction: add ``change``'s nodes and edges, replace the estimates and
+        session rows it carries, bump the epoch when asked, and move cursor ``cursor`` to
+        ``rowid``."""
+        ...
+
+    def graph_records(self) -> tuple[list[GraphNodeRow], list[GraphEdgeRow]]:
+        """Every node (in insertion order) and edge (in insertion order)."""
+        ...
+
+    def graph_epoch(self) -> int:
+        """How many times the back-end asked for an object-map rebuild (0: never)."""
+        ...
+
+    def graph_poses(self, keys: Sequence[NodeKey]) -> dict[NodeKey, NDArray[np.float64] | None]:
+        """The latest ``T_map_camera`` estimate of each key (None: not anchored or unknown)."""
+        ...
+
+    def session_anchors(self) -> list[SessionAnchor]:
+        """Every session the back-end has seen, ordered by ``(robot_id, session_id)``."""
+        ...
+
+    def latest_nodes(self) -> dict[str, GraphNodeRow]:
+        """Per robot, the node the back-end added last (codes empty)."""
+        ...
+
+    def map_trajectory(self, robot_id: str, session_id: str | None = None) -> Trajectory:
+        """Stamps and map-frame camera poses (latest estimates) of ``robot_id``'s keyframes
+        whose session is anchored, ordered by ``(stamp, session_id, seq)``."""
+        ...
+
+
+class MapStore(KeyframeStore, ObjectStore, MappingStore, GraphStore, Protocol):
     """The server's whole database: what a backend implements (see the module docstring)."""
 
     def __enter__(self) -> MapStore: ...

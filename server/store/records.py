@@ -306,12 +306,14 @@ class StoredKeyframe(KeyframeKey):
 
 @dataclass(frozen=True, eq=False)
 class MappedPose:
-    """Where a processed keyframe is on the map (what replay needs besides its measurements).
+    """The camera pose a processed keyframe's measurements were computed with, and its camera.
 
     Attributes:
         robot_id, session_id, seq: the keyframe.
-        T_map_camera: (4, 4) float64 colour-camera pose in the map frame; None when the
-            keyframe is not on the map (unanchored session, undecodable payload).
+        T_map_camera: (4, 4) float64 colour-camera pose the measurements are expressed with:
+            ``T_map_odom @ T_odom_camera`` with the session's map-pose prior, or its odom pose
+            when it has none (the back-end's estimate moves them to the map at association);
+            None for an undecodable payload or one without intrinsics.
         camera: its colour camera; None exactly when ``T_map_camera`` is None.
     """
 
@@ -328,9 +330,13 @@ class AnchoredKeyframe:
 
     Attributes:
         rowid, robot_id, session_id, seq: the keyframe.
-        T_map_camera: (4, 4) float64 colour-camera pose in the map frame.
+        T_map_camera: (4, 4) float64 colour-camera pose in the map frame: the back-end's
+            latest estimate.
         camera: its colour camera.
-        measurements: its measurements in the order they were stored (masks empty).
+        measurements: its measurements in the order they were stored (masks empty), in the
+            frame of ``T_measured_camera``.
+        T_measured_camera: (4, 4) float64 the camera pose the measurements were computed with
+            (:class:`MappedPose`); ``T_map_camera @ inv(T_measured_camera)`` takes them to the map.
     """
 
     rowid: int
@@ -340,6 +346,7 @@ class AnchoredKeyframe:
     T_map_camera: NDArray[np.float64]
     camera: PinholeCamera
     measurements: Sequence[ObjectMeasurement]
+    T_measured_camera: NDArray[np.float64] | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -367,3 +374,95 @@ class Checkpoint:
     config_key: str
     state: bytes
     written_s: float
+
+
+NodeKey = tuple[str, str, int]
+"""A keyframe of the pose graph: ``(robot_id, session_id, seq)``."""
+
+
+@dataclass(frozen=True, eq=False)
+class GraphNodeRow:
+    """One pose-graph node (a keyframe) as the back-end stores it.
+
+    Attributes:
+        key: the keyframe.
+        stamp: its capture time, Unix seconds.
+        T_odom_camera: (4, 4) float64 its tracked pose in the session's odom frame.
+        pose_source: the tracker's pose source (wire ``pose_source``).
+        T_map_camera: (4, 4) float64 its latest estimate on the map; None while its
+            session is not anchored.
+        prior_T_map_odom: (4, 4) float64 the ``--map-pose`` prior it came with, or None.
+        codes: its place-recognition code (random-fern block codes, one byte per block).
+    """
+
+    key: NodeKey
+    stamp: float
+    T_odom_camera: NDArray[np.float64]
+    pose_source: str
+    T_map_camera: NDArray[np.float64] | None
+    prior_T_map_odom: NDArray[np.float64] | None
+    codes: bytes
+
+
+@dataclass(frozen=True, eq=False)
+class GraphEdgeRow:
+    """One pose-graph factor.
+
+    Attributes:
+        kind: ``odometry`` (consecutive keyframes), ``loop`` (a verified place match) or
+            ``prior`` (a ``--map-pose`` prior or the map's gauge; ``b`` is None).
+        a, b: the keyframes it links (``T_a_b`` maps ``b``'s camera frame to ``a``'s).
+        T_a_b: (4, 4) float64 the measured relative pose (for a prior: ``T_map_a``).
+        sigmas: (6,) float64 standard deviations, rotation (rad, 3) then translation (m, 3).
+        robust: under a robust kernel (loop edges).
+        inliers: verified feature inliers (loop edges; 0 otherwise).
+    """
+
+    kind: str
+    a: NodeKey
+    b: NodeKey | None
+    T_a_b: NDArray[np.float64]
+    sigmas: NDArray[np.float64]
+    robust: bool
+    inliers: int = 0
+
+
+@dataclass(frozen=True, eq=False)
+class SessionAnchor:
+    """Where a robot session is on the map.
+
+    Attributes:
+        robot_id, session_id: the session.
+        T_map_odom: (4, 4) float64 its odom frame on the map; None while it is not anchored.
+        anchored_s: server wall-clock seconds when it was anchored (None: not yet).
+        anchored_to: ``"<robot>/<session>"`` it was anchored through (itself: it set the map
+            or came with a map-pose prior; empty: not anchored).
+        revision: how many times its ``T_map_odom`` was published (increases by one each time).
+    """
+
+    robot_id: str
+    session_id: str
+    T_map_odom: NDArray[np.float64] | None
+    anchored_s: float | None
+    anchored_to: str
+    revision: int
+
+
+@dataclass(frozen=True, eq=False)
+class GraphChange:
+    """What one back-end step adds to the stored pose graph (written in one transaction).
+
+    Attributes:
+        nodes: new nodes.
+        edges: new factors.
+        estimates: ``(key, T_map_camera)`` of nodes whose estimate changed.
+        sessions: sessions whose anchoring or ``T_map_odom`` changed (replacing their row).
+        bump_epoch: the map moved enough that the object map must be rebuilt (the mapping
+            stage re-associates when the epoch changes).
+    """
+
+    nodes: Sequence[GraphNodeRow] = ()
+    edges: Sequence[GraphEdgeRow] = ()
+    estimates: Sequence[tuple[NodeKey, NDArray[np.float64]]] = ()
+    sessions: Sequence[SessionAnchor] = ()
+    bump_epoch: bool = False

@@ -53,6 +53,7 @@ from typing import Any, Final, NoReturn
 from urllib.parse import unquote
 
 import numpy as np
+from numpy.typing import NDArray
 
 from wardmap.server.perception.types import ObjectMeasurement
 from wardmap.server.store.codec import (
@@ -71,12 +72,16 @@ from wardmap.server.store.records import (
     Checkpoint,
     ClosedSession,
     Cursor,
+    GraphChange,
+    GraphEdgeRow,
+    GraphNodeRow,
     InsertResult,
     KeyframeKey,
     KeyframePage,
     KeyframeRef,
     KeyframeRow,
     MappedPose,
+    NodeKey,
     ObjectDetail,
     ObjectHit,
     ObjectPage,
@@ -86,6 +91,7 @@ from wardmap.server.store.records import (
     Observation,
     ObservationRecord,
     RobotSummary,
+    SessionAnchor,
     StoreDamagedError,
     StoredKeyframe,
     StoreError,
@@ -225,6 +231,40 @@ MIGRATIONS: Final[tuple[sqlitedb.Migration, ...]] = (
     # flat slivers at the side of the view); the map's queries leave them out by default.
     (
         "ALTER TABLE objects ADD COLUMN confirmed INTEGER NOT NULL DEFAULT 1 CHECK (confirmed IN (0, 1))",
+    ),
+    # v8: the SLAM back-end (server/backend/): pose-graph nodes with their place-recognition
+    # codes and latest map estimates, factors, each session's anchoring, and the graph epoch.
+    (
+        """CREATE TABLE graph_nodes (
+            robot_id TEXT NOT NULL,
+            session_id TEXT NOT NULL,
+            seq INTEGER NOT NULL,
+            node_order INTEGER NOT NULL UNIQUE,
+            stamp REAL NOT NULL,
+            pose_source TEXT NOT NULL,
+            T_odom_camera BLOB NOT NULL CHECK (length(T_odom_camera) = 128),
+            T_map_camera BLOB CHECK (T_map_camera IS NULL OR length(T_map_camera) = 128),
+            prior BLOB CHECK (prior IS NULL OR length(prior) = 128),
+            codes BLOB NOT NULL,
+            PRIMARY KEY (robot_id, session_id, seq)) WITHOUT ROWID""",
+        """CREATE TABLE graph_edges (
+            edge_id INTEGER PRIMARY KEY,
+            kind TEXT NOT NULL CHECK (kind IN ('odometry', 'loop', 'prior')),
+            a_robot TEXT NOT NULL, a_session TEXT NOT NULL, a_seq INTEGER NOT NULL,
+            b_robot TEXT, b_session TEXT, b_seq INTEGER,
+            T_a_b BLOB NOT NULL CHECK (length(T_a_b) = 128),
+            sigmas BLOB NOT NULL CHECK (length(sigmas) = 48),
+            robust INTEGER NOT NULL CHECK (robust IN (0, 1)),
+            inliers INTEGER NOT NULL)""",
+        """CREATE TABLE graph_sessions (
+            robot_id TEXT NOT NULL,
+            session_id TEXT NOT NULL,
+            T_map_odom BLOB CHECK (T_map_odom IS NULL OR length(T_map_odom) = 128),
+            anchored_s REAL,
+            anchored_to TEXT NOT NULL,
+            revision INTEGER NOT NULL,
+            PRIMARY KEY (robot_id, session_id)) WITHOUT ROWID""",
+        "CREATE TABLE graph_epoch (id INTEGER PRIMARY KEY CHECK (id = 1), epoch INTEGER NOT NULL)",
     ),
 )
 
@@ -837,6 +877,11 @@ class SqliteMapStore(sqlitedb.GuardedAccess):
             rows = conn.execute(f"SELECT category, COUNT(*) FROM objects{where} GROUP BY category").fetchall()
         return {str(r[0]): int(r[1]) for r in rows}
 
+    def object_ids(self) -> list[int]:
+        """See :meth:`~wardmap.server.store.protocol.ObjectStore.object_ids`."""
+        with self._read("object map ids") as conn:
+            return [int(r[0]) for r in conn.execute("SELECT object_id FROM objects ORDER BY object_id")]
+
     def observation_counts(self) -> dict[int, int]:
         """See :meth:`~wardmap.server.store.protocol.ObjectStore.observation_counts`."""
         with self._read("object map observation counts") as conn:
@@ -916,10 +961,11 @@ class SqliteMapStore(sqlitedb.GuardedAccess):
         """See :meth:`~wardmap.server.store.protocol.MappingStore.anchored_keyframes`."""
         with self._read("mapping: replay") as conn:
             rows = conn.execute(
-                "SELECT k.rowid, k.robot_id, k.session_id, k.seq, mk.T_map_camera, mk.camera "
+                "SELECT k.rowid, k.robot_id, k.session_id, k.seq, g.T_map_camera, mk.camera, mk.T_map_camera "
                 "FROM keyframes k JOIN mapped_keyframes mk USING (robot_id, session_id, seq) "
+                "JOIN graph_nodes g USING (robot_id, session_id, seq) "
                 "WHERE k.rowid > ? AND k.rowid <= ? AND mk.T_map_camera IS NOT NULL "
-                "ORDER BY k.rowid LIMIT ?",
+                "AND g.T_map_camera IS NOT NULL ORDER BY k.rowid LIMIT ?",
                 (after, upto, limit),
             ).fetchall()
             if not rows:
@@ -928,17 +974,17 @@ class SqliteMapStore(sqlitedb.GuardedAccess):
             for robot_id, session_id, seq, payload in conn.execute(
                 "SELECT m.robot_id, m.session_id, m.seq, m.payload FROM measurements m "
                 "JOIN keyframes k USING (robot_id, session_id, seq) "
-                "WHERE k.rowid > ? AND k.rowid <= ? AND m.anchored = 1 "
+                "WHERE k.rowid > ? AND k.rowid <= ? "
                 "ORDER BY k.rowid, m.measurement_id",
                 (after, int(rows[-1][0])),
             ):
                 by_key.setdefault((str(robot_id), str(session_id), int(seq)), []).append(
                     unpack_measurement(payload))
         out = []
-        for rowid, robot_id, session_id, seq, pose, camera in rows:
+        for rowid, robot_id, session_id, seq, pose, camera, measured in rows:
             key = (str(robot_id), str(session_id), int(seq))
             out.append(AnchoredKeyframe(int(rowid), *key, pose_from_blob(pose), camera_from_json(camera),
-                                        by_key.get(key, [])))
+                                        by_key.get(key, []), pose_from_blob(measured)))
         return out
 
     def count_measurements(self) -> int:
@@ -983,6 +1029,123 @@ class SqliteMapStore(sqlitedb.GuardedAccess):
                 "last_rowid = excluded.last_rowid, config_key = excluded.config_key, "
                 "state = excluded.state, written_s = excluded.written_s",
                 (c.last_rowid, c.config_key, c.state, c.written_s))
+
+    # ------------------------------------------------------------------ the back-end's pose graph
+
+    def commit_graph(self, cursor: str, rowid: int, change: GraphChange) -> None:
+        """See :meth:`~wardmap.server.store.protocol.GraphStore.commit_graph`."""
+        with self._write("back-end: store the pose graph") as conn:
+            if change.nodes:
+                first = int(conn.execute("SELECT COALESCE(MAX(node_order), 0) FROM graph_nodes")
+                            .fetchone()[0])
+                conn.executemany(
+                    "INSERT OR IGNORE INTO graph_nodes (robot_id, session_id, seq, node_order, stamp, "
+                    "pose_source, T_odom_camera, T_map_camera, prior, codes) "
+                    "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                    [(*n.key, first + 1 + i, n.stamp, n.pose_source, pose_blob(n.T_odom_camera),
+                      None if n.T_map_camera is None else pose_blob(n.T_map_camera),
+                      None if n.prior_T_map_odom is None else pose_blob(n.prior_T_map_odom), n.codes)
+                     for i, n in enumerate(change.nodes)])
+            if change.edges:
+                conn.executemany(
+                    "INSERT INTO graph_edges (kind, a_robot, a_session, a_seq, b_robot, b_session, b_seq, "
+                    "T_a_b, sigmas, robust, inliers) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                    [(e.kind, *e.a, *(e.b if e.b is not None else (None, None, None)), pose_blob(e.T_a_b),
+                      np.asarray(e.sigmas, "<f8").tobytes(), int(e.robust), int(e.inliers))
+                     for e in change.edges])
+            if change.estimates:
+                conn.executemany(
+                    "UPDATE graph_nodes SET T_map_camera = ? "
+                    "WHERE robot_id = ? AND session_id = ? AND seq = ?",
+                    [(pose_blob(T), *key) for key, T in change.estimates])
+            if change.sessions:
+                conn.executemany(
+                    "INSERT INTO graph_sessions (robot_id, session_id, T_map_odom, anchored_s, anchored_to, "
+                    "revision) VALUES (?, ?, ?, ?, ?, ?) ON CONFLICT (robot_id, session_id) DO UPDATE SET "
+                    "T_map_odom = excluded.T_map_odom, anchored_s = excluded.anchored_s, "
+                    "anchored_to = excluded.anchored_to, revision = excluded.revision",
+                    [(a.robot_id, a.session_id, None if a.T_map_odom is None else pose_blob(a.T_map_odom),
+                      a.anchored_s, a.anchored_to, a.revision) for a in change.sessions])
+            if change.bump_epoch:
+                conn.execute("INSERT INTO graph_epoch (id, epoch) VALUES (1, 1) "
+                             "ON CONFLICT (id) DO UPDATE SET epoch = epoch + 1")
+            conn.execute(
+                "INSERT INTO pipeline_cursor (name, last_rowid) VALUES (?, ?) "
+                "ON CONFLICT(name) DO UPDATE SET last_rowid = excluded.last_rowid",
+                (cursor, rowid),
+            )
+
+    def graph_records(self) -> tuple[list[GraphNodeRow], list[GraphEdgeRow]]:
+        """See :meth:`~wardmap.server.store.protocol.GraphStore.graph_records`."""
+        with self._read("back-end: load the pose graph") as conn:
+            node_rows = conn.execute(
+                "SELECT robot_id, session_id, seq, pose_source, T_odom_camera, T_map_camera, prior, codes, "
+                "stamp FROM graph_nodes ORDER BY node_order").fetchall()
+            edge_rows = conn.execute(
+                "SELECT kind, a_robot, a_session, a_seq, b_robot, b_session, b_seq, T_a_b, sigmas, robust, "
+                "inliers FROM graph_edges ORDER BY edge_id").fetchall()
+        nodes = [GraphNodeRow((str(r[0]), str(r[1]), int(r[2])), float(r[8]), pose_from_blob(r[4]), str(r[3]),
+                              None if r[5] is None else pose_from_blob(r[5]),
+                              None if r[6] is None else pose_from_blob(r[6]), bytes(r[7]))
+                 for r in node_rows]
+        edges = [GraphEdgeRow(str(r[0]), (str(r[1]), str(r[2]), int(r[3])),
+                              None if r[4] is None else (str(r[4]), str(r[5]), int(r[6])),
+                              pose_from_blob(r[7]), np.frombuffer(r[8], "<f8").astype(np.float64),
+                              bool(r[9]), int(r[10]))
+                 for r in edge_rows]
+        return nodes, edges
+
+    def graph_epoch(self) -> int:
+        """See :meth:`~wardmap.server.store.protocol.GraphStore.graph_epoch`."""
+        with self._read("back-end: graph epoch") as conn:
+            row = conn.execute("SELECT epoch FROM graph_epoch WHERE id = 1").fetchone()
+        return 0 if row is None else int(row[0])
+
+    def graph_poses(self, keys: Sequence[NodeKey]) -> dict[NodeKey, NDArray[np.float64] | None]:
+        """See :meth:`~wardmap.server.store.protocol.GraphStore.graph_poses`."""
+        out: dict[NodeKey, NDArray[np.float64] | None] = {}
+        with self._read("back-end: keyframe map poses") as conn:
+            for key in keys:
+                row = conn.execute(
+                    "SELECT T_map_camera FROM graph_nodes WHERE robot_id = ? AND session_id = ? AND seq = ?",
+                    key).fetchone()
+                out[key] = None if row is None or row[0] is None else pose_from_blob(row[0])
+        return out
+
+    def session_anchors(self) -> list[SessionAnchor]:
+        """See :meth:`~wardmap.server.store.protocol.GraphStore.session_anchors`."""
+        with self._read("back-end: sessions") as conn:
+            rows = conn.execute(
+                "SELECT robot_id, session_id, T_map_odom, anchored_s, anchored_to, revision "
+                "FROM graph_sessions ORDER BY robot_id, session_id").fetchall()
+        return [SessionAnchor(str(r[0]), str(r[1]), None if r[2] is None else pose_from_blob(r[2]),
+                              None if r[3] is None else float(r[3]), str(r[4]), int(r[5])) for r in rows]
+
+    def latest_nodes(self) -> dict[str, GraphNodeRow]:
+        """See :meth:`~wardmap.server.store.protocol.GraphStore.latest_nodes`."""
+        with self._read("back-end: latest nodes") as conn:
+            rows = conn.execute(
+                "SELECT robot_id, session_id, seq, stamp, pose_source, T_odom_camera, T_map_camera, prior, "
+                "MAX(node_order) FROM graph_nodes GROUP BY robot_id").fetchall()
+        return {str(r[0]): GraphNodeRow((str(r[0]), str(r[1]), int(r[2])), float(r[3]), pose_from_blob(r[5]),
+                                        str(r[4]), None if r[6] is None else pose_from_blob(r[6]),
+                                        None if r[7] is None else pose_from_blob(r[7]), b"")
+                for r in rows}
+
+    def map_trajectory(self, robot_id: str, session_id: str | None = None) -> Trajectory:
+        """See :meth:`~wardmap.server.store.protocol.GraphStore.map_trajectory`."""
+        _check_str(robot_id, "robot_id")
+        where, params = "k.robot_id = ?", [robot_id]
+        if session_id is not None:
+            _check_str(session_id, "session_id")
+            where, params = where + " AND k.session_id = ?", [robot_id, session_id]
+        with self._read("map trajectory") as conn:
+            rows = conn.execute(
+                "SELECT k.stamp, g.T_map_camera FROM keyframes k JOIN graph_nodes g "
+                f"USING (robot_id, session_id, seq) WHERE {where} AND g.T_map_camera IS NOT NULL "
+                "ORDER BY k.stamp, k.session_id, k.seq", params).fetchall()
+        stamps = np.array([float(r[0]) for r in rows], dtype=np.float64)
+        return stamps, poses_from_blobs([r[1] for r in rows])
 
     # ------------------------------------------------------------------ internals
 

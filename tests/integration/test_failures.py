@@ -232,6 +232,65 @@ def test_server_sigkill_mid_stream_loses_and_duplicates_nothing(
     assert "Traceback" not in stack.server.stderr()
 
 
+def _backend_settled(url: str, keyframes: int) -> dict[str, float]:
+    """Poll /metrics until the back-end's graph holds ``keyframes`` nodes and the mapping stage has
+    no backlog (deadline EVENT_TIMEOUT_S); the samples."""
+    deadline = time.monotonic() + EVENT_TIMEOUT_S
+    with httpx.Client(base_url=url, timeout=5) as http:
+        while time.monotonic() < deadline:
+            samples = prometheus_samples(http.get("/metrics").text)
+            if (samples.get("wardmap_backend_graph_nodes") == keyframes
+                    and samples.get("wardmap_mapping_backlog") == 0):
+                return samples
+            time.sleep(0.1)  # poll period; the deadline bounds the wait
+    pytest.fail(f"the back-end never held {keyframes} keyframes")
+
+
+def _map_trajectory(url: str, robot: str) -> np.ndarray:
+    with httpx.Client(base_url=url, timeout=5) as http:
+        poses = http.get(f"/v1/robots/{robot}/trajectory").json()["poses"]
+    return np.array([[p["stamp"], *p["t"], *p["q_xyzw"]] for p in poses])
+
+
+def test_the_pose_graph_survives_a_sigkill_and_a_new_session_relocalises(
+    dataset: Path, stack: Stack, tmp_path: Path
+) -> None:
+    """A robot's session sets the map; the server is SIGKILLed after the back-end put every
+    keyframe in the graph. The restarted server restores the graph from the store (no keyframe
+    is added again, the map trajectory is the same), and the robot's next session, driving the
+    same aisle without a map pose, is anchored through the first by place recognition against
+    the restored index."""
+    robot = "r-graph"
+    for day in ("day1", "day2"):
+        (tmp_path / day).mkdir()
+    edge, _ = _start_edge(robot, dataset, stack, tmp_path / "day1")
+    first = edge_summary(edge, RUN_TIMEOUT_S)
+    n = first["keyframes"]
+    before = _backend_settled(stack.url, n)
+    assert before["wardmap_backend_keyframes_total"] == n
+    trajectory = _map_trajectory(stack.url, robot)
+    assert len(trajectory) == n  # the first session sets the map: all on it
+    stack.server.popen.send_signal(signal.SIGKILL)
+    assert stack.server.popen.wait(timeout=10) == -signal.SIGKILL
+    kill_proc(stack.server)
+    stack.server = _start_server(stack.endpoint, stack.db, stack.port, stack.log_dir)
+    after = _backend_settled(stack.url, n)
+    assert after["wardmap_backend_keyframes_total"] == 0  # restored, not rebuilt
+    np.testing.assert_allclose(_map_trajectory(stack.url, robot), trajectory, atol=1e-6)
+
+    edge, _ = _start_edge(robot, dataset, stack, tmp_path / "day2")
+    second = edge_summary(edge, RUN_TIMEOUT_S)
+    _backend_settled(stack.url, n + second["keyframes"])
+    with httpx.Client(base_url=stack.url, timeout=5) as http:
+        (row,) = http.get("/v1/robots").json()["robots"]
+    assert row["session_id"] == second["session_id"] and row["anchored"] is True, row
+    assert row["anchored_to"] == f"{robot}/{first['session_id']}", row
+    # Both days drove the same aisle from the same start: the second odom frame is the first's.
+    t, q = np.array(row["T_map_odom"]["t"]), np.array(row["T_map_odom"]["q_xyzw"])
+    assert np.linalg.norm(t) < 0.05 and abs(abs(q[3]) - 1.0) < 1e-3, row
+    assert second["anchored"] is True, second  # the edge applied the server's correction
+
+
 # --------------------------------------------------------------------------- 2. router restart
 
 

@@ -89,9 +89,18 @@ def events(monkeypatch: pytest.MonkeyPatch) -> list[str]:
     return log
 
 
+class _Backend:
+    def __init__(self, events: list[str]) -> None:
+        self.events = events
+
+    def set_publish(self, publish: object) -> None:
+        self.events.append("corrections wired")
+
+
 class _Pipeline:
     def __init__(self, events: list[str], fail: bool = False) -> None:
         self.events, self.fail = events, fail
+        self.backend = _Backend(events)
 
     def start(self) -> None:
         if self.fail:
@@ -109,14 +118,14 @@ def test_one_session_shared_and_closed_last(router: str, tmp_path: Path, events:
                        pipeline_factory=lambda store, objects: _Pipeline(events))  # type: ignore[arg-type,return-value]
     services = server.start()
     assert services.ingest is not None and server.services is services
-    assert events == ["session opened", "pipeline started"]
+    assert events == ["session opened", "corrections wired", "pipeline started"]
     with zenoh.open(zenoh.Config.from_json5(json.dumps(client_config([router])))) as robot:
         (reply,) = list(robot.get(OBJECTS_KEY, timeout=10))
         assert isinstance(decode_map_message(reply.ok.payload.to_bytes()), ObjectsReply)
     server.stop()
-    assert events[2:] == ["pipeline stopped", "mapserve stopped", "ingest stopped", "session closed"]
+    assert events[3:] == ["pipeline stopped", "mapserve stopped", "ingest stopped", "session closed"]
     server.stop()  # idempotent
-    assert len(events) == 6 and server.services is None
+    assert len(events) == 7 and server.services is None
 
 
 def test_failed_start_stops_what_started(router: str, tmp_path: Path, events: list[str]) -> None:
@@ -127,7 +136,8 @@ def test_failed_start_stops_what_started(router: str, tmp_path: Path, events: li
                        pipeline_factory=lambda store, objects: _Pipeline(events, fail[0]))  # type: ignore[arg-type,return-value]
     with pytest.raises(ConfigError, match="pipeline cannot start"):
         server.start()
-    assert events == ["session opened", "mapserve stopped", "ingest stopped", "session closed"]
+    assert events == ["session opened", "corrections wired", "mapserve stopped", "ingest stopped",
+                      "session closed"]
     assert server.services is None
     fail[0] = False
     with server, pytest.raises(ServerError, match="already started"):

@@ -5,7 +5,7 @@ mapping) whose lifespan opens the same file."""
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import factories
@@ -15,7 +15,7 @@ from fastapi.testclient import TestClient
 
 from wardmap.server.app import MapServer
 from wardmap.server.objectmap import ObjectMap, ObjectState, Observation
-from wardmap.server.store import open_store
+from wardmap.server.store import GraphChange, GraphNodeRow, SessionAnchor, open_store
 from wardmap.shared import wire
 from wardmap.shared.se3 import make_transform, yaw_transform
 from wardmap.shared.wire import KeyframeMsg
@@ -34,6 +34,9 @@ class KeyframeScene:
     t0: float = T0
     n_r1: int = 7
     n_r2: int = 3
+
+    T_map_odom_s2: np.ndarray = field(default_factory=lambda: make_transform(np.eye(3), [3.0, 4.0, 0.0]))
+    """Where the back-end put r1's second session (the first, s1, set the map: identity)."""
 
     @staticmethod
     def pose(k: int) -> np.ndarray:
@@ -63,6 +66,16 @@ def keyframe_scene(tmp_path: Path) -> KeyframeScene:
         store.count_rejection("wire: payload")
         store.count_rejection("wire: payload")
         store.count_rejection('odd "reason"')
+        # The back-end's graph: r1/s1 set the map, r1/s2 was anchored through it, r2 floats.
+        nodes = [GraphNodeRow(("r1", "s1" if k < 5 else "s2", k), T0 + k, scene.pose(k), "rgb",
+                              (np.eye(4) if k < 5 else scene.T_map_odom_s2) @ scene.pose(k), None, b"")
+                 for k in range(scene.n_r1)]
+        nodes += [GraphNodeRow(("r2", base.session_id, k), T0 + k, scene.pose(k), "rgb", None, None, b"")
+                  for k in range(scene.n_r2)]
+        store.commit_graph("backend", scene.n_r1 + scene.n_r2, GraphChange(nodes, sessions=[
+            SessionAnchor("r1", "s1", np.eye(4), T0 + 150, "r1/s1", 1),
+            SessionAnchor("r1", "s2", scene.T_map_odom_s2, T0 + 160, "r1/s1", 2),
+            SessionAnchor("r2", base.session_id, None, None, "", 0)]))
     return scene
 
 

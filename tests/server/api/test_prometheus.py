@@ -12,12 +12,14 @@ from prometheus_client import REGISTRY
 
 from wardmap.server.api.prometheus import (
     ServerCollector,
+    backend_metrics,
     exposition,
     ingest_metrics,
     map_metrics,
     metrics_registry,
     pipeline_metrics,
 )
+from wardmap.server.backend.stage import BackendCounters
 from wardmap.server.ingest import IngestCounters
 from wardmap.server.mapping import PipelineCounters
 from wardmap.server.perception.measure import SKIP_KINDS
@@ -46,12 +48,39 @@ CONTRACT = {
     "wardmap_mapping_floor_pieces_left_out_total": ("counter", ()),
     "wardmap_mapping_beyond_range_total": ("counter", ()),
     "wardmap_mapping_instances_skipped_total": ("counter", ("kind",)),
+    "wardmap_mapping_rebuilds_total": ("counter", ()),
+    "wardmap_backend_backlog": ("gauge", ()),
+    "wardmap_backend_keyframes_total": ("counter", ()),
+    "wardmap_backend_graph_nodes": ("gauge", ()),
+    "wardmap_backend_loop_closures_total": ("counter", ()),
+    "wardmap_backend_sessions_anchored_total": ("counter", ()),
+    "wardmap_backend_candidates_total": ("counter", ()),
+    "wardmap_backend_candidates_rejected_total": ("counter", ("reason",)),
+    "wardmap_backend_failures_total": ("counter", ("reason",)),
+    "wardmap_backend_restarts_total": ("counter", ()),
+    "wardmap_backend_index_bytes": ("gauge", ()),
 }
 """Every metric of /metrics: its type and label names, in exposition order."""
 
 
 def _pipeline(**kw: Any) -> PipelineCounters:
     return PipelineCounters(5, 7, 4, 1, 0, 2, {"GeometryError": 1}, 3, **kw)
+
+
+def _backend() -> BackendCounters:
+    return BackendCounters(12, 40, 2, 1, 30, {"few matches": 25, "anchor vote": 2}, {"WireError": 1}, 0, 3,
+                           20_000)
+
+
+def test_backend_counters() -> None:
+    """The back-end's counters by name; rejections and failures by reason."""
+    _, samples = _parse(exposition(backend_metrics(_backend())))
+    assert samples["wardmap_backend_keyframes_total"] == 12 and samples["wardmap_backend_graph_nodes"] == 40
+    assert samples["wardmap_backend_loop_closures_total"] == 2
+    assert samples["wardmap_backend_sessions_anchored_total"] == 1
+    assert samples['wardmap_backend_candidates_rejected_total{reason="few matches"}'] == 25
+    assert samples['wardmap_backend_failures_total{reason="WireError"}'] == 1
+    assert samples["wardmap_backend_backlog"] == 3 and samples["wardmap_backend_index_bytes"] == 20_000
 
 
 def _parse(text: str) -> tuple[dict[str, str], dict[str, float]]:
@@ -70,7 +99,8 @@ def _parse(text: str) -> tuple[dict[str, str], dict[str, float]]:
 def test_names_types_and_labels_are_the_contract() -> None:
     """Every metric keeps its name, type and labels, in the documented order."""
     families = (ingest_metrics(IngestCounters(1, 2, 3, 4, 5, 6), {"store": 1}, 2) + map_metrics(3, 1)
-                + pipeline_metrics(_pipeline(skipped={"little_depth": 1})))
+                + pipeline_metrics(_pipeline(skipped={"little_depth": 1}))
+                + backend_metrics(_backend()))
     text = exposition(families)
     types, samples = _parse(text)
     assert list(types.items()) == [(name, kind) for name, (kind, _) in CONTRACT.items()]

@@ -19,11 +19,13 @@ import numpy as np
 import pytest
 
 from wardmap.server.association.associator import AssociationConfig, beyond_range
+from wardmap.server.backend.core import BackendConfig
+from wardmap.server.backend.stage import BackendStage
 from wardmap.server.mapping import MappedKeyframe, MapPipeline, MapWriter, PipelineConfig, PipelineCounters
 from wardmap.server.mapping.stage import CURSOR_NAME
 from wardmap.server.objectmap import MAX_LIMIT, ObjectMap
 from wardmap.server.perception.config import PerceptionConfig
-from wardmap.server.store import MappedPose, MapStore, SqliteMapStore
+from wardmap.server.store import GraphChange, MappedPose, MapStore, SqliteMapStore
 from wardmap.shared import wire
 from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.wire import Intrinsics, KeyframeMsg, Keypoints, PackedRaster, encode
@@ -403,9 +405,40 @@ def test_wait_idle_waits_for_association_not_just_the_cursor(
             pipe.stop()
 
 
-def test_sessions_without_map_pose_are_measured_not_mapped(tmp_path: Path) -> None:
-    run = _run(tmp_path / "map.db", _keyframes(anchored=False)[:3])
-    assert run.measurements > 0 and sum(run.categories.values()) == 0
+def test_a_session_off_the_map_waits_and_its_objects_appear_once_it_is_anchored(tmp_path: Path) -> None:
+    """A second session without a map pose is measured but not associated while the back-end
+    has it floating; when the back-end anchors it (a graph commit with its estimates and a new
+    map epoch, as :class:`BackendStage` makes), the mapping stage rebuilds the object map and
+    the session's observations are on it, at the poses the back-end gave."""
+    on_map = _keyframes(anchored=True)
+    waiting = [(replace(m, robot_id="r2", session_id="day2"), encode(replace(m, robot_id="r2",
+                                                                             session_id="day2")))
+               for m, _ in _keyframes(anchored=False)]
+    with SqliteMapStore.open(tmp_path / "map.db") as store:
+        for msg, payload in on_map + waiting:
+            store.insert(msg, payload, time.time())
+        objects = ObjectMap(store)
+        backend = BackendStage(store, BackendConfig(enabled=False), poll_s=0.05)  # no place recognition
+        config = PipelineConfig(poll_s=0.05, close_idle_s=0.0, rebuild_min_s=0.0)
+        pipe = MapPipeline(store, objects, config=config, perception=PerceptionConfig(), backend=backend)
+        pipe.start()
+        try:
+            assert pipe.wait_idle(120.0)
+            before = pipe.counters()
+            assert before.unanchored == len(waiting) and before.rebuilds == 0
+            assert not any(r.robots == ("r2",) or "r2" in r.robots for r in _all_objects(objects))
+            assert not store.session_anchors()[1].T_map_odom is not None  # r2/day2 floats
+            # The back-end anchors r2/day2 where r1/s1 is (the same frames, so the same poses).
+            T_map = {m.seq: m.T_map_odom @ m.T_odom_camera for m, _ in on_map}
+            store.commit_graph("test", 0, GraphChange(
+                estimates=[(("r2", "day2", m.seq), T_map[m.seq]) for m, _ in waiting], bump_epoch=True))
+            assert pipe.wait_idle(120.0)
+            after = pipe.counters()
+            assert after.rebuilds == 1
+            seen_by_r2 = [r for r in _all_objects(objects) if "r2" in r.robots]
+            assert seen_by_r2, "the anchored session's measurements reached the map"
+        finally:
+            pipe.stop()
 
 
 def _counters_when_idle(store: MapStore, config: PipelineConfig, segmenter: object

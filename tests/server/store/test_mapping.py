@@ -9,7 +9,15 @@ from dataclasses import replace
 import numpy as np
 
 from wardmap.server.perception.types import ObjectMeasurement
-from wardmap.server.store import Checkpoint, ClosedSession, KeyframeKey, MappedPose, MapStore
+from wardmap.server.store import (
+    Checkpoint,
+    ClosedSession,
+    GraphChange,
+    GraphNodeRow,
+    KeyframeKey,
+    MappedPose,
+    MapStore,
+)
 from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.se3 import yaw_transform
 
@@ -41,6 +49,13 @@ def _pose(robot: str, session: str, seq: int, on_map: bool = True) -> MappedPose
     return MappedPose(robot, session, seq, yaw_transform(seq, 1.0, 0.2, 0.5), CAMERA)
 
 
+def _on_graph(store: MapStore, *keys: tuple[str, str, int]) -> None:
+    """Put ``keys`` on the back-end's graph at the pose :func:`_pose` gives them (replay reads the
+    back-end's estimate)."""
+    nodes = [GraphNodeRow(k, 1.0, np.eye(4), "rgb", _pose(*k).T_map_camera, None, b"") for k in keys]
+    store.commit_graph("backend", 0, GraphChange(nodes))
+
+
 def test_keyframes_in_insertion_order(store: MapStore) -> None:
     """Keyframes are numbered in the order they were stored; the stage reads, counts and asks
     about them after a position."""
@@ -57,9 +72,11 @@ def test_keyframes_in_insertion_order(store: MapStore) -> None:
 
 
 def test_committed_keyframes_replay_with_their_measurements(store: MapStore) -> None:
-    """A commit stores measurements, map pose and cursor together; replay gives the keyframes on the
-    map in order with their anchored measurements (masks empty), within the range and limit."""
+    """A commit stores measurements, measured pose and cursor together; replay gives the keyframes
+    the back-end put on the map, in order, with their measurements (masks empty), within the range
+    and limit."""
     _insert(store, ("r1", "s", 0), ("r1", "s", 1), ("r2", "t", 0), ("r1", "s", 2))
+    _on_graph(store, ("r1", "s", 0), ("r1", "s", 1), ("r1", "s", 2))
     assert store.cursor("mapping") == 0
     ms = {i: [_measurement(f"k{i}", 2 * i), _measurement(f"k{i}", 2 * i + 1)] for i in range(4)}
     store.commit_keyframe("mapping", 1, _pose("r1", "s", 0), ms[0], anchored=True)
@@ -84,6 +101,7 @@ def test_committed_keyframes_replay_with_their_measurements(store: MapStore) -> 
 def test_keyframes_without_a_map_pose_are_found_and_recorded(store: MapStore) -> None:
     """Keyframes processed before map poses were kept have none; recording one makes it replayable."""
     _insert(store, ("r1", "s", 0), ("r1", "s", 1), ("r1", "s", 2))
+    _on_graph(store, ("r1", "s", 0), ("r1", "s", 1))
     store.commit_keyframe("mapping", 2, _pose("r1", "s", 1), [], anchored=True)
     assert store.unmapped_keyframes(2, 10) == [KeyframeKey(1, "r1", "s", 0)]
     assert store.unmapped_keyframes(3, 1) == [KeyframeKey(1, "r1", "s", 0)]

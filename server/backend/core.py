@@ -1,0 +1,459 @@
+"""The SLAM back-end's logic: place recognition, verification, anchoring and the pose graph.
+
+:class:`BackendCore` takes keyframes in arrival order (any robots, any sessions) and keeps
+one pose graph of all of them (``graph.py``, gtsam iSAM2). For each keyframe:
+
+1. its colour and depth are encoded with random ferns (paper 003 Eq. 10-11, ``places.py``)
+   and the fern index is queried for the ``candidates`` most similar stored keyframes (every
+   robot and session), leaving out the same session's keyframes within ``recent_path_m`` of
+   driving or ``recent_s`` seconds (they always look alike);
+2. each candidate above ``min_similarity`` is verified geometrically (``verify.py``: ORB
+   matches, EPnP in RANSAC on the candidate's depth, refinement), and then once more
+   against the candidate's neighbour in its session: the two relative poses, chained through
+   the neighbour's odometry, must agree within ``agree_m`` / ``agree_deg`` (a second
+   nearby keyframe, as ORB-SLAM2 asks for consistency before it closes a loop);
+3. a verified match between two keyframes already on one map is checked against the graph:
+   the measured relative pose may differ from the graph's prediction by at most
+   ``gate_m + gate_per_m`` times the distance driven between them in one session (drift
+   grows with distance), else it is rejected as perceptual aliasing (identical doors, rows
+   of identical chairs);
+4. a verified match from a session that is not on the map (it started without a known map
+   pose) to a keyframe on the map is a vote for that session's ``T_map_odom``; the session is
+   anchored when ``anchor_votes`` votes from keyframes ``vote_spacing_m`` or
+   ``vote_spacing_deg`` apart agree (within ``agree_m`` / ``agree_deg``): one match could be
+   an identical twin of the place, several agreeing ones from different places hardly;
+5. the keyframe's node (odometry edge from its predecessor) and any accepted loop edge go
+   into the graph, and iSAM2 updates it incrementally.
+
+What a keyframe did comes back as a :class:`KeyframeResult`; the stage (``stage.py``)
+persists it and publishes corrections. Features of stored keyframes are read through a
+callback (the server reads them from the store; without one, the core keeps them in memory).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import Counter
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Literal
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from wardmap.server.backend.graph import EdgeRecord, GraphConfig, GraphUpdate, NodeRecord, PoseGraph
+from wardmap.server.backend.places import FernConfig, FernEncoder, FernIndex
+from wardmap.server.backend.verify import KeyframeFeatures, Verified, VerifyConfig, verify_pair
+from wardmap.shared.errors import ConfigError
+from wardmap.shared.wire import KeyframeMsg, decode_depth
+
+F64 = NDArray[np.float64]
+NodeKey = tuple[str, str, int]
+Session = tuple[str, str]
+
+
+@dataclass(frozen=True)
+class BackendConfig:
+    """The back-end (``[backend]`` table; see the module docstring for what each step does).
+
+    Attributes:
+        enabled: run place recognition (off: no loop closure, and a session reaches the map
+            only when it is the first or came with a ``--map-pose`` prior).
+        ferns, verify, graph: the parts' settings.
+        candidates: fern-index candidates verified per keyframe.
+        min_similarity: fern similarity (fraction of equal block codes) below which a
+            candidate is not verified.
+        recent_s, recent_path_m: same-session keyframes newer than ``recent_s`` seconds or
+            within ``recent_path_m`` metres of driving are not loop candidates.
+        agree_m, agree_deg: agreement between two estimates of one relative pose (second
+            keyframe check, anchoring votes).
+        gate_m, gate_per_m: a loop between keyframes already on one map may differ from the
+            graph's prediction by ``gate_m + gate_per_m * d`` metres (``d``: distance driven
+            between them when in one session, else ``gate_cross_m`` in total) and
+            ``gate_deg`` degrees.
+        anchor_votes: agreeing verified matches that anchor a session.
+        vote_spacing_m, vote_spacing_deg: two votes count apart when their keyframes are at
+            least this far apart in distance driven or in camera rotation (different views).
+        rebuild_move_m: a graph update that moves any keyframe more than this (metres), or
+            anchors a session, asks the mapping stage to rebuild the object map.
+    """
+
+    enabled: bool = True
+    ferns: FernConfig = field(default_factory=FernConfig)
+    verify: VerifyConfig = field(default_factory=VerifyConfig)
+    graph: GraphConfig = field(default_factory=GraphConfig)
+    candidates: int = 3
+    min_similarity: float = 0.55
+    recent_s: float = 20.0
+    recent_path_m: float = 4.0
+    agree_m: float = 0.10
+    agree_deg: float = 3.0
+    gate_m: float = 0.3
+    gate_per_m: float = 0.03
+    gate_cross_m: float = 0.6
+    gate_deg: float = 10.0
+    anchor_votes: int = 3
+    vote_spacing_m: float = 0.3
+    vote_spacing_deg: float = 10.0
+    rebuild_move_m: float = 0.02
+
+    def __post_init__(self) -> None:
+        if self.candidates < 1:
+            raise ConfigError(f"backend.candidates must be >= 1, got {self.candidates}")
+        if not 0.0 <= self.min_similarity <= 1.0:
+            raise ConfigError(f"backend.min_similarity must be in [0, 1], got {self.min_similarity}")
+        for name in ("recent_s", "recent_path_m", "agree_m", "agree_deg", "gate_m", "gate_per_m",
+                     "gate_cross_m", "gate_deg", "vote_spacing_m", "vote_spacing_deg", "rebuild_move_m"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ConfigError(f"backend.{name} must be >= 0, got {value}")
+        if self.anchor_votes < 1:
+            raise ConfigError(f"backend.anchor_votes must be >= 1, got {self.anchor_votes}")
+
+
+@dataclass(frozen=True, eq=False)
+class Closure:
+    """An accepted place match.
+
+    Attributes:
+        a: the new keyframe; b: the stored keyframe it matched.
+        T_a_b: (4, 4) float64 ``b``'s camera in ``a``'s camera frame (verified, refined).
+        inliers: EPnP inliers.
+        kind: ``loop`` (both on one map), ``anchor`` (it anchored ``a``'s or ``b``'s session)
+            or ``floating`` (between sessions not on the map yet: kept until one is).
+    """
+
+    a: NodeKey
+    b: NodeKey
+    T_a_b: F64
+    inliers: int
+    kind: Literal["loop", "anchor", "floating"]
+
+
+@dataclass(eq=False)
+class KeyframeResult:
+    """What :meth:`BackendCore.add` did with one keyframe.
+
+    Attributes:
+        key: the keyframe.
+        codes: its fern code (``FernConfig.blocks`` bytes).
+        candidates: fern candidates verified.
+        closures: accepted matches.
+        rejected: verification and gate rejections by reason.
+        update: the graph update (estimates moved, sessions anchored).
+        rebuild: the map moved enough to rebuild the object map.
+        ms: milliseconds per step: ``encode``, ``query``, ``verify``, ``graph``.
+    """
+
+    key: NodeKey
+    codes: bytes
+    candidates: int
+    closures: list[Closure]
+    rejected: Counter[str]
+    update: GraphUpdate
+    rebuild: bool
+    ms: dict[str, float]
+
+
+@dataclass
+class _Node:
+    key: NodeKey
+    stamp: float
+    T_odom_camera: F64
+    path_m: float  # distance driven in its session up to it (camera centre), metres
+    turn_deg: float  # camera rotation accumulated in its session up to it, degrees
+
+
+@dataclass
+class _Vote:
+    T_map_odom: F64
+    closure: Closure
+    path_m: float
+    turn_deg: float
+
+
+FeatureLoader = Callable[[NodeKey], KeyframeFeatures | None]
+
+
+class BackendCore:
+    """Place recognition, verification, anchoring and the pose graph (see the module docstring).
+
+    Args:
+        config: settings.
+        features: reads a stored keyframe's features by key (None: the core keeps every
+            keyframe's features in memory).
+        graph: continue this graph (:meth:`restore`).
+    """
+
+    def __init__(self, config: BackendConfig | None = None, *, features: FeatureLoader | None = None,
+                 graph: PoseGraph | None = None) -> None:
+        self.cfg = config or BackendConfig()
+        self.encoder = FernEncoder(self.cfg.ferns)
+        self.index = FernIndex(self.cfg.ferns.blocks)
+        self.graph = graph if graph is not None else PoseGraph(self.cfg.graph)
+        self._load = features
+        self._features: dict[NodeKey, KeyframeFeatures] = {}
+        self._nodes: list[_Node] = []
+        self._row: dict[NodeKey, int] = {}
+        self._sessions: dict[Session, int] = {}
+        self._session_rows: dict[int, list[int]] = {}
+        self._session_of_row: list[int] = []
+        self._votes: dict[Session, list[_Vote]] = {}
+
+    # ------------------------------------------------------------------ restore
+
+    @classmethod
+    def restore(cls, config: BackendConfig, nodes: Sequence[tuple[NodeKey, float, F64, bytes]],
+                graph: PoseGraph, *, features: FeatureLoader | None = None) -> BackendCore:
+        """A core over a stored graph: ``nodes`` = ``(key, stamp, T_odom_camera, codes)`` in
+        arrival order; ``graph`` restored from the same records. Codes of another fern
+        configuration (wrong length) raise :class:`ConfigError`."""
+        core = cls(config, features=features, graph=graph)
+        for key, stamp, T_odom_camera, codes in nodes:
+            arr = np.frombuffer(codes, np.uint8)
+            if arr.shape != (config.ferns.blocks,):
+                raise ConfigError(f"stored fern codes have {arr.size} blocks, backend.ferns.blocks is "
+                                  f"{config.ferns.blocks}")
+            core._remember(key, stamp, T_odom_camera, arr, None)
+        return core
+
+    # ------------------------------------------------------------------ adding keyframes
+
+    def add(self, msg: KeyframeMsg) -> KeyframeResult:
+        """Process one keyframe (see the module docstring); keyframes of a session must come in
+        ``seq`` order."""
+        ms: dict[str, float] = {}
+        t0 = time.perf_counter()
+        key: NodeKey = (msg.robot_id, msg.session_id, msg.seq)
+        camera = msg.camera
+        codes = self.encode(msg)
+        t1 = time.perf_counter()
+        ms["encode"] = (t1 - t0) * 1e3
+        self.graph.add_keyframe(key, msg.T_odom_camera, pose_source=msg.pose_source,
+                                prior_T_map_odom=msg.T_map_odom)
+        features = None if camera is None else KeyframeFeatures.from_keypoints(msg.keypoints, camera)
+        row = self._remember(key, msg.stamp, msg.T_odom_camera, codes, features)
+        rejected: Counter[str] = Counter()
+        closures: list[Closure] = []
+        n_cand = 0
+        ms["query"] = ms["verify"] = 0.0
+        if self.cfg.enabled and features is not None and len(self._nodes) > 1:
+            allowed = self._allowed(row)
+            t2 = time.perf_counter()
+            hits = [h for h in self.index.query(codes, self.cfg.candidates, allowed)
+                    if h[1] >= self.cfg.min_similarity]
+            t3 = time.perf_counter()
+            ms["query"] = (t3 - t2) * 1e3
+            n_cand = len(hits)
+            best = self._best_match(row, features, hits, rejected)
+            if best is not None:
+                closure = self._accept(row, best, rejected)
+                if closure is not None:
+                    closures.append(closure)
+            ms["verify"] = (time.perf_counter() - t3) * 1e3
+        t4 = time.perf_counter()
+        update = self.graph.update()
+        ms["graph"] = (time.perf_counter() - t4) * 1e3
+        # A session anchored at its first keyframe (the map's first, or a map-pose prior) moved
+        # nothing that was mapped; one anchored later brings its waiting keyframes.
+        grown = any(len(self._session_rows.get(self._sessions.get(s, -1), [])) > 1 for s in update.anchored)
+        rebuild = grown or update.moved_m > self.cfg.rebuild_move_m
+        return KeyframeResult(key, codes.tobytes(), n_cand, closures, rejected, update, rebuild, ms)
+
+    def encode(self, msg: KeyframeMsg) -> NDArray[np.uint8]:
+        """The keyframe's fern code (decodes its JPEG colour and depth)."""
+        bgr = cv2.imdecode(np.frombuffer(msg.rgb_jpeg, np.uint8), cv2.IMREAD_COLOR)
+        if bgr is None:
+            raise ValueError("colour image does not decode")
+        depth = decode_depth(msg.depth.data, msg.depth.meta)
+        return self.encoder.encode(np.asarray(bgr, np.uint8), depth)
+
+    # ------------------------------------------------------------------ reading
+
+    def estimate(self, key: NodeKey) -> F64 | None:
+        """``T_map_camera`` of a keyframe, None while its session is not on the map."""
+        return self.graph.estimate(key)
+
+    def T_map_odom(self, session: Session) -> F64 | None:
+        """The session's odom frame on the map, None while it is not anchored."""
+        return self.graph.T_map_odom(session)
+
+    def anchored(self, session: Session) -> bool:
+        return bool(self.graph.anchored(session))
+
+    def node_keys(self) -> list[NodeKey]:
+        """Every keyframe in the graph, in arrival order."""
+        return [n.key for n in self._nodes]
+
+    def index_nbytes(self) -> int:
+        """Memory of the fern index, bytes."""
+        return int(self.index.nbytes)
+
+    def __len__(self) -> int:
+        return len(self._nodes)
+
+    # ------------------------------------------------------------------ internals
+
+    def _remember(self, key: NodeKey, stamp: float, T_odom_camera: F64, codes: NDArray[np.uint8],
+                  features: KeyframeFeatures | None) -> int:
+        session = (key[0], key[1])
+        sid = self._sessions.setdefault(session, len(self._sessions))
+        rows = self._session_rows.setdefault(sid, [])
+        path = turn = 0.0
+        if rows:
+            prev = self._nodes[rows[-1]]
+            path = prev.path_m + float(np.linalg.norm(T_odom_camera[:3, 3] - prev.T_odom_camera[:3, 3]))
+            turn = prev.turn_deg + _angle_deg(np.linalg.inv(prev.T_odom_camera) @ T_odom_camera)
+        row = len(self._nodes)
+        self._nodes.append(_Node(key, float(stamp), np.asarray(T_odom_camera, np.float64), path, turn))
+        self._session_of_row.append(sid)
+        rows.append(row)
+        self._row[key] = row
+        self.index.add(row, codes)
+        if features is not None and self._load is None:
+            self._features[key] = features
+        return row
+
+    def _allowed(self, row: int) -> NDArray[np.bool_]:
+        """Index rows that may be candidates for ``row``: not itself, not the recent past of
+        its own session."""
+        node = self._nodes[row]
+        n = len(self._nodes)
+        allowed = np.ones(n, bool)
+        allowed[row] = False
+        sid = self._session_of_row[row]
+        for r in reversed(self._session_rows[sid]):
+            other = self._nodes[r]
+            old_enough = node.stamp - other.stamp >= self.cfg.recent_s
+            if old_enough and node.path_m - other.path_m >= self.cfg.recent_path_m:
+                break
+            allowed[r] = False
+        return allowed
+
+    def _features_of(self, key: NodeKey) -> KeyframeFeatures | None:
+        if self._load is not None:
+            return self._load(key)
+        return self._features.get(key)
+
+    def _best_match(self, row: int, features: KeyframeFeatures, hits: list[tuple[int, float]],
+                    rejected: Counter[str]) -> tuple[int, Verified] | None:
+        """The verified candidate with the most inliers whose neighbour agrees."""
+        best: tuple[int, Verified] | None = None
+        for cand_row, _similarity in hits:
+            cand = self._nodes[cand_row]
+            cand_features = self._features_of(cand.key)
+            if cand_features is None:
+                rejected["no features"] += 1
+                continue
+            found = verify_pair(features, cand_features, self.cfg.verify)
+            if isinstance(found, str):
+                rejected[found] += 1
+                continue
+            if not self._neighbour_agrees(features, cand_row, found, rejected):
+                continue
+            if best is None or found.inliers > best[1].inliers:
+                best = (cand_row, found)
+        return best
+
+    def _neighbour_agrees(self, features: KeyframeFeatures, cand_row: int, found: Verified,
+                          rejected: Counter[str]) -> bool:
+        """Verify against the candidate's session neighbour (next, else previous) and compare."""
+        sid = self._session_of_row[cand_row]
+        rows = self._session_rows[sid]
+        i = rows.index(cand_row)
+        for j in (i + 1, i - 1):
+            if not 0 <= j < len(rows):
+                continue
+            nb = self._nodes[rows[j]]
+            nb_features = self._features_of(nb.key)
+            if nb_features is None:
+                continue
+            second = verify_pair(features, nb_features, self.cfg.verify)
+            if isinstance(second, str):
+                rejected[f"neighbour: {second}"] += 1
+                return False
+            cand = self._nodes[cand_row]
+            T_cand_nb = np.linalg.inv(cand.T_odom_camera) @ nb.T_odom_camera
+            chained = np.asarray(T_cand_nb @ second.T_cand_query, np.float64)
+            if not _agree(found.T_cand_query, chained, self.cfg.agree_m, self.cfg.agree_deg):
+                rejected["neighbour disagrees"] += 1
+                return False
+            return True
+        rejected["no neighbour"] += 1
+        return False
+
+    def _accept(self, row: int, match: tuple[int, Verified], rejected: Counter[str]) -> Closure | None:
+        """Gate a verified match against the graph, or count it as an anchoring vote."""
+        cand_row, found = match
+        node, cand = self._nodes[row], self._nodes[cand_row]
+        a, b = node.key, cand.key
+        T_a_b = np.asarray(np.linalg.inv(found.T_cand_query), np.float64)
+        sa, sb = (a[0], a[1]), (b[0], b[1])
+        on_a, on_b = self.anchored(sa), self.anchored(sb)
+        if on_a and on_b:
+            Ta, Tb = self.graph.estimate(a), self.graph.estimate(b)
+            if Ta is not None and Tb is not None:
+                predicted = np.asarray(np.linalg.inv(Ta) @ Tb, np.float64)
+                d = node.path_m - cand.path_m if sa == sb else None
+                slack = self.cfg.gate_per_m * abs(d) if d is not None else self.cfg.gate_cross_m
+                limit = self.cfg.gate_m + slack
+                if not _agree(predicted, T_a_b, limit, self.cfg.gate_deg):
+                    rejected["inconsistent with the map"] += 1
+                    return None
+            self.graph.add_loop(a, b, T_a_b, inliers=found.inliers)
+            return Closure(a, b, T_a_b, found.inliers, "loop")
+        if on_a != on_b:
+            floating, row_f = (sa, row) if not on_a else (sb, cand_row)
+            closure = Closure(a, b, T_a_b, found.inliers, "anchor")
+            T_map_odom = self._implied_T_map_odom(closure, floating)
+            if T_map_odom is None:
+                return None
+            votes = self._votes.setdefault(floating, [])
+            node_f = self._nodes[row_f]
+            agreeing = [v for v in votes
+                        if _agree(v.T_map_odom, T_map_odom, self.cfg.agree_m, self.cfg.agree_deg)
+                        and (abs(v.path_m - node_f.path_m) >= self.cfg.vote_spacing_m
+                             or abs(v.turn_deg - node_f.turn_deg) >= self.cfg.vote_spacing_deg)]
+            votes.append(_Vote(T_map_odom, closure, node_f.path_m, node_f.turn_deg))
+            if len(agreeing) + 1 < self.cfg.anchor_votes:
+                rejected["anchor vote"] += 1
+                return None
+            for v in agreeing:
+                self.graph.add_loop(v.closure.a, v.closure.b, v.closure.T_a_b, inliers=v.closure.inliers)
+            self.graph.add_loop(a, b, T_a_b, inliers=found.inliers)
+            del self._votes[floating]
+            return closure
+        self.graph.add_loop(a, b, T_a_b, inliers=found.inliers)
+        return Closure(a, b, T_a_b, found.inliers, "floating")
+
+    def _implied_T_map_odom(self, closure: Closure, floating: Session) -> F64 | None:
+        """The floating session's ``T_map_odom`` that this match implies."""
+        a, b = closure.a, closure.b
+        if (a[0], a[1]) == floating:
+            Tb = self.graph.estimate(b)
+            if Tb is None:
+                return None
+            T_map_a = Tb @ np.linalg.inv(closure.T_a_b)
+            return np.asarray(T_map_a @ np.linalg.inv(self._nodes[self._row[a]].T_odom_camera), np.float64)
+        Ta = self.graph.estimate(a)
+        if Ta is None:
+            return None
+        T_map_b = Ta @ closure.T_a_b
+        return np.asarray(T_map_b @ np.linalg.inv(self._nodes[self._row[b]].T_odom_camera), np.float64)
+
+
+def _angle_deg(T: F64) -> float:
+    """Rotation angle of a pose, degrees."""
+    return math.degrees(math.acos(float(np.clip((np.trace(T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+def _agree(T1: F64, T2: F64, max_m: float, max_deg: float) -> bool:
+    """Whether two poses differ by at most ``max_m`` metres and ``max_deg`` degrees."""
+    D = np.linalg.inv(T1) @ T2
+    return float(np.linalg.norm(D[:3, 3])) <= max_m and _angle_deg(D) <= max_deg
+
+
+__all__ = ["BackendConfig", "BackendCore", "Closure", "EdgeRecord", "FeatureLoader", "KeyframeResult",
+           "NodeRecord"]

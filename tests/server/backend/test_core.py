@@ -1,0 +1,115 @@
+"""The back-end's decisions on real tracked keyframes (``server/backend/core.py``): a simulated
+aisle tracked by the edge frontend offline, replayed as sessions the core must place.
+
+- a second session of the same drive, without a map pose, is anchored by verified place
+  matches from several keyframes that agree, at the right ``T_map_odom``;
+- a planted false loop (the same views again, but the robot's odometry says it is 3 m away, as
+  at an identical door elsewhere) passes verification and is rejected by the graph gate;
+- a session whose only matches disagree with each other is never anchored.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from wardmap.server.backend.core import BackendConfig, BackendCore
+from wardmap.shared.se3 import yaw_transform
+from wardmap.shared.wire import KeyframeMsg
+
+FRAMES = 60
+
+
+@pytest.fixture(scope="module")
+def drive(tmp_path_factory: pytest.TempPathFactory) -> list[KeyframeMsg]:
+    """The keyframes of 6 s of aisle_slow_1 (seed 0), as the edge would send them."""
+    from wardmap.sim.runner import generate
+    from wardmap.tools.keyframes import dataset_keyframes
+
+    path = tmp_path_factory.mktemp("core") / "aisle"
+    generate("aisle_slow_1", 0, path, frames=FRAMES)
+    msgs = list(dataset_keyframes(path, robot_id="r1", session_id="day1", labels="oracle"))
+    assert len(msgs) >= 8
+    return msgs
+
+
+def _as(msgs: list[KeyframeMsg], robot: str, session: str, T: np.ndarray | None = None,
+        seq0: int = 0, dt: float = 0.0) -> list[KeyframeMsg]:
+    """The same keyframes as another session (odometry premultiplied by ``T``)."""
+    T = np.eye(4) if T is None else T
+    return [replace(m, robot_id=robot, session_id=session, seq=seq0 + i, stamp=m.stamp + dt,
+                    T_odom_camera=T @ m.T_odom_camera, T_odom_base=None if m.T_odom_base is None
+                    else T @ m.T_odom_base) for i, m in enumerate(msgs)]
+
+
+def _angle_deg(T: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(T[:3, :3]) - 1) / 2, -1, 1))))
+
+
+def test_a_second_session_is_anchored_by_agreeing_verified_matches(drive: list[KeyframeMsg]) -> None:
+    core = BackendCore(BackendConfig())
+    for m in drive:
+        res = core.add(m)
+    assert core.anchored(("r1", "day1")) and not res.closures  # the first session sets the map
+    T_true = yaw_transform(np.radians(30.0), 2.0, -1.0, 0.0)  # where day 2's odom frame started
+    second = _as(drive, "r2", "day2", T=np.linalg.inv(T_true), dt=86_400.0)
+    anchored_at = None
+    votes = 0
+    for i, m in enumerate(second):
+        res = core.add(m)
+        votes += res.rejected["anchor vote"]
+        if anchored_at is None and core.anchored(("r2", "day2")):
+            anchored_at = i
+            assert [c.kind for c in res.closures] == ["anchor"]
+            assert res.update.anchored == (("r2", "day2"),) and res.rebuild
+    assert anchored_at is not None, "day 2 was never anchored"
+    assert votes >= BackendConfig().anchor_votes - 1  # votes came first; the agreeing ones anchored
+    T_map_odom = core.T_map_odom(("r2", "day2"))
+    assert T_map_odom is not None
+    err = np.linalg.inv(T_true) @ T_map_odom
+    assert np.linalg.norm(err[:3, 3]) < 0.03 and _angle_deg(err) < 0.5
+    # every keyframe of day 2 now has a map pose, on top of day 1's
+    for a, b in zip(drive, second, strict=True):
+        Ta, Tb = core.estimate(("r1", "day1", a.seq)), core.estimate(("r2", "day2", b.seq))
+        assert Ta is not None and Tb is not None
+        assert np.linalg.norm(Ta[:3, 3] - Tb[:3, 3]) < 0.05
+
+
+def test_a_planted_false_loop_passes_verification_and_is_rejected_by_the_graph(
+    drive: list[KeyframeMsg]
+) -> None:
+    """The robot drives on and sees the very same views again, but its odometry (and so the map)
+    puts it 3 m further on, like an identical door pair: the matches verify, the graph gate
+    refuses them, and nothing moves."""
+    core = BackendCore(BackendConfig(recent_s=0.0, recent_path_m=0.0))
+    for m in drive:
+        core.add(m)
+    before = np.stack([core.estimate(("r1", "day1", m.seq)) for m in drive])
+    twin = _as(drive, "r1", "day1", T=yaw_transform(0.0, 3.0, 0.0, 0.0), seq0=len(drive), dt=30.0)
+    rejected = 0
+    for m in twin:
+        res = core.add(m)
+        assert res.closures == [], res.closures
+        rejected += res.rejected["inconsistent with the map"]
+    assert rejected >= len(twin) // 2
+    after = np.stack([core.estimate(("r1", "day1", m.seq)) for m in drive])
+    np.testing.assert_allclose(after, before, atol=1e-6)
+
+
+def test_matches_that_disagree_never_anchor_a_session(drive: list[KeyframeMsg]) -> None:
+    """A floating session whose verified matches imply different ``T_map_odom`` (its keyframes'
+    odometry scrambled) is not anchored: no agreeing votes."""
+    core = BackendCore(BackendConfig())
+    for m in drive:
+        core.add(m)
+    rng = np.random.default_rng(0)
+    scrambled = [replace(m, robot_id="r3", session_id="x", stamp=m.stamp + 1e5,
+                         T_odom_camera=yaw_transform(rng.uniform(-3, 3), *rng.uniform(-5, 5, 2), 0.0)
+                         @ m.T_odom_camera)
+                 for m in drive]
+    for m in scrambled:
+        core.add(m)
+    assert not core.anchored(("r3", "x"))
+    assert core.estimate(("r3", "x", scrambled[-1].seq)) is None
