@@ -23,26 +23,38 @@ camera ``T_world_camera``; the estimate of the back-end is ``T_map_camera``.
   ``T_map_camera_k @ inv(T_odom_camera_k)``. The alignment error of session s relative to a
   reference session r (the one that anchored the map) is the pose error of
   ``inv(T_map_odom_r) @ T_map_odom_s`` against ``inv(T_world_odom_r) @ T_world_odom_s``.
+- **Object maps compared**: the confirmed landmarks of two maps of one world are paired within
+  each category, nearest centres first (greedy), up to ``max_m`` apart; offsets are the
+  centre distances of the pairs. A ground-truth object is *duplicated* in a map when two or
+  more confirmed landmarks have it as their majority object (``gt_instance`` of their
+  measurements).
 """
 
 from __future__ import annotations
 
 import math
+from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from wardmap.server.association.types import Landmark
 from wardmap.shared.errors import WardmapError
 from wardmap.shared.metrics import ate
 from wardmap.shared.se3 import inverse
 
 __all__ = [
     "ClosureCheck",
+    "LandmarkPair",
     "RevisitEvent",
     "alignment_error",
     "check_closure",
+    "duplicated_objects",
+    "frame_rmse",
+    "majority_object",
+    "pair_landmarks",
     "pose_error",
     "recalled",
     "revisit_events",
@@ -176,9 +188,67 @@ def alignment_error(T_map_odom: ArrayLike, T_map_odom_ref: ArrayLike, T_world_od
     return pose_error(est, ref)
 
 
+def frame_rmse(T_world_frame: ArrayLike, T_frame_camera: Sequence[ArrayLike],
+               T_world_camera: Sequence[ArrayLike]) -> float:
+    """Translation RMSE (m) of cameras given in a frame placed in the world by ``T_world_frame``
+    (4, 4), against ground truth ``T_world_camera`` (each (N) (4, 4)); no alignment: the error a
+    map built in that frame has."""
+    W = np.asarray(T_world_frame, np.float64)
+    est = np.einsum("ij,njk->nik", W, np.asarray(T_frame_camera, np.float64).reshape(-1, 4, 4))
+    ref = np.asarray(T_world_camera, np.float64).reshape(-1, 4, 4)
+    if est.shape != ref.shape or not len(est):
+        raise WardmapError(f"frame_rmse: {len(est)} estimates for {len(ref)} reference poses")
+    return float(np.sqrt(np.mean(np.sum((est[:, :3, 3] - ref[:, :3, 3]) ** 2, axis=1))))
+
+
 def trajectory_ate(stamps: Sequence[float], T_est: Sequence[ArrayLike], T_ref: Sequence[ArrayLike]) -> float:
     """ATE RMSE (m) of ``T_est`` against ``T_ref`` (each (N) (4, 4), one pose per stamp), after an
     SE3 (Umeyama) alignment (evo, :func:`wardmap.shared.metrics.ate`)."""
     s = np.asarray(stamps, np.float64)
     return ate(s, np.asarray(T_est, np.float64), s, np.asarray(T_ref, np.float64), max_diff_s=1e-6).rmse
 
+
+
+@dataclass(frozen=True)
+class LandmarkPair:
+    """A landmark of map a and its partner in map b (same category), ``offset_m`` apart."""
+
+    a: Landmark
+    b: Landmark
+    offset_m: float
+
+
+def pair_landmarks(a: Sequence[Landmark], b: Sequence[Landmark], *, max_m: float = 1.0) -> list[LandmarkPair]:
+    """Pair the confirmed landmarks of two maps in one frame: per category, nearest centres
+    (``T_world_object`` translations) first, each landmark at most once, pairs up to ``max_m``."""
+    a = [lm for lm in a if lm.confirmed]
+    b = [lm for lm in b if lm.confirmed]
+    candidates = sorted(
+        (float(np.linalg.norm(la.T_world_object[:3, 3] - lb.T_world_object[:3, 3])), i, j)
+        for i, la in enumerate(a) for j, lb in enumerate(b) if la.category == lb.category
+    )
+    used_a: set[int] = set()
+    used_b: set[int] = set()
+    pairs = []
+    for d, i, j in candidates:
+        if d > max_m:
+            break
+        if i in used_a or j in used_b:
+            continue
+        used_a.add(i)
+        used_b.add(j)
+        pairs.append(LandmarkPair(a[i], b[j], d))
+    return pairs
+
+
+def majority_object(landmark: Landmark) -> int | None:
+    """The ground-truth object most of a landmark's measurements are on (None: none known)."""
+    votes = Counter(i for i in landmark.gt_instances if i is not None)
+    return votes.most_common(1)[0][0] if votes else None
+
+
+def duplicated_objects(landmarks: Sequence[Landmark]) -> dict[int, int]:
+    """Ground-truth object id -> number of confirmed landmarks it is the majority object of, for
+    every object with two or more."""
+    counts = Counter(majority_object(lm) for lm in landmarks if lm.confirmed)
+    return {i: n for i, n in counts.items() if i is not None and n > 1}

@@ -6,12 +6,18 @@ import math
 
 import numpy as np
 import pytest
+from factories import MeasurementFactory
 
+from wardmap.server.association.types import Landmark
 from wardmap.shared.se3 import inverse, se3_exp, yaw_transform
 from wardmap.tools.backend_eval import (
     RevisitEvent,
     alignment_error,
     check_closure,
+    duplicated_objects,
+    frame_rmse,
+    majority_object,
+    pair_landmarks,
     pose_error,
     recalled,
     revisit_events,
@@ -108,6 +114,15 @@ def test_alignment_error_ignores_the_map_gauge() -> None:
     assert m == pytest.approx(0.02) and deg == pytest.approx(0.5)
 
 
+def test_frame_rmse_does_not_align() -> None:
+    """Cameras in a frame placed at its true place have no error; the frame 2 cm off gives 2 cm."""
+    _, truth = circle(20)
+    G = se3_exp(np.array([0.0, 0.0, 1.0, 4.0, -2.0, 0.5]))
+    in_frame = [inverse(G) @ T for T in truth]
+    assert frame_rmse(G, in_frame, truth) == pytest.approx(0.0, abs=1e-9)
+    assert frame_rmse(G @ yaw_transform(0.0, 0.02, 0.0), in_frame, truth) == pytest.approx(0.02)
+
+
 def test_ate_aligns_a_rigidly_moved_trajectory() -> None:
     """The estimate in another frame (a rigid motion of the truth) has no ATE; 3 cm of noise does."""
     stamps, truth = circle(40)
@@ -116,3 +131,39 @@ def test_ate_aligns_a_rigidly_moved_trajectory() -> None:
     rng = np.random.default_rng(0)
     noisy = [T @ yaw_transform(*rng.normal(0, 0.03, 2), 0.0) for T in truth]
     assert 0.02 < trajectory_ate(stamps, noisy, truth) < 0.06
+
+
+def landmark(make: MeasurementFactory, lid: int, category: str, x: float, y: float, gts: list[int | None],
+             confirmed: bool = True) -> Landmark:
+    """A landmark at (x, y, 0.5) whose measurements are on the ground-truth objects ``gts``."""
+    T = yaw_transform(x, y, 0.0, 0.5)
+    cam = yaw_transform(x - 3.0, y, 0.0, 1.0) @ np.array(
+        [[0, 0, 1, 0], [-1, 0, 0, 0], [0, -1, 0, 0], [0, 0, 0, 1]], float)  # looking along +x
+    ms = tuple(make(T, cam, category=category, gt=g) for g in gts)
+    return Landmark(lid, category, T, np.array([0.5, 0.5, 0.9]), 1.0, ms, confirmed=confirmed)
+
+
+def test_landmarks_pair_by_category_and_nearest_centre(make_measurement: MeasurementFactory) -> None:
+    """Two chairs and a door in map a; map b has the chairs 3 cm and 8 cm off, a bed where the door
+    was, and an unconfirmed chair: the chairs pair with their nearest partners, nothing else."""
+    m = make_measurement
+    a = [landmark(m, 1, "chair", 0.0, 0.0, [5]), landmark(m, 2, "chair", 0.6, 0.0, [6]),
+         landmark(m, 3, "door", 4.0, 0.0, [7])]
+    b = [landmark(m, 11, "chair", 0.63, 0.0, [6]), landmark(m, 12, "chair", 0.08, 0.0, [5]),
+         landmark(m, 13, "bed", 4.0, 0.0, [8]), landmark(m, 14, "chair", 0.3, 0.0, [5], confirmed=False)]
+    pairs = pair_landmarks(a, b)
+    assert sorted((p.a.id, p.b.id) for p in pairs) == [(1, 12), (2, 11)]
+    assert sorted(round(p.offset_m, 6) for p in pairs) == [0.03, 0.08]
+    assert pair_landmarks(a, b, max_m=0.05)[0].b.id == 11
+
+
+def test_duplicated_objects_count_confirmed_landmarks(make_measurement: MeasurementFactory) -> None:
+    """Object 5 is the majority object of two confirmed landmarks (a duplicate); object 6 of one
+    confirmed and one unconfirmed landmark (no duplicate)."""
+    lms = [landmark(make_measurement, 1, "chair", 0.0, 0.0, [5, 5, 6]),
+           landmark(make_measurement, 2, "chair", 1.0, 0.0, [5, None]),
+           landmark(make_measurement, 3, "chair", 2.0, 0.0, [6]),
+           landmark(make_measurement, 4, "chair", 3.0, 0.0, [6], confirmed=False)]
+    assert majority_object(lms[0]) == 5
+    assert majority_object(landmark(make_measurement, 9, "chair", 0.0, 0.0, [None])) is None
+    assert duplicated_objects(lms) == {5: 2}
