@@ -16,7 +16,8 @@ one pose graph of all of them (``graph.py``, gtsam iSAM2). For each keyframe:
    the measured relative pose may differ from the graph's prediction by at most
    ``gate_m + gate_per_m`` times the distance driven between them in one session (drift
    grows with distance), else it is rejected as perceptual aliasing (identical doors, rows
-   of identical chairs);
+   of identical chairs); it is closed when a second loop of the same session, within
+   ``loop_window_m`` before it, implies the same correction of the map;
 4. a verified match from a session that is not on the map (it started without a known map
    pose) to a keyframe on the map is a vote for that session's ``T_map_odom``; the session is
    anchored when at least ``anchor_votes`` votes agree (within ``agree_m`` / ``agree_deg``),
@@ -78,6 +79,8 @@ class BackendConfig:
             graph's prediction by ``gate_m + gate_per_m * d`` metres (``d``: distance driven
             between them when in one session, else ``gate_cross_m`` in total) and
             ``gate_deg`` degrees.
+        loop_window_m: a loop inside the map waits for a second one from the same session,
+            at most this far back along its path, that implies the same correction.
         anchor_votes: agreeing verified matches that anchor a session.
         anchor_span_m, anchor_span_deg: the agreeing votes must come from keyframes spread
             over at least this distance driven or this camera rotation (different views: an
@@ -105,6 +108,7 @@ class BackendConfig:
     gate_per_m: float = 0.03
     gate_cross_m: float = 0.6
     gate_deg: float = 10.0
+    loop_window_m: float = 3.0
     anchor_votes: int = 3
     anchor_span_m: float = 1.0
     anchor_span_deg: float = 20.0
@@ -119,8 +123,8 @@ class BackendConfig:
         if not 0.0 <= self.min_similarity <= 1.0:
             raise ConfigError(f"backend.min_similarity must be in [0, 1], got {self.min_similarity}")
         for name in ("recent_s", "recent_path_m", "agree_m", "agree_deg", "gate_m", "gate_per_m",
-                     "gate_cross_m", "gate_deg", "anchor_span_m", "anchor_span_deg", "check_m", "check_deg",
-                     "rebuild_move_m"):
+                     "gate_cross_m", "gate_deg", "loop_window_m", "anchor_span_m", "anchor_span_deg",
+                     "check_m", "check_deg", "rebuild_move_m"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ConfigError(f"backend.{name} must be >= 0, got {value}")
@@ -222,6 +226,8 @@ class BackendCore:
         self._session_rows: dict[int, list[int]] = {}
         self._session_of_row: list[int] = []
         self._votes: dict[Session, list[_Vote]] = {}
+        # session -> loops waiting for a confirming one: (path_m of a, correction (4, 4), closure)
+        self._loop_votes: dict[Session, list[tuple[float, F64, Closure]]] = {}
 
     # ------------------------------------------------------------------ restore
 
@@ -432,6 +438,14 @@ class BackendCore:
                 if not _agree(predicted, T_a_b, limit, self.cfg.gate_deg):
                     rejected["inconsistent with the map"] += 1
                     return None
+                closure = Closure(a, b, T_a_b, found.inliers, "loop", found.sigmas)
+                confirmed = self._confirmed_loop(sa, node, closure, Ta, Tb)
+                if confirmed is None:
+                    rejected["loop vote"] += 1
+                    return None
+                for c in (confirmed, closure):
+                    self.graph.add_loop(c.a, c.b, c.T_a_b, inliers=c.inliers, sigmas=c.sigmas)
+                return closure
             self.graph.add_loop(a, b, T_a_b, inliers=found.inliers, sigmas=found.sigmas)
             return Closure(a, b, T_a_b, found.inliers, "loop", found.sigmas)
         if on_a != on_b:
@@ -470,6 +484,29 @@ class BackendCore:
             return closure
         self.graph.add_loop(a, b, T_a_b, inliers=found.inliers, sigmas=found.sigmas)
         return Closure(a, b, T_a_b, found.inliers, "floating", found.sigmas)
+
+    def _confirmed_loop(self, session: Session, node: _Node, closure: Closure, Ta: F64, Tb: F64
+                        ) -> Closure | None:
+        """The pending loop of ``session`` that confirms ``closure``, or None (it waits).
+
+        Each loop implies a correction of the map, ``C = T_map_b @ inv(T_a_b) @ inv(T_map_a)``
+        (where the match puts keyframe ``a``, relative to where the map has it). A loop is
+        accepted when a loop from another keyframe of the same session, at most
+        ``loop_window_m`` of driving before, implies the same correction (the two put this
+        keyframe within ``agree_m`` / ``agree_deg`` of each other), as ORB-SLAM2 asks
+        consecutive keyframes to agree before it closes a loop: a twin place rarely fools two
+        keyframes the same way."""
+        C = np.asarray(Tb @ np.linalg.inv(closure.T_a_b) @ np.linalg.inv(Ta), np.float64)
+        pending = [p for p in self._loop_votes.get(session, [])
+                   if 0.0 <= node.path_m - p[0] <= self.cfg.loop_window_m]
+        here = C @ Ta
+        for _, C_other, other in pending:
+            if other.a != closure.a and _agree(np.asarray(C_other @ Ta, np.float64), here,
+                                               self.cfg.agree_m, self.cfg.agree_deg):
+                self._loop_votes[session] = [p for p in pending if p[2] is not other]
+                return other
+        self._loop_votes[session] = [*pending, (node.path_m, C, closure)][-MAX_VOTES:]
+        return None
 
     def _contradicted(self, floating: Session, T_map_odom: F64, cluster: list[_Vote]) -> bool:
         """Whether the floating session's other keyframes, put on the map by ``T_map_odom``,
