@@ -17,7 +17,9 @@ one pose graph of all of them (``graph.py``, gtsam iSAM2). For each keyframe:
    ``gate_m + gate_per_m`` times the distance driven between them in one session (drift
    grows with distance), else it is rejected as perceptual aliasing (identical doors, rows
    of identical chairs); it is closed when a second loop of the same session, within
-   ``loop_window_m`` before it, implies the same correction of the map;
+   ``loop_window_m`` before it, implies the same correction of the map. A session not on
+   the map yet closes loops within itself the same way, its odometry predicting them; a match
+   between two sessions both off the map is not used (each is anchored through the map);
 4. a verified match from a session that is not on the map (it started without a known map
    pose) to a keyframe on the map is a vote for that session's ``T_map_odom``; the session is
    anchored when at least ``anchor_votes`` votes agree (within ``agree_m`` / ``agree_deg``),
@@ -141,7 +143,7 @@ class Closure:
         T_a_b: (4, 4) float64 ``b``'s camera in ``a``'s camera frame (verified, refined).
         inliers: EPnP inliers.
         kind: ``loop`` (both on one map), ``anchor`` (it anchored ``a``'s or ``b``'s session)
-            or ``floating`` (between sessions not on the map yet: kept until one is).
+            or ``floating`` (within one session not on the map yet: kept until it is).
         sigmas: (6,) the verification's standard deviations of ``T_a_b`` (rad x3, m x3).
     """
 
@@ -428,8 +430,10 @@ class BackendCore:
         T_a_b = np.asarray(np.linalg.inv(found.T_cand_query), np.float64)
         sa, sb = (a[0], a[1]), (b[0], b[1])
         on_a, on_b = self.anchored(sa), self.anchored(sb)
-        if on_a and on_b:
-            Ta, Tb = self.graph.estimate(a), self.graph.estimate(b)
+        if (on_a and on_b) or sa == sb:
+            # On one map: its estimates predict the match; one floating session: its odometry.
+            Ta, Tb = ((self.graph.estimate(a), self.graph.estimate(b)) if on_a
+                      else (node.T_odom_camera, cand.T_odom_camera))
             if Ta is not None and Tb is not None:
                 predicted = np.asarray(np.linalg.inv(Ta) @ Tb, np.float64)
                 d = node.path_m - cand.path_m if sa == sb else None
@@ -438,7 +442,7 @@ class BackendCore:
                 if not _agree(predicted, T_a_b, limit, self.cfg.gate_deg):
                     rejected["inconsistent with the map"] += 1
                     return None
-                closure = Closure(a, b, T_a_b, found.inliers, "loop", found.sigmas)
+                closure = Closure(a, b, T_a_b, found.inliers, "loop" if on_a else "floating", found.sigmas)
                 confirmed = self._confirmed_loop(sa, node, closure, Ta, Tb)
                 if confirmed is None:
                     rejected["loop vote"] += 1
@@ -482,8 +486,10 @@ class BackendCore:
             self.graph.add_loop(a, b, T_a_b, inliers=found.inliers, sigmas=found.sigmas)
             del self._votes[floating]
             return closure
-        self.graph.add_loop(a, b, T_a_b, inliers=found.inliers, sigmas=found.sigmas)
-        return Closure(a, b, T_a_b, found.inliers, "floating", found.sigmas)
+        # Two sessions both off the map: nothing predicts the match and nothing checks it; each
+        # is anchored through the map instead.
+        rejected["both off the map"] += 1
+        return None
 
     def _confirmed_loop(self, session: Session, node: _Node, closure: Closure, Ta: F64, Tb: F64
                         ) -> Closure | None:
