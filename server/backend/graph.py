@@ -164,8 +164,9 @@ class GraphConfig:
     """Smallest loop edge rotation sigma, degrees."""
     loop_trans_floor_m: float = 0.01
     """Smallest loop edge translation sigma, metres."""
-    loop_sigma_scale: float = 3.0
-    """Factor on the verification's own pose sigmas (which model only pixel noise)."""
+    loop_sigma_scale: float = 10.0
+    """Factor on the verification's own pose sigmas (which model only pixel noise: the
+    candidate's depth errors and biased keypoint depths at object edges come on top)."""
     robust_kernel: Literal["cauchy", "huber"] = "cauchy"
     """M-estimator on loop edges (gtsam ``noiseModel.Robust``)."""
     robust_param: float = 2.0
