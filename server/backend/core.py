@@ -16,12 +16,15 @@ one pose graph of all of them (``graph.py``, gtsam iSAM2). For each keyframe:
    the measured relative pose may differ from the graph's prediction by at most
    ``gate_m + gate_per_m`` times the distance driven between them in one session (drift
    grows with distance), else it is rejected as perceptual aliasing (identical doors, rows
-   of identical chairs);
+   of identical chairs); it is closed when a second loop of the same session, within
+   ``loop_window_m`` before it, implies the same correction of the map;
 4. a verified match from a session that is not on the map (it started without a known map
    pose) to a keyframe on the map is a vote for that session's ``T_map_odom``; the session is
-   anchored when ``anchor_votes`` votes from keyframes ``vote_spacing_m`` or
-   ``vote_spacing_deg`` apart agree (within ``agree_m`` / ``agree_deg``): one match could be
-   an identical twin of the place, several agreeing ones from different places hardly;
+   anchored when at least ``anchor_votes`` votes agree (within ``agree_m`` / ``agree_deg``),
+   come from keyframes spread over ``anchor_span_m`` of driving or ``anchor_span_deg`` of
+   turning, and no rival group of votes (at least half as many, and two) implies another
+   ``T_map_odom``: one match could be an identical twin of the place, agreeing ones from
+   different places hardly;
 5. the keyframe's node (odometry edge from its predecessor) and any accepted loop edge go
    into the graph, and iSAM2 updates it incrementally.
 
@@ -32,6 +35,7 @@ callback (the server reads them from the store; without one, the core keeps them
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from collections import Counter
@@ -46,8 +50,10 @@ from numpy.typing import NDArray
 from wardmap.server.backend.graph import EdgeRecord, GraphConfig, GraphUpdate, NodeRecord, PoseGraph
 from wardmap.server.backend.places import FernConfig, FernEncoder, FernIndex
 from wardmap.server.backend.verify import KeyframeFeatures, Verified, VerifyConfig, verify_pair
-from wardmap.shared.errors import ConfigError
+from wardmap.shared.errors import ConfigError, WardmapError
 from wardmap.shared.wire import KeyframeMsg, decode_depth
+
+log = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
 NodeKey = tuple[str, str, int]
@@ -73,9 +79,17 @@ class BackendConfig:
             graph's prediction by ``gate_m + gate_per_m * d`` metres (``d``: distance driven
             between them when in one session, else ``gate_cross_m`` in total) and
             ``gate_deg`` degrees.
+        loop_window_m: a loop inside the map waits for a second one from the same session,
+            at most this far back along its path, that implies the same correction.
         anchor_votes: agreeing verified matches that anchor a session.
-        vote_spacing_m, vote_spacing_deg: two votes count apart when their keyframes are at
-            least this far apart in distance driven or in camera rotation (different views).
+        anchor_span_m, anchor_span_deg: the agreeing votes must come from keyframes spread
+            over at least this distance driven or this camera rotation (different views: an
+            aliased stretch, such as two corridors that look alike, rarely lasts).
+        check_keyframes, check_m, check_deg: before anchoring, up to this many other
+            keyframes of the session are put on the map by the candidate ``T_map_odom``; each
+            with a map keyframe within ``check_m`` metres looking the same way (optical axes
+            within ``check_deg``) is verified against it; the anchoring is refused when at
+            least two fail and fewer agree (the views the map holds there contradict it).
         rebuild_move_m: a graph update that moves any keyframe more than this (metres), or
             anchors a session, asks the mapping stage to rebuild the object map.
     """
@@ -94,9 +108,13 @@ class BackendConfig:
     gate_per_m: float = 0.03
     gate_cross_m: float = 0.6
     gate_deg: float = 10.0
+    loop_window_m: float = 3.0
     anchor_votes: int = 3
-    vote_spacing_m: float = 0.3
-    vote_spacing_deg: float = 10.0
+    anchor_span_m: float = 1.0
+    anchor_span_deg: float = 20.0
+    check_keyframes: int = 6
+    check_m: float = 1.0
+    check_deg: float = 30.0
     rebuild_move_m: float = 0.02
 
     def __post_init__(self) -> None:
@@ -105,7 +123,8 @@ class BackendConfig:
         if not 0.0 <= self.min_similarity <= 1.0:
             raise ConfigError(f"backend.min_similarity must be in [0, 1], got {self.min_similarity}")
         for name in ("recent_s", "recent_path_m", "agree_m", "agree_deg", "gate_m", "gate_per_m",
-                     "gate_cross_m", "gate_deg", "vote_spacing_m", "vote_spacing_deg", "rebuild_move_m"):
+                     "gate_cross_m", "gate_deg", "loop_window_m", "anchor_span_m", "anchor_span_deg",
+                     "check_m", "check_deg", "rebuild_move_m"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ConfigError(f"backend.{name} must be >= 0, got {value}")
@@ -123,6 +142,7 @@ class Closure:
         inliers: EPnP inliers.
         kind: ``loop`` (both on one map), ``anchor`` (it anchored ``a``'s or ``b``'s session)
             or ``floating`` (between sessions not on the map yet: kept until one is).
+        sigmas: (6,) the verification's standard deviations of ``T_a_b`` (rad x3, m x3).
     """
 
     a: NodeKey
@@ -130,6 +150,7 @@ class Closure:
     T_a_b: F64
     inliers: int
     kind: Literal["loop", "anchor", "floating"]
+    sigmas: F64 | None = None
 
 
 @dataclass(eq=False)
@@ -175,6 +196,10 @@ class _Vote:
 
 
 FeatureLoader = Callable[[NodeKey], KeyframeFeatures | None]
+NO_CODE = 0xFF
+"""The block code of a keyframe without place recognition (equal to no real code: 0..15)."""
+MAX_VOTES = 64
+"""Anchoring votes kept per floating session (the most recent)."""
 
 
 class BackendCore:
@@ -201,6 +226,8 @@ class BackendCore:
         self._session_rows: dict[int, list[int]] = {}
         self._session_of_row: list[int] = []
         self._votes: dict[Session, list[_Vote]] = {}
+        # session -> loops waiting for a confirming one: (path_m of a, correction (4, 4), closure)
+        self._loop_votes: dict[Session, list[tuple[float, F64, Closure]]] = {}
 
     # ------------------------------------------------------------------ restore
 
@@ -222,20 +249,28 @@ class BackendCore:
     # ------------------------------------------------------------------ adding keyframes
 
     def add(self, msg: KeyframeMsg) -> KeyframeResult:
-        """Process one keyframe (see the module docstring); keyframes of a session must come in
-        ``seq`` order."""
+        """Process one keyframe (see the module docstring), in arrival order."""
         ms: dict[str, float] = {}
         t0 = time.perf_counter()
         key: NodeKey = (msg.robot_id, msg.session_id, msg.seq)
+        rejected: Counter[str] = Counter()
         camera = msg.camera
-        codes = self.encode(msg)
+        features: KeyframeFeatures | None = None
+        try:
+            codes = self.encode(msg)
+            if camera is not None:
+                features = KeyframeFeatures.from_keypoints(msg.keypoints, camera)
+        except (WardmapError, ValueError, cv2.error) as exc:
+            # A keyframe whose images or keypoints cannot be read still carries its pose: it
+            # joins the graph, and only place recognition skips it.
+            log.warning("keyframe %s/%s/%d: no place recognition: %s", *key, exc)
+            rejected["unreadable keyframe"] += 1
+            codes, features = np.full(self.cfg.ferns.blocks, NO_CODE, np.uint8), None
         t1 = time.perf_counter()
         ms["encode"] = (t1 - t0) * 1e3
         self.graph.add_keyframe(key, msg.T_odom_camera, pose_source=msg.pose_source,
                                 prior_T_map_odom=msg.T_map_odom)
-        features = None if camera is None else KeyframeFeatures.from_keypoints(msg.keypoints, camera)
         row = self._remember(key, msg.stamp, msg.T_odom_camera, codes, features)
-        rejected: Counter[str] = Counter()
         closures: list[Closure] = []
         n_cand = 0
         ms["query"] = ms["verify"] = 0.0
@@ -258,7 +293,8 @@ class BackendCore:
         ms["graph"] = (time.perf_counter() - t4) * 1e3
         # A session anchored at its first keyframe (the map's first, or a map-pose prior) moved
         # nothing that was mapped; one anchored later brings its waiting keyframes.
-        grown = any(len(self._session_rows.get(self._sessions.get(s, -1), [])) > 1 for s in update.anchored)
+        grown = any(len(self._session_rows.get(self._sessions.get(s, -1), [])) > 1
+                    for s in update.anchored)
         rebuild = grown or update.moved_m > self.cfg.rebuild_move_m
         return KeyframeResult(key, codes.tobytes(), n_cand, closures, rejected, update, rebuild, ms)
 
@@ -402,31 +438,117 @@ class BackendCore:
                 if not _agree(predicted, T_a_b, limit, self.cfg.gate_deg):
                     rejected["inconsistent with the map"] += 1
                     return None
-            self.graph.add_loop(a, b, T_a_b, inliers=found.inliers)
-            return Closure(a, b, T_a_b, found.inliers, "loop")
+                closure = Closure(a, b, T_a_b, found.inliers, "loop", found.sigmas)
+                confirmed = self._confirmed_loop(sa, node, closure, Ta, Tb)
+                if confirmed is None:
+                    rejected["loop vote"] += 1
+                    return None
+                for c in (confirmed, closure):
+                    self.graph.add_loop(c.a, c.b, c.T_a_b, inliers=c.inliers, sigmas=c.sigmas)
+                return closure
+            self.graph.add_loop(a, b, T_a_b, inliers=found.inliers, sigmas=found.sigmas)
+            return Closure(a, b, T_a_b, found.inliers, "loop", found.sigmas)
         if on_a != on_b:
             floating, row_f = (sa, row) if not on_a else (sb, cand_row)
-            closure = Closure(a, b, T_a_b, found.inliers, "anchor")
+            closure = Closure(a, b, T_a_b, found.inliers, "anchor", found.sigmas)
             T_map_odom = self._implied_T_map_odom(closure, floating)
             if T_map_odom is None:
                 return None
             votes = self._votes.setdefault(floating, [])
             node_f = self._nodes[row_f]
-            agreeing = [v for v in votes
-                        if _agree(v.T_map_odom, T_map_odom, self.cfg.agree_m, self.cfg.agree_deg)
-                        and (abs(v.path_m - node_f.path_m) >= self.cfg.vote_spacing_m
-                             or abs(v.turn_deg - node_f.turn_deg) >= self.cfg.vote_spacing_deg)]
             votes.append(_Vote(T_map_odom, closure, node_f.path_m, node_f.turn_deg))
-            if len(agreeing) + 1 < self.cfg.anchor_votes:
+            del votes[:-MAX_VOTES]
+            cluster = [v for v in votes
+                       if _agree(v.T_map_odom, T_map_odom, self.cfg.agree_m, self.cfg.agree_deg)]
+            span_m = max(v.path_m for v in cluster) - min(v.path_m for v in cluster)
+            span_deg = max(v.turn_deg for v in cluster) - min(v.turn_deg for v in cluster)
+            if len(cluster) < self.cfg.anchor_votes or (span_m < self.cfg.anchor_span_m
+                                                         and span_deg < self.cfg.anchor_span_deg):
                 rejected["anchor vote"] += 1
                 return None
-            for v in agreeing:
-                self.graph.add_loop(v.closure.a, v.closure.b, v.closure.T_a_b, inliers=v.closure.inliers)
-            self.graph.add_loop(a, b, T_a_b, inliers=found.inliers)
+            rivals = [v for v in votes if all(v is not c for c in cluster)]
+            rival = max((sum(_agree(w.T_map_odom, v.T_map_odom, self.cfg.agree_m, self.cfg.agree_deg)
+                             for w in rivals) for v in rivals), default=0)
+            if rival >= max(2, len(cluster) // 2):
+                rejected["ambiguous anchor"] += 1
+                return None
+            if self._contradicted(floating, T_map_odom, cluster):
+                rejected["anchor contradicted"] += 1
+                del self._votes[floating]
+                return None
+            for v in cluster[:-1]:
+                self.graph.add_loop(v.closure.a, v.closure.b, v.closure.T_a_b, inliers=v.closure.inliers,
+                                    sigmas=v.closure.sigmas)
+            self.graph.add_loop(a, b, T_a_b, inliers=found.inliers, sigmas=found.sigmas)
             del self._votes[floating]
             return closure
-        self.graph.add_loop(a, b, T_a_b, inliers=found.inliers)
-        return Closure(a, b, T_a_b, found.inliers, "floating")
+        self.graph.add_loop(a, b, T_a_b, inliers=found.inliers, sigmas=found.sigmas)
+        return Closure(a, b, T_a_b, found.inliers, "floating", found.sigmas)
+
+    def _confirmed_loop(self, session: Session, node: _Node, closure: Closure, Ta: F64, Tb: F64
+                        ) -> Closure | None:
+        """The pending loop of ``session`` that confirms ``closure``, or None (it waits).
+
+        Each loop implies a correction of the map, ``C = T_map_b @ inv(T_a_b) @ inv(T_map_a)``
+        (where the match puts keyframe ``a``, relative to where the map has it). A loop is
+        accepted when a loop from another keyframe of the same session, at most
+        ``loop_window_m`` of driving before, implies the same correction (the two put this
+        keyframe within ``agree_m`` / ``agree_deg`` of each other), as ORB-SLAM2 asks
+        consecutive keyframes to agree before it closes a loop: a twin place rarely fools two
+        keyframes the same way."""
+        C = np.asarray(Tb @ np.linalg.inv(closure.T_a_b) @ np.linalg.inv(Ta), np.float64)
+        pending = [p for p in self._loop_votes.get(session, [])
+                   if 0.0 <= node.path_m - p[0] <= self.cfg.loop_window_m]
+        here = C @ Ta
+        for _, C_other, other in pending:
+            if other.a != closure.a and _agree(np.asarray(C_other @ Ta, np.float64), here,
+                                               self.cfg.agree_m, self.cfg.agree_deg):
+                self._loop_votes[session] = [p for p in pending if p[2] is not other]
+                return other
+        self._loop_votes[session] = [*pending, (node.path_m, C, closure)][-MAX_VOTES:]
+        return None
+
+    def _contradicted(self, floating: Session, T_map_odom: F64, cluster: list[_Vote]) -> bool:
+        """Whether the floating session's other keyframes, put on the map by ``T_map_odom``,
+        fail to match the map where it has keyframes seeing the same (within ``check_m`` and
+        ``check_deg``): up to ``check_keyframes`` of them, spread over the session; a
+        contradiction is a failed verification, a support one that agrees. Contradicted when
+        at least two fail and fewer agree."""
+        sid = self._sessions[floating]
+        voters = {v.closure.a if v.closure.a[:2] == floating else v.closure.b for v in cluster}
+        rows = [r for r in self._session_rows[sid] if self._nodes[r].key not in voters]
+        if not rows:
+            return False
+        anchored = [n for n in self._nodes if self.anchored((n.key[0], n.key[1]))]
+        if not anchored:
+            return False
+        T_map = self.graph.estimates([n.key for n in anchored])
+        keys = [n.key for n, T in zip(anchored, T_map, strict=True) if T is not None]
+        poses = np.stack([T for T in T_map if T is not None])
+        step = max(1, len(rows) // self.cfg.check_keyframes)
+        fails = agrees = 0
+        for r in rows[::step][: self.cfg.check_keyframes]:
+            node = self._nodes[r]
+            T = T_map_odom @ node.T_odom_camera
+            near = np.linalg.norm(poses[:, :3, 3] - T[:3, 3], axis=1)
+            # the same view: close, and looking the same way (optical axes, camera z)
+            cos_max = math.cos(math.radians(self.cfg.check_deg))
+            same_way = np.einsum("i,ni->n", T[:3, 2], poses[:, :3, 2]) >= cos_max
+            hits = np.flatnonzero((near <= self.cfg.check_m) & same_way)
+            if hits.size == 0:
+                continue
+            j = int(hits[np.argmin(near[hits])])
+            mine, theirs = self._features_of(node.key), self._features_of(keys[j])
+            if mine is None or theirs is None:
+                continue
+            found = verify_pair(mine, theirs, self.cfg.verify)
+            if isinstance(found, str):
+                fails += 1
+                continue
+            T_expected = np.linalg.inv(poses[j]) @ T
+            agrees += int(_agree(found.T_cand_query, np.asarray(T_expected, np.float64), 3 * self.cfg.agree_m,
+                                 3 * self.cfg.agree_deg))
+        return fails >= 2 and agrees < fails
 
     def _implied_T_map_odom(self, closure: Closure, floating: Session) -> F64 | None:
         """The floating session's ``T_map_odom`` that this match implies."""

@@ -164,6 +164,8 @@ class GraphConfig:
     """Smallest loop edge rotation sigma, degrees."""
     loop_trans_floor_m: float = 0.01
     """Smallest loop edge translation sigma, metres."""
+    loop_sigma_scale: float = 3.0
+    """Factor on the verification's own pose sigmas (which model only pixel noise)."""
     robust_kernel: Literal["cauchy", "huber"] = "cauchy"
     """M-estimator on loop edges (gtsam ``noiseModel.Robust``)."""
     robust_param: float = 2.0
@@ -205,6 +207,7 @@ class GraphConfig:
 
     def __post_init__(self) -> None:
         for name in ("loop_rot_deg", "loop_trans_m", "loop_rot_floor_deg", "loop_trans_floor_m",
+                     "loop_sigma_scale",
                      "robust_param", "relinearize_rot_rad", "relinearize_trans_m", "report_trans_m",
                      "report_rot_deg"):
             value = getattr(self, name)
@@ -223,6 +226,17 @@ class GraphConfig:
         for name in ("loop_iterations", "refresh_tail"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"{name} must be >= 0, got {getattr(self, name)}")
+
+    def loop_sigmas_from(self, sigmas: F64) -> F64:
+        """Sigmas (6,) of a loop edge from its verification's estimate (6,) (rad x3, m x3):
+        scaled by ``loop_sigma_scale`` (depth noise of the 3D points and unmodelled errors),
+        and no smaller than the floors; non-finite ones fall back to the floor-free
+        ``loop_rot_deg`` / ``loop_trans_m``."""
+        s = np.asarray(sigmas, np.float64).reshape(6) * self.loop_sigma_scale
+        rot = np.where(np.isfinite(s[:3]), s[:3], math.radians(self.loop_rot_deg))
+        trans = np.where(np.isfinite(s[3:]), s[3:], self.loop_trans_m)
+        return np.concatenate([np.maximum(rot, math.radians(self.loop_rot_floor_deg)),
+                               np.maximum(trans, self.loop_trans_floor_m)])
 
     def loop_sigmas(self, inliers: int) -> F64:
         """Sigmas (6,) (rad, m) of a loop edge verified with ``inliers`` (>= 1) PnP inliers."""
@@ -434,7 +448,9 @@ class PoseGraph:
         """Add a keyframe and the odometry edge from its session's previous keyframe.
 
         Args:
-            key: ``(robot_id, session_id, seq)``; within a session seq must increase.
+            key: ``(robot_id, session_id, seq)``. Keyframes of a session may come in any seq
+                order (a resent keyframe after later ones): the odometry edge links each to the
+                session's previous arrival (any two keyframes of a session share its odom frame).
             T_odom_camera: (4, 4) camera pose in the session's odom frame (m).
             pose_source: what produced ``T_odom_camera``; picks the odometry sigmas.
             prior_T_map_odom: (4, 4) the session's odom frame in the map frame (``--map-pose``),
@@ -446,7 +462,7 @@ class PoseGraph:
         keyframe fixes the map frame.
 
         Raises:
-            GraphError: duplicate key, seq not increasing, unknown pose source.
+            GraphError: duplicate key, unknown pose source.
             GeometryError: a pose is not a rigid transform.
         """
         key = self._register(key, T_odom_camera, pose_source, prior_T_map_odom)
@@ -476,10 +492,13 @@ class PoseGraph:
         self._anchor(skey, T_map_odom, rec)
         self._resolve_pending()
 
-    def add_loop(self, a: NodeKey, b: NodeKey, T_a_b: ArrayLike, *, inliers: int) -> LoopResult:
+    def add_loop(self, a: NodeKey, b: NodeKey, T_a_b: ArrayLike, *, inliers: int,
+                 sigmas: ArrayLike | None = None) -> LoopResult:
         """Add a verified loop edge: ``T_a_b`` (4, 4) = pose of keyframe b's camera in a's.
 
-        Sigmas come from ``inliers`` (:meth:`GraphConfig.loop_sigmas`); the factor is robust.
+        Sigmas come from ``inliers`` (:meth:`GraphConfig.loop_sigmas`), or, given the
+        verification's own estimate ``sigmas`` (6,) (rad x3, m x3, right perturbation of
+        ``T_a_b``), from those (:meth:`GraphConfig.loop_sigmas_from`); the factor is robust.
 
         Returns:
             ``"loop"``: both sessions anchored, the factor goes into iSAM2 at the next update;
@@ -501,8 +520,9 @@ class PoseGraph:
             raise GraphError(f"a loop edge needs two keyframes, got {a!r:.80} twice")
         if isinstance(inliers, bool) or not isinstance(inliers, int | np.integer) or inliers < 1:
             raise GraphError(f"inliers: expected an integer >= 1, got {inliers!r}")
-        rec = EdgeRecord("loop", a, b, _pose(T_a_b, "T_a_b"),
-                         self.config.loop_sigmas(int(inliers)), robust=True)
+        edge_sigmas = (self.config.loop_sigmas(int(inliers)) if sigmas is None
+                       else self.config.loop_sigmas_from(np.asarray(sigmas, np.float64)))
+        rec = EdgeRecord("loop", a, b, _pose(T_a_b, "T_a_b"), edge_sigmas, robust=True)
         self._edges.append(rec)
         return self._place_loop(rec)
 
@@ -706,8 +726,6 @@ class PoseGraph:
         prior = None if prior_T_map_odom is None else _pose(prior_T_map_odom, "prior_T_map_odom")
         skey: SessionKey = (key[0], key[1])
         sess = self._sessions.get(skey)
-        if sess is not None and key[2] <= sess.nodes[-1][2]:
-            raise GraphError(f"seq {key[2]} of session {skey!r:.80} does not follow {sess.nodes[-1][2]}")
         if sess is None:
             sess = self._sessions[skey] = _Session()
         sess.nodes.append(key)

@@ -76,9 +76,10 @@ class FernConfig:
     def __post_init__(self) -> None:
         if not isinstance(self.blocks, int) or self.blocks < 1:
             raise ConfigError(f"places.blocks must be an integer >= 1, got {self.blocks!r}")
-        if not isinstance(self.ferns_per_block, int) or not 1 <= self.ferns_per_block <= 8:
+        if not isinstance(self.ferns_per_block, int) or not 1 <= self.ferns_per_block <= 7:
             raise ConfigError(
-                f"places.ferns_per_block must be an integer in 1..8, got {self.ferns_per_block!r}"
+                "places.ferns_per_block must be an integer in 1..7 (code 255 marks a keyframe without "
+                f"one), got {self.ferns_per_block!r}"
             )
         for name in ("width", "height"):
             v = getattr(self, name)

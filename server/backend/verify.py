@@ -24,7 +24,7 @@ rejection reason from :data:`REASONS`.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Final
 
 import cv2
@@ -158,10 +158,14 @@ class VerifyConfig:
     than this share of the candidate point's depth (plus 2 cm)."""
     min_depth_agreement: float = 0.5
     """Share of inliers with query depth that must agree (when at least 6 have depth); 0 = off."""
+    min_sigma_px: float = 1.0
+    """Least reprojection noise (px) assumed for the pose's standard deviations."""
 
     def __post_init__(self) -> None:
         if not 0 < self.ratio <= 1:
             raise ConfigError(f"verify.ratio must be in (0, 1], got {self.ratio!r}")
+        if not (np.isfinite(self.min_sigma_px) and self.min_sigma_px > 0):
+            raise ConfigError(f"verify.min_sigma_px must be > 0, got {self.min_sigma_px!r}")
         if not 0 <= self.max_hamming <= 256:
             raise ConfigError(f"verify.max_hamming must be in 0..256, got {self.max_hamming!r}")
         if self.min_matches < 6:
@@ -193,6 +197,9 @@ class VerifyConfig:
             )
 
 
+_NO_SIGMAS: Final = np.full(6, np.inf)
+
+
 @dataclass(frozen=True, eq=False)
 class Verified:
     """An accepted candidate.
@@ -204,12 +211,16 @@ class Verified:
         matches: descriptor matches that entered PnP.
         rms_px: root-mean-square reprojection error of the inliers in the query image, pixels
             (of the ideal, undistorted camera).
+        sigmas: (6,) float64 standard deviations of ``inv(T_cand_query)`` (the query->candidate
+            edge ``T_query_cand``) over a right perturbation: rotation rad x3, translation m x3
+            (:func:`_pose_sigmas`; reprojection noise ``max(rms_px, min_sigma_px)``).
     """
 
     T_cand_query: F64
     inliers: int
     matches: int
     rms_px: float
+    sigmas: F64 = field(default_factory=lambda: _NO_SIGMAS)
 
 
 def _match(query: U8, cand: U8, config: VerifyConfig) -> tuple[I64, I64]:
@@ -249,6 +260,43 @@ def _errors_px(T_query_cand: F64, points_cand: F64, uv_ideal: F64, camera: Pinho
     du = camera.fx * pc[:, 0] / zs + camera.cx - uv_ideal[:, 0]
     dv = camera.fy * pc[:, 1] / zs + camera.cy - uv_ideal[:, 1]
     return np.where(front, np.hypot(du, dv), np.inf)
+
+
+def _pose_sigmas(T_query_cand: F64, points_cand: F64, camera: PinholeCamera, sigma_px: float) -> F64:
+    """Standard deviations (6,) of the refined pose ``T_query_cand`` from its inliers: the
+    Gauss-Newton covariance ``sigma_px^2 (J^T J)^-1`` of the reprojection errors over a right
+    perturbation ``T_query_cand @ exp(xi)``, ``xi`` = (rotation rad x3, translation m x3) in the
+    candidate camera frame (the tangent space of a gtsam ``BetweenFactorPose3(query, cand)``);
+    correlations are dropped. Errors of the candidate's depth are not modelled here (the back-end
+    inflates these)."""
+    eps = 1e-6
+    n = len(points_cand)
+    base = _project(T_query_cand, points_cand, camera)
+    J = np.empty((2 * n, 6))
+    for k in range(6):
+        xi = np.zeros(6)
+        xi[k] = eps
+        J[:, k] = ((_project(T_query_cand @ _exp(xi), points_cand, camera) - base) / eps).ravel()
+    info = J.T @ J
+    try:
+        cov = np.linalg.inv(info) * sigma_px**2
+    except np.linalg.LinAlgError:
+        return np.full(6, np.inf)
+    out = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    out.flags.writeable = False
+    return out
+
+
+def _project(T: F64, points: F64, camera: PinholeCamera) -> F64:
+    pc = points @ T[:3, :3].T + T[:3, 3]
+    z = np.maximum(pc[:, 2], _MIN_Z_M)
+    return np.column_stack([camera.fx * pc[:, 0] / z + camera.cx, camera.fy * pc[:, 1] / z + camera.cy])
+
+
+def _exp(xi: F64) -> F64:
+    """SE3 exponential, first order in translation: ``[R(xi[:3]) | xi[3:]]`` (for tiny ``xi``)."""
+    R, _ = cv2.Rodrigues(np.asarray(xi[:3], np.float64))
+    return make_transform(R, xi[3:])
 
 
 def _pose(rvec: ArrayLike, tvec: ArrayLike) -> F64:
@@ -353,4 +401,5 @@ def verify_pair(
     rms = float(np.sqrt(np.mean(err * err)))
     T = np.ascontiguousarray(T_cand_query, dtype=np.float64)
     T.flags.writeable = False
-    return Verified(T_cand_query=T, inliers=n_in, matches=n_matches, rms_px=rms)
+    sigmas = _pose_sigmas(T_query_cand, P[inl], query.camera, max(rms, cfg.min_sigma_px))
+    return Verified(T_cand_query=T, inliers=n_in, matches=n_matches, rms_px=rms, sigmas=sigmas)

@@ -21,7 +21,7 @@ def test_the_example_config_equals_the_defaults() -> None:
     ("[backend]\ncandidates = 0\n", "candidates"),
     ("[backend]\nmin_similarity = 1.5\n", "min_similarity"),
     ("[backend]\nanchor_votes = 0\n", "anchor_votes"),
-    ("[backend]\nvote_spacing_deg = -1.0\n", "vote_spacing_deg"),
+    ("[backend]\nanchor_span_deg = -1.0\n", "anchor_span_deg"),
     ("[backend]\nloops = 3\n", "loops"),
     ("[backend.ferns]\nblocks = 0\n", "blocks"),
     ("[backend.graph]\nrobust_kernel = \"tukey\"\n", "robust_kernel"),

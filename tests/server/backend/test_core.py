@@ -113,3 +113,19 @@ def test_matches_that_disagree_never_anchor_a_session(drive: list[KeyframeMsg]) 
         core.add(m)
     assert not core.anchored(("r3", "x"))
     assert core.estimate(("r3", "x", scrambled[-1].seq)) is None
+
+
+def test_a_keyframe_whose_image_cannot_be_read_joins_the_graph_without_recognition(
+    drive: list[KeyframeMsg]
+) -> None:
+    """A valid message whose JPEG does not decode (its header passes the wire check) keeps its
+    place in the graph (the odometry chain goes on) and is counted; nothing raises."""
+    core = BackendCore(BackendConfig())
+    broken = replace(drive[1], rgb_jpeg=drive[1].rgb_jpeg[:400])
+    results = [core.add(m) for m in [drive[0], broken, *drive[2:]]]
+    assert results[1].rejected["unreadable keyframe"] == 1
+    assert set(results[1].codes) == {0xFF}
+    for m in drive:
+        est = core.estimate(("r1", "day1", m.seq))
+        assert est is not None
+        np.testing.assert_allclose(est, m.T_odom_camera, atol=1e-6)
