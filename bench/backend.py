@@ -100,7 +100,7 @@ from wardmap.tools.backend_eval import (
     revisit_events,
     trajectory_ate,
 )
-from wardmap.tools.keyframes import KeyframeCache, cache_keyframes
+from wardmap.tools.keyframes import KeyframeCache, cache_keyframes, folder_lock
 from wardmap.tools.offline_map import MapConfig, associate, measure_dataset
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -164,9 +164,10 @@ def runs_of(data: Path, scenario: str, seed: int) -> list[Run]:
     names = [r.name for r in build_scene(scenario, seed).robots]
     out = data / f"{scenario}_s{seed}"
     folders = [out] if len(names) == 1 else [out / n for n in names]
-    if not all((f / "sim.json").is_file() for f in folders):
-        print(f"generating {scenario} seed {seed} ...", file=sys.stderr)
-        generate(scenario, seed, out, overwrite=True)
+    with folder_lock(out):  # another process generating it finishes first
+        if not all((f / "sim.json").is_file() for f in folders):
+            print(f"generating {scenario} seed {seed} ...", file=sys.stderr)
+            generate(scenario, seed, out, overwrite=True)
     runs = []
     for name, folder in zip(names, folders, strict=True):
         robot_id, session_id = ("robot_0", name) if scenario in ONE_ROBOT else (name, f"s{seed}")

@@ -13,11 +13,14 @@ the parameters and, per keyframe, its stamp and the ground-truth camera pose
 ``T_world_camera`` at that stamp (:func:`wardmap.shared.dataset.pose_at`; None where the
 data set has no ground truth there). :func:`read_keyframes` opens such a folder. A cache is
 reused when its parameters equal the request; it does not notice changes of the tracker's
-code (delete the folder to rebuild).
+code (delete the folder to rebuild). Processes sharing a cache folder take turns: making or
+checking it holds an exclusive lock on ``<folder>.lock`` beside it.
 """
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import hashlib
 import json
 import os
@@ -45,6 +48,7 @@ __all__ = [
     "auto_labels",
     "cache_keyframes",
     "dataset_keyframes",
+    "folder_lock",
     "groundtruth_at",
     "read_keyframes",
 ]
@@ -245,37 +249,57 @@ def cache_keyframes(
     params = _params(
         dataset, robot_id, session_id, start, stop, spec, tracker_config, agent_config, T_map_odom
     )
-    if (folder / INDEX).is_file():
+    with folder_lock(folder):
+        if (folder / INDEX).is_file():
+            try:
+                cached = read_keyframes(folder)
+            except DatasetError:
+                cached = None
+            if cached is not None and cached.params == params:
+                return cached
         try:
-            cached = read_keyframes(folder)
-        except DatasetError:
-            cached = None
-        if cached is not None and cached.params == params:
-            return cached
+            folder.mkdir(parents=True, exist_ok=True)
+            (folder / INDEX).unlink(missing_ok=True)
+            for old in folder.glob("*.msgpack"):
+                old.unlink()
+        except OSError as exc:
+            raise DatasetError(f"{folder}: cannot prepare the cache: {exc.strerror or exc}") from exc
+        stamps: list[float] = []
+        for msg in dataset_keyframes(
+            dataset, robot_id=robot_id, session_id=session_id, start=start, stop=stop, labels=spec,
+            tracker_config=tracker_config, agent_config=agent_config, T_map_odom=T_map_odom,
+            progress=progress,
+        ):
+            _write(folder / f"{msg.seq:06d}.msgpack", encode(msg))
+            stamps.append(msg.stamp)
+        truth = groundtruth_at(reader, stamps)
+        doc = {
+            "params": params,
+            "keyframes": [
+                {"seq": k, "stamp": s, "T_world_camera": None if T is None else np.round(T, 9).tolist()}
+                for k, (s, T) in enumerate(zip(stamps, truth, strict=True))
+            ],
+        }
+        _write(folder / INDEX, (json.dumps(doc, indent=1) + "\n").encode())
+        return read_keyframes(folder)
+
+
+@contextlib.contextmanager
+def folder_lock(folder: Path) -> Iterator[None]:
+    """Hold an exclusive lock on ``<folder>.lock`` (made if missing) while the block runs; another
+    process asking for the same lock waits."""
+    path = folder.with_name(folder.name + ".lock")
     try:
-        folder.mkdir(parents=True, exist_ok=True)
-        (folder / INDEX).unlink(missing_ok=True)
-        for old in folder.glob("*.msgpack"):
-            old.unlink()
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fh = path.open("a")
     except OSError as exc:
-        raise DatasetError(f"{folder}: cannot prepare the cache: {exc.strerror or exc}") from exc
-    stamps: list[float] = []
-    for msg in dataset_keyframes(
-        dataset, robot_id=robot_id, session_id=session_id, start=start, stop=stop, labels=spec,
-        tracker_config=tracker_config, agent_config=agent_config, T_map_odom=T_map_odom, progress=progress,
-    ):
-        _write(folder / f"{msg.seq:06d}.msgpack", encode(msg))
-        stamps.append(msg.stamp)
-    truth = groundtruth_at(reader, stamps)
-    doc = {
-        "params": params,
-        "keyframes": [
-            {"seq": k, "stamp": s, "T_world_camera": None if T is None else np.round(T, 9).tolist()}
-            for k, (s, T) in enumerate(zip(stamps, truth, strict=True))
-        ],
-    }
-    _write(folder / INDEX, (json.dumps(doc, indent=1) + "\n").encode())
-    return read_keyframes(folder)
+        raise DatasetError(f"{path}: cannot open the lock file: {exc.strerror or exc}") from exc
+    with fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
 
 
 def _write(path: Path, data: bytes) -> None:

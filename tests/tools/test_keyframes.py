@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +16,7 @@ from wardmap.tools.keyframes import (
     auto_labels,
     cache_keyframes,
     dataset_keyframes,
+    folder_lock,
     groundtruth_at,
     read_keyframes,
 )
@@ -83,6 +85,24 @@ def test_cache_is_byte_identical_and_reused(sim: Path, tmp_path: Path) -> None:
     assert other.params["start"] == 8 and other.stamps[0] == pytest.approx(float(reader.stamps[8]))
     assert len(list(folder.glob("*.msgpack"))) == len(other)
     assert [m.seq for m in other.messages()] == list(range(len(other)))
+
+
+def test_folder_lock_makes_a_second_user_wait(tmp_path: Path) -> None:
+    """While one holder has ``<folder>.lock``, another asking for it waits until it is released."""
+    folder = tmp_path / "cache"
+    got = threading.Event()
+
+    def second() -> None:
+        with folder_lock(folder):
+            got.set()
+
+    with folder_lock(folder):
+        t = threading.Thread(target=second)
+        t.start()
+        assert not got.wait(0.3)
+    assert got.wait(10.0)
+    t.join()
+    assert (tmp_path / "cache.lock").is_file()
 
 
 def test_incomplete_cache_is_refused(tmp_path: Path) -> None:
