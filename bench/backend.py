@@ -28,8 +28,10 @@ session anchors the map. Scores (definitions in ``wardmap.tools.backend_eval``):
   truth at the first session's first keyframe (``tools.backend_eval.frame_rmse``);
 - anchoring: when each session was anchored (its keyframes so far, seconds since its start),
   and its alignment error against ground truth relative to the session that anchored the map
-  (map = that session's odom frame at its first keyframe), at its first keyframe and at its
-  last (``T_map_odom`` the robot holds at the end);
+  (map = that session's odom frame at its first keyframe) at its first keyframe; and the error of
+  the map pose the robot holds at its last keyframe (``T_map_odom`` at the end applied to that
+  keyframe's ``T_odom_camera``, in the world by ground truth of the map's first keyframe, against
+  its ground-truth camera; at the camera, so not inflated by the lever arm to the odom origin);
 - cost per keyframe (``KeyframeResult.ms``): place recognition + verification (encode + query
   + verify) and the graph update; and a scaled run that replays the cached keyframes of the
   loop-world runs of one seed as new sessions until the graph holds ``--scale`` keyframes
@@ -96,6 +98,7 @@ from wardmap.tools.backend_eval import (
     frame_rmse,
     majority_object,
     pair_landmarks,
+    pose_error,
     recalled,
     revisit_events,
     trajectory_ate,
@@ -302,12 +305,12 @@ def score(scenario: str, seed: int, core: BackendCore, steps: list[Step]) -> Run
         start = end = None
         est_first = core.estimate(ss[0].key)
         T_map_odom_end = core.T_map_odom(session)
-        w_first, w_last = odom_truth(ss[0]), odom_truth(ss[-1])
+        w_first = odom_truth(ss[0])
         if ref_map is not None and ref_world is not None:
             if est_first is not None and w_first is not None:
                 start = alignment_error(est_first @ inverse(ss[0].T_odom_camera), ref_map, w_first, ref_world)
-            if T_map_odom_end is not None and w_last is not None:
-                end = alignment_error(T_map_odom_end, ref_map, w_last, ref_world)
+            if T_map_odom_end is not None and T_world_map is not None and ss[-1].truth is not None:
+                end = pose_error(T_world_map @ T_map_odom_end @ ss[-1].T_odom_camera, ss[-1].truth)
         out.append(SessionScore(session, len(ss), frontend, server, online, len(on), frontend_map, server_map,
                                 kf, at_s, start, end))
     closures: Counter[str] = Counter(c.kind for s in steps for c in s.closures)
@@ -540,7 +543,7 @@ def session_rows(scores: list[RunScore]) -> list[str]:
         "| scenario | seed | session | keyframes | frontend ATE cm | server ATE cm (final) "
         "| server ATE cm online (keyframes) | frontend / server error cm, unaligned "
         "| anchored at keyframe (s after start) "
-        "| alignment at first keyframe cm / deg | alignment at last keyframe cm / deg |",
+        "| alignment at first keyframe cm / deg | map pose at last keyframe: error cm / deg |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for s in scores:
@@ -686,9 +689,13 @@ def main() -> int:
         f"(>= 3 keyframes within 1 m and 30 deg of an earlier keyframe of another session or >= 30 s "
         f"older) with a true loop edge from one of their first {WINDOW} keyframes. ATE: evo, SE3 "
         "alignment per session, over keyframes; final = estimates after the last keyframe from the "
-        "incrementally updated graph, online = each keyframe's estimate right after its own update. "
-        "Alignment: relative to the session that anchored the map; definitions in "
-        "`wardmap/tools/backend_eval.py` and the script's docstring.",
+        "incrementally updated graph, online = each keyframe's estimate right after its own update "
+        "(floating keyframes have none); unaligned = RMSE with the trajectory placed by ground truth "
+        "at its session's first keyframe (frontend) or at the map's first keyframe (server). "
+        "Alignment at the first keyframe: the session's T_map_odom relative to the session that "
+        "anchored the map, against ground truth; map pose at the last keyframe: the T_map_odom the "
+        "robot holds at its end applied to its last keyframe, against that camera's ground truth. "
+        "Definitions in `wardmap/tools/backend_eval.py` and the script's docstring.",
         "",
         "**Summary (per scenario over seeds)**",
         "",
