@@ -30,6 +30,12 @@ one pose graph of all of them (``graph.py``, gtsam iSAM2). For each keyframe:
 5. the keyframe's node (odometry edge from its predecessor) and any accepted loop edge go
    into the graph, and iSAM2 updates it incrementally.
 
+After a loop edge of a session on the map enters the graph, that session's next ``loop_gap``
+keyframes are not searched (ORB-SLAM2's loop closing waits 10 keyframes after a loop, likewise): a
+session whose place the map has just fixed gains little from more loops there, and in a map
+that many sessions revisit every loop edge costs an iSAM2 update over the cliques that tie
+those sessions together.
+
 What a keyframe did comes back as a :class:`KeyframeResult`; the stage (``stage.py``)
 persists it and publishes corrections. Features of stored keyframes are read through a
 callback (the server reads them from the store; without one, the core keeps them in memory).
@@ -94,6 +100,8 @@ class BackendConfig:
             least two fail and fewer agree (the views the map holds there contradict it).
         rebuild_move_m: a graph update that moves any keyframe more than this (metres), or
             anchors a session, asks the mapping stage to rebuild the object map.
+        loop_gap: keyframes of a session not searched for loops after one of its loop edges
+            entered the graph (0: search every keyframe).
     """
 
     enabled: bool = True
@@ -118,6 +126,7 @@ class BackendConfig:
     check_m: float = 1.0
     check_deg: float = 30.0
     rebuild_move_m: float = 0.02
+    loop_gap: int = 10
 
     def __post_init__(self) -> None:
         if self.candidates < 1:
@@ -132,6 +141,8 @@ class BackendConfig:
                 raise ConfigError(f"backend.{name} must be >= 0, got {value}")
         if self.anchor_votes < 1:
             raise ConfigError(f"backend.anchor_votes must be >= 1, got {self.anchor_votes}")
+        if self.loop_gap < 0:
+            raise ConfigError(f"backend.loop_gap must be >= 0, got {self.loop_gap}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -163,6 +174,8 @@ class KeyframeResult:
         key: the keyframe.
         codes: its fern code (``FernConfig.blocks`` bytes).
         candidates: fern candidates verified.
+        searched: whether it was searched for loops (not within ``loop_gap`` keyframes of its
+            session's last loop edge, and readable).
         closures: accepted matches.
         rejected: verification and gate rejections by reason.
         update: the graph update (estimates moved, sessions anchored).
@@ -173,6 +186,7 @@ class KeyframeResult:
     key: NodeKey
     codes: bytes
     candidates: int
+    searched: bool
     closures: list[Closure]
     rejected: Counter[str]
     update: GraphUpdate
@@ -230,6 +244,8 @@ class BackendCore:
         self._votes: dict[Session, list[_Vote]] = {}
         # session -> loops waiting for a confirming one: (path_m of a, correction (4, 4), closure)
         self._loop_votes: dict[Session, list[tuple[float, F64, Closure]]] = {}
+        self._last_loop: dict[Session, int] = {}
+        """Session -> its keyframes counted when its last loop edge entered the graph."""
 
     # ------------------------------------------------------------------ restore
 
@@ -276,7 +292,9 @@ class BackendCore:
         closures: list[Closure] = []
         n_cand = 0
         ms["query"] = ms["verify"] = 0.0
-        if self.cfg.enabled and features is not None and len(self._nodes) > 1:
+        searched = (self.cfg.enabled and features is not None and len(self._nodes) > 1
+                    and not self._resting(key))
+        if searched and features is not None:
             allowed = self._allowed(row)
             t2 = time.perf_counter()
             hits = [h for h in self.index.query(codes, self.cfg.candidates, allowed)
@@ -289,6 +307,8 @@ class BackendCore:
                 closure = self._accept(row, best, rejected)
                 if closure is not None:
                     closures.append(closure)
+                    if self.anchored((key[0], key[1])):  # a floating session keeps searching: its votes
+                        self._last_loop[(key[0], key[1])] = len(self._session_rows[self._session_of_row[row]])
             ms["verify"] = (time.perf_counter() - t3) * 1e3
         t4 = time.perf_counter()
         update = self.graph.update()
@@ -298,7 +318,8 @@ class BackendCore:
         grown = any(len(self._session_rows.get(self._sessions.get(s, -1), [])) > 1
                     for s in update.anchored)
         rebuild = grown or update.moved_m > self.cfg.rebuild_move_m
-        return KeyframeResult(key, codes.tobytes(), n_cand, closures, rejected, update, rebuild, ms)
+        return KeyframeResult(key, codes.tobytes(), n_cand, bool(searched), closures, rejected, update,
+                              rebuild, ms)
 
     def encode(self, msg: KeyframeMsg) -> NDArray[np.uint8]:
         """The keyframe's fern code (decodes its JPEG colour and depth)."""
@@ -353,6 +374,14 @@ class BackendCore:
         if features is not None and self._load is None:
             self._features[key] = features
         return row
+
+    def _resting(self, key: NodeKey) -> bool:
+        """Whether ``key``'s session had a loop edge within its last ``loop_gap`` keyframes."""
+        session = (key[0], key[1])
+        last = self._last_loop.get(session)
+        if last is None:
+            return False
+        return len(self._session_rows[self._sessions[session]]) - last <= self.cfg.loop_gap
 
     def _allowed(self, row: int) -> NDArray[np.bool_]:
         """Index rows that may be candidates for ``row``: not itself, not the recent past of

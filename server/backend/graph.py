@@ -190,13 +190,18 @@ class GraphConfig:
     relinearize_skip: int = 1
     """iSAM2: relinearization is checked every this many updates (the extra iterations after
     a loop or an anchoring always check)."""
-    factorization: Literal["cholesky", "qr"] = "qr"
-    """iSAM2 elimination. QR stays stable on long loop-free chains, where the lever arm of the
-    heading uncertainty makes the Cholesky pivots ill-conditioned (Cholesky declares a straight
-    chain of 0.5 m steps indeterminate after about 650 m)."""
+    factorization: Literal["cholesky", "qr"] = "cholesky"
+    """iSAM2 elimination. Cholesky is about three times faster on graphs with many loops, but
+    on a long loop-free chain the lever arm of the heading uncertainty makes its pivots
+    ill-conditioned (a straight chain of 0.5 m steps is declared indeterminate after about
+    500 m); when it fails, the graph is rebuilt once with QR, which stays stable, and keeps QR
+    (``PoseGraph.factorization``)."""
     loop_iterations: int = 3
-    """Extra ``ISAM2.update()`` calls after an update that added a loop edge or anchored a
-    session (relinearization and robust re-weighting)."""
+    """At most this many extra ``ISAM2.update()`` calls after an update that added a loop edge
+    or anchored a session, each relinearizing the keyframes that moved beyond the thresholds
+    (and re-weighting their robust loop edges), until one relinearizes none. Not forced over
+    the whole graph: at 5000 keyframes of many sessions a forced relinearization costs hundreds
+    of milliseconds, and a loop that confirms the map moves nothing."""
     refresh_tail: int = 3
     """After a plain update (no loop, no anchoring), the estimates re-read are the new
     keyframes' and those of the last ``refresh_tail`` keyframes of each session that grew."""
@@ -384,7 +389,7 @@ class _Session:
     """Odometry and own loop edges kept aside while the session floats."""
 
 
-def _isam_params(config: GraphConfig) -> gtsam.ISAM2Params:
+def _isam_params(config: GraphConfig, factorization: str | None = None) -> gtsam.ISAM2Params:
     params = gtsam.ISAM2Params()
     # Thresholds per variable type, keyed by the gtsam Symbol character of the key: the
     # integer keys used here (< 2**56) all have character 0. Pose3 tangent order: rot, trans.
@@ -392,7 +397,7 @@ def _isam_params(config: GraphConfig) -> gtsam.ISAM2Params:
     thresholds.insert(("\0", np.array([config.relinearize_rot_rad] * 3 + [config.relinearize_trans_m] * 3)))
     params.setRelinearizeThreshold(thresholds)
     params.relinearizeSkip = config.relinearize_skip
-    params.setFactorization(config.factorization.upper())
+    params.setFactorization((factorization or config.factorization).upper())
     return params
 
 
@@ -407,7 +412,11 @@ class PoseGraph:
 
     def __init__(self, config: GraphConfig | None = None) -> None:
         self.config = config if config is not None else GraphConfig()
+        self.factorization: Literal["cholesky", "qr"] = self.config.factorization
+        """The elimination in use: the configured one, or ``qr`` after a Cholesky failure."""
         self._isam = gtsam.ISAM2(_isam_params(self.config))
+        self._factor_recs: list[EdgeRecord] = []
+        """Every edge given to iSAM2, in order (to rebuild it with QR)."""
         if self.config.robust_kernel == "cauchy":
             self._kernel: gtsam.noiseModel.mEstimator.Base = gtsam.noiseModel.mEstimator.Cauchy.Create(
                 self.config.robust_param)
@@ -532,8 +541,8 @@ class PoseGraph:
     def update(self) -> GraphUpdate:
         """Run one incremental iSAM2 update with the keyframes and edges added since the last.
 
-        After a loop edge or an anchoring, ``loop_iterations`` more ``ISAM2.update()`` calls
-        (with forced relinearization, which also re-weights the robust kernels) and a full
+        After a loop edge or an anchoring, up to ``loop_iterations`` more ``ISAM2.update()``
+        calls (relinearizing what moved beyond the thresholds, until nothing does) and a full
         re-read of all estimates; otherwise only the new keyframes and the last
         ``refresh_tail`` of each grown session are re-read.
         """
@@ -541,15 +550,18 @@ class PoseGraph:
         n_prev = self._n_estimated
         big = self._big_change
         try:
-            if self._new_factors.size() > 0 or self._new_values.size() > 0:
-                self._isam.update(self._new_factors, self._new_values)
-                self._new_factors = gtsam.NonlinearFactorGraph()
-                self._new_values = gtsam.Values()
-            if big:
-                for _ in range(cfg.loop_iterations):
-                    self._isam.update(force_relinearize=True)
+            self._solve(big)
         except RuntimeError as exc:  # gtsam's IndeterminateLinearSystemException and kin
-            raise GraphError(f"iSAM2 update failed, the graph is unusable: {exc}") from exc
+            if self.factorization != "cholesky":
+                raise GraphError(f"iSAM2 update failed, the graph is unusable: {exc}") from exc
+            _log.warning("iSAM2 Cholesky failed (%s); rebuilding the graph with QR",
+                         str(exc).strip().splitlines()[0])
+            self._rebuild_qr()
+            big = True
+            try:
+                self._solve(big)
+            except RuntimeError as exc2:
+                raise GraphError(f"iSAM2 update failed, the graph is unusable: {exc2}") from exc2
         n = len(self._keys)
         moved = 0.0
         check: Iterable[SessionKey]
@@ -592,6 +604,29 @@ class PoseGraph:
                            anchored=anchored)
 
     # ---------------------------------------------------------------- queries
+
+    def _solve(self, big: bool) -> None:
+        """Give iSAM2 the new factors and values; after a big change, relinearize and iterate."""
+        if self._new_factors.size() > 0 or self._new_values.size() > 0:
+            factors, values = self._new_factors, self._new_values
+            self._new_factors = gtsam.NonlinearFactorGraph()
+            self._new_values = gtsam.Values()
+            self._isam.update(factors, values)
+        if big:
+            for _ in range(self.config.loop_iterations):
+                if self._isam.update().getVariablesRelinearized() == 0:
+                    break  # converged: nothing moved beyond the thresholds
+
+    def _rebuild_qr(self) -> None:
+        """Replace iSAM2 by a QR one holding every factor so far, from the last estimates."""
+        self.factorization = "qr"
+        self._isam = gtsam.ISAM2(_isam_params(self.config, "qr"))
+        self._new_factors = gtsam.NonlinearFactorGraph()
+        self._new_values = gtsam.Values()
+        for i in range(len(self._keys)):
+            self._new_values.insert(i, gtsam.Pose3(self._est[i]))
+        for rec in self._factor_recs:
+            self._new_factors.add(self._factor(rec))
 
     def estimate(self, key: NodeKey) -> F64 | None:
         """``T_map_camera`` (4, 4) of a keyframe, or None if its session floats or it is unknown."""
@@ -752,16 +787,18 @@ class PoseGraph:
         self._new_values.insert(index, gtsam.Pose3(T_map_camera))
         self._grown.add((key[0], key[1]))
 
-    def _add_factor(self, rec: EdgeRecord) -> None:
+    def _factor(self, rec: EdgeRecord) -> gtsam.NonlinearFactor:
         noise: gtsam.noiseModel.Base = gtsam.noiseModel.Diagonal.Sigmas(rec.sigmas)
         if rec.robust:
             noise = gtsam.noiseModel.Robust.Create(self._kernel, noise)
         a = self._nodes[rec.a].index
         if rec.b is None:
-            self._new_factors.add(gtsam.PriorFactorPose3(a, gtsam.Pose3(rec.T_a_b), noise))
-        else:
-            b = self._nodes[rec.b].index
-            self._new_factors.add(gtsam.BetweenFactorPose3(a, b, gtsam.Pose3(rec.T_a_b), noise))
+            return gtsam.PriorFactorPose3(a, gtsam.Pose3(rec.T_a_b), noise)
+        return gtsam.BetweenFactorPose3(a, self._nodes[rec.b].index, gtsam.Pose3(rec.T_a_b), noise)
+
+    def _add_factor(self, rec: EdgeRecord) -> None:
+        self._new_factors.add(self._factor(rec))
+        self._factor_recs.append(rec)
         if rec.kind != "odometry":
             self._big_change = True
 

@@ -129,3 +129,21 @@ def test_a_keyframe_whose_image_cannot_be_read_joins_the_graph_without_recogniti
         est = core.estimate(("r1", "day1", m.seq))
         assert est is not None
         np.testing.assert_allclose(est, m.T_odom_camera, atol=1e-6)
+
+
+def test_a_session_rests_loop_gap_keyframes_after_a_loop_edge(drive: list[KeyframeMsg]) -> None:
+    core = BackendCore(BackendConfig(loop_gap=2))
+    for m in drive:
+        core.add(m)
+    second = _as(drive, "r2", "day2", T=yaw_transform(np.radians(-20.0), 1.0, 0.5, 0.0), dt=86_400.0)
+    searched = []
+    anchored_at = None
+    for i, m in enumerate(second):
+        res = core.add(m)
+        searched.append(res.searched)
+        if anchored_at is None and res.closures:
+            anchored_at = i
+    assert anchored_at is not None and anchored_at + 3 < len(second)
+    assert all(searched[: anchored_at + 1])
+    # the two keyframes after the anchoring edge are not searched; the third is again
+    assert searched[anchored_at + 1: anchored_at + 4] == [False, False, True]

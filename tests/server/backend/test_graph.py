@@ -425,3 +425,16 @@ def test_a_resent_keyframe_may_come_after_later_ones() -> None:
         est = graph.estimate(("r", "s", seq))
         assert est is not None
         np.testing.assert_allclose(est, T, atol=1e-6)
+
+
+def test_a_long_chain_that_cholesky_cannot_solve_continues_with_qr() -> None:
+    graph = PoseGraph(GraphConfig(factorization="cholesky"))
+    T = np.eye(4)
+    for j in range(1200):  # 600 m straight ahead, no loop: Cholesky gives up near 500 m
+        T = T.copy()
+        T[0, 3] = 0.5 * j
+        graph.add_keyframe(("r", "s", j), T, pose_source="rgb")
+        graph.update()
+    assert graph.factorization == "qr"
+    last = graph.estimate(("r", "s", 1199))
+    assert last is not None and np.allclose(last, T, atol=1e-6)
