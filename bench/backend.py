@@ -42,11 +42,12 @@ session anchors the map. Scores (definitions in ``wardmap.tools.backend_eval``):
   and when the second is anchored, and its alignment error against ground truth at its first
   keyframe;
 - with ``--objects``, object maps (``wardmap.tools.offline_map``: oracle measurements, the
-  hierarchical association) of each scenario and seed built from the very keyframes (a) with
-  ground-truth start poses and the frontend's trajectory (``T_world_odom`` of each session from
-  ground truth at its first keyframe, as a robot started with ``--map-pose``) and (b) at the
-  back-end's final poses (its map frame put in the world by the same ground truth of the
-  session that anchored the map; sessions never anchored left out). The confirmed landmarks of
+  hierarchical association) of each scenario and seed built from the very keyframes (a) at the
+  final poses of the back-end given ground-truth start poses (every session's ``T_world_odom``
+  from ground truth at its first keyframe as its ``--map-pose`` prior, so its map frame is the
+  world) and (b) at the back-end's final poses without them (its map frame put in the world by
+  the same ground truth of the session that anchored the map; sessions never anchored left
+  out). The confirmed landmarks of
   (a) and (b) are paired by category and nearest centre (within 1 m); reported: counts, the
   pairs' offsets, each map's centre error against its objects' ground truth (median; moved
   objects against the nearer of their places; also for (c), a map at ground-truth poses: the
@@ -89,6 +90,7 @@ from wardmap.server.association.types import Landmark
 from wardmap.server.backend.core import BackendConfig, BackendCore, Closure
 from wardmap.shared.dataset import DatasetReader
 from wardmap.shared.se3 import inverse, transform_to_tum
+from wardmap.shared.wire import PoseSource
 from wardmap.sim.runner import generate
 from wardmap.sim.scenarios import build_scene
 from wardmap.tools.backend_eval import (
@@ -100,8 +102,10 @@ from wardmap.tools.backend_eval import (
     majority_object,
     pair_landmarks,
     pose_error,
+    pose_graph_floor,
     recalled,
     revisit_events,
+    same_place_errors,
     trajectory_ate,
 )
 from wardmap.tools.keyframes import KeyframeCache, cache_keyframes, folder_lock
@@ -153,6 +157,7 @@ class Step:
     anchored: tuple[Session, ...]
     online: F64 | None
     loops: list[tuple[NodeKey, NodeKey, F64]] = field(default_factory=list)
+    pose_source: PoseSource = "rgb"
 
 
 def progress_line(what: str) -> Callable[[int, int], None]:
@@ -183,19 +188,33 @@ def runs_of(data: Path, scenario: str, seed: int) -> list[Run]:
     return runs
 
 
-def replay(runs: list[Run], config: BackendConfig) -> tuple[BackendCore, list[Step]]:
-    """Feed every run's keyframes to a fresh core in stamp order; one :class:`Step` each."""
+def replay(runs: list[Run], config: BackendConfig, *, start_poses: bool = False
+           ) -> tuple[BackendCore, list[Step]]:
+    """Feed every run's keyframes to a fresh core in stamp order; one :class:`Step` each.
+
+    ``start_poses``: every keyframe carries its session's ground-truth ``T_world_odom`` (from
+    its first keyframe) as the ``--map-pose`` prior, so the map frame is the world's."""
     order = sorted((float(r.cache.stamps[k]), i, k) for i, r in enumerate(runs) for k in range(len(r.cache)))
     core = BackendCore(config)
     steps: list[Step] = []
+    priors: dict[int, F64] = {}
+    if start_poses:
+        for i, r in enumerate(runs):
+            first = r.cache.message(0)
+            truth = r.cache.truth[0]
+            if truth is None:
+                raise SystemExit(f"{r.name}: its first keyframe has no ground truth")
+            priors[i] = np.asarray(truth @ inverse(first.T_odom_camera), np.float64)
     for _stamp, i, k in order:
         msg = runs[i].cache.message(k)
+        if start_poses:
+            msg = dataclasses.replace(msg, T_map_odom=priors[i])
         res = core.add(msg)
         _, edges = core.graph.new_records()
         steps.append(Step(
             res.key, msg.stamp, msg.T_odom_camera, runs[i].cache.truth[k], dict(res.ms), list(res.closures),
             Counter(res.rejected), tuple(res.update.anchored), core.estimate(res.key),
-            [(e.a, e.b, e.T_a_b) for e in edges if e.kind == "loop" and e.b is not None],
+            [(e.a, e.b, e.T_a_b) for e in edges if e.kind == "loop" and e.b is not None], msg.pose_source,
         ))
     return core, steps
 
@@ -214,6 +233,8 @@ class SessionScore:
     anchored_s: float | None
     start: tuple[float, float] | None
     end: tuple[float, float] | None
+    floor_cm: float | None = None
+    same_place: list[tuple[float, float]] = field(default_factory=list)
 
 
 @dataclass
@@ -282,6 +303,11 @@ def score(scenario: str, seed: int, core: BackendCore, steps: list[Step]) -> Run
     ref_map = None if ref_est is None else ref_est @ inverse(ref[0].T_odom_camera)
     ref_world = odom_truth(ref[0])
     T_world_map = world_from_map(core, steps)
+    floor = pose_graph_floor([s.key for s in posed], [s.stamp for s in posed],
+                             [s.T_odom_camera for s in posed], [s.pose_source for s in posed],
+                             [s.truth for s in posed], core.cfg.graph)
+    posed_keys = [s.key for s in posed]
+    posed_est = [core.estimate(k) for k in posed_keys]
     out = []
     for session, ss in sessions.items():
         posed_ss = [s for s in ss if s.truth is not None]
@@ -312,8 +338,12 @@ def score(scenario: str, seed: int, core: BackendCore, steps: list[Step]) -> Run
                 start = alignment_error(est_first @ inverse(ss[0].T_odom_camera), ref_map, w_first, ref_world)
             if T_map_odom_end is not None and T_world_map is not None and ss[-1].truth is not None:
                 end = pose_error(T_world_map @ T_map_odom_end @ ss[-1].T_odom_camera, ss[-1].truth)
+        floor_est = floor.get(session)
+        floor_cm = (ate_cm(stamps, list(floor_est), gt)
+                    if floor_est is not None and len(floor_est) == len(posed_ss) else None)
+        same = same_place_errors(posed_keys, [s.truth for s in posed], posed_est, session)
         out.append(SessionScore(session, len(ss), frontend, server, online, len(on), frontend_map, server_map,
-                                kf, at_s, start, end))
+                                kf, at_s, start, end, floor_cm, same))
     closures: Counter[str] = Counter(c.kind for s in steps for c in s.closures)
     rejected: Counter[str] = Counter()
     for s in steps:
@@ -331,6 +361,7 @@ class ScaleScore:
     recog_ms: list[float]  # the last LAST keyframes'
     graph_ms: list[float]
     closed: list[bool]  # whether each of them closed a loop (or anchored)
+    searched: list[bool]  # whether each of them was searched for loops (not resting after one)
     index_bytes_per_kf: float
     seconds: float
 
@@ -341,6 +372,7 @@ def scale_run(runs: list[Run], target: int, config: BackendConfig) -> ScaleScore
     recog: list[float] = []
     graph: list[float] = []
     closed: list[bool] = []
+    searched: list[bool] = []
     loops = 0
     t0 = time.perf_counter()
     rep = 0
@@ -359,11 +391,12 @@ def scale_run(runs: list[Run], target: int, config: BackendConfig) -> ScaleScore
                 recog.append(recog_ms(res.ms))
                 graph.append(res.ms.get("graph", 0.0))
                 closed.append(bool(res.closures))
+                searched.append(res.searched)
         rep += 1
     print(file=sys.stderr)
     anchored = sum(1 for k in core.node_keys() if core.estimate(k) is not None)
-    return ScaleScore(len(core), rep, anchored, loops, recog, graph, closed, core.index_nbytes() / len(core),
-                      time.perf_counter() - t0)
+    return ScaleScore(len(core), rep, anchored, loops, recog, graph, closed, searched,
+                      core.index_nbytes() / len(core), time.perf_counter() - t0)
 
 
 def tum_runs(data: Path) -> list[Run]:
@@ -424,11 +457,13 @@ def truth_error_cm(landmarks: list[Landmark], centres: dict[int, list[F64]]) -> 
 
 
 def object_maps(scenario: str, seed: int, runs: list[Run], core: BackendCore,
-                steps: list[Step]) -> ObjectScore:
-    """Maps (a) and (b) of the module docstring, compared."""
+                steps: list[Step], config: BackendConfig) -> ObjectScore:
+    """Maps (a), (b) and (c) of the module docstring, compared."""
     by_session: dict[Session, list[Step]] = {}
     for s in steps:
         by_session.setdefault((s.key[0], s.key[1]), []).append(s)
+    print(f"  back-end with ground-truth start poses: {scenario} s{seed} ...", file=sys.stderr)
+    core_a, _ = replay(runs, config, start_poses=True)
     T_world_map = world_from_map(core, steps)
     if T_world_map is None:
         raise SystemExit(f"{scenario} s{seed}: the first keyframe has no ground truth")
@@ -438,12 +473,9 @@ def object_maps(scenario: str, seed: int, runs: list[Run], core: BackendCore,
         tmp = Path(tmpd)
         for run in runs:
             ss = by_session[run.session]
-            s0 = next(s for s in ss if s.truth is not None)
-            assert s0.truth is not None
-            T_world_odom = s0.truth @ inverse(s0.T_odom_camera)
             folder = Path(run.cache.params["dataset"])
-            start_poses = [(s.stamp, T_world_odom @ s.T_odom_camera) for s in ss]
-            traj_a = write_tum(tmp / f"{run.name}_a.txt", start_poses)
+            start_poses = [(s.stamp, core_a.estimate(s.key)) for s in ss]
+            traj_a = write_tum(tmp / f"{run.name}_a.txt", [(t, T) for t, T in start_poses if T is not None])
             print(f"  objects of {scenario} s{seed} {run.name} ...", file=sys.stderr)
             measured_a.append(measure_dataset(folder, poses=traj_a, config=cfg))
             truth = [(s.stamp, s.truth) for s in ss if s.truth is not None]
@@ -483,7 +515,7 @@ def object_maps(scenario: str, seed: int, runs: list[Run], core: BackendCore,
 
 def object_rows(scores: list[ObjectScore]) -> list[str]:
     lines = [
-        "| scenario | seed | landmarks (a) GT start / (b) back-end | paired "
+        "| scenario | seed | landmarks (a) back-end, GT start poses / (b) back-end, none | paired "
         "| offset (b) vs (a) cm mean / max "
         "| unpaired (a) / (b) | centre error vs truth cm, median (max): (a) / (b) / (c) "
         "| duplicated objects, moved ones excepted (a) / (b) "
@@ -540,9 +572,11 @@ def session_rows(scores: list[RunScore]) -> list[str]:
     lines = [
         "| scenario | seed | session | keyframes | frontend ATE cm | server ATE cm (final) "
         "| server ATE cm online (keyframes) | frontend / server error cm, unaligned "
+        "| pose-graph floor ATE cm (ground-truth loops) "
         "| anchored at keyframe (s after start) "
-        "| alignment at first keyframe cm / deg | map pose at last keyframe: error cm / deg |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| alignment at first keyframe cm / deg | map pose at last keyframe: error cm / deg "
+        "| same-place agreement with other sessions cm median / max, deg max (keyframes) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for s in scores:
         for i, ss in enumerate(s.sessions):
@@ -550,10 +584,17 @@ def session_rows(scores: list[RunScore]) -> list[str]:
             lines.append(
                 f"| {s.scenario} | {s.seed} | {ss.session[0]}/{ss.session[1]} | {ss.keyframes} "
                 f"| {fmt(ss.frontend_cm)} | {fmt(ss.server_cm)} | {fmt(ss.online_cm)} ({ss.online_n}) "
-                f"| {fmt(ss.frontend_map_cm)} / {fmt(ss.server_map_cm)} | {anchored} "
-                f"| {'(map)' if i == 0 else err(ss.start)} | {err(ss.end)} |"
+                f"| {fmt(ss.frontend_map_cm)} / {fmt(ss.server_map_cm)} | {fmt(ss.floor_cm)} | {anchored} "
+                f"| {'(map)' if i == 0 else err(ss.start)} | {err(ss.end)} | {same_place(ss.same_place)} |"
             )
     return lines
+
+
+def same_place(errors: list[tuple[float, float]]) -> str:
+    if not errors:
+        return "-"
+    m = [100 * e[0] for e in errors]
+    return f"{np.median(m):.2f} / {max(m):.2f}, {max(e[1] for e in errors):.2f} ({len(errors)})"
 
 
 def summary_rows(scores: list[RunScore]) -> list[str]:
@@ -561,8 +602,10 @@ def summary_rows(scores: list[RunScore]) -> list[str]:
     lines = [
         "| scenario | seeds | false closures (all seeds) | precision % (all seeds) | recall % mean / worst "
         "| server ATE cm mean / worst | frontend ATE cm mean / worst | sessions anchored "
-        "| alignment at first keyframe cm / deg, worst | goal |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| pose-graph floor ATE cm mean / worst "
+        "| alignment at first keyframe cm / deg, worst "
+        "| same-place agreement between sessions cm median (worst seed) / max, deg max | goal |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     goals = {
         "hospital_loop": "precision 100 %, server ATE <= 1.5 cm every seed",
@@ -583,6 +626,13 @@ def summary_rows(scores: list[RunScore]) -> list[str]:
         starts = [x.start for s in ss for x in s.sessions[1:] if x.start is not None]
         worst_start = (f"{100 * max(e[0] for e in starts):.2f} / {max(e[1] for e in starts):.2f}"
                        if starts else "-")
+        floors = [x.floor_cm for s in ss for x in s.sessions if x.floor_cm is not None]
+        floor_txt = (f"{fmt(float(np.mean(floors)))} / {fmt(max(floors))}" if floors else "-")
+        medians = [float(np.median([100 * e[0] for e in x.same_place])) for s in ss for x in s.sessions
+                   if x.same_place]
+        sames = [e for s in ss for x in s.sessions for e in x.same_place]
+        same_txt = (f"{np.median([100 * e[0] for e in sames]):.2f} ({max(medians):.2f}) / "
+                    f"{100 * max(e[0] for e in sames):.2f}, {max(e[1] for e in sames):.2f}" if sames else "-")
         precision = 100 * (1 - false / checks) if checks else None
         mean_recall, worst_recall = (float(np.mean(recalls)), min(recalls)) if recalls else (None, None)
         lines.append(
@@ -590,7 +640,7 @@ def summary_rows(scores: list[RunScore]) -> list[str]:
             f"| {fmt(mean_recall, '.0f')} / {fmt(worst_recall, '.0f')} "
             f"| {fmt(float(np.mean(server)) if server else None)} / {fmt(max(server) if server else None)} "
             f"| {fmt(float(np.mean(front)) if front else None)} / {fmt(max(front) if front else None)} "
-            f"| {anchored} of {n_sessions} | {worst_start} "
+            f"| {anchored} of {n_sessions} | {floor_txt} | {worst_start} | {same_txt} "
             f"| {goals.get(scenario, '')} |"
         )
     return lines
@@ -623,6 +673,7 @@ def scale_body(scale: ScaleScore, seed: int) -> str:
     last = len(scale.graph_ms)
     with_c = [g for g, c in zip(scale.graph_ms, scale.closed, strict=True) if c]
     without = [g for g, c in zip(scale.graph_ms, scale.closed, strict=True) if not c]
+    searched = [r for r, x in zip(scale.recog_ms, scale.searched, strict=True) if x]
     return "\n".join([
         "## SLAM back-end at scale (issue 37)",
         "",
@@ -634,15 +685,18 @@ def scale_body(scale: ScaleScore, seed: int) -> str:
         "replay sees places the earlier ones saw, so most of its keyframes find a verified match and "
         "many close a loop: a worst case for verification and for iSAM2, not a typical fleet. Times "
         f"over the last {last} keyframes (`KeyframeResult.ms`; recognition + verification = encode + "
-        "query + verify).",
+        "query + verify); a keyframe within `loop_gap` (10) keyframes after its session's last loop edge is "
+        "encoded and indexed but not searched.",
         "",
         "| keyframes in the graph | sessions | on the map | loop closures (all) | closures in the last "
-        f"{last} | recognition + verification ms p50 / p95 | graph update ms p50 / p95: all "
+        f"{last} | recognition + verification ms p50 / p95: all | searched keyframes "
+        "| graph update ms p50 / p95: all "
         "| keyframes without a closure | keyframes with a closure | fern index bytes per keyframe | run s |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
         f"| {scale.keyframes} | {scale.sessions} | {scale.anchored_nodes} | {scale.loops} "
         f"| {sum(scale.closed)} "
-        f"| {percentiles(scale.recog_ms)} | {percentiles(scale.graph_ms)} "
+        f"| {percentiles(scale.recog_ms)} | {percentiles(searched)} ({len(searched)}) "
+        f"| {percentiles(scale.graph_ms)} "
         f"| {percentiles(without)} ({len(without)}) | {percentiles(with_c)} ({len(with_c)}) "
         f"| {scale.index_bytes_per_kf:.0f} | {scale.seconds:.0f} |",
         "",
@@ -681,7 +735,7 @@ def main() -> int:
             for line in closure_rows(scores[-1:])[2:] + session_rows(scores[-1:])[2:]:
                 print(line, file=sys.stderr)
             if args.objects:
-                objects.append(object_maps(scenario, seed, runs, core, steps))
+                objects.append(object_maps(scenario, seed, runs, core, steps, config))
                 print(object_rows(objects[-1:])[-1], file=sys.stderr)
     tum: RunScore | None = None
     if with_tum and not TUM.is_dir():
@@ -755,8 +809,9 @@ def main() -> int:
         + ", ".join(f"{k} {v}" for k, v in rejected.most_common()) + ".",
         *([
             "",
-            "**Object maps** from the same keyframes: (a) ground-truth start poses + the frontend's "
-            "trajectory, (b) the back-end's final poses, (c) ground-truth poses (oracle measurements, "
+            "**Object maps** from the same keyframes: (a) the back-end's final poses when every session "
+            "starts with its ground-truth pose as a --map-pose prior, (b) the back-end's final poses "
+            "without any, (c) ground-truth poses (oracle measurements, "
             "hierarchical association; confirmed landmarks of (a) and (b) paired by category and nearest "
             "centre within 1 m)",
             "",

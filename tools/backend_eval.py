@@ -23,6 +23,16 @@ camera ``T_world_camera``; the estimate of the back-end is ``T_map_camera``.
   ``T_map_camera_k @ inv(T_odom_camera_k)``. The alignment error of session s relative to a
   reference session r (the one that anchored the map) is the pose error of
   ``inv(T_map_odom_r) @ T_map_odom_s`` against ``inv(T_world_odom_r) @ T_world_odom_s``.
+- **Same-place agreement** (relative alignment where it matters for a shared map): for each
+  keyframe of a session, the keyframe of *another* session nearest in ground truth (camera
+  centres within ``radius_m``, optical axes within ``max_deg``); its error is the pose error of
+  the estimated relative pose ``inv(T_map_other) @ T_map_this`` against ground truth's. Objects
+  that two robots measure from such keyframes land apart by about this much.
+- **Pose-graph floor**: the same graph (the frontend's odometry, the same sigmas), but with a
+  ground-truth loop edge (tight sigmas) from every revisiting keyframe to its nearest earlier
+  one (the revisit definition above): the ATE a pose graph over this odometry reaches with
+  perfect and complete loop closures; what is left is the odometry's own shape error, which
+  only re-estimating the keyframes from their features (bundle adjustment) can remove.
 - **Object maps compared**: the confirmed landmarks of two maps of one world are paired within
   each category, nearest centres first (greedy), up to ``max_m`` apart; offsets are the
   centre distances of the pairs. A ground-truth object is *duplicated* in a map when two or
@@ -32,18 +42,21 @@ camera ``T_world_camera``; the estimate of the back-end is ``T_map_camera``.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from wardmap.server.association.types import Landmark
+from wardmap.server.backend.graph import GraphConfig, PoseGraph
 from wardmap.shared.errors import WardmapError
 from wardmap.shared.metrics import ate
 from wardmap.shared.se3 import inverse
+from wardmap.shared.wire import PoseSource
 
 __all__ = [
     "ClosureCheck",
@@ -56,8 +69,10 @@ __all__ = [
     "majority_object",
     "pair_landmarks",
     "pose_error",
+    "pose_graph_floor",
     "recalled",
     "revisit_events",
+    "same_place_errors",
     "trajectory_ate",
 ]
 
@@ -207,6 +222,62 @@ def trajectory_ate(stamps: Sequence[float], T_est: Sequence[ArrayLike], T_ref: S
     s = np.asarray(stamps, np.float64)
     return ate(s, np.asarray(T_est, np.float64), s, np.asarray(T_ref, np.float64), max_diff_s=1e-6).rmse
 
+
+
+def _nearest(T: Sequence[F64], i: int, others: Iterable[int], radius_m: float, max_deg: float) -> int | None:
+    """The one of ``others`` whose camera ``T[j]`` is nearest ``T[i]``, within ``radius_m`` and
+    with optical axes within ``max_deg``; None when none is."""
+    cos_max = math.cos(math.radians(max_deg))
+    best: tuple[float, int] | None = None
+    for j in others:
+        d = float(np.linalg.norm(T[i][:3, 3] - T[j][:3, 3]))
+        if d <= radius_m and float(T[i][:3, 2] @ T[j][:3, 2]) >= cos_max and (best is None or d < best[0]):
+            best = (d, j)
+    return None if best is None else best[1]
+
+
+def same_place_errors(keys: Sequence[NodeKey], truth: Sequence[ArrayLike],
+                      estimates: Sequence[ArrayLike | None], session: tuple[str, str], *,
+                      radius_m: float = 1.0, max_deg: float = 30.0) -> list[tuple[float, float]]:
+    """Same-place agreement (module docstring) of ``session``'s keyframes: one (m, deg) error per
+    keyframe that has another session's keyframe near it in ground truth (both estimated)."""
+    T = [np.asarray(t, np.float64) for t in truth]
+    others = [j for j, o in enumerate(keys) if (o[0], o[1]) != session and estimates[j] is not None]
+    out = []
+    for i, k in enumerate(keys):
+        if (k[0], k[1]) != session or estimates[i] is None:
+            continue
+        j = _nearest(T, i, others, radius_m, max_deg)
+        if j is not None:
+            est = inverse(np.asarray(estimates[j], np.float64)) @ np.asarray(estimates[i], np.float64)
+            out.append(pose_error(est, inverse(T[j]) @ T[i]))
+    return out
+
+
+def pose_graph_floor(keys: Sequence[NodeKey], stamps: Sequence[float], T_odom_camera: Sequence[ArrayLike],
+                     pose_sources: Sequence[PoseSource], truth: Sequence[ArrayLike], config: GraphConfig,
+                     *, radius_m: float = 1.0, max_deg: float = 30.0, min_gap_s: float = 30.0,
+                     sigma_m: float = 1e-3, sigma_rad: float = 1e-3) -> dict[tuple[str, str], F64]:
+    """The pose-graph floor (module docstring): keyframes in processing order; returns each
+    anchored session's final ``T_map_camera`` estimates (n, 4, 4) in its keyframes' order."""
+    graph = PoseGraph(dataclasses.replace(config, loop_sigma_scale=1.0, loop_trans_floor_m=sigma_m,
+                                          loop_rot_floor_deg=math.degrees(sigma_rad)))
+    T = [np.asarray(t, np.float64) for t in truth]
+    sigmas = np.array([sigma_rad] * 3 + [sigma_m] * 3)
+    for i, k in enumerate(keys):
+        graph.add_keyframe(k, T_odom_camera[i], pose_source=pose_sources[i])
+        earlier = (j for j in range(i) if keys[j][:2] != k[:2] or stamps[i] - stamps[j] >= min_gap_s)
+        j = _nearest(T, i, earlier, radius_m, max_deg)
+        if j is not None:
+            graph.add_loop(keys[j], k, inverse(T[j]) @ T[i], inliers=1000, sigmas=sigmas)
+        graph.update()
+    out: dict[tuple[str, str], F64] = {}
+    for session in dict.fromkeys((k[0], k[1]) for k in keys):
+        mine = [k for k in keys if (k[0], k[1]) == session]
+        est = graph.estimates(mine)
+        if all(e is not None for e in est):
+            out[session] = np.stack([np.asarray(e) for e in est])
+    return out
 
 
 @dataclass(frozen=True)

@@ -19,8 +19,10 @@ from wardmap.tools.backend_eval import (
     majority_object,
     pair_landmarks,
     pose_error,
+    pose_graph_floor,
     recalled,
     revisit_events,
+    same_place_errors,
     trajectory_ate,
 )
 
@@ -167,3 +169,33 @@ def test_duplicated_objects_count_confirmed_landmarks(make_measurement: Measurem
     assert majority_object(lms[0]) == 5
     assert majority_object(landmark(make_measurement, 9, "chair", 0.0, 0.0, [None])) is None
     assert duplicated_objects(lms) == {5: 2}
+
+
+def test_same_place_errors_measure_how_two_sessions_disagree_where_they_overlap() -> None:
+    _, poses = circle(20)
+    keys = [("a", "s", i) for i in range(20)] + [("b", "s", i) for i in range(20)]
+    truth = poses + poses
+    shift = yaw_transform(0.03, 0.04, 0.0)  # session b's estimates 5 cm off, rotation-free
+    estimates = poses + [shift @ T for T in poses]
+    errors = same_place_errors(keys, truth, estimates, ("b", "s"))
+    assert len(errors) == 20
+    assert all(abs(m - 0.05) < 1e-9 and deg < 1e-6 for m, deg in errors)
+    assert all(m < 1e-9 for m, _ in same_place_errors(keys, truth, poses + poses, ("b", "s")))
+    # a session alone has nothing to agree with
+    assert same_place_errors(keys[:20], truth[:20], estimates[:20], ("a", "s")) == []
+
+
+def test_the_pose_graph_floor_removes_drift_where_the_session_revisits() -> None:
+    from wardmap.server.backend.graph import GraphConfig
+
+    stamps, truth = circle(126, step_s=1.0, speed=0.5)  # two laps of a 5 m circle, 63 s each
+    bias = se3_exp(np.array([0.0, 0.0, math.radians(0.3), 0.0, 0.0, 0.0]))  # heading drift per step
+    odom = [truth[0]]
+    for a, b in zip(truth, truth[1:], strict=False):
+        odom.append(odom[-1] @ inverse(a) @ b @ bias)
+    keys = [("r", "s", i) for i in range(len(truth))]
+    floor = pose_graph_floor(keys, stamps, odom, ["rgb"] * len(keys), truth, GraphConfig())
+    est = floor[("r", "s")]
+    assert est.shape == (126, 4, 4)
+    drifted = trajectory_ate(stamps, odom, truth)
+    assert trajectory_ate(stamps, list(est), truth) < 0.3 * drifted
