@@ -70,6 +70,11 @@ def test_built_wheel_imports_every_module(tmp_path: Path) -> None:
     assert not top & set(PACKAGES), top  # only wardmap/ and its dist-info
     assert "wardmap/shared/data/knowledge_graph.toml" in names
     assert "wardmap/server/models/hospital_seg.onnx" in names  # the trained network ships
+    # The web page and the API docs work offline: their files ship.
+    for asset in ("index.html", "wardmap.js", "wardmap.css", "favicon.svg",
+                  "vendor/swagger-ui/swagger-ui-bundle.js", "vendor/swagger-ui/swagger-ui.css",
+                  "vendor/swagger-ui/LICENSE", "vendor/redoc/redoc.standalone.js", "vendor/redoc/LICENSE"):
+        assert f"wardmap/server/api/static/{asset}" in names, asset
     script = (
         "import importlib, sys\n"
         f"mods = {_modules()!r}\n"

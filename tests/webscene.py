@@ -3,7 +3,8 @@
 :func:`fill_ward` writes, through the store and the object map, what a short run leaves:
 robot r1 (session s1, anchored: it set the map) drove along y = 0 from x = 0 to 10 m, robot r2
 (one session, not anchored yet); three doors on the wall y = 5, a bed and a wheelchair
-(:data:`OBJECTS`); door 2 was observed in r1's keyframe 3, which is stored (the thumbnail).
+(:data:`OBJECTS`; the bed turned by :data:`BED_YAW`); door 2 was observed in r1's keyframe 3,
+which is stored (the thumbnail).
 
 :func:`live_server` runs ``MapServer(url).app`` under uvicorn on a thread (the app ``wardmap
 server`` serves, without Zenoh or mapping) and yields its base URL and the running root, whose
@@ -40,6 +41,8 @@ OBJECTS: tuple[tuple[int, str, float, float, float, tuple[float, float, float]],
     (4, "bed", 5.0, 2.0, 0.3, (2.0, 1.0, 0.6)),
     (5, "wheelchair", 8.0, 1.5, 0.45, (0.7, 0.7, 0.9)),
 )
+BED_YAW = 0.5
+"""The bed (object 4) is turned by this about z (rad); the others are not."""
 THUMB_BOX = (10.0, 8.0, 40.0, 30.0)
 """Door 2's box (x1, y1, x2, y2) in the pixels of r1's keyframe 3."""
 
@@ -70,8 +73,8 @@ def fill_ward(url: str) -> None:
         store.commit_graph("backend", R1_KEYFRAMES + R2_KEYFRAMES, GraphChange(nodes, sessions=[
             SessionAnchor("r1", "s1", np.eye(4), T0 + 150, "r1/s1", 1),
             SessionAnchor("r2", "s1", None, None, "", 0)]))
-        states = [ObjectState(oid, cat, 0.9, yaw_transform(x, y, 0.0, z), np.array(size))
-                  for oid, cat, x, y, z, size in OBJECTS]
+        states = [ObjectState(oid, cat, 0.9, yaw_transform(x, y, BED_YAW if oid == 4 else 0.0, z),
+                              np.array(size)) for oid, cat, x, y, z, size in OBJECTS]
         seen = [Observation(2, "r1", "s1", 3, T0 + 3, "door", 0.8, np.array(THUMB_BOX),
                             yaw_transform(6.0, 5.0, 0.0, 1.0), np.array(DOOR_SIZE))]
         ObjectMap(store).upsert(states, seen)

@@ -30,6 +30,7 @@ from wardmap.server.objectmap import (
     MAX_OFFSET,
     ObjectMapError,
     ObjectQuery,
+    ObjectRecord,
     parse_near,
 )
 from wardmap.shared import geojson
@@ -38,8 +39,17 @@ from wardmap.shared.se3 import rotation_to_quat
 
 router = APIRouter()
 
-FORMATS = ("json", "geojson")
+FORMATS = ("json", "geojson", "compact")
 """What ``GET /v1/objects?format=`` accepts; anything else is 400."""
+COMPACT_COLUMNS = ("object_id", "category", "x", "y", "z", "yaw", "size_x", "size_y", "size_z")
+"""The rows of ``format=compact``: what a floor view draws, metres and radians rounded to 1e-3."""
+
+
+def _compact_row(record: ObjectRecord) -> list[Any]:
+    x, y, z = record.position
+    sx, sy, sz = record.size
+    return [record.object_id, record.category, round(float(x), 3), round(float(y), 3), round(float(z), 3),
+            round(float(record.yaw), 3), round(float(sx), 3), round(float(sy), 3), round(float(sz), 3)]
 
 
 def _vec(values: Any) -> list[float]:
@@ -74,7 +84,8 @@ async def objects(
     format: Annotated[
         str | None,
         Query(max_length=32,
-              description="`json` (default) or `geojson` (a FeatureCollection, map-frame metres)"),
+              description="`json` (default), `geojson` (a FeatureCollection, map-frame metres) or "
+                          "`compact` (`columns` and `rows`: id, category, centre, yaw, size; for map views)"),
     ] = None,
     accept: Annotated[str | None, Header(include_in_schema=False)] = None,
 ) -> JSONResponse:
@@ -89,6 +100,10 @@ async def objects(
                                         include_unconfirmed == "true"))
     except ObjectMapError as exc:
         raise HTTPException(422, str(exc)) from exc
+    if format == "compact":  # the web page's map: far fewer bytes and less encoding time than json
+        rows = [_compact_row(hit.record) for hit in page.hits]
+        return JSONResponse({"columns": COMPACT_COLUMNS, "rows": rows,
+                             "limit": limit, "offset": offset, "next_offset": page.next_offset})
     if as_geojson:
         return JSONResponse(
             geojson.feature_collection((map_object(hit.record, hit.distance_m) for hit in page.hits),

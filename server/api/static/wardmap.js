@@ -36,6 +36,7 @@
     pending: [],
     live: false,
     firstPaintMs: null,       // performance.now() when the first snapshot was drawn
+    timing: { snapshotMs: null, drawMs: null },  // last snapshot's load, last frame's drawing (ms)
     updatesDrawn: new Map(),  // object_id -> Date.now() when its last update was drawn
     meanZ: 1.0,               // mean object centre height: a clicked point's z for searches
     view: { cx: 0, cy: 0, scale: 20, moved: false },  // moved: by the user (no more auto-fit)
@@ -152,15 +153,27 @@
     });
   }
 
-  function footprint(o) {
-    // The box's floor rectangle: size x, y turned by yaw about z, in world metres.
-    const c = Math.cos(o.yaw), s = Math.sin(o.yaw);
+  function addFootprint(o, w, h) {
+    // The box's floor rectangle (size x, y turned by yaw about z) as a closed sub-path, in
+    // screen pixels: the corners (+-hx, +-hy) in the box frame, rotated, then scaled.
+    const v = state.view;
+    const c = Math.cos(o.yaw) * v.scale, s = Math.sin(o.yaw) * v.scale;
     const hx = o.size[0] / 2, hy = o.size[1] / 2;
-    return [[-hx, -hy], [hx, -hy], [hx, hy], [-hx, hy]].map(([a, b]) =>
-      [o.position[0] + c * a - s * b, o.position[1] + s * a + c * b]);
+    const cx = (o.position[0] - v.cx) * v.scale + w / 2, cy = h / 2 - (o.position[1] - v.cy) * v.scale;
+    ctx.moveTo(cx - c * hx + s * hy, cy + s * hx + c * hy);
+    ctx.lineTo(cx + c * hx + s * hy, cy - s * hx + c * hy);
+    ctx.lineTo(cx + c * hx - s * hy, cy - s * hx - c * hy);
+    ctx.lineTo(cx - c * hx - s * hy, cy + s * hx - c * hy);
+    ctx.closePath();
   }
 
   function draw() {
+    const started = performance.now();
+    drawScene();
+    state.timing.drawMs = performance.now() - started;
+  }
+
+  function drawScene() {
     const dpr = window.devicePixelRatio || 1;
     const { w, h } = size();
     if (canvas.width !== Math.round(w * dpr) || canvas.height !== Math.round(h * dpr)) {
@@ -194,26 +207,35 @@
       void robot;
     }
 
-    // Objects: their footprints in the category's colour, with an icon letter when big enough.
+    // Objects: their footprints in the category's colour (one path per category: 10,000
+    // objects cost a few fills, not 10,000), then icon letters where the box is big enough.
     const hits = new Set(state.results.map((o) => o.object_id));
-    ctx.lineWidth = 1;
-    ctx.textAlign = "center";
-    ctx.textBaseline = "middle";
+    const byCategory = new Map();
     for (const o of state.objects.values()) {
-      const pts = footprint(o).map((p) => toScreen(p[0], p[1]));
-      const colour = colourOf(o.category);
+      let list = byCategory.get(o.category);
+      if (!list) byCategory.set(o.category, (list = []));
+      list.push(o);
+    }
+    ctx.lineWidth = 1;
+    for (const [category, list] of byCategory) {
       ctx.beginPath();
-      ctx.moveTo(pts[0][0], pts[0][1]);
-      for (let k = 1; k < 4; k++) ctx.lineTo(pts[k][0], pts[k][1]);
-      ctx.closePath();
+      for (const o of list) addFootprint(o, w, h);
+      const colour = colourOf(category);
       ctx.globalAlpha = 0.55;
       ctx.fillStyle = colour;
       ctx.fill();
       ctx.globalAlpha = 1;
       ctx.strokeStyle = colour;
       ctx.stroke();
+    }
+    ctx.textAlign = "center";
+    ctx.textBaseline = "middle";
+    for (const o of state.objects.values()) {
       const px = Math.max(o.size[0], o.size[1]) * state.view.scale;
+      const marked = hits.has(o.object_id) || o.object_id === state.selected;
+      if (px < 20 && !marked) continue;
       const [sx, sy] = toScreen(o.position[0], o.position[1]);
+      const colour = colourOf(o.category);
       if (px >= 20) {  // the icon: a badge a third of the box, so its footprint stays visible
         const r = Math.min(px / 6, 11);
         ctx.beginPath();
@@ -226,7 +248,7 @@
         ctx.font = `bold ${Math.round(r)}px system-ui, sans-serif`;
         ctx.fillText(ABBREV[o.category] || o.category.slice(0, 2), sx, sy + 0.5);
       }
-      if (hits.has(o.object_id) || o.object_id === state.selected) {
+      if (marked) {
         ctx.beginPath();
         ctx.arc(sx, sy, Math.max(10, px / 2 + 4), 0, 2 * Math.PI);
         ctx.lineWidth = 3;
@@ -333,21 +355,30 @@
   }
 
   async function loadSnapshot() {
+    const started = performance.now();
     state.loading = true;
     const total = await loadCategories();
     const offsets = [];
     for (let k = 0; k === 0 || k < total; k += PAGE) offsets.push(k);
-    const pages = await Promise.all(offsets.map((k) => getJson(`/v1/objects?limit=${PAGE}&offset=${k}`)));
+    // format=compact: what the floor view draws (the detail and search read whole objects).
+    const pageAt = (k) => getJson(`/v1/objects?format=compact&limit=${PAGE}&offset=${k}`);
+    const pages = await Promise.all(offsets.map(pageAt));
     let next = pages[pages.length - 1].next_offset;
     while (next !== null) {  // objects added since the count
-      const page = await getJson(`/v1/objects?limit=${PAGE}&offset=${next}`);
+      const page = await pageAt(next);
       pages.push(page);
       next = page.next_offset;
     }
     const objects = new Map();
     let zSum = 0;
-    for (const page of pages) for (const o of page.objects) { objects.set(o.object_id, o); zSum += o.position[2]; }
+    for (const page of pages) {
+      for (const [id, category, x, y, z, yaw, sx, sy, sz] of page.rows) {
+        objects.set(id, { object_id: id, category, position: [x, y, z], yaw, size: [sx, sy, sz] });
+        zSum += z;
+      }
+    }
     state.objects = objects;
+    state.timing.snapshotMs = performance.now() - started;
     if (objects.size) state.meanZ = zSum / objects.size;
     state.loading = false;
     for (const u of state.pending.splice(0)) applyUpdate(u);

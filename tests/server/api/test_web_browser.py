@@ -122,7 +122,7 @@ def coloured_pixels(page: Any, category: str, x: float, y: float, size_m: float)
     category's colour."""
     p = screen(page, x, y)
     scale = page.evaluate("wardmap.state.view.scale")
-    return int(page.evaluate(COLOURED_PIXELS, [category, p["x"], p["y"], max(4.0, size_m * scale / 2)]))
+    return int(page.evaluate(COLOURED_PIXELS, [category, p["x"], p["y"], max(2.0, size_m * scale / 2)]))
 
 
 def shot(page: Any, tmp_path: Path, name: str) -> None:
@@ -148,6 +148,11 @@ def test_page_draws_robots_objects_and_trajectories(
         assert page.locator("#live").inner_text() == "live"
         for _, category, x, y, _, size in webscene.OBJECTS:
             assert coloured_pixels(page, category, x, y, max(size[:2])) > 10, (category, x, y)
+        # The bed (2 m x 1 m) is turned by +0.5 rad: 0.9 m along its x axis is bed, the mirror
+        # image of that point (turned by -0.5 rad) is floor.
+        a = webscene.BED_YAW
+        assert coloured_pixels(page, "bed", 5.0 + 0.9 * np.cos(a), 2.0 + 0.9 * np.sin(a), 0.0) > 0
+        assert coloured_pixels(page, "bed", 5.0 + 0.9 * np.cos(a), 2.0 - 0.9 * np.sin(a), 0.0) == 0
         shot(page, tmp_path, "floor")
         assert watch.outside == [] and watch.errors == []
     finally:

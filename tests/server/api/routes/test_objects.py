@@ -260,4 +260,19 @@ def test_unknown_format_is_400(object_client: TestClient) -> None:
     for fmt in ("csv", "GEOJSON", ""):
         resp = object_client.get("/v1/objects", params={"format": fmt})
         assert resp.status_code == 400, fmt
-        assert resp.json()["detail"] == f"unknown format {fmt!r}: expected one of json, geojson"
+        assert resp.json()["detail"] == f"unknown format {fmt!r}: expected one of json, geojson, compact"
+
+
+def test_compact_rows_are_the_objects_rounded(object_client: TestClient) -> None:
+    """``format=compact`` (the web page's map) gives, per object of the same filtered page,
+    id, category, centre, yaw and size rounded to 1 mm / 1 mrad, in ``columns`` order."""
+    params = {"near": "1,0,0.5", "limit": "3"}
+    full = object_client.get("/v1/objects", params=params).json()
+    compact = object_client.get("/v1/objects", params={**params, "format": "compact"}).json()
+    assert compact["columns"] == ["object_id", "category", "x", "y", "z", "yaw", "size_x", "size_y", "size_z"]
+    assert full["next_offset"] == 3
+    assert (compact["limit"], compact["offset"], compact["next_offset"]) == (3, 0, 3)
+    for row, o in zip(compact["rows"], full["objects"], strict=True):
+        assert row[:2] == [o["object_id"], o["category"]]
+        assert np.allclose(row[2:], [*o["position"], o["yaw"], *o["size"]], atol=5e-4, rtol=0)
+        assert all(round(v, 3) == v for v in row[2:])
