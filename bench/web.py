@@ -27,6 +27,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -41,7 +42,7 @@ from wardmap.shared.se3 import yaw_transform
 GOAL_MS = 1000.0
 
 
-def serve(url: str) -> tuple[str, MapServer, object, threading.Thread]:
+def serve(url: str) -> tuple[str, MapServer, Any, threading.Thread]:
     import uvicorn
 
     root = MapServer(url)
@@ -119,7 +120,7 @@ def main() -> int:
                     time.sleep(0.2)
                 browser.close()
         finally:
-            server.should_exit = True  # type: ignore[attr-defined]
+            server.should_exit = True
             thread.join(15)
     version = chromium_version(chromium)
     body = "\n".join([

@@ -161,7 +161,8 @@ def test_page_draws_robots_objects_and_trajectories(
 
 def test_nearest_door_from_a_clicked_point(browser: Any, ward: tuple[str, MapServer], tmp_path: Path) -> None:
     """Clicking the floor at (4, 4) and searching doors lists door 2 (6, 5) first, about 2.2 m
-    away, then door 1 (0, 5) and door 3; the bed (5, 2), nearer, is not a door."""
+    away, then door 1 (0, 5) and door 3; the bed (5, 2), nearer, is not a door. From robot
+    r1's position instead, door 3 comes first."""
     base, _ = ward
     ctx, page, watch = open_page(browser, base)
     try:
@@ -174,10 +175,16 @@ def test_nearest_door_from_a_clicked_point(browser: Any, ward: tuple[str, MapSer
         items = page.locator("#results li[data-object-id]")
         assert [items.nth(i).get_attribute("data-object-id") for i in range(items.count())] == ["2", "1", "3"]
         first = items.nth(0).inner_text()
-        distance_m = float(re.search(r"([0-9.]+) m", first).group(1))  # type: ignore[union-attr]
+        found = re.search(r"([0-9.]+) m", first)
+        assert found is not None, first
+        distance_m = float(found.group(1))
         # On the floor sqrt(2^2 + 1^2); the search point sits at the objects' mean height (0.75 m).
         assert "door #2" in first and "last seen" in first and abs(distance_m - 2.25) <= 0.1
         shot(page, tmp_path, "search")
+        # From robot r1's position, (10, 0) at 1.2 m: door 3 at (12, 5) is nearest.
+        page.select_option("#origin", "robot:r1")
+        page.click("#search-form button[type=submit]")
+        page.wait_for_selector("#results li[data-object-id='3']:first-child")
         assert watch.outside == [] and watch.errors == []
     finally:
         ctx.close()
