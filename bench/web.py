@@ -138,6 +138,10 @@ def main() -> int:
         f"| of which: one frame drawing every object | {len(draws)} | {stats(draws)} |",
         f"| live update: write started to the frame that draws it | {len(latencies)} | {stats(latencies)} |",
         "",
+        "Most of the first paint is the object pages: the server reads 10,000 objects from SQLite "
+        "and encodes them on its one event-loop thread (`bench/api.py` times the same queries); drawing "
+        "them is one frame.",
+        "",
         f"Machine: {machine()}; commit {git_rev()}; 1-min load average {load_before:.1f} before (a shared "
         "host: upper bounds).",
     ])

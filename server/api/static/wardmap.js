@@ -56,7 +56,9 @@
   }
   const token = sessionStorage.getItem(TOKEN_KEY);
 
-  class HttpError extends Error {}
+  class HttpError extends Error {}     // the server answered with an error status
+  class NetworkError extends Error {}  // no answer: the server is down or unreachable
+  const expected = (err) => err instanceof HttpError || err instanceof NetworkError;
 
   function banner(text) {
     const b = $("banner");
@@ -67,10 +69,15 @@
   async function api(path, options = {}) {
     const headers = Object.assign({ Accept: "application/json" }, options.headers || {});
     if (token) headers.Authorization = "Bearer " + token;
-    const resp = await fetch(path, Object.assign({}, options, { headers }));
+    let resp;
+    try {
+      resp = await fetch(path, Object.assign({}, options, { headers }));
+    } catch (err) {
+      throw new NetworkError(path + ": " + err.message);
+    }
     if (resp.status === 401 || resp.status === 403) {
-      banner("This server needs an access token: open the page as " + location.pathname + "#token=YOUR_TOKEN");
-      throw new HttpError(path + ": HTTP " + resp.status);
+      throw new HttpError(`${path}: HTTP ${resp.status}: ` + (token ? "the server refused this page's token; open"
+        : "this server needs an access token: open") + ` the page as ${location.pathname}#token=YOUR_TOKEN`);
     }
     if (!resp.ok) throw new HttpError(path + ": HTTP " + resp.status);
     return resp;
@@ -396,12 +403,27 @@
   function onEvent(name, data) {
     if (name === "ready") {
       setLive(true);
-      loadSnapshot().catch(failed);
+      snapshotUntilLoaded();
     } else if (name === "update") {
       const u = JSON.parse(data);
       if (state.loading) state.pending.push(u); else { applyUpdate(u); counts(); }
     }
     // "resync": the server ends the stream next; the loop reconnects and reloads.
+  }
+
+  async function snapshotUntilLoaded() {
+    // Updates wait in `pending` until a snapshot loads, so a failed one is retried.
+    for (let wait = 1000; ; wait = Math.min(2 * wait, 10000)) {
+      try {
+        await loadSnapshot();
+        banner("");
+        return;
+      } catch (err) {
+        if (!expected(err)) throw err;
+        banner("Cannot load the map (" + err.message + "); retrying.");
+      }
+      await sleep(wait);
+    }
   }
 
   function setLive(on) {
@@ -420,9 +442,19 @@
         const reader = resp.body.pipeThrough(new TextDecoderStream()).getReader();
         let buf = "";
         for (;;) {
-          const { value, done } = await reader.read();
+          let chunk;
+          try {
+            chunk = await reader.read();
+          } catch (err) {
+            throw new NetworkError("/v1/events: " + err.message);
+          }
+          const { value, done } = chunk;
           if (done) break;
-          buf += value.replace(/\r\n?/g, "\n");
+          buf += value;
+          if (buf.includes("\r")) {  // CR LF or CR ends a line too; a CR at the end may precede an LF
+            const tail = buf.endsWith("\r") ? "\r" : "";
+            buf = buf.slice(0, buf.length - tail.length).replace(/\r\n?/g, "\n") + tail;
+          }
           let end;
           while ((end = buf.indexOf("\n\n")) >= 0) {
             const block = buf.slice(0, end);
@@ -442,7 +474,7 @@
           }
         }
       } catch (err) {
-        if (!(err instanceof HttpError) && !(err instanceof TypeError)) throw err;
+        if (!expected(err)) throw err;
       }
       setLive(false);
       await sleep(backoff);
@@ -491,8 +523,8 @@
       try {
         await pollRobots();
       } catch (err) {
-        if (err instanceof HttpError) banner(err.message);
-        else if (!(err instanceof TypeError)) throw err;  // TypeError: the server is unreachable
+        if (!expected(err)) throw err;
+        banner(err.message);
       }
       await sleep(ROBOT_POLL_MS);
     }
@@ -673,7 +705,7 @@
   window.addEventListener("resize", () => redraw());
 
   function failed(err) {
-    if (err instanceof HttpError) { banner(err.message); return; }
+    if (expected(err)) { banner(err.message); return; }
     throw err;
   }
 

@@ -254,6 +254,24 @@ def test_token_is_sent_and_kept_out_of_the_address(browser: Any, ward: tuple[str
         ctx.close()
 
 
+def test_refused_token_is_explained(browser: Any, ward: tuple[str, MapServer]) -> None:
+    """When the data routes answer 401 (a server that wants a token, emulated in the browser),
+    the page says how to give one and keeps running (no uncaught error)."""
+    base, _ = ward
+    ctx, page, watch = open_page(browser, base, "/static/favicon.svg")  # a page that loads nothing
+    ctx.route(f"{base}/v1/**", lambda r: r.fulfill(status=401, json={"detail": "unauthorized"}))
+    try:
+        page.goto(base + "/")
+        page.wait_for_selector("#banner:not([hidden])")
+        assert "#token=YOUR_TOKEN" in page.locator("#banner").inner_text()
+        assert page.locator("#live").inner_text() == "reconnecting"
+        assert watch.outside == []
+        # The browser logs each 401 response as a console error; nothing else may appear.
+        assert all("401" in e for e in watch.errors), watch.errors
+    finally:
+        ctx.close()
+
+
 @pytest.mark.parametrize(("path", "selector"), [("/docs", ".swagger-ui .info .title"), ("/redoc", "h1")])
 def test_api_docs_work_offline(browser: Any, ward: tuple[str, MapServer], tmp_path: Path,
                                path: str, selector: str) -> None:
