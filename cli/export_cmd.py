@@ -1,4 +1,4 @@
-"""``wardmap export``: write the object map (and the robots' paths) as GeoJSON."""
+"""``wardmap export``: write the object map as GeoJSON (with robot paths) or PLY (with a point cloud)."""
 
 from __future__ import annotations
 
@@ -17,7 +17,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     p.add_argument("source", metavar="SOURCE", help="sqlite:///PATH of a server, or a `wardmap map` output")
     p.add_argument(
-        "--format", choices=("geojson",), default="geojson", help="output format (default geojson)"
+        "--format", choices=("geojson", "ply"), default="geojson",
+        help="geojson (default): objects and map trajectories; ply: object boxes and the keyframes' "
+        "depth as a coloured point cloud (extra `export`)",
     )
     p.add_argument("--out", required=True, metavar="FILE", help="the file to write (replaced)")
     p.add_argument(

@@ -74,8 +74,8 @@ def test_bad_sources(tmp_path: Path) -> None:
     (tmp_path / "landmarks.json").write_text('{"landmarks": [{"id": 1}]}')
     with pytest.raises(ExportError, match=r"landmarks\[0\]"):
         export(str(tmp_path), tmp_path / "o.geojson")
-    with pytest.raises(ExportError, match="unknown format 'ply'"):
-        export(str(tmp_path), tmp_path / "o.ply", fmt="ply")
+    with pytest.raises(ExportError, match="unknown format 'rrd'"):
+        export(str(tmp_path), tmp_path / "o.rrd", fmt="rrd")
     assert not (tmp_path / "o.geojson").exists()
 
 
@@ -90,3 +90,55 @@ def test_cli_exports_and_fails_in_one_line(tmp_path: Path) -> None:
                                                      "trajectories": 1}
     one_line_error(wardmap("export", str(tmp_path / "none"), "--out", str(tmp_path / "x.geojson")),
                    "cannot read", "export")
+
+
+def test_server_database_to_ply(tmp_path: Path) -> None:
+    """One anchored keyframe sees a flat wall 2 m ahead (the camera looks along the map's +x);
+    one floating keyframe is not fused. The PLY (read back with trimesh) holds the red box's 8
+    corners and 12 triangles in its colour, then 48 wall points (every 4th of the 32 x 24 depth
+    pixels, 0.32 m apart, so the 5 cm voxels keep each) on the plane x = 2 m, in the image's
+    colours."""
+    import dataclasses
+
+    import factories
+    import trimesh
+
+    from wardmap.server.store import GraphChange, GraphNodeRow, SessionAnchor
+    from wardmap.shared import wire
+
+    url = f"sqlite:///{tmp_path / 'map.db'}"
+    T = webscene.camera_at(0.0, 0.0)
+    wall = wire.PackedRaster(*wire.encode_depth(np.full((factories.H // 2, factories.W // 2), 2.0)))
+    base = dataclasses.replace(factories.keyframe(np.random.default_rng(3)), depth=wall, T_odom_camera=T)
+    with open_store(url) as store:
+        for robot in ("r1", "r2"):
+            msg = dataclasses.replace(base, robot_id=robot)
+            assert store.insert(msg, wire.encode(msg), 10.0) == "stored"
+        store.commit_graph("backend", 2, GraphChange(
+            [GraphNodeRow(("r1", "s1", 0), base.stamp, T, "rgb", T, None, b""),
+             GraphNodeRow(("r2", "s1", 0), base.stamp, T, "rgb", None, None, b"")],
+            sessions=[SessionAnchor("r1", "s1", np.eye(4), 11.0, "r1/s1", 1)]))
+        ObjectMap(store).upsert([ObjectState(1, "cabinet", 0.9, yaw_transform(3.0, 1.0, 0.3, 0.5),
+                                             np.array([1.0, 0.5, 1.0]), color_rgb=(200.0, 20.0, 10.0))])
+    out = tmp_path / "map.ply"
+    assert export(url, out, fmt="ply") == {"objects": 1, "points": 48, "keyframes": 1, "keyframes_skipped": 0}
+    mesh = trimesh.load(out, process=False)
+    assert len(mesh.vertices) == 8 + 48 and len(mesh.faces) == 12
+    assert np.allclose(mesh.vertices[:8].mean(axis=0), [3.0, 1.0, 0.5])
+    assert (mesh.visual.vertex_colors[:8, :3] == [200, 20, 10]).all()
+    assert np.allclose(mesh.vertices[8:, 0], 2.0)
+    rgb = mesh.visual.vertex_colors[8:, :3].astype(int)
+    assert len({tuple(c) for c in rgb}) > 10  # the noise image's colours, not one flat colour
+    with pytest.raises(ExportError, match="needs a server database"):
+        export(str(tmp_path), tmp_path / "x.ply", fmt="ply")
+
+
+def test_ply_without_the_extra_says_what_to_install(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Without trimesh (the ``export`` extra) the PLY export is one clear error, before it
+    reads anything or writes a file."""
+    import sys
+
+    monkeypatch.setitem(sys.modules, "trimesh", None)  # import trimesh now raises ImportError
+    with pytest.raises(ExportError, match=r"pip install 'wardmap\[export\]'"):
+        export(f"sqlite:///{tmp_path / 'map.db'}", tmp_path / "m.ply", fmt="ply")
+    assert not list(tmp_path.iterdir())
