@@ -74,7 +74,7 @@ def open_page(browser: Any, base: str, path: str = "/", **context: Any) -> tuple
     """A new context and page at ``base + path``: requests to any host but ``base``'s are
     aborted and recorded, console errors and page errors recorded."""
     watch = Watch()
-    ctx = browser.new_context(viewport={"width": 1200, "height": 800}, **context)
+    ctx = browser.new_context(**{"viewport": {"width": 1200, "height": 800}, **context})
     host = urlsplit(base).netloc
 
     def route(r: Any) -> None:
@@ -250,6 +250,27 @@ def test_token_is_sent_and_kept_out_of_the_address(browser: Any, ward: tuple[str
         assert all(r.headers.get("authorization") == "Bearer abc" for r in data), [
             (r.url, r.headers.get("authorization")) for r in data]
         assert watch.errors == []
+    finally:
+        ctx.close()
+
+
+def test_tablet_portrait_layout(browser: Any, ward: tuple[str, MapServer], tmp_path: Path) -> None:
+    """On a portrait tablet (768 x 1024, touch) the panel moves below the floor view, nothing
+    is wider than the screen, and a tap on the floor sets the search point."""
+    base, _ = ward
+    ctx, page, watch = open_page(browser, base, viewport={"width": 768, "height": 1024}, has_touch=True,
+                                 is_mobile=True, device_scale_factor=2)
+    try:
+        ready(page)
+        floor = page.locator("#floor").bounding_box()
+        panel = page.locator("aside").bounding_box()
+        assert floor is not None and panel is not None
+        assert panel["y"] >= floor["y"] + floor["height"] - 1 and floor["height"] >= 400
+        assert page.evaluate("document.documentElement.scrollWidth") <= 768
+        page.locator("#map").tap(position=screen(page, 4.0, 4.0))
+        assert page.locator("#origin-point").inner_text().startswith("Point (")
+        shot(page, tmp_path, "tablet")
+        assert watch.outside == [] and watch.errors == []
     finally:
         ctx.close()
 
