@@ -17,9 +17,10 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     p.add_argument("source", metavar="SOURCE", help="sqlite:///PATH of a server, or a `wardmap map` output")
     p.add_argument(
-        "--format", choices=("geojson", "ply"), default="geojson",
+        "--format", choices=("geojson", "ply", "rrd"), default="geojson",
         help="geojson (default): objects and map trajectories; ply: object boxes and the keyframes' "
-        "depth as a coloured point cloud (extra `export`)",
+        "depth as a coloured point cloud (extra `export`); rrd: a Rerun recording of keyframes, paths "
+        "and objects over time (extra `rerun`)",
     )
     p.add_argument("--out", required=True, metavar="FILE", help="the file to write (replaced)")
     p.add_argument(

@@ -16,6 +16,11 @@ Formats:
   colour, grey when unknown) and whose remaining vertices, after the boxes', are a coloured
   point cloud: the depth of every keyframe with a map pose, every :data:`PLY_STRIDE`-th depth
   pixel, back-projected with its colour and thinned to one point per :data:`PLY_VOXEL_M` voxel.
+- ``rrd`` (a server database only; the ``rerun`` extra, rerun-sdk): a Rerun recording, map
+  frame z up. Timeline ``time`` (Unix seconds): each anchored keyframe's camera
+  (``map/robots/<id>/camera``: its pose, pinhole and colour JPEG) at its capture stamp, each
+  object's box (``map/objects/<id>``) from the server time it was first seen; static: each
+  robot's map trajectory (``map/robots/<id>/path``).
 
 The file is written to a temporary name beside ``out`` and renamed, so a failed export leaves
 no partial file.
@@ -45,9 +50,10 @@ log = logging.getLogger(__name__)
 
 __all__ = [
     "FORMATS", "ExportError", "export", "keyframe_points", "landmarks_geojson", "store_geojson", "store_ply",
+    "store_rrd",
 ]
 
-FORMATS: Final = ("geojson", "ply")
+FORMATS: Final = ("geojson", "ply", "rrd")
 PLY_STRIDE: Final = 4
 """Every this-th depth pixel along each axis goes into the point cloud."""
 PLY_VOXEL_M: Final = 0.05
@@ -232,6 +238,63 @@ def store_ply(db_url: str, out: Path, *, include_unconfirmed: bool = False) -> d
     return {"objects": len(records), "points": len(points), "keyframes": fused, "keyframes_skipped": skipped}
 
 
+def store_rrd(db_url: str, out: Path, *, include_unconfirmed: bool = False) -> dict[str, int]:
+    """Write the Rerun recording of the module docstring from a server database; returns the
+    counts ``objects``, ``keyframes`` (logged) and ``trajectories``."""
+    try:
+        import rerun as rr
+    except ImportError as exc:
+        raise ExportError("--format rrd needs rerun-sdk: pip install 'wardmap[rerun]'") from exc
+    _check_db(db_url)
+    tmp = out.with_name(out.name + ".part")
+    rec = rr.RecordingStream("wardmap")
+    try:
+        rec.save(str(tmp))
+        rec.log("map", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        with open_store(db_url) as store:
+            records = _map_objects(store, include_unconfirmed)
+            nodes, _ = store.graph_records()
+            anchored = sorted([(n, T) for n in nodes if (T := n.T_map_camera) is not None],
+                              key=lambda pair: pair[0].stamp)
+            for node, T in anchored:
+                camera = f"map/robots/{node.key[0]}/camera"
+                rec.set_time("time", timestamp=node.stamp)
+                rec.log(camera, rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]))
+                payload = store.payload(*node.key)
+                if payload is None:
+                    continue
+                msg = wire.decode_keyframe(payload)
+                i = msg.intrinsics
+                if i is not None:  # rerun's default camera axes are ours: x right, y down, z forward
+                    pinhole = rr.Pinhole(focal_length=[i.fx, i.fy], principal_point=[i.cx, i.cy],
+                                         width=i.width, height=i.height)
+                    rec.log(f"{camera}/image", pinhole)
+                rec.log(f"{camera}/image", rr.EncodedImage(contents=msg.rgb_jpeg, media_type="image/jpeg"))
+            robots = [r.robot_id for r in store.robots()]
+            paths = 0
+            for robot in robots:
+                _, T_map_camera = store.map_trajectory(robot)
+                if len(T_map_camera) > 1:
+                    path = rr.LineStrips3D([T_map_camera[:, :3, 3]])
+                    rec.log(f"map/robots/{robot}/path", path, static=True)
+                    paths += 1
+        for r in records:
+            rec.set_time("time", timestamp=r.first_seen_s)
+            rgb = _GREY if r.color_rgb is None else tuple(round(c) for c in r.color_rgb)
+            box = rr.Boxes3D(centers=[r.position], half_sizes=[[s / 2 for s in r.size]],
+                             quaternions=[rr.Quaternion(xyzw=r.q_xyzw)],
+                             labels=[f"{r.category} {r.object_id}"], colors=[rgb])
+            rec.log(f"map/objects/{r.object_id}", box)
+        rec.flush()
+        rec.disconnect()
+        os.replace(tmp, out)
+    except OSError as exc:
+        raise ExportError(f"cannot write {out}: {exc.strerror or exc}") from exc
+    finally:
+        tmp.unlink(missing_ok=True)
+    return {"objects": len(records), "keyframes": len(anchored), "trajectories": paths}
+
+
 def _check_db(db_url: str) -> None:
     path = db_url[len(SQLITE_SCHEME):].partition("?")[0] if db_url.startswith(SQLITE_SCHEME) else None
     if path is not None and not Path(path).is_file():
@@ -255,8 +318,9 @@ def export(
     ``out`` in ``fmt``.
 
     Returns:
-        the counts written: ``{"objects", "trajectories"}`` (geojson) or ``{"objects", "points",
-        "keyframes", "keyframes_skipped"}`` (ply).
+        the counts written: ``{"objects", "trajectories"}`` (geojson), ``{"objects", "points",
+        "keyframes", "keyframes_skipped"}`` (ply) or ``{"objects", "keyframes", "trajectories"}``
+        (rrd).
 
     Raises:
         ExportError: unknown format, unreadable source, a missing extra, or ``out`` cannot be
@@ -264,11 +328,12 @@ def export(
     """
     if fmt not in FORMATS:
         raise ExportError(f"unknown format {fmt!r}: expected one of {', '.join(FORMATS)}")
-    if fmt == "ply":
+    if fmt in ("ply", "rrd"):
         if not source.startswith(SQLITE_SCHEME):
-            raise ExportError("--format ply needs a server database (sqlite:///PATH): "
-                              "a map output has no depth")
-        return store_ply(source, Path(out), include_unconfirmed=include_unconfirmed)
+            raise ExportError(f"--format {fmt} needs a server database (sqlite:///PATH): "
+                              "a map output has no keyframes")
+        writer = store_ply if fmt == "ply" else store_rrd
+        return writer(source, Path(out), include_unconfirmed=include_unconfirmed)
     if source.startswith(SQLITE_SCHEME):
         doc = store_geojson(source, include_unconfirmed=include_unconfirmed)
     else:

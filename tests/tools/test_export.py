@@ -74,8 +74,8 @@ def test_bad_sources(tmp_path: Path) -> None:
     (tmp_path / "landmarks.json").write_text('{"landmarks": [{"id": 1}]}')
     with pytest.raises(ExportError, match=r"landmarks\[0\]"):
         export(str(tmp_path), tmp_path / "o.geojson")
-    with pytest.raises(ExportError, match="unknown format 'rrd'"):
-        export(str(tmp_path), tmp_path / "o.rrd", fmt="rrd")
+    with pytest.raises(ExportError, match="unknown format 'obj'"):
+        export(str(tmp_path), tmp_path / "o.obj", fmt="obj")
     assert not (tmp_path / "o.geojson").exists()
 
 
@@ -133,12 +133,42 @@ def test_server_database_to_ply(tmp_path: Path) -> None:
         export(str(tmp_path), tmp_path / "x.ply", fmt="ply")
 
 
-def test_ply_without_the_extra_says_what_to_install(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Without trimesh (the ``export`` extra) the PLY export is one clear error, before it
-    reads anything or writes a file."""
+@pytest.mark.parametrize(("fmt", "module", "extra"),
+                         [("ply", "trimesh", "export"), ("rrd", "rerun", "rerun")])
+def test_without_the_extra_says_what_to_install(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, fmt: str, module: str, extra: str
+) -> None:
+    """Without its extra's package the PLY or RRD export is one clear error, before it reads
+    anything or writes a file."""
     import sys
 
-    monkeypatch.setitem(sys.modules, "trimesh", None)  # import trimesh now raises ImportError
-    with pytest.raises(ExportError, match=r"pip install 'wardmap\[export\]'"):
-        export(f"sqlite:///{tmp_path / 'map.db'}", tmp_path / "m.ply", fmt="ply")
+    monkeypatch.setitem(sys.modules, module, None)  # importing it now raises ImportError
+    with pytest.raises(ExportError, match=rf"pip install 'wardmap\[{extra}\]'"):
+        export(f"sqlite:///{tmp_path / 'map.db'}", tmp_path / f"m.{fmt}", fmt=fmt)
     assert not list(tmp_path.iterdir())
+
+
+def test_server_database_to_rerun_recording(tmp_path: Path) -> None:
+    """The ward as a Rerun recording, read back with rerun's own reader: r1's 6 anchored
+    keyframes as camera poses and JPEG images on the ``time`` timeline, its path (static), each
+    of the 5 objects as a box; r2, not anchored, logs nothing."""
+    from rerun.chunk import RrdReader
+
+    url = f"sqlite:///{tmp_path / 'map.db'}"
+    webscene.fill_ward(url)
+    out = tmp_path / "map.rrd"
+    assert export(url, out, fmt="rrd") == {"objects": 5, "keyframes": 6, "trajectories": 1}
+    rows: dict[str, int] = {}
+    columns: dict[str, set[str]] = {}
+    for chunk in RrdReader(out).stream().to_chunks():
+        rows[chunk.entity_path] = rows.get(chunk.entity_path, 0) + chunk.num_rows
+        columns.setdefault(chunk.entity_path, set()).update(chunk.to_record_batch().schema.names)
+    camera = "/map/robots/r1/camera"
+    assert rows[camera] == 6 and "Transform3D:translation" in columns[camera]
+    assert {"EncodedImage:blob", "Pinhole:image_from_camera", "time"} <= columns[f"{camera}/image"]
+    assert rows["/map/robots/r1/path"] == 1
+    objects = sorted(p for p in rows if p.startswith("/map/objects/"))
+    assert objects == [f"/map/objects/{i}" for i in range(1, 6)]
+    assert "Boxes3D:half_sizes" in columns["/map/objects/4"]
+    assert not [p for p in rows if p.startswith("/map/robots/r2")]
+    assert not list(tmp_path.glob("*.part"))
