@@ -89,7 +89,8 @@ def main() -> int:
         latencies: list[float] = []
         try:
             with sync_playwright() as p:
-                browser = p.chromium.launch(executable_path=chromium, args=["--no-sandbox"])
+                browser = p.chromium.launch(executable_path=chromium,
+                                            args=["--no-sandbox", "--disable-dev-shm-usage"])
                 for _ in range(args.loads):
                     ctx = browser.new_context(viewport={"width": 1280, "height": 800})
                     page = ctx.new_page()

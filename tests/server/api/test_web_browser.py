@@ -45,8 +45,9 @@ def browser() -> Iterator[Any]:
             pytest.fail("no chromium on PATH: scripts/test.sh installs Debian's chromium")
         pytest.skip("no chromium on PATH (apt-get install chromium)")
     with sync_playwright() as p:
-        # --no-sandbox: CI runs as root, where Chromium's sandbox refuses to start.
-        b = p.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"])
+        # --no-sandbox: CI runs as root, where Chromium's sandbox refuses to start; a container's
+        # small /dev/shm makes it crash unless it keeps shared memory in /tmp.
+        b = p.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox", "--disable-dev-shm-usage"])
         try:
             yield b
         finally:
