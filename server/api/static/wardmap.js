@@ -97,6 +97,10 @@
   }
   const when = (s) => new Date(s * 1000).toLocaleString();
   const label = (name) => name.replace(/_/g, " ");
+  const robotColour = (id) => {
+    const i = state.robots.findIndex((r) => r.robot_id === id);
+    return PALETTE[((i < 0 ? 0 : i) * 3 + 1) % PALETTE.length];
+  };
   const colourOf = (name) => {
     const i = state.categories.indexOf(name);
     return PALETTE[(i < 0 ? 0 : i) % PALETTE.length];
@@ -191,10 +195,9 @@
     ctx.clearRect(0, 0, w, h);
     drawGrid(w, h);
 
-    // Trajectories and their keyframes.
-    let i = 0;
+    // Trajectories and their keyframes, each robot in its own colour.
     for (const [robot, t] of state.trajectories) {
-      const colour = PALETTE[(i++ * 3 + 1) % PALETTE.length];
+      const colour = robotColour(robot);
       ctx.strokeStyle = colour;
       ctx.fillStyle = colour;
       ctx.lineWidth = 1.5;
@@ -210,8 +213,6 @@
         ctx.fillRect(sx - 1.5, sy - 1.5, 3, 3);
       }
       ctx.globalAlpha = 1;
-      t.colour = colour;
-      void robot;
     }
 
     // Objects: their footprints in the category's colour (one path per category: 10,000
@@ -282,7 +283,7 @@
       ctx.closePath();
       ctx.lineWidth = 2;
       ctx.strokeStyle = "#1d2430";
-      ctx.fillStyle = r.anchored ? "#2a9d8f" : "#fff";
+      ctx.fillStyle = r.anchored ? robotColour(r.robot_id) : "#fff";
       ctx.fill();
       ctx.stroke();
       ctx.restore();
