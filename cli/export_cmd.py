@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import json
 
+from wardmap.cli.progress import Progress
+
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
@@ -32,6 +34,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 def run(args: argparse.Namespace) -> int:
     from wardmap.tools.export import export
 
-    summary = export(args.source, args.out, fmt=args.format, include_unconfirmed=args.include_unconfirmed)
+    with Progress("keyframes") as bar:
+        summary = export(args.source, args.out, fmt=args.format, include_unconfirmed=args.include_unconfirmed,
+                         progress=bar.update)
     print(json.dumps({"out": args.out, **summary}), flush=True)
     return 0

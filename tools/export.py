@@ -32,6 +32,7 @@ import json
 import logging
 import math
 import os
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Final
 
@@ -54,6 +55,8 @@ __all__ = [
 ]
 
 FORMATS: Final = ("geojson", "ply", "rrd")
+Progress = Callable[[str, int, int], None]
+"""``progress(task, done, total)``: called as keyframes are written (PLY, RRD)."""
 PLY_STRIDE: Final = 4
 """Every this-th depth pixel along each axis goes into the point cloud."""
 PLY_VOXEL_M: Final = 0.05
@@ -183,10 +186,11 @@ def _voxel_thin(points: np.ndarray, colours: np.ndarray, voxel_m: float) -> tupl
     return points[first], colours[first]
 
 
-def store_ply(db_url: str, out: Path, *, include_unconfirmed: bool = False) -> dict[str, int]:
+def store_ply(db_url: str, out: Path, *, include_unconfirmed: bool = False,
+              progress: Progress | None = None) -> dict[str, int]:
     """Write the PLY of the module docstring from a server database; returns the counts
     ``objects``, ``points``, ``keyframes`` (fused) and ``keyframes_skipped`` (no intrinsics
-    or unreadable)."""
+    or unreadable). ``progress("ply", done, total)`` after each keyframe."""
     try:
         import trimesh
     except ImportError as exc:
@@ -206,7 +210,9 @@ def store_ply(db_url: str, out: Path, *, include_unconfirmed: bool = False) -> d
             n_vertices += len(box.vertices)
         nodes, _ = store.graph_records()
         cloud, cloud_rgb, fused, skipped = [], [], 0, 0
-        for node in nodes:
+        for k, node in enumerate(nodes, 1):
+            if progress is not None:
+                progress("ply", k, len(nodes))
             if node.T_map_camera is None:
                 continue
             payload = store.payload(*node.key)
@@ -238,9 +244,11 @@ def store_ply(db_url: str, out: Path, *, include_unconfirmed: bool = False) -> d
     return {"objects": len(records), "points": len(points), "keyframes": fused, "keyframes_skipped": skipped}
 
 
-def store_rrd(db_url: str, out: Path, *, include_unconfirmed: bool = False) -> dict[str, int]:
+def store_rrd(db_url: str, out: Path, *, include_unconfirmed: bool = False,
+              progress: Progress | None = None) -> dict[str, int]:
     """Write the Rerun recording of the module docstring from a server database; returns the
-    counts ``objects``, ``keyframes`` (logged) and ``trajectories``."""
+    counts ``objects``, ``keyframes`` (logged) and ``trajectories``. ``progress("rrd", done,
+    total)`` after each keyframe."""
     try:
         import rerun as rr
     except ImportError as exc:
@@ -256,7 +264,9 @@ def store_rrd(db_url: str, out: Path, *, include_unconfirmed: bool = False) -> d
             nodes, _ = store.graph_records()
             anchored = sorted([(n, T) for n in nodes if (T := n.T_map_camera) is not None],
                               key=lambda pair: pair[0].stamp)
-            for node, T in anchored:
+            for k, (node, T) in enumerate(anchored, 1):
+                if progress is not None:
+                    progress("rrd", k, len(anchored))
                 camera = f"map/robots/{node.key[0]}/camera"
                 rec.set_time("time", timestamp=node.stamp)
                 rec.log(camera, rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]))
@@ -312,7 +322,8 @@ def _write(out: Path, data: bytes) -> None:
 
 
 def export(
-    source: str, out: str | Path, *, fmt: str = "geojson", include_unconfirmed: bool = False
+    source: str, out: str | Path, *, fmt: str = "geojson", include_unconfirmed: bool = False,
+    progress: Progress | None = None,
 ) -> dict[str, int]:
     """Export ``source`` (``sqlite:///PATH``, or a ``wardmap map`` folder / landmarks.json) to
     ``out`` in ``fmt``.
@@ -333,7 +344,7 @@ def export(
             raise ExportError(f"--format {fmt} needs a server database (sqlite:///PATH): "
                               "a map output has no keyframes")
         writer = store_ply if fmt == "ply" else store_rrd
-        return writer(source, Path(out), include_unconfirmed=include_unconfirmed)
+        return writer(source, Path(out), include_unconfirmed=include_unconfirmed, progress=progress)
     if source.startswith(SQLITE_SCHEME):
         doc = store_geojson(source, include_unconfirmed=include_unconfirmed)
     else:

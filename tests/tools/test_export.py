@@ -121,7 +121,10 @@ def test_server_database_to_ply(tmp_path: Path) -> None:
         ObjectMap(store).upsert([ObjectState(1, "cabinet", 0.9, yaw_transform(3.0, 1.0, 0.3, 0.5),
                                              np.array([1.0, 0.5, 1.0]), color_rgb=(200.0, 20.0, 10.0))])
     out = tmp_path / "map.ply"
-    assert export(url, out, fmt="ply") == {"objects": 1, "points": 48, "keyframes": 1, "keyframes_skipped": 0}
+    calls: list[tuple[str, int, int]] = []
+    summary = export(url, out, fmt="ply", progress=lambda *call: calls.append(call))
+    assert summary == {"objects": 1, "points": 48, "keyframes": 1, "keyframes_skipped": 0}
+    assert calls == [("ply", 1, 2), ("ply", 2, 2)]  # per graph node, the floating one too
     mesh = trimesh.load(out, process=False)
     assert len(mesh.vertices) == 8 + 48 and len(mesh.faces) == 12
     assert np.allclose(mesh.vertices[:8].mean(axis=0), [3.0, 1.0, 0.5])
