@@ -22,13 +22,14 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     ref.add_argument("--reference", metavar="GT.txt", help="reference trajectory (TUM format)")
     a.add_argument("--align", choices=("se3", "sim3", "none"), default="se3", help="alignment (default se3)")
     a.add_argument("--max-diff", type=float, default=0.02, metavar="S", help="association window (s)")
+    a.add_argument("--plot", metavar="FILE.png", help="also draw the trajectories and the error over time")
     a.set_defaults(func=run_ate)
 
 
 def run_ate(args: argparse.Namespace) -> int:
     from wardmap.shared.dataset import DatasetReader, read_tum_trajectory
     from wardmap.shared.errors import DatasetError
-    from wardmap.shared.metrics import ate
+    from wardmap.shared.metrics import ate_series
 
     est = read_tum_trajectory(args.estimate)
     if args.dataset:
@@ -37,7 +38,11 @@ def run_ate(args: argparse.Namespace) -> int:
             raise DatasetError(f"{args.dataset}: no groundtruth.txt")
     else:
         gt = read_tum_trajectory(args.reference)
-    r = ate(est[0], est[1], gt[0], gt[1], align=args.align, max_diff_s=args.max_diff)
+    r, series = ate_series(est[0], est[1], gt[0], gt[1], align=args.align, max_diff_s=args.max_diff)
+    if args.plot:
+        from wardmap.tools.plots import plot_ate
+
+        plot_ate(r, series, args.plot, title=f"{args.estimate}: ATE {r.rmse:.3f} m ({args.align} alignment)")
     print(
         json.dumps(
             {

@@ -17,6 +17,7 @@ from wardmap.cli import (
     demo_cmd,
     edge_cmd,
     eval_cmd,
+    export_cmd,
     map_cmd,
     readout_cmd,
     router_cmd,
@@ -62,6 +63,7 @@ def build_parser() -> argparse.ArgumentParser:
     server_cmd.register(sub)
     edge_cmd.register(sub)
     demo_cmd.register(sub)
+    export_cmd.register(sub)
     return parser
 
 

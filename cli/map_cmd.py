@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
-import time
+
+from wardmap.cli.progress import Progress
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -42,22 +42,15 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 def run(args: argparse.Namespace) -> int:
     from wardmap.tools.offline_map import run_map
 
-    last = [time.monotonic()]
-
-    def progress(name: str, i: int, n: int) -> None:
-        now = time.monotonic()
-        if i == n or now - last[0] > 2.0:
-            last[0] = now
-            print(f"\r{name}: keyframe {i}/{n}", end="\n" if i == n else "", file=sys.stderr, flush=True)
-
-    summary = run_map(
-        args.datasets,
-        args.out,
-        method=args.association,
-        measurements=args.measurements,
-        poses=args.poses,
-        config_path=args.config,
-        progress=progress,
-    )
+    with Progress("keyframes") as bar:
+        summary = run_map(
+            args.datasets,
+            args.out,
+            method=args.association,
+            measurements=args.measurements,
+            poses=args.poses,
+            config_path=args.config,
+            progress=bar.update,
+        )
     print(json.dumps(summary))
     return 0

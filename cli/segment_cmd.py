@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
-import time
+
+from wardmap.cli.progress import Progress
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -36,23 +36,16 @@ def run(args: argparse.Namespace) -> int:
     from wardmap.server.perception.segment import segment_dataset
 
     config = load_perception_config(args.config)
-    last = [time.monotonic()]
-
-    def progress(i: int, n: int) -> None:
-        now = time.monotonic()
-        if i == n or now - last[0] > 2.0:
-            last[0] = now
-            print(f"\rframe {i}/{n}", end="\n" if i == n else "", file=sys.stderr, flush=True)
-
-    summary = segment_dataset(
-        args.dataset,
-        args.out,
-        args.model or config.segmenter,
-        config=config,
-        threads=args.threads,
-        max_frames=args.max_frames,
-        overwrite=args.overwrite,
-        progress=progress,
-    )
+    with Progress("frames") as bar:
+        summary = segment_dataset(
+            args.dataset,
+            args.out,
+            args.model or config.segmenter,
+            config=config,
+            threads=args.threads,
+            max_frames=args.max_frames,
+            overwrite=args.overwrite,
+            progress=lambda i, n: bar.update("segment", i, n),
+        )
     print(json.dumps(summary))
     return 0

@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import sys
 import time
+
+from wardmap.cli.progress import Progress
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -37,18 +38,10 @@ def run(args: argparse.Namespace) -> int:
 
     from wardmap.sim.runner import generate
 
-    last = [0.0]
-
-    def progress(robot: str, i: int, n: int) -> None:
-        now = time.monotonic()
-        if i == n or now - last[0] > 2.0:
-            last[0] = now
-            print(f"\r{robot}: frame {i}/{n}", end="\n" if i == n else "", file=sys.stderr, flush=True)
-
     started = time.monotonic()
-    summaries = generate(
-        args.scenario, args.seed, args.out, frames=args.frames, overwrite=args.overwrite, progress=progress
-    )
+    with Progress("frames") as bar:
+        summaries = generate(args.scenario, args.seed, args.out, frames=args.frames, overwrite=args.overwrite,
+                             progress=bar.update)
     elapsed = time.monotonic() - started
     for s in summaries:
         print(f"{s.name}: {s.frames} frames, {s.duration_s:.1f} s, {s.length_m:.1f} m -> {s.path}")

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
-import time
+
+from wardmap.cli.progress import Progress
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -35,22 +35,15 @@ def run(args: argparse.Namespace) -> int:
     from wardmap.shared.config import load_config
 
     config = load_config(TrackerConfig, args.config, section="tracker")
-    last = [time.monotonic()]
-
-    def progress(i: int, n: int, res: object) -> None:
-        now = time.monotonic()
-        if i == n or now - last[0] > 2.0:
-            last[0] = now
-            print(f"\rframe {i}/{n}", end="\n" if i == n else "", file=sys.stderr, flush=True)
-
-    summary = track_dataset(
-        args.dataset,
-        args.out,
-        config=config,
-        labels=args.labels,
-        max_frames=args.max_frames,
-        label_threads=args.label_threads,
-        progress=progress,
-    )
+    with Progress("frames") as bar:
+        summary = track_dataset(
+            args.dataset,
+            args.out,
+            config=config,
+            labels=args.labels,
+            max_frames=args.max_frames,
+            label_threads=args.label_threads,
+            progress=lambda i, n, _result: bar.update("track", i, n),
+        )
     print(json.dumps(summary))
     return 0

@@ -7,8 +7,9 @@ import importlib.util
 import json
 import shlex
 import sys
-import time
 from typing import TYPE_CHECKING
+
+from wardmap.cli.progress import Progress
 
 if TYPE_CHECKING:
     from wardmap.tools.training.segdata import TrainSegConfig
@@ -50,16 +51,9 @@ def run(args: argparse.Namespace) -> int:
         )
     from wardmap.tools.training.training import train_and_export
 
-    last = [0.0]
-
-    def progress(stage: str, i: int, n: int, note: str) -> None:
-        now = time.monotonic()
-        if i == n or now - last[0] > 5.0:
-            last[0] = now
-            print(f"{stage}: {i}/{n} {note}", file=sys.stderr, flush=True)
-
     command = "wardmap " + " ".join(shlex.quote(a) for a in sys.argv[1:])
-    result = train_and_export(config, args.out, command=command, progress=progress)
+    with Progress("steps") as bar:
+        result = train_and_export(config, args.out, command=command, progress=bar.update)
     m = result.metrics
     print(
         json.dumps(

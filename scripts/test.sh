@@ -10,6 +10,15 @@ if [ ! -x "$VENV/bin/python" ]; then
 fi
 "$VENV/bin/python" -m pip install -q --upgrade pip "setuptools>=68" wheel
 "$VENV/bin/python" -m pip install -q -e '.[dev]'
+# The web page's browser tests drive Debian's chromium through Playwright (no browser download).
+if ! command -v chromium >/dev/null 2>&1; then
+    if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+        export DEBIAN_FRONTEND=noninteractive
+        apt-get update -q && apt-get install -y -q chromium </dev/null
+    else
+        echo "scripts/test.sh: no chromium and no root apt-get to install it; browser tests will skip" >&2
+    fi
+fi
 "$VENV/bin/ruff" check .
 # mypy sees the source folders under their installed names (wardmap.shared, ...).
 TYPECHECK=build/typecheck

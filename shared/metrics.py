@@ -29,6 +29,23 @@ class AteResult:
     n: int
 
 
+@dataclass(frozen=True)
+class AteSeries:
+    """The associated, aligned poses behind an :class:`AteResult` (for plots).
+
+    Attributes:
+        stamps: (N,) the reference's stamps of the associated poses, seconds.
+        positions_ref: (N, 3) reference camera positions, metres, in the reference's world frame.
+        positions_est: (N, 3) estimated camera positions after the alignment, same frame.
+        errors_m: (N,) translation error of each pose, metres.
+    """
+
+    stamps: F64
+    positions_ref: F64
+    positions_est: F64
+    errors_m: F64
+
+
 def ate(
     stamps_est: ArrayLike,
     T_est: ArrayLike,
@@ -47,6 +64,19 @@ def ate(
     Raises:
         DatasetError: fewer than 3 associated poses.
     """
+    return ate_series(stamps_est, T_est, stamps_ref, T_ref, align=align, max_diff_s=max_diff_s)[0]
+
+
+def ate_series(
+    stamps_est: ArrayLike,
+    T_est: ArrayLike,
+    stamps_ref: ArrayLike,
+    T_ref: ArrayLike,
+    *,
+    align: Literal["se3", "sim3", "none"] = "se3",
+    max_diff_s: float = 0.02,
+) -> tuple[AteResult, AteSeries]:
+    """:func:`ate` and the poses and errors it came from (same arguments, same errors)."""
     from evo.core import metrics, sync
     from evo.core.trajectory import PoseTrajectory3D
 
@@ -67,6 +97,11 @@ def ate(
     ape = metrics.APE(metrics.PoseRelation.translation_part)
     ape.process_data((ref_s, est_s))
     s = ape.get_all_statistics()
-    return AteResult(
+    result = AteResult(
         float(s["rmse"]), float(s["mean"]), float(s["median"]), float(s["max"]), int(ref_s.num_poses)
     )
+    series = AteSeries(
+        np.asarray(ref_s.timestamps, np.float64), np.asarray(ref_s.positions_xyz, np.float64),
+        np.asarray(est_s.positions_xyz, np.float64), np.asarray(ape.error, np.float64),
+    )
+    return result, series

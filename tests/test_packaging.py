@@ -70,6 +70,11 @@ def test_built_wheel_imports_every_module(tmp_path: Path) -> None:
     assert not top & set(PACKAGES), top  # only wardmap/ and its dist-info
     assert "wardmap/shared/data/knowledge_graph.toml" in names
     assert "wardmap/server/models/hospital_seg.onnx" in names  # the trained network ships
+    # The web page and the API docs work offline: their files ship.
+    for asset in ("index.html", "wardmap.js", "wardmap.css", "favicon.svg",
+                  "vendor/swagger-ui/swagger-ui-bundle.js", "vendor/swagger-ui/swagger-ui.css",
+                  "vendor/swagger-ui/LICENSE", "vendor/redoc/redoc.standalone.js", "vendor/redoc/LICENSE"):
+        assert f"wardmap/server/api/static/{asset}" in names, asset
     script = (
         "import importlib, sys\n"
         f"mods = {_modules()!r}\n"
@@ -87,6 +92,11 @@ def test_built_wheel_imports_every_module(tmp_path: Path) -> None:
 
 TRAIN_MODULES = ("tools/training/training.py", "tools/training/logit_adjust.py")
 """The only files that may import the ``train`` extra's packages (they say so when missing)."""
+EXTRA_MODULES = {
+    "train": TRAIN_MODULES, "export": ("tools/export.py",), "rerun": ("tools/export.py",),
+}
+"""Per optional extra, the only files that may import its packages (inside the function that
+needs them, saying so when missing)."""
 
 
 def _requirement_names(reqs: list[str]) -> set[str]:
@@ -117,15 +127,16 @@ def _closure(names: set[str]) -> set[str]:
 def test_every_third_party_import_is_a_declared_dependency() -> None:
     """A plain ``pip install .`` must run every command: each third-party module the code
     imports (at the top or inside a function) comes from a core dependency or one of theirs;
-    only the training modules may use the ``train`` extra. (httpx, used by ``wardmap demo``,
-    once sat in the ``dev`` extra only and the demo failed after a plain install.)"""
+    only the training modules may use the ``train`` extra, only ``tools/export.py`` the
+    ``export`` and ``rerun`` ones. (httpx, used by ``wardmap demo``, once sat in the ``dev``
+    extra only and the demo failed after a plain install.)"""
     import ast
     import tomllib
     from importlib import metadata
 
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
     allowed = _closure(_requirement_names(project["dependencies"]))
-    train_only = _requirement_names(project["optional-dependencies"]["train"])
+    extras = {name: _requirement_names(project["optional-dependencies"][name]) for name in EXTRA_MODULES}
     dist_of = {
         m: [d.lower().replace("_", "-") for d in ds] for m, ds in metadata.packages_distributions().items()
     }
@@ -144,7 +155,7 @@ def test_every_third_party_import_is_a_declared_dependency() -> None:
                         continue
                     dists = set(dist_of.get(top, [top]))
                     rel = f.relative_to(ROOT).as_posix()
-                    if dists & allowed or (dists & train_only and rel in TRAIN_MODULES):
+                    if dists & allowed or any(dists & extras[e] and rel in EXTRA_MODULES[e] for e in extras):
                         continue
                     missing.append(f"{rel}:{node.lineno} imports {top} ({sorted(dists)})")
     assert not missing, "not a core dependency:\n" + "\n".join(missing)

@@ -676,8 +676,9 @@ def _run(opts: DemoOptions, work: Path, children: list[Child], wait: Callable[[]
         anchoring = robot_anchoring(plans, http)
         print(format_anchoring(anchoring), flush=True)
         print(map_summary(plans, http, T_map_world=map_from_world(anchoring)), flush=True)
-        print(f"map server: {url}  (try {url}/v1/objects?category=door, {url}/v1/categories, "
-              f"{url}/v1/robots, {url}/metrics)", flush=True)
+        print(f"map server: {url}  (open {url}/ in a browser for the map; try "
+              f"{url}/v1/objects?category=door, {url}/v1/categories, {url}/v1/robots, {url}/metrics)",
+              flush=True)
         if opts.exit_after:
             return 0
         if wait is not None:

@@ -17,10 +17,21 @@ from contextlib import asynccontextmanager
 
 from fastapi import APIRouter, FastAPI, Request
 from fastapi.responses import JSONResponse
+from fastapi.staticfiles import StaticFiles
 
 from wardmap.server.api.deps import ServerLifecycle
 from wardmap.server.api.prometheus import ServerCollector, metrics_registry
-from wardmap.server.api.routes import categories, health, keyframes, metrics, objects, robots
+from wardmap.server.api.routes import (
+    categories,
+    docs,
+    events,
+    health,
+    keyframes,
+    metrics,
+    objects,
+    robots,
+    web,
+)
 from wardmap.server.store import StoreDamagedError, StoreError, StoreUnavailableError
 from wardmap.shared.errors import WardmapError
 
@@ -29,7 +40,7 @@ log = logging.getLogger(__name__)
 __all__ = ["api_router", "create_app"]
 
 api_router = APIRouter()
-for _module in (health, robots, keyframes, objects, categories, metrics):
+for _module in (health, robots, keyframes, objects, categories, metrics, events):
     api_router.include_router(_module.router)
 
 
@@ -54,9 +65,13 @@ def create_app(server: ServerLifecycle) -> FastAPI:
             app.state.services = None
             server.stop()
 
-    app = FastAPI(title="wardmap map server", version="1", lifespan=lifespan)
+    # /docs and /redoc come from the packaged copies (routes/docs.py), not FastAPI's CDN pages.
+    app = FastAPI(title="wardmap map server", version="1", lifespan=lifespan, docs_url=None, redoc_url=None)
     app.add_exception_handler(WardmapError, _wardmap_error)
     app.include_router(api_router)
+    app.include_router(web.router)  # the page and API docs: public, no data
+    app.include_router(docs.router)
+    app.mount("/static", StaticFiles(packages=[("wardmap.server.api", "static")]), name="static")
     return app
 
 

@@ -66,3 +66,21 @@ def test_too_few_pairs_is_an_error() -> None:
     T = np.array([np.eye(4)] * 5)
     with pytest.raises(DatasetError):
         ate(np.arange(5.0), T, np.arange(5.0) + 100, T)
+
+
+def test_ate_series_holds_the_errors_behind_the_statistics() -> None:
+    """The series :func:`ate_series` returns with the result: one error per associated pose,
+    whose RMSE and maximum are the result's, and aligned estimate positions that far from the
+    reference's."""
+    from wardmap.shared.metrics import ate_series
+
+    rng = np.random.default_rng(1)
+    T = np.array([se3.se3_exp(rng.normal(0, 0.5, 6)) for _ in range(40)])
+    noisy = np.array([t @ se3.se3_exp(np.r_[rng.normal(0, 0.02, 3), 0, 0, 0]) for t in T])
+    stamps = np.arange(40) * 0.1
+    res, series = ate_series(stamps, noisy, stamps, T)
+    assert series.errors_m.shape == (40,) and series.positions_est.shape == (40, 3)
+    assert np.sqrt(np.mean(series.errors_m ** 2)) == pytest.approx(res.rmse)
+    assert series.errors_m.max() == pytest.approx(res.max)
+    assert np.allclose(np.linalg.norm(series.positions_est - series.positions_ref, axis=1), series.errors_m)
+    assert np.allclose(series.stamps, stamps) and ate(stamps, noisy, stamps, T) == res

@@ -1,4 +1,5 @@
-"""``GET /v1/keyframes?robot=ID``: a robot's stored keyframes, paged by an opaque cursor."""
+"""``GET /v1/keyframes?robot=ID``: a robot's stored keyframes, paged by an opaque cursor;
+``GET /v1/keyframes/{robot_id}/{session_id}/{seq}/image``: a stored keyframe's colour image."""
 
 from __future__ import annotations
 
@@ -7,11 +8,14 @@ import binascii
 import json
 from typing import Annotated
 
-from fastapi import APIRouter, HTTPException, Query
+from fastapi import APIRouter, HTTPException, Path, Query
+from fastapi.responses import Response
 
 from wardmap.server.api.deps import StoreDep
 from wardmap.server.api.schemas import ErrorOut, KeyframeList, KeyframeOut
 from wardmap.server.store import MAX_PAGE
+from wardmap.shared import wire
+from wardmap.shared.errors import WireError
 
 __all__ = ["decode_cursor", "encode_cursor", "router"]
 
@@ -60,3 +64,26 @@ def keyframes(
         ],
         next_cursor=None if page.next_cursor is None else encode_cursor(*page.next_cursor),
     )
+
+
+@router.get(
+    "/v1/keyframes/{robot_id}/{session_id}/{seq}/image",
+    response_class=Response,
+    responses={200: {"content": {"image/jpeg": {}}, "description": "the colour JPEG the robot sent"},
+               404: {"model": ErrorOut}},
+)
+def keyframe_image(
+    store: StoreDep,
+    robot_id: Annotated[str, Path(min_length=1, max_length=64)],
+    session_id: Annotated[str, Path(min_length=1, max_length=64)],
+    seq: Annotated[int, Path(ge=0)],
+) -> Response:
+    """The keyframe's colour image as the robot sent it (JPEG; the web page's thumbnail)."""
+    payload = store.payload(robot_id, session_id, seq)
+    if payload is None:
+        raise HTTPException(404, f"no keyframe {robot_id}/{session_id}/{seq}")
+    try:
+        msg = wire.decode_keyframe(payload)
+    except WireError as exc:  # stored after validation: only a damaged row gets here
+        raise HTTPException(500, f"keyframe {robot_id}/{session_id}/{seq} cannot be read: {exc}") from exc
+    return Response(msg.rgb_jpeg, media_type="image/jpeg", headers={"Cache-Control": "max-age=3600"})

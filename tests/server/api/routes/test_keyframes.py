@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from typing import Any
 
+import factories
+import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
@@ -67,3 +69,16 @@ def test_cursor_round_trip() -> None:
     for bad in ("", "e30", encode_cursor("s", 1) + "!!"):
         with pytest.raises(ValueError):
             decode_cursor(bad)
+
+
+def test_keyframe_image_is_the_stored_jpeg(keyframe_client: TestClient) -> None:
+    """``/v1/keyframes/{robot}/{session}/{seq}/image`` answers the colour JPEG the robot sent,
+    byte for byte (the web page's thumbnail); an unknown keyframe or a bad seq does not."""
+    expected = factories.keyframe(np.random.default_rng(0)).rgb_jpeg  # the scene's keyframes share it
+    r = keyframe_client.get("/v1/keyframes/r1/s1/2/image")
+    assert r.status_code == 200 and r.headers["content-type"] == "image/jpeg"
+    assert r.content == expected and r.content[:2] == b"\xff\xd8"
+    assert keyframe_client.get("/v1/keyframes/r1/s1/99/image").status_code == 404
+    assert keyframe_client.get("/v1/keyframes/r9/s1/0/image").json() == {"detail": "no keyframe r9/s1/0"}
+    assert keyframe_client.get("/v1/keyframes/r1/s1/-1/image").status_code == 422
+

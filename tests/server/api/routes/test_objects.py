@@ -182,8 +182,9 @@ def test_openapi_documents_the_object_routes(object_client: TestClient) -> None:
     params = {p["name"] for p in spec["paths"]["/v1/objects"]["get"]["parameters"]}
     assert params == {
         "category", "near", "radius", "min_confidence", "robot", "limit", "offset", "include_unconfirmed",
+        "format",
     }
-    assert {"200", "422"} <= set(spec["paths"]["/v1/objects"]["get"]["responses"])
+    assert {"200", "400", "422"} <= set(spec["paths"]["/v1/objects"]["get"]["responses"])
     assert {"200", "404", "422"} <= set(spec["paths"]["/v1/objects/{object_id}"]["get"]["responses"])
     assert "/v1/categories" in spec["paths"]
     properties = spec["components"]["schemas"]["ObjectOut"]["properties"]
@@ -226,3 +227,52 @@ def test_unconfirmed_objects_only_when_asked(tmp_path: Path) -> None:
                 assert bad.status_code == 422, (path, word)
                 assert bad.json()["detail"][0]["loc"] == ["query", "include_unconfirmed"]
         assert c.get("/v1/categories", params={"include_unconfirmed": "false"}).json() == listed
+
+
+def test_geojson_by_parameter_or_accept(object_client: TestClient) -> None:
+    """``format=geojson`` or ``Accept: application/geo+json`` answer the same filtered page as
+    a valid GeoJSON FeatureCollection (the ``geojson`` library's check): a Point at each
+    object's centre, its id, the list's fields as properties, paging as foreign members."""
+    import geojson as gj
+
+    plain = object_client.get("/v1/objects", params={"category": "door", "near": "1,0,0.5"}).json()
+    by_param = object_client.get("/v1/objects",
+                                 params={"category": "door", "near": "1,0,0.5", "format": "geojson"})
+    by_accept = object_client.get("/v1/objects", params={"category": "door", "near": "1,0,0.5"},
+                                  headers={"Accept": "application/geo+json"})
+    for resp in (by_param, by_accept):
+        assert resp.status_code == 200 and resp.headers["content-type"] == "application/geo+json"
+        doc = resp.json()
+        assert gj.loads(resp.text).is_valid, gj.loads(resp.text).errors()
+        assert doc["type"] == "FeatureCollection" and doc["wardmap"] == {"frame": "map", "units": "m"}
+        assert (doc["limit"], doc["offset"], doc["next_offset"]) == (100, 0, None)
+        assert [f["id"] for f in doc["features"]] == [o["object_id"] for o in plain["objects"]] == [1, 2, 5]
+        for f, o in zip(doc["features"], plain["objects"], strict=True):
+            assert f["geometry"] == {"type": "Point", "coordinates": o["position"]}
+            assert f["properties"] == {k: v for k, v in o.items() if k not in ("position", "T_world_object")}
+    assert object_client.get("/v1/objects", params={"format": "json"}).json() == object_client.get(
+        "/v1/objects").json()
+
+
+def test_unknown_format_is_400(object_client: TestClient) -> None:
+    """A format the route does not write is refused with a message naming the choices (it
+    was once ignored silently)."""
+    for fmt in ("csv", "GEOJSON", ""):
+        resp = object_client.get("/v1/objects", params={"format": fmt})
+        assert resp.status_code == 400, fmt
+        assert resp.json()["detail"] == f"unknown format {fmt!r}: expected one of json, geojson, compact"
+
+
+def test_compact_rows_are_the_objects_rounded(object_client: TestClient) -> None:
+    """``format=compact`` (the web page's map) gives, per object of the same filtered page,
+    id, category, centre, yaw and size rounded to 1 mm / 1 mrad, in ``columns`` order."""
+    params = {"near": "1,0,0.5", "limit": "3"}
+    full = object_client.get("/v1/objects", params=params).json()
+    compact = object_client.get("/v1/objects", params={**params, "format": "compact"}).json()
+    assert compact["columns"] == ["object_id", "category", "x", "y", "z", "yaw", "size_x", "size_y", "size_z"]
+    assert full["next_offset"] == 3
+    assert (compact["limit"], compact["offset"], compact["next_offset"]) == (3, 0, 3)
+    for row, o in zip(compact["rows"], full["objects"], strict=True):
+        assert row[:2] == [o["object_id"], o["category"]]
+        assert np.allclose(row[2:], [*o["position"], o["yaw"], *o["size"]], atol=5e-4, rtol=0)
+        assert all(round(v, 3) == v for v in row[2:])
