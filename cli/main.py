@@ -23,6 +23,7 @@ from wardmap.cli import (
     segment_cmd,
     server_cmd,
     sim_cmd,
+    token_cmd,
     track_cmd,
     train_seg_cmd,
 )
@@ -60,6 +61,7 @@ def build_parser() -> argparse.ArgumentParser:
     eval_cmd.register(sub)
     router_cmd.register(sub)
     server_cmd.register(sub)
+    token_cmd.register(sub)
     edge_cmd.register(sub)
     demo_cmd.register(sub)
     return parser

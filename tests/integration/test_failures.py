@@ -71,7 +71,7 @@ def _start_router(endpoint: str, log_dir: Path) -> Proc:
 
 def _start_server(endpoint: str, db: Path, port: int, log_dir: Path) -> Proc:
     cmd = wardmap_cmd("server", "--connect", endpoint, "--db", f"sqlite:///{db}",
-                      "--http", f"127.0.0.1:{port}")
+                      "--http", f"127.0.0.1:{port}", "--insecure-loopback")
     return _start(cmd, f"server ready: http://127.0.0.1:{port}", log_dir, "server")
 
 

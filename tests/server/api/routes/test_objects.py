@@ -68,7 +68,7 @@ def test_colour_is_listed(tmp_path: Path) -> None:
     with open_store(url) as store:
         ObjectMap(store).upsert([ObjectState(1, "chair", 0.8, yaw_transform(1.0, 2.0, 0.0, 0.5),
                                              np.array([0.5, 0.5, 0.9]), color_rgb=(200.0, 30.5, 12.0))])
-    with TestClient(MapServer(url).app) as c:
+    with TestClient(MapServer(url, require_tokens=False).app) as c:
         assert c.get("/v1/objects").json()["objects"][0]["color_rgb"] == [200.0, 30.5, 12.0]
         assert c.get("/v1/objects/1").json()["object"]["color_rgb"] == [200.0, 30.5, 12.0]
 
@@ -201,7 +201,7 @@ def test_unconfirmed_objects_only_when_asked(tmp_path: Path) -> None:
             ObjectState(2, "cabinet", 0.7, yaw_transform(1.0, 0.0, 0.0, 0.5), np.array([0.3, 0.02, 0.6]),
                         confirmed=False),
         ])
-    with TestClient(MapServer(url).app) as c:
+    with TestClient(MapServer(url, require_tokens=False).app) as c:
         assert _ids(c.get("/v1/objects")) == [1]
         assert _ids(c.get("/v1/objects", params={"near": "1,0,0.5", "radius": 2})) == [1]
         resp = c.get("/v1/objects", params={"near": "1,0,0.5", "radius": 2, "include_unconfirmed": "true"})
