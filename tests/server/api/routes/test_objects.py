@@ -117,6 +117,8 @@ def test_limit_and_offset(object_client: TestClient) -> None:
         ({"near": "1,2"}, "near must be three finite numbers 'x,y,z' in metres, got '1,2'"),
         ({"near": "a,b,c"}, "near must be three finite numbers"),
         ({"near": "1,2,nan"}, "near must be three finite numbers"),
+        ({"near": "1e155,0,0"}, "each within +-1e+06"),  # its distance overflowed: a 500 once
+        ({"near": "0,-1e300,0", "radius": "1e300"}, "each within +-1e+06"),
         ({"radius": "2"}, "radius needs near=x,y,z"),
         ({"near": "0,0,0", "radius": "-1"}, "radius must be a finite number >= 0 metres, got -1.0"),
         ({"near": "0,0,0", "radius": "inf"}, "radius must be a finite number >= 0"),
