@@ -309,7 +309,17 @@ def run_server(
         ServerError: the HTTP port cannot be bound (or ``insecure_loopback`` off loopback),
             or start-up failed (see the log).
     """
+    import asyncio
+
     import uvicorn
+
+    from wardmap.server.http_limits import (
+        LIMIT_CONCURRENCY,
+        NOISY_MESSAGES,
+        GuardedH11Protocol,
+        ThrottledLog,
+        throttled_exception_handler,
+    )
 
     client_config(connect)  # validate the endpoints before anything starts
     server_root = MapServer.from_config(db_url, connect=connect, config_path=config_path,
@@ -319,8 +329,12 @@ def run_server(
     started = threading.Event()
     done = threading.Event()  # set by a signal, by `stop`, or when the HTTP thread ends
 
+    accept_errors = ThrottledLog()
+
     class _Server(uvicorn.Server):
         async def startup(self, sockets: list[socket.socket] | None = None) -> None:
+            # A failed accept() (e.g. out of file descriptors) is logged once per interval.
+            asyncio.get_running_loop().set_exception_handler(throttled_exception_handler(accept_errors))
             await super().startup(sockets)
             if not self.should_exit:
                 started.set()
@@ -328,13 +342,18 @@ def run_server(
 
     # uvicorn's start-up runs the app's lifespan, which starts the root; on_ready comes after.
     app = server_root.app
+    # Limits (server/http_limits.py): connections, concurrency, header and keep-alive timeouts.
     config = uvicorn.Config(
-        app, log_config=None, access_log=False, lifespan="on", timeout_graceful_shutdown=5
+        app, log_config=None, access_log=False, lifespan="on", timeout_graceful_shutdown=5,
+        http=GuardedH11Protocol, limit_concurrency=LIMIT_CONCURRENCY, timeout_keep_alive=5,
     )
+    noisy = ThrottledLog(messages=NOISY_MESSAGES)
+    uvicorn_log = logging.getLogger("uvicorn.error")
     server = _Server(config)
     sock = _bind(http_host, http_port, loopback_only=insecure_loopback)
     bound_port = int(sock.getsockname()[1])
     url = f"http://{http_host}:{bound_port}"
+    uvicorn_log.addFilter(noisy)
     try:
         with on_stop_signals(stop.set, "the server"), _uvicorn_thread(server, sock, done, stop):
             done.wait()  # start-up finished or failed
@@ -348,5 +367,6 @@ def run_server(
             stop.wait()
             log.info("stopping map server")
     finally:
+        uvicorn_log.removeFilter(noisy)
         sock.close()
     log.info("map server stopped")
