@@ -316,8 +316,9 @@ def run_server(
     from wardmap.server.http_limits import (
         LIMIT_CONCURRENCY,
         NOISY_MESSAGES,
-        GuardedH11Protocol,
         ThrottledLog,
+        connection_cap,
+        guarded_protocol,
         throttled_exception_handler,
     )
 
@@ -345,7 +346,8 @@ def run_server(
     # Limits (server/http_limits.py): connections, concurrency, header and keep-alive timeouts.
     config = uvicorn.Config(
         app, log_config=None, access_log=False, lifespan="on", timeout_graceful_shutdown=5,
-        http=GuardedH11Protocol, limit_concurrency=LIMIT_CONCURRENCY, timeout_keep_alive=5,
+        http=guarded_protocol(cap := connection_cap()), limit_concurrency=min(LIMIT_CONCURRENCY, cap + 1),
+        timeout_keep_alive=5,
     )
     noisy = ThrottledLog(messages=NOISY_MESSAGES)
     uvicorn_log = logging.getLogger("uvicorn.error")

@@ -2,8 +2,9 @@
 that cannot flood.
 
 - :class:`GuardedH11Protocol`: uvicorn's h11 protocol with a connection cap
-  (:data:`MAX_CONNECTIONS`: a connection beyond it is closed at once, before anything is read,
-  so idle sockets cannot use up the process's file descriptors) and a header timeout
+  (:data:`MAX_CONNECTIONS`, fewer when the open-file limit is low: :func:`connection_cap`; a
+  connection beyond it is closed at once, before anything is read, so idle sockets cannot use
+  up the process's file descriptors) and a header timeout
   (:data:`HEADER_TIMEOUT_S`: a connection that has not sent a whole request head that long
   after it opened, or after its last response, is closed; uvicorn's own keep-alive timer is
   cancelled by any byte, so a client sending one byte at a time would hold it forever).
@@ -28,6 +29,7 @@ from typing import Any, Final
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
 __all__ = [
+    "FD_RESERVE",
     "HEADER_TIMEOUT_S",
     "LIMIT_CONCURRENCY",
     "LOG_INTERVAL_S",
@@ -35,6 +37,8 @@ __all__ = [
     "NOISY_MESSAGES",
     "GuardedH11Protocol",
     "ThrottledLog",
+    "connection_cap",
+    "guarded_protocol",
     "throttled_exception_handler",
 ]
 
@@ -51,17 +55,46 @@ LOG_INTERVAL_S: Final = 10.0
 """One record per message per this many seconds from :class:`ThrottledLog`."""
 
 
-class GuardedH11Protocol(H11Protocol):
-    """uvicorn's h11 protocol with :data:`MAX_CONNECTIONS` and :data:`HEADER_TIMEOUT_S`; pass
-    it as ``uvicorn.Config(http=GuardedH11Protocol)``."""
+FD_RESERVE: Final = 256
+"""File descriptors kept for everything but HTTP connections (database, zenoh, models, logs)."""
 
+
+def connection_cap() -> int:
+    """How many HTTP connections this process can hold: :data:`MAX_CONNECTIONS`, raising the
+    soft ``RLIMIT_NOFILE`` towards the hard one when needed, or fewer (at least 16) when the
+    limits leave less than :data:`FD_RESERVE` descriptors besides. Out of descriptors, asyncio's
+    accept loop fails and retries in a tight loop (hundreds of thousands of times a second)."""
+    import resource
+
+    want = MAX_CONNECTIONS + FD_RESERVE
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft != resource.RLIM_INFINITY and soft < want:
+        new_soft = want if hard == resource.RLIM_INFINITY else min(want, hard)
+        try:
+            resource.setrlimit(resource.RLIMIT_NOFILE, (new_soft, hard))
+            soft = new_soft
+        except (ValueError, OSError) as exc:
+            log.warning("cannot raise the open-file limit from %d: %s", soft, exc)
+    if soft == resource.RLIM_INFINITY or soft >= want:
+        return MAX_CONNECTIONS
+    cap = max(16, soft - FD_RESERVE)
+    log.warning("open-file limit %d: at most %d HTTP connections (raise it to %d for %d)",
+                soft, cap, want, MAX_CONNECTIONS)
+    return cap
+
+
+class GuardedH11Protocol(H11Protocol):
+    """uvicorn's h11 protocol with a connection cap and :data:`HEADER_TIMEOUT_S`; pass
+    ``uvicorn.Config(http=guarded_protocol(connection_cap()))``."""
+
+    max_connections: int = MAX_CONNECTIONS
     _header_timer: asyncio.TimerHandle | None = None
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
-        if len(self.connections) > MAX_CONNECTIONS:
+        if len(self.connections) > self.max_connections:
             self.logger.warning("HTTP connection refused: %d connections open (at most %d)",
-                                len(self.connections) - 1, MAX_CONNECTIONS)
+                                len(self.connections) - 1, self.max_connections)
             transport.abort()
             return
         self._arm_header_timer()
@@ -103,6 +136,11 @@ NOISY_MESSAGES: Final = frozenset({
     "HTTP connection refused: %d connections open (at most %d)",
 })
 """uvicorn's (and :class:`GuardedH11Protocol`'s) per-request warnings a hostile client can repeat."""
+
+
+def guarded_protocol(max_connections: int) -> type[GuardedH11Protocol]:
+    """:class:`GuardedH11Protocol` with its connection cap set to ``max_connections``."""
+    return type("GuardedH11Protocol", (GuardedH11Protocol,), {"max_connections": max_connections})
 
 
 class ThrottledLog(logging.Filter):
