@@ -789,7 +789,8 @@ def _pose_from_wire(value: object, field: str) -> F64:
     t = _list_of_floats(f.get("t"), f.name("t"), 3)
     q = np.array(_list_of_floats(f.get("q_xyzw"), f.name("q_xyzw"), 4))
     f.done()
-    norm = float(np.linalg.norm(q))
+    with np.errstate(over="ignore"):  # a huge component gives norm inf, refused below
+        norm = float(np.linalg.norm(q))
     if abs(norm - 1.0) > QUAT_NORM_TOL:
         raise _fail(f.name("q_xyzw"), f"quaternion norm {norm:.6g} is not within {QUAT_NORM_TOL} of 1")
     return make_transform(quat_to_rotation(q / norm), t)
