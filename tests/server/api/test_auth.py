@@ -19,7 +19,8 @@ from wardmap.server.store import open_store
 from wardmap.server.tokens import revoke_token
 
 TokenMaker = Callable[..., dict[str, str]]
-PUBLIC = {"/healthz", "/readyz", "/openapi.json", "/docs", "/docs/oauth2-redirect", "/redoc"}
+PUBLIC = {"/", "/healthz", "/readyz", "/openapi.json", "/docs", "/docs/oauth2-redirect", "/redoc"}
+"""Routes that carry no map data: the probes, the API's documents, a web page's shell."""
 
 
 def _app_with_admin_routes(url: str) -> MapServer:
