@@ -3,8 +3,9 @@
 Fills a temporary store with ``--objects`` objects (seeded random poses over a hospital
 floor of ``--floor`` metres, every knowledge-graph class, one observation each by one of
 four robots), starts the real server app (``MapServer(url).app`` under uvicorn, the settings of
-``wardmap server``) in a child process on a free loopback port, and times ``--queries``
-requests of each kind with one keep-alive httpx client. Latency is client-side wall time
+``wardmap server``, bearer tokens required) in a child process on a free loopback port, and
+times ``--queries`` requests of each kind with one keep-alive httpx client sending a ``read``
+token (so each request includes the token check). Latency is client-side wall time
 per request (send to full body read, JSON parsed); 100 warm-up requests are not counted.
 
     python bench/api.py [--objects 10000] [--queries 2000] [--radius 5] [--seed 0] [--write BENCHMARKS.md]
@@ -29,6 +30,7 @@ from _report import git_rev, machine, write_section
 
 from wardmap.server.objectmap import ObjectMap, ObjectQuery, ObjectState, Observation
 from wardmap.server.store import open_store
+from wardmap.server.tokens import create_token
 from wardmap.shared.knowledge import KnowledgeGraph
 from wardmap.shared.se3 import yaw_transform
 
@@ -181,10 +183,13 @@ def main() -> int:
                 om.find(ObjectQuery(near=(x, y, z), radius_m=args.radius))
                 direct.append((time.perf_counter() - t) * 1e3)
 
+        with open_store(url) as store:
+            token = create_token(store, "read", "bench").text
         port = free_port()
         proc = subprocess.Popen([sys.executable, __file__, "--serve", url, str(port)])
         try:
-            with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=10.0) as client:
+            with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=10.0,
+                              headers={"Authorization": f"Bearer {token}"}) as client:
                 wait_ready(client, proc)
                 results = {name: timed(client, "/v1/objects", reqs) for name, reqs in kinds.items()}
                 # Baseline: the HTTP stack alone (a route that does no work).

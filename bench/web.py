@@ -37,6 +37,8 @@ from api import fill
 
 from wardmap.server.app import MapServer
 from wardmap.server.objectmap import ObjectState
+from wardmap.server.store import open_store
+from wardmap.server.tokens import create_token
 from wardmap.shared.se3 import yaw_transform
 
 GOAL_MS = 1000.0
@@ -81,6 +83,8 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         url = f"sqlite:///{tmp}/map.db"
         fill(url, args.objects, (200.0, 100.0), args.seed)
+        with open_store(url) as store:  # the page authenticates as staff would, with a read token
+            token = create_token(store, "read", "bench/web.py").text
         base, root, server, thread = serve(url)
         load_before = os.getloadavg()[0]
         paints: list[float] = []
@@ -94,7 +98,7 @@ def main() -> int:
                 for _ in range(args.loads):
                     ctx = browser.new_context(viewport={"width": 1280, "height": 800})
                     page = ctx.new_page()
-                    page.goto(base + "/")
+                    page.goto(f"{base}/#token={token}")
                     page.wait_for_selector("body[data-ready='1']", timeout=60_000)
                     if page.evaluate("wardmap.state.objects.size") != args.objects:
                         raise SystemExit("the page did not load every object")
@@ -104,7 +108,7 @@ def main() -> int:
                     draws.append(timing["drawMs"])
                     ctx.close()
                 page = browser.new_page(viewport={"width": 1280, "height": 800})
-                page.goto(base + "/")
+                page.goto(f"{base}/#token={token}")
                 page.wait_for_selector("body[data-ready='1']", timeout=60_000)
                 assert root.services is not None
                 objects = root.services.objects

@@ -24,6 +24,7 @@ from wardmap.cli import (
     segment_cmd,
     server_cmd,
     sim_cmd,
+    token_cmd,
     track_cmd,
     train_seg_cmd,
 )
@@ -61,6 +62,7 @@ def build_parser() -> argparse.ArgumentParser:
     eval_cmd.register(sub)
     router_cmd.register(sub)
     server_cmd.register(sub)
+    token_cmd.register(sub)
     edge_cmd.register(sub)
     demo_cmd.register(sub)
     export_cmd.register(sub)

@@ -27,6 +27,11 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "--config", metavar="FILE",
         help="TOML file with [pipeline], [perception] and [association] tables (deploy/server.toml)",
     )
+    p.add_argument(
+        "--insecure-loopback", action="store_true",
+        help="serve the REST API without tokens; refused unless --http is a loopback address "
+             "(demo and tests; create tokens with `wardmap token create`)",
+    )
     p.set_defaults(func=run)
 
 
@@ -47,5 +52,6 @@ def run(args: argparse.Namespace) -> int:
     def ready(url: str) -> None:
         print(f"server ready: {url}", flush=True)
 
-    run_server(args.connect, args.db, host, port, on_ready=ready, config_path=args.config)
+    run_server(args.connect, args.db, host, port, on_ready=ready, config_path=args.config,
+               insecure_loopback=args.insecure_loopback)
     return 0

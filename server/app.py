@@ -21,6 +21,7 @@ signal, the caller's ``stop`` or the end of the HTTP thread sets.
 
 from __future__ import annotations
 
+import ipaddress
 import logging
 import socket
 import threading
@@ -46,7 +47,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MapServer", "ServerError", "run_server"]
+__all__ = ["MapServer", "ServerError", "is_loopback", "run_server"]
 
 SHUTDOWN_TIMEOUT_S = 15.0
 
@@ -68,6 +69,7 @@ class MapServer:
         *,
         connect: Sequence[str] | None = None,
         pipeline_factory: PipelineFactory | None = None,
+        require_tokens: bool = True,
     ) -> None:
         """
         Args:
@@ -78,6 +80,8 @@ class MapServer:
             pipeline_factory: builds the mapping stage (``server/pipeline.py``) from the
                 store and the object map; started last, stopped first. None: keyframes are
                 stored but not mapped.
+            require_tokens: the REST API's data routes need a bearer token (``server/tokens.py``);
+                False only for insecure-loopback mode (:func:`run_server` checks the address).
 
         Raises:
             ConfigError: a bad endpoint in ``connect``.
@@ -89,7 +93,7 @@ class MapServer:
         self._pipeline_factory = pipeline_factory
         self._running: ExitStack | None = None
         self._services: Services | None = None
-        self.app: FastAPI = create_app(self)
+        self.app: FastAPI = create_app(self, require_tokens=require_tokens)
         """The REST API over this server; its lifespan calls :meth:`start` and :meth:`stop`."""
 
     def start(self) -> Services:
@@ -149,12 +153,13 @@ class MapServer:
 
     @classmethod
     def from_config(
-        cls, db_url: str, *, connect: Sequence[str] | None, config_path: str | None = None
+        cls, db_url: str, *, connect: Sequence[str] | None, config_path: str | None = None,
+        require_tokens: bool = True,
     ) -> MapServer:
         """The server ``wardmap server`` runs, with its mapping stage configured from a file.
 
         Args:
-            db_url, connect: as in the constructor.
+            db_url, connect, require_tokens: as in the constructor.
             config_path: TOML file with ``[pipeline]``, ``[perception]`` and ``[association]``
                 tables (defaults when None; ``deploy/server.toml``). With ``[pipeline]
                 enabled = false`` keyframes are stored but not mapped.
@@ -178,7 +183,7 @@ class MapServer:
         association_cfg = load_config(AssociationConfig, config_path, section="association")
         backend_cfg = load_config(BackendConfig, config_path, section="backend")
         if not pipeline_cfg.enabled:
-            return cls(db_url, connect=connect)
+            return cls(db_url, connect=connect, require_tokens=require_tokens)
         # Build the segmenter now: a missing or bad model is one clear error before anything starts.
         segmenter = make_segmenter(perception_cfg.segmenter, perception_cfg)
 
@@ -187,7 +192,7 @@ class MapServer:
                                association=association_cfg, segmenter=segmenter,
                                backend=BackendStage(store, backend_cfg))
 
-        return cls(db_url, connect=connect, pipeline_factory=make_pipeline)
+        return cls(db_url, connect=connect, pipeline_factory=make_pipeline, require_tokens=require_tokens)
 
     @property
     def services(self) -> Services | None:
@@ -202,18 +207,41 @@ class MapServer:
         self.stop()
 
 
-def _bind(host: str, port: int) -> socket.socket:
-    """A listening TCP socket on ``host:port``; ServerError when it cannot be bound."""
+def is_loopback(host: str) -> bool:
+    """Whether every address ``host`` resolves to is a loopback address (False when it does not
+    resolve)."""
+    try:
+        return _all_loopback(socket.getaddrinfo(host, 0, type=socket.SOCK_STREAM))
+    except OSError:
+        return False
+
+
+def _all_loopback(infos: Sequence[tuple[Any, ...]]) -> bool:
+    return bool(infos) and all(ipaddress.ip_address(str(info[4][0]).partition("%")[0]).is_loopback
+                               for info in infos)
+
+
+def _bind(host: str, port: int, *, loopback_only: bool = False) -> socket.socket:
+    """A listening TCP socket on ``host:port`` with ``TCP_NODELAY`` (accepted sockets inherit it:
+    without it each keep-alive response waits on Nagle's algorithm, about 40 ms); ServerError
+    when it cannot be bound, or when ``loopback_only`` and ``host`` is not a loopback address."""
     if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
         raise ServerError(f"bad HTTP port {port!r}: expected 0..65535")
     try:
-        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, proto=socket.IPPROTO_TCP)
     except OSError as exc:
         raise ServerError(f"bad HTTP host {host!r}: {exc.strerror or exc}") from exc
-    family, _, _, _, addr = infos[0]
-    sock = socket.socket(family, socket.SOCK_STREAM)
+    family, kind, proto, _, addr = infos[0]
+    if loopback_only and not _all_loopback(infos):
+        raise ServerError(
+            f"--insecure-loopback refused on {host!r}: it serves the API without tokens, so only on a "
+            "loopback address (127.0.0.1, ::1)"
+        )
+    # proto IPPROTO_TCP, not 0: asyncio sets TCP_NODELAY itself only on sockets that say TCP.
+    sock = socket.socket(family, kind, proto)
     try:
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         sock.bind(addr)
         sock.listen(128)
     except OSError as exc:
@@ -259,6 +287,7 @@ def run_server(
     stop: threading.Event | None = None,
     on_ready: Callable[[str], None] | None = None,
     config_path: str | None = None,
+    insecure_loopback: bool = False,
 ) -> None:
     """Serve until ``stop`` is set or SIGTERM/SIGINT (in the main thread).
 
@@ -271,23 +300,42 @@ def run_server(
             is open, the ingest is subscribed and the HTTP socket accepts requests.
         config_path: TOML file with ``[pipeline]``, ``[perception]`` and ``[association]``
             tables (defaults when None; ``deploy/server.toml``).
+        insecure_loopback: serve every route without a token; refused unless ``http_host``
+            is a loopback address (the demo's mode).
 
     Raises:
         ConfigError: a bad zenoh endpoint.
         StoreError: the store URL or file is bad.
-        ServerError: the HTTP port cannot be bound, or start-up failed (see the log).
+        ServerError: the HTTP port cannot be bound (or ``insecure_loopback`` off loopback),
+            or start-up failed (see the log).
     """
+    import asyncio
+
     import uvicorn
 
+    from wardmap.server.http_limits import (
+        LIMIT_CONCURRENCY,
+        NOISY_MESSAGES,
+        ThrottledLog,
+        connection_cap,
+        guarded_protocol,
+        throttled_exception_handler,
+    )
+
     client_config(connect)  # validate the endpoints before anything starts
-    server_root = MapServer.from_config(db_url, connect=connect, config_path=config_path)
+    server_root = MapServer.from_config(db_url, connect=connect, config_path=config_path,
+                                        require_tokens=not insecure_loopback)
     open_store(db_url).close()  # validate URL and file here, so the error is one clear line
     stop = stop if stop is not None else threading.Event()
     started = threading.Event()
     done = threading.Event()  # set by a signal, by `stop`, or when the HTTP thread ends
 
+    accept_errors = ThrottledLog()
+
     class _Server(uvicorn.Server):
         async def startup(self, sockets: list[socket.socket] | None = None) -> None:
+            # A failed accept() (e.g. out of file descriptors) is logged once per interval.
+            asyncio.get_running_loop().set_exception_handler(throttled_exception_handler(accept_errors))
             await super().startup(sockets)
             if not self.should_exit:
                 started.set()
@@ -295,23 +343,32 @@ def run_server(
 
     # uvicorn's start-up runs the app's lifespan, which starts the root; on_ready comes after.
     app = server_root.app
+    # Limits (server/http_limits.py): connections, concurrency, header and keep-alive timeouts.
     config = uvicorn.Config(
-        app, log_config=None, access_log=False, lifespan="on", timeout_graceful_shutdown=5
+        app, log_config=None, access_log=False, lifespan="on", timeout_graceful_shutdown=5,
+        http=guarded_protocol(cap := connection_cap()), limit_concurrency=min(LIMIT_CONCURRENCY, cap + 1),
+        timeout_keep_alive=5,
     )
+    noisy = ThrottledLog(messages=NOISY_MESSAGES)
+    uvicorn_log = logging.getLogger("uvicorn.error")
     server = _Server(config)
-    sock = _bind(http_host, http_port)
+    sock = _bind(http_host, http_port, loopback_only=insecure_loopback)
     bound_port = int(sock.getsockname()[1])
     url = f"http://{http_host}:{bound_port}"
+    uvicorn_log.addFilter(noisy)
     try:
         with on_stop_signals(stop.set, "the server"), _uvicorn_thread(server, sock, done, stop):
             done.wait()  # start-up finished or failed
             if not started.is_set():
                 raise ServerError(f"map server failed to start on {url} (see the log above)")
             log.info("map server ready at %s, ingest via %s", url, ", ".join(connect))
+            if insecure_loopback:
+                log.warning("REST API without tokens (--insecure-loopback): anyone on this host can read it")
             if on_ready is not None:
                 on_ready(url)
             stop.wait()
             log.info("stopping map server")
     finally:
+        uvicorn_log.removeFilter(noisy)
         sock.close()
     log.info("map server stopped")

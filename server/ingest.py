@@ -3,13 +3,16 @@
 :class:`Ingest` declares, on the server's one zenoh session (opened and closed by the
 composition root, ``server/app.py``), one subscriber on
 :data:`~wardmap.shared.zenoh_config.ALL_KEYFRAMES` and one ack publisher per robot, and runs
-one worker thread. Samples reach the worker through a bounded zenoh FIFO channel
-(``zenoh.handlers.FifoChannel``). :meth:`Ingest.stop` undeclares all of them; the session
-outlives it.
+one worker thread. The subscriber's callback only puts each sample into a :class:`SampleQueue`
+that the worker reads. :meth:`Ingest.stop` undeclares all of them; the session outlives it.
 
-Queue policy: **FIFO, block when full (backpressure, never drop)**. When the channel holds
-``capacity`` samples, zenoh stops taking samples off the transport; the robots publish
-reliable with congestion control ``BLOCK``, so their puts wait instead of being dropped.
+Queue policy: **FIFO, bounded in samples and in payload bytes, block when full
+(backpressure, never drop)**. When the queue holds ``capacity`` samples or ``max_bytes`` of
+payload, the callback waits, so zenoh stops taking samples off the transport; the robots
+publish reliable with congestion control ``BLOCK``, so their puts wait instead of being
+dropped. A message larger than the session's ``max_message_size`` (``shared/zenoh_config.py``,
+a little over the wire's 4 MiB) is dropped by zenoh before it is reassembled, so a queue of
+``max_bytes`` holds at most ``max_bytes`` plus one such message.
 
 For each sample the worker decodes the keyframe, checks that the robot id in the key equals
 the message's ``robot_id``, stores it and only *after* the insert committed publishes an
@@ -60,10 +63,13 @@ def wire_reason(field: str) -> str:
         return "wire: payload"
     return f"wire: {top}" if top in _KNOWN_FIELDS else "wire: unknown field"
 
-__all__ = ["DEFAULT_CAPACITY", "Ingest", "IngestCounters", "IngestError"]
+__all__ = ["DEFAULT_CAPACITY", "DEFAULT_MAX_BYTES", "Ingest", "IngestCounters", "IngestError", "SampleQueue"]
 
 DEFAULT_CAPACITY: Final = 256
-"""Samples the zenoh FIFO channel holds before zenoh applies backpressure."""
+"""Samples the ingest queue holds before zenoh applies backpressure."""
+DEFAULT_MAX_BYTES: Final = 64 * 2**20
+"""Payload bytes the ingest queue holds before zenoh applies backpressure (64 MiB: 16
+keyframes of the wire's largest, or a few hundred of a robot's usual 100-200 KB)."""
 MAX_ACK_PUBLISHERS: Final = 1024
 """Ack publishers kept declared (one per robot); the least recently used is undeclared beyond this."""
 _MAX_REASON: Final = 200
@@ -76,6 +82,57 @@ class IngestError(WardmapError):
     """The ingest cannot start (already started, zenoh refuses the subscriber)."""
 
 
+class SampleQueue:
+    """A FIFO bounded in items and in bytes: :meth:`put` blocks while full, :meth:`get` while
+    empty; thread safe. An item larger than ``max_bytes`` is taken when the queue is empty
+    (it can never fit otherwise). After :meth:`close`, ``put`` refuses and ``get`` returns
+    what is left, then None."""
+
+    def __init__(self, capacity: int, max_bytes: int) -> None:
+        self._capacity = capacity
+        self._max_bytes = max_bytes
+        self._items: deque[tuple[Any, int]] = deque()
+        self._bytes = 0
+        self._closed = False
+        self._cond = threading.Condition()
+
+    def put(self, item: Any, size: int) -> bool:
+        """Append ``item`` of ``size`` bytes once it fits; False (not queued) when closed."""
+        with self._cond:
+            while not self._closed and self._items and (
+                len(self._items) >= self._capacity or self._bytes + size > self._max_bytes
+            ):
+                self._cond.wait()
+            if self._closed:
+                return False
+            self._items.append((item, size))
+            self._bytes += size
+            self._cond.notify_all()
+            return True
+
+    def get(self) -> Any:
+        """The oldest item, waiting for one; None once closed and empty."""
+        with self._cond:
+            while not self._items and not self._closed:
+                self._cond.wait()
+            if not self._items:
+                return None
+            item, size = self._items.popleft()
+            self._bytes -= size
+            self._cond.notify_all()
+            return item
+
+    def close(self) -> None:
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+
+    def depth(self) -> tuple[int, int]:
+        """``(items, bytes)`` queued now."""
+        with self._cond:
+            return len(self._items), self._bytes
+
+
 @dataclass(frozen=True, slots=True)
 class IngestCounters:
     """A snapshot of the ingest's counters since :meth:`Ingest.start`.
@@ -86,12 +143,12 @@ class IngestCounters:
         duplicates: keyframes already stored (acked ``duplicate``).
         rejected: samples rejected (bad payload, key/robot mismatch, internal); never a
             storage failure.
-        queue_depth: samples the worker has taken from the zenoh channel and not yet
-            processed (a lower bound of the backlog: zenoh does not expose its channel's length).
+        queue_depth: samples queued and not yet taken by the worker.
         ack_failures: acks that could not be published.
         retry_later: valid keyframes the store could not take (acked ``retry``; the robot resends).
         unpersisted_rejections: rejection counts by reason not yet written to the store (it
             could not write); added to the store's once it can.
+        queued_bytes: payload bytes of the queued samples (at most ``max_bytes`` plus one sample).
     """
 
     received: int
@@ -102,6 +159,7 @@ class IngestCounters:
     ack_failures: int
     retry_later: int = 0
     unpersisted_rejections: Mapping[str, int] = field(default_factory=dict)
+    queued_bytes: int = 0
 
 
 class Ingest:
@@ -117,6 +175,7 @@ class Ingest:
         store: KeyframeStore,
         *,
         capacity: int = DEFAULT_CAPACITY,
+        max_bytes: int = DEFAULT_MAX_BYTES,
         clock: Any = time.time,
     ) -> None:
         """
@@ -124,14 +183,18 @@ class Ingest:
             session: the process's open ``zenoh.Session``; it must outlive this object's
                 ``stop()`` (its owner closes it after).
             store: where keyframes go; it must outlive this object's ``stop()``.
-            capacity: size of the zenoh FIFO channel (>= 1).
+            capacity: most samples queued (>= 1).
+            max_bytes: most payload bytes queued (>= 1; one larger sample passes alone).
             clock: wall-clock seconds for ``received_s`` (``time.time``).
         """
         if isinstance(capacity, bool) or not isinstance(capacity, int) or capacity < 1:
             raise ConfigError(f"ingest capacity must be an int >= 1, got {capacity!r}")
+        if isinstance(max_bytes, bool) or not isinstance(max_bytes, int) or max_bytes < 1:
+            raise ConfigError(f"ingest max_bytes must be an int >= 1, got {max_bytes!r}")
         self._session = session
         self._store = store
         self._capacity = capacity
+        self._max_bytes = max_bytes
         self._clock = clock
         self._lock = threading.Lock()
         self._counts = {"received": 0, "stored": 0, "duplicates": 0, "rejected": 0, "ack_failures": 0,
@@ -140,7 +203,7 @@ class Ingest:
         self._persist_lock = threading.Lock()  # one store write + its _unpersisted update at a time
         self._store_fault: str | None = None  # worker only: why the last insert failed, None once it works
         self._next_persist = 0.0  # worker only: after a failed count write, none before this (monotonic)
-        self._backlog: deque[Any] = deque()
+        self._queue: SampleQueue | None = None
         self._subscriber: Any = None
         self._thread: threading.Thread | None = None
         self._publishers: OrderedDict[str, Any] = OrderedDict()  # used by the worker only
@@ -159,29 +222,34 @@ class Ingest:
 
         if self._thread is not None:
             raise IngestError("ingest already started")
+        queue = SampleQueue(self._capacity, self._max_bytes)
+
+        def on_sample(sample: Any) -> None:  # zenoh's thread: enqueue only (blocks while full)
+            queue.put(sample, len(sample.payload))
+
         try:
-            self._subscriber = self._session.declare_subscriber(
-                ALL_KEYFRAMES, zenoh.handlers.FifoChannel(self._capacity)
-            )
+            self._subscriber = self._session.declare_subscriber(ALL_KEYFRAMES, on_sample)
         except zenoh.ZError as exc:
             raise IngestError(f"cannot subscribe to {ALL_KEYFRAMES}: {first_line(exc)}") from exc
         self._stopping.clear()
-        # The worker reads the channel, not the subscriber: undeclaring the subscriber from
-        # stop() closes the channel, and recv() then ends once the channel is empty.
-        self._thread = threading.Thread(
-            target=self._run, args=(self._subscriber.handler,), name="wardmap-ingest", daemon=True
-        )
+        self._queue = queue
+        self._thread = threading.Thread(target=self._run, args=(queue,), name="wardmap-ingest", daemon=True)
         self._thread.start()
-        log.info("ingest subscribed to %s (FIFO capacity %d)", ALL_KEYFRAMES, self._capacity)
+        log.info("ingest subscribed to %s (FIFO of %d samples, %d bytes)", ALL_KEYFRAMES, self._capacity,
+                 self._max_bytes)
 
     def stop(self, timeout_s: float = 10.0) -> None:
         """Undeclare the subscriber (which closes the channel), join the worker, then undeclare
         its ack publishers (idempotent). The session stays open; its owner closes it.
 
-        Samples still in the channel are stored but not acked; robots resend them and get
+        Samples still queued are stored but not acked; robots resend them and get
         ``duplicate`` for any that were stored.
         """
         self._stopping.set()
+        if self._queue is not None:
+            # First: a callback waiting on a full queue returns (its sample is not acked, so its
+            # robot resends it), and undeclaring cannot wait on it. The worker empties the queue.
+            self._queue.close()
         subscriber, self._subscriber = self._subscriber, None
         if subscriber is not None:
             subscriber.undeclare()
@@ -207,11 +275,11 @@ class Ingest:
         """The counters now (consistent snapshot)."""
         with self._lock:
             c = dict(self._counts)
-            depth = len(self._backlog)
             unpersisted = dict(self._unpersisted)
+        depth, queued_bytes = (0, 0) if self._queue is None else self._queue.depth()
         return IngestCounters(
             c["received"], c["stored"], c["duplicates"], c["rejected"], depth, c["ack_failures"],
-            c["retry_later"], unpersisted,
+            c["retry_later"], unpersisted, queued_bytes,
         )
 
     def rejections(self) -> dict[str, int]:
@@ -244,31 +312,9 @@ class Ingest:
         with self._lock:
             self._counts[name] += 1
 
-    def _run(self, sub: Any) -> None:
-        import zenoh
-
-        while True:
-            try:
-                first = sub.recv()  # blocks; raises ZError once the session closed and the channel is empty
-            except zenoh.ZError:
-                break
-            # Take whatever else is already waiting (up to the capacity), so the backlog is visible.
-            with self._lock:
-                self._backlog.append(first)
-            for _ in range(self._capacity - 1):
-                nxt = sub.try_recv()
-                if nxt is None:
-                    break
-                with self._lock:
-                    self._backlog.append(nxt)
-            while True:
-                with self._lock:
-                    if not self._backlog:
-                        break
-                    sample = self._backlog.popleft()
-                self._handle(sample)
-        with self._lock:
-            self._backlog.clear()
+    def _run(self, queue: SampleQueue) -> None:
+        while (sample := queue.get()) is not None:
+            self._handle(sample)
         self._persist_rejections()  # last chance for counts kept while the store could not write
         log.debug("ingest worker ends")
 

@@ -82,6 +82,9 @@ MAX_LIMIT: Final = 1000
 """Largest page of :meth:`ObjectMap.find`."""
 MAX_OFFSET: Final = 1_000_000
 MAX_OBSERVATIONS: Final = 1000
+MAX_COORD_M: Final = 1e6
+"""Largest ``abs`` of a query's ``near`` coordinate in metres (1000 km: far beyond any site;
+a distance from 1e155 m overflows float64, and its JSON would fail)."""
 """Most observations :meth:`ObjectMap.get` returns for one object."""
 
 ChangeKind: TypeAlias = Literal["created", "updated", "deleted"]
@@ -144,8 +147,9 @@ def parse_near(text: str) -> Vec3:
         values = tuple(float(p) for p in parts)
     except ValueError:
         values = ()
-    if len(values) != 3 or not all(math.isfinite(v) for v in values):
-        raise ObjectMapError(f"near must be three finite numbers 'x,y,z' in metres, got {str(text)[:80]!r}")
+    if len(values) != 3 or not all(math.isfinite(v) and abs(v) <= MAX_COORD_M for v in values):
+        raise ObjectMapError(f"near must be three finite numbers 'x,y,z' in metres, got {str(text)[:80]!r} "
+                             f"(each within +-{MAX_COORD_M:g})")
     return values[0], values[1], values[2]
 
 
@@ -178,8 +182,11 @@ class ObjectQuery:
     def __post_init__(self) -> None:
         if self.category is not None and (not isinstance(self.category, str) or not self.category):
             raise ObjectMapError(f"category must be a non-empty str, got {self.category!r:.80}")
-        if self.near is not None and (len(self.near) != 3 or not all(_is_finite(v) for v in self.near)):
-            raise ObjectMapError(f"near must be three finite numbers, got {self.near!r:.80}")
+        if self.near is not None and (
+            len(self.near) != 3 or not all(_is_finite(v) and abs(v) <= MAX_COORD_M for v in self.near)
+        ):
+            raise ObjectMapError(f"near must be three finite numbers within +-{MAX_COORD_M:g} m, "
+                                 f"got {self.near!r:.80}")
         if self.radius_m is not None:
             if self.near is None:
                 raise ObjectMapError("radius needs near=x,y,z (the centre of the search)")

@@ -52,6 +52,13 @@ MAX_KEYPOINTS: Final = 16384
 """Most keypoints one keyframe may carry."""
 MAX_IMAGE_SIDE: Final = 8192
 """Largest width or height in pixels of any image on the wire."""
+MAX_DECODED_BYTES: Final = 48 * 2**20
+"""Most bytes one keyframe's images may decode to: 3 per colour pixel plus 2 per depth and
+thermal pixel, as their headers declare (48 MiB: a 3840x2160 colour image with full-size
+depth fits). Checked before anything is inflated, so a small message cannot declare huge
+rasters (an 8192x8192 raster is 128 MiB)."""
+_INFLATE_CHUNK: Final = 2**20
+"""Validation inflates a raster this many bytes at a time and keeps none of them."""
 MAX_TEXT_LEN: Final = 1024
 """Longest string anywhere in a message (e.g. an ack's reason), in characters."""
 MAX_STATS: Final = 64
@@ -336,6 +343,25 @@ def _unpack_counts(data: bytes, width: int, height: int, field: str = "data") ->
     return np.cumsum(res, axis=0, dtype=np.uint16)
 
 
+def _check_packed(data: bytes, width: int, height: int, field: str) -> None:
+    """Raise as :func:`_unpack_counts` would, without keeping the raster: the stream is inflated
+    :data:`_INFLATE_CHUNK` bytes at a time and each chunk dropped (memory stays at a chunk)."""
+    want = 2 * width * height
+    inflater = zlib.decompressobj()
+    got, tail = 0, data
+    try:
+        while not inflater.eof and got <= want:
+            chunk = inflater.decompress(tail, min(_INFLATE_CHUNK, want - got + 1))
+            got += len(chunk)
+            tail = inflater.unconsumed_tail
+            if not chunk and not tail:
+                break
+    except zlib.error as exc:
+        raise _fail(field, f"corrupt compressed raster: {exc}") from exc
+    if got != want or not inflater.eof or inflater.unconsumed_tail or inflater.unused_data:
+        raise _fail(field, f"compressed raster does not hold exactly {width}x{height} uint16 values")
+
+
 def encode_depth(depth_m: ArrayLike, *, unit_m: float = DEPTH_UNIT_M) -> tuple[bytes, RasterMeta]:
     """Quantise a depth image to ``unit_m`` and compress it losslessly.
 
@@ -550,23 +576,29 @@ class KeyframeMsg:
         if self.intrinsics is not None and (width, height) != (self.intrinsics.width, self.intrinsics.height):
             raise _fail("rgb_jpeg", f"JPEG is {width}x{height}, intrinsics say "
                                     f"{self.intrinsics.width}x{self.intrinsics.height}")
-        self._check_raster(self.depth, "depth")
+        for raster, name in ((self.depth, "depth"), (self.thermal, "thermal")):
+            if raster is not None and not isinstance(raster, PackedRaster):
+                raise _fail(name, f"expected PackedRaster, got {type(raster).__name__}")
         dm = self.depth.meta
         if not any((dm.width * s, dm.height * s) == (width, height) for s in (1, 2, 4)):
             raise _fail("depth", f"depth is {dm.width}x{dm.height}, expected the colour size "
                                  f"{width}x{height} divided by 1, 2 or 4")
+        # The decoded size from the headers alone, before anything is inflated.
+        decoded = 3 * width * height
+        for raster, name in ((None, "rgb_jpeg"), (self.depth, "depth"), (self.thermal, "thermal")):
+            if raster is not None:
+                decoded += 2 * raster.meta.width * raster.meta.height
+            if decoded > MAX_DECODED_BYTES:
+                raise _fail(name, f"the images would decode to {decoded} bytes or more, "
+                                  f"more than {MAX_DECODED_BYTES=}")
+        _check_packed(self.depth.data, dm.width, dm.height, "depth.data")
         if self.thermal is not None:
-            self._check_raster(self.thermal, "thermal")
+            tm = self.thermal.meta
+            _check_packed(self.thermal.data, tm.width, tm.height, "thermal.data")
         if len(self.keypoints):
             uv = self.keypoints.uv
             if uv.min() < -1 or np.any(uv.max(axis=0) > np.array([width, height]) + 1):
                 raise _fail("keypoints.uv", f"keypoints outside the {width}x{height} image")
-
-    @staticmethod
-    def _check_raster(raster: object, field: str) -> None:
-        if not isinstance(raster, PackedRaster):
-            raise _fail(field, f"expected PackedRaster, got {type(raster).__name__}")
-        _unpack_counts(raster.data, raster.meta.width, raster.meta.height, f"{field}.data")
 
     @property
     def camera(self) -> PinholeCamera | None:
@@ -757,7 +789,8 @@ def _pose_from_wire(value: object, field: str) -> F64:
     t = _list_of_floats(f.get("t"), f.name("t"), 3)
     q = np.array(_list_of_floats(f.get("q_xyzw"), f.name("q_xyzw"), 4))
     f.done()
-    norm = float(np.linalg.norm(q))
+    with np.errstate(over="ignore"):  # a huge component gives norm inf, refused below
+        norm = float(np.linalg.norm(q))
     if abs(norm - 1.0) > QUAT_NORM_TOL:
         raise _fail(f.name("q_xyzw"), f"quaternion norm {norm:.6g} is not within {QUAT_NORM_TOL} of 1")
     return make_transform(quat_to_rotation(q / norm), t)

@@ -19,6 +19,7 @@ from collections.abc import Iterator, Mapping, Sequence
 from typing import Any, Literal
 
 from wardmap.shared.errors import ConfigError
+from wardmap.shared.wire import MAX_MESSAGE_BYTES
 
 __all__ = [
     "ALL_CORRECTIONS",
@@ -49,6 +50,12 @@ ALL_LIVELINESS = f"{KEY_PREFIX}/robot/*/alive"
 
 ALL_CORRECTIONS = f"{KEY_PREFIX}/robots/*/correction"
 """Key of the server's correction queryable: the corrections of every robot."""
+
+MAX_ZENOH_MESSAGE_BYTES = MAX_MESSAGE_BYTES + 64 * 1024
+"""Largest message any wardmap session or router reassembles (``transport/link/rx/
+max_message_size``; zenoh's default is 1 GiB): the wire's limit plus room for zenoh's own
+framing. Zenoh drops a larger message at the receiving link before it is reassembled, so a
+50 MB payload never reaches ingest's queue (``wire.encode`` never makes one)."""
 
 _ROBOT_ID_RE = re.compile(r"[A-Za-z0-9_.-]{1,64}")
 _ROBOT_KEY_RE = re.compile(rf"{re.escape(KEY_PREFIX)}/robot/([A-Za-z0-9_.-]{{1,64}})/[A-Za-z0-9_.-]+")
@@ -104,7 +111,10 @@ def validate_robot_id(robot_id: str) -> str:
 def _common(shm: bool, multicast_scouting: bool) -> dict[str, Any]:
     return {
         "scouting": {"multicast": {"enabled": bool(multicast_scouting)}},
-        "transport": {"shared_memory": {"enabled": bool(shm)}},
+        "transport": {
+            "shared_memory": {"enabled": bool(shm)},
+            "link": {"rx": {"max_message_size": MAX_ZENOH_MESSAGE_BYTES}},
+        },
     }
 
 

@@ -16,6 +16,8 @@ Measurements (``wardmap.server.association``): :func:`measurement` is an object 
 from __future__ import annotations
 
 import copy
+import functools
+import zlib
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 from typing import Any
@@ -271,3 +273,33 @@ def measurement(
         color_hist=np.full(8, 1 / 8, dtype=np.float32),
         gt_instance=gt,
     )
+
+
+# --------------------------------------------------------------------------- hostile keyframes
+
+
+def with_jpeg_size(jpeg: bytes, width: int, height: int) -> bytes:
+    """``jpeg`` whose baseline SOF0 header declares ``width`` x ``height`` (the data is unchanged:
+    only a decoder that trusts the header would allocate that much)."""
+    at = jpeg.index(b"\xff\xc0")
+    return jpeg[: at + 5] + height.to_bytes(2, "big") + width.to_bytes(2, "big") + jpeg[at + 9 :]
+
+
+@functools.lru_cache(maxsize=4)
+def zero_raster_stream(width: int, height: int) -> bytes:
+    """A valid ``delta16-zlib`` stream of a ``width`` x ``height`` all-zero raster, made 1 MiB at
+    a time (an 8192x8192 one is 128 MiB inflated and about 130 KB compressed)."""
+    z = zlib.compressobj(9)
+    total, chunk = 2 * width * height, bytes(2**20)
+    out = [z.compress(chunk[: min(len(chunk), total - i)]) for i in range(0, total, len(chunk))]
+    return b"".join(out) + z.flush()
+
+
+def raster_bomb(rng: np.random.Generator, side: int = 8192) -> bytes:
+    """A small, well-formed keyframe payload (about 300 KB) whose colour header, depth and thermal
+    rasters all declare ``side`` x ``side`` pixels, each raster a valid stream of that size."""
+    tree = dict(msgpack.unpackb(wire.encode(full_keyframe(rng, intrinsics=False)), raw=False))
+    tree["rgb_jpeg"] = with_jpeg_size(tree["rgb_jpeg"], side, side)
+    for name in ("depth", "thermal"):
+        tree[name] = {**tree[name], "width": side, "height": side, "data": zero_raster_stream(side, side)}
+    return pack(tree)

@@ -94,3 +94,12 @@ def test_systemd_unit(path: Path) -> None:
     assert argv[0].endswith("/wardmap")
     _parses(argv[1:])
     assert unit["Service"]["User"] == "wardmap"
+
+
+def test_no_deployment_file_serves_the_api_without_tokens() -> None:
+    """``--insecure-loopback`` (the demo's and the tests' mode) appears in no deployment file:
+    the deployed REST API always asks for a token."""
+    deploy = ROOT / "deploy"
+    files = [*DOCKERFILES, *UNITS, *sorted(deploy.glob("*.yaml")), *sorted(deploy.glob("*.toml"))]
+    for path in files:
+        assert "insecure-loopback" not in path.read_text(), path.name

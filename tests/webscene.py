@@ -55,6 +55,14 @@ def camera_at(x: float, y: float) -> np.ndarray:
     return make_transform(R_MAP_CAMERA, [x, y, 1.2])
 
 
+def read_token(url: str) -> str:
+    """A new ``read`` token of the store at ``url`` (what a member of staff would be given)."""
+    from wardmap.server.tokens import create_token
+
+    with open_store(url) as store:
+        return create_token(store, "read", "browser test").text
+
+
 def fill_ward(url: str) -> None:
     """Write the ward of the module docstring into the store at ``url``."""
     base = factories.keyframe(np.random.default_rng(0))

@@ -630,8 +630,19 @@ def _summary_printed(children: list[Child]) -> bool:
     return bool(children) and children[0].summary_printed
 
 
+def _read_token(db_url: str) -> str:
+    """A new ``read`` token in the store at ``db_url`` (created now), for a demo off loopback."""
+    from wardmap.server.store import open_store
+    from wardmap.server.tokens import create_token
+
+    with open_store(db_url) as store:
+        return create_token(store, "read", "wardmap demo").text
+
+
 def _run(opts: DemoOptions, work: Path, children: list[Child], wait: Callable[[], None] | None) -> int:
     import httpx
+
+    from wardmap.server.app import is_loopback
 
     plans = plan_robots(opts.robots, opts.seed)
     host, port, moved = choose_http(opts.http_host, opts.http_port)
@@ -651,11 +662,16 @@ def _run(opts: DemoOptions, work: Path, children: list[Child], wait: Callable[[]
     endpoint = f"tcp/127.0.0.1:{_free_port()}"
     router = start("router", ["router", "--listen", endpoint], lambda s: s.startswith("router listening on"))
     url = _url(host, port)
+    db_url = f"sqlite:///{work / 'map.db'}"
+    # On loopback the API runs without tokens; elsewhere the demo makes a read token and prints it.
+    token = None if is_loopback(host) else _read_token(db_url)
     server = start(
         "server",
-        ["server", "--connect", endpoint, "--db", f"sqlite:///{work / 'map.db'}", "--http", f"{host}:{port}"],
+        ["server", "--connect", endpoint, "--db", db_url, "--http", f"{host}:{port}",
+         *(["--insecure-loopback"] if token is None else [])],
         lambda s: s.startswith("server ready:"),
     )
+    headers = {} if token is None else {"Authorization": f"Bearer {token}"}
     edges: dict[str, Child] = {}
     for p in plans:
         args = ["edge", "--robot", p.robot_id, "--source", p.source, "--connect", endpoint,
@@ -665,7 +681,7 @@ def _run(opts: DemoOptions, work: Path, children: list[Child], wait: Callable[[]
             args += ["--map-pose", map_pose(p)]
         edges[p.robot_id] = start(f"edge {p.robot_id}", args, lambda s: " ready: session " in s)
 
-    with httpx.Client(base_url=url, timeout=10.0) as http:
+    with httpx.Client(base_url=url, timeout=10.0, headers=headers) as http:
         _watch(opts, router, server, edges, http)
         results = _collect(plans, edges, http)
         print(format_summary(results, opts), flush=True)
@@ -676,9 +692,14 @@ def _run(opts: DemoOptions, work: Path, children: list[Child], wait: Callable[[]
         anchoring = robot_anchoring(plans, http)
         print(format_anchoring(anchoring), flush=True)
         print(map_summary(plans, http, T_map_world=map_from_world(anchoring)), flush=True)
-        print(f"map server: {url}  (open {url}/ in a browser for the map; try "
+        page = url + "/" if token is None else f"{url}/#token={token}"
+        print(f"map server: {url}  (open {page} in a browser for the map; try "
               f"{url}/v1/objects?category=door, {url}/v1/categories, {url}/v1/robots, {url}/metrics)",
               flush=True)
+        if token is None:
+            print("REST API: insecure-loopback (no token needed; only this host can reach it)", flush=True)
+        else:
+            print(f"REST API read token: {token}  (send it as 'Authorization: Bearer TOKEN')", flush=True)
         if opts.exit_after:
             return 0
         if wait is not None:

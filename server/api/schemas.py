@@ -8,7 +8,7 @@ against these models.
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import BaseModel
 
@@ -106,6 +106,13 @@ class TrajectoryOut(BaseModel):
 
 class ErrorOut(BaseModel):
     detail: str
+
+
+class InvalidOut(BaseModel):
+    """A 422: a filter the map refused (``detail`` says why) or, from FastAPI's parameter
+    validation, a list of ``{type, loc, msg, input, ...}`` errors."""
+
+    detail: str | list[dict[str, Any]]
 
 
 class TransformOut(BaseModel):

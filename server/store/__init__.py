@@ -17,7 +17,14 @@ from pathlib import Path
 from typing import Final
 
 from wardmap.server.store.codec import pose_blob, pose_from_blob
-from wardmap.server.store.protocol import GraphStore, KeyframeStore, MappingStore, MapStore, ObjectStore
+from wardmap.server.store.protocol import (
+    GraphStore,
+    KeyframeStore,
+    MappingStore,
+    MapStore,
+    ObjectStore,
+    TokenStore,
+)
 from wardmap.server.store.records import (
     MAX_PAGE,
     MAX_REASON_LEN,
@@ -51,6 +58,8 @@ from wardmap.server.store.records import (
     StoreError,
     StoreStats,
     StoreUnavailableError,
+    TokenRecord,
+    TokenScope,
     Trajectory,
     UnknownObjectError,
 )
@@ -108,6 +117,9 @@ __all__ = [
     "StoreStats",
     "StoreUnavailableError",
     "StoredKeyframe",
+    "TokenRecord",
+    "TokenScope",
+    "TokenStore",
     "Trajectory",
     "UnknownObjectError",
     "classify_sqlite_error",

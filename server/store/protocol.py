@@ -41,6 +41,7 @@ from wardmap.server.store.records import (
     SessionAnchor,
     StoredKeyframe,
     StoreStats,
+    TokenRecord,
     Trajectory,
     Vec3,
 )
@@ -277,7 +278,27 @@ class GraphStore(Protocol):
         ...
 
 
-class MapStore(KeyframeStore, ObjectStore, MappingStore, GraphStore, Protocol):
+class TokenStore(Protocol):
+    """The REST API's bearer tokens (``server/api/auth.py``), secrets stored only as digests."""
+
+    def add_token(self, token: TokenRecord) -> None:
+        """Store a new token; StoreError when its ``token_id`` exists."""
+        ...
+
+    def token(self, token_id: str) -> TokenRecord | None:
+        """The token ``token_id`` (revoked ones too), or None."""
+        ...
+
+    def tokens(self) -> list[TokenRecord]:
+        """Every token, revoked ones too, oldest first."""
+        ...
+
+    def revoke_token(self, token_id: str, revoked_s: float) -> bool:
+        """Mark ``token_id`` revoked at ``revoked_s``; False when no such valid token exists."""
+        ...
+
+
+class MapStore(KeyframeStore, ObjectStore, MappingStore, GraphStore, TokenStore, Protocol):
     """The server's whole database: what a backend implements (see the module docstring)."""
 
     def __enter__(self) -> MapStore: ...

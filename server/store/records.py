@@ -466,3 +466,31 @@ class GraphChange:
     estimates: Sequence[tuple[NodeKey, NDArray[np.float64]]] = ()
     sessions: Sequence[SessionAnchor] = ()
     bump_epoch: bool = False
+
+
+# --------------------------------------------------------------------------- REST API tokens
+
+TokenScope: TypeAlias = Literal["read", "admin"]
+"""``read``: every read route; ``admin``: also the routes that change state."""
+
+
+@dataclass(frozen=True, slots=True)
+class TokenRecord:
+    """A REST API bearer token as stored: its secret only as a SHA-256 digest.
+
+    Attributes:
+        token_id: the token's public id (in its text, ``wm_<token_id>_<secret>``; names it in
+            ``wardmap token list`` and ``revoke``).
+        name: what it is for (free text, may be empty).
+        scope: ``read`` or ``admin``.
+        secret_sha256: the 32-byte SHA-256 digest of the secret part.
+        created_s: server wall-clock seconds when it was created.
+        revoked_s: when it was revoked (None: valid).
+    """
+
+    token_id: str
+    name: str
+    scope: TokenScope
+    secret_sha256: bytes
+    created_s: float
+    revoked_s: float | None = None

@@ -97,6 +97,7 @@ from wardmap.server.store.records import (
     StoreError,
     StoreStats,
     StoreUnavailableError,
+    TokenRecord,
     Trajectory,
     UnknownObjectError,
     Vec3,
@@ -265,6 +266,16 @@ MIGRATIONS: Final[tuple[sqlitedb.Migration, ...]] = (
             revision INTEGER NOT NULL,
             PRIMARY KEY (robot_id, session_id)) WITHOUT ROWID""",
         "CREATE TABLE graph_epoch (id INTEGER PRIMARY KEY CHECK (id = 1), epoch INTEGER NOT NULL)",
+    ),
+    # v9: the REST API's bearer tokens; the secret only as its SHA-256 digest (server/api/auth.py).
+    (
+        """CREATE TABLE api_tokens (
+            token_id TEXT PRIMARY KEY,
+            name TEXT NOT NULL,
+            scope TEXT NOT NULL CHECK (scope IN ('read', 'admin')),
+            secret_sha256 BLOB NOT NULL CHECK (length(secret_sha256) = 32),
+            created_s REAL NOT NULL,
+            revoked_s REAL) WITHOUT ROWID""",
     ),
 )
 
@@ -1164,6 +1175,43 @@ class SqliteMapStore(sqlitedb.GuardedAccess):
             raise StoreError(f"cursor {after!r:.80} names no keyframe of robot {robot_id!r}")
         return float(row[0]), session_id, seq
 
+    # ------------------------------------------------------------------ REST API tokens
+
+    def add_token(self, token: TokenRecord) -> None:
+        """See :meth:`~wardmap.server.store.protocol.TokenStore.add_token`."""
+        t = token
+        with self._write("tokens: add") as conn:
+            if conn.execute("SELECT 1 FROM api_tokens WHERE token_id = ?", (t.token_id,)).fetchone():
+                raise StoreError(f"token {t.token_id!r} exists already")
+            conn.execute(
+                "INSERT INTO api_tokens (token_id, name, scope, secret_sha256, created_s, revoked_s) "
+                "VALUES (?, ?, ?, ?, ?, ?)",
+                (t.token_id, t.name, t.scope, t.secret_sha256, t.created_s, t.revoked_s))
+
+    def token(self, token_id: str) -> TokenRecord | None:
+        """See :meth:`~wardmap.server.store.protocol.TokenStore.token`."""
+        with self._read("tokens: look-up") as conn:
+            row = conn.execute(
+                f"SELECT {_TOKEN_COLUMNS} FROM api_tokens WHERE token_id = ?", (token_id,)
+            ).fetchone()
+        return None if row is None else _token(row)
+
+    def tokens(self) -> list[TokenRecord]:
+        """See :meth:`~wardmap.server.store.protocol.TokenStore.tokens`."""
+        with self._read("tokens: list") as conn:
+            rows = conn.execute(
+                f"SELECT {_TOKEN_COLUMNS} FROM api_tokens ORDER BY created_s, token_id"
+            ).fetchall()
+        return [_token(r) for r in rows]
+
+    def revoke_token(self, token_id: str, revoked_s: float) -> bool:
+        """See :meth:`~wardmap.server.store.protocol.TokenStore.revoke_token`."""
+        with self._write("tokens: revoke") as conn:
+            cur = conn.execute(
+                "UPDATE api_tokens SET revoked_s = ? WHERE token_id = ? AND revoked_s IS NULL",
+                (float(revoked_s), token_id))
+            return cur.rowcount == 1
+
     # ------------------------------------------------------------------ error classification
 
     @contextmanager
@@ -1235,6 +1283,17 @@ class SqliteMapStore(sqlitedb.GuardedAccess):
 
 
 # ---------------------------------------------------------------------- helpers
+
+_TOKEN_COLUMNS: Final = "token_id, name, scope, secret_sha256, created_s, revoked_s"
+
+
+def _token(r: Sequence[Any]) -> TokenRecord:
+    scope = str(r[2])
+    if scope not in ("read", "admin"):  # the table's CHECK forbids it: only a hand-edited file
+        raise StoreDamagedError(f"token {r[0]!r} has an unknown scope {scope!r}")
+    return TokenRecord(str(r[0]), str(r[1]), "admin" if scope == "admin" else "read", bytes(r[3]),
+                       float(r[4]), None if r[5] is None else float(r[5]))
+
 
 
 def _check_str(value: object, field: str) -> str:

@@ -72,6 +72,7 @@ def test_demo_two_robots_exits_cleanly() -> None:
     assert anchor, done.stdout
     assert float(anchor[2]) <= 5.0 and float(anchor[3]) <= 1.0, done.stdout
     assert "map server: http://127.0.0.1:" in done.stdout
+    assert "REST API: insecure-loopback" in done.stdout  # the demo says how its API is open
     # the map server's mapping stage ran: the demo asked it for the doors
     assert re.search(r"^MAP: objects by category: ", done.stdout, re.MULTILINE), done.stdout
     doors = re.search(r"^GET /v1/objects\?category=door: \d+ doors on the map; the simulated worlds have "

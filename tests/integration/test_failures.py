@@ -24,7 +24,7 @@ from typing import Any
 import httpx
 import numpy as np
 import pytest
-from factories import FUZZ_LEAVES, keyframe, mutate, walk
+from factories import FUZZ_LEAVES, keyframe, mutate, raster_bomb, walk
 from peers import ALL_ACKS, matched_publisher, open_client
 from procs import Proc, edge_summary, kill_proc, prometheus_samples, spawn_logged, stop_proc, wardmap_cmd
 from procs import free_port as _free_port
@@ -71,7 +71,7 @@ def _start_router(endpoint: str, log_dir: Path) -> Proc:
 
 def _start_server(endpoint: str, db: Path, port: int, log_dir: Path) -> Proc:
     cmd = wardmap_cmd("server", "--connect", endpoint, "--db", f"sqlite:///{db}",
-                      "--http", f"127.0.0.1:{port}")
+                      "--http", f"127.0.0.1:{port}", "--insecure-loopback")
     return _start(cmd, f"server ready: http://127.0.0.1:{port}", log_dir, "server")
 
 
@@ -406,3 +406,46 @@ def test_malformed_and_mutated_payloads_are_rejected_and_counted(stack: Stack) -
         assert con.execute("PRAGMA integrity_check").fetchall() == [("ok",)]
         rows, distinct, _ = _db_counts(stack.db, FUZZ_ROBOT)
     assert rows == distinct
+
+
+def _peak_rss_mb(pid: int) -> float:
+    """The process's peak resident set (``VmHWM``) in MiB."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024
+    raise AssertionError("no VmHWM in /proc")
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").is_file(), reason="needs /proc for the peak RSS")
+def test_raster_bombs_and_a_50mb_flood_keep_the_server_small(stack: Stack) -> None:
+    """Ten 300 KB keyframes declaring 8192x8192 images and forty 50 MB payloads, interleaved
+    with 20 valid keyframes, on one robot's key: every valid keyframe is acked ``stored`` and
+    listed, every bomb acked ``rejected`` and counted as ``wire: rgb_jpeg``, the 50 MB payloads
+    are dropped by zenoh before reassembly (the wire's limit is 4 MiB), and the server's peak
+    RSS stays under 600 MiB (bombs once took 0.9 GB each to decode, the flood 3.2 GB)."""
+    valid = _base_keyframes(20)
+    bomb = raster_bomb(np.random.default_rng(5))
+    flood = bytes(50 * 2**20)
+    acks = AckCounter()
+    with (
+        open_client(stack.endpoint) as session,
+        session.declare_subscriber(ALL_ACKS, acks.on_ack),
+        httpx.Client(base_url=stack.url, timeout=10) as http,
+    ):
+        pub = matched_publisher(session, keyframe_key(FUZZ_ROBOT), EVENT_TIMEOUT_S)
+        for i in range(40):
+            pub.put(flood)
+            if i % 4 == 0:
+                pub.put(bomb)
+            if i % 2 == 0:
+                pub.put(valid[i // 2])
+        assert acks.wait_for(30, EVENT_TIMEOUT_S * 3), f"only {len(acks.statuses)} of 30 acks"
+        assert sorted(acks.statuses) == ["rejected"] * 10 + ["stored"] * 20
+        metrics = prometheus_samples(http.get("/metrics").text)
+        assert metrics['wardmap_rejections_total{reason="wire: rgb_jpeg"}'] == 10
+        assert metrics["wardmap_keyframes_received_total"] == 30  # the 50 MB never reached ingest
+        robots = {r["robot_id"]: r["keyframes"] for r in http.get("/v1/robots").json()["robots"]}
+        assert robots == {FUZZ_ROBOT: 20}
+        peak = _peak_rss_mb(stack.server.popen.pid)
+        assert peak <= 600, f"server peak RSS {peak:.0f} MiB"
+    assert stop_proc(stack.server) == 0

@@ -49,6 +49,7 @@ def router() -> Iterator[str]:
 
 @pytest.fixture
 def server(router: str, tmp_path: Path) -> Iterator[tuple[subprocess.Popen[str], str]]:
+    """A ``wardmap server`` subprocess that requires tokens (the default); ``tmp_path/map.db``."""
     port = _free_port()
     url = f"http://127.0.0.1:{port}"
     cmd = wardmap_cmd("server", "--connect", router, "--db", f"sqlite:///{tmp_path / 'map.db'}",
@@ -58,6 +59,14 @@ def server(router: str, tmp_path: Path) -> Iterator[tuple[subprocess.Popen[str],
         yield proc, url
     finally:
         _stop(proc)
+
+
+def _token(db: Path, scope: str) -> dict[str, str]:
+    """The Authorization header of a token made by ``wardmap token create`` (a real process)."""
+    made = subprocess.run(wardmap_cmd("token", "create", "--scope", scope, "--db", f"sqlite:///{db}"),
+                          capture_output=True, text=True, timeout=30, env=_env())
+    assert made.returncode == 0, made.stderr
+    return {"Authorization": f"Bearer {made.stdout.strip()}"}
 
 
 def _keyframes(robot: str, n: int) -> list[bytes]:
@@ -92,12 +101,13 @@ def _collect(acks: queue.Queue[tuple[str, AckMsg]], n: int) -> list[tuple[str, A
 
 
 def test_ingest_stores_acks_dedups_and_rejects(
-    server: tuple[subprocess.Popen[str], str], router: str
+    server: tuple[subprocess.Popen[str], str], router: str, tmp_path: Path
 ) -> None:
     """50 keyframes of each of 2 robots are acked stored; 10 resent are acked duplicate; 200 garbage
     payloads (plus 10 keyframes on another robot's key) are acked rejected and counted; the API
     shows 50 keyframes per robot and the server stays healthy and exits 0 on SIGTERM."""
     proc, url = server
+    headers = _token(tmp_path / "map.db", "read")
     acks: queue.Queue[tuple[str, AckMsg]] = queue.Queue()
 
     def on_ack(sample: Any) -> None:  # callbacks enqueue only
@@ -107,7 +117,7 @@ def test_ingest_stores_acks_dedups_and_rejects(
     with (
         open_client(router) as session,
         session.declare_subscriber(ALL_ACKS, on_ack),
-        httpx.Client(base_url=url, timeout=10) as http,
+        httpx.Client(base_url=url, timeout=10, headers=headers) as http,
     ):
         pubs = {robot: matched_publisher(session, keyframe_key(robot), EVENT_TIMEOUT_S) for robot in payloads}
 
@@ -178,3 +188,35 @@ def test_server_bad_db_and_port_in_use_exit_1(router: str, tmp_path: Path) -> No
     lines = busy.stderr.strip().splitlines()
     assert len(lines) == 1, busy.stderr
     assert "address already in use" in lines[0]
+
+
+def test_rest_needs_a_token_created_while_the_server_runs(
+    server: tuple[subprocess.Popen[str], str], tmp_path: Path
+) -> None:
+    """Without a token every data route is 401 (the probes are not); a ``read`` token made by
+    ``wardmap token create`` while the server runs is accepted at once; after ``wardmap token
+    revoke`` it is 401 again."""
+    _, url = server
+    with httpx.Client(base_url=url, timeout=10) as http:
+        assert http.get("/healthz").status_code == 200
+        for route in ("/v1/robots", "/metrics", "/v1/objects"):
+            r = http.get(route)
+            assert r.status_code == 401 and r.headers["www-authenticate"].startswith("Bearer"), route
+        headers = _token(tmp_path / "map.db", "read")
+        assert http.get("/v1/robots", headers=headers).status_code == 200
+        token_id = headers["Authorization"].split("_")[1]
+        revoked = subprocess.run(
+            wardmap_cmd("token", "revoke", token_id, "--db", f"sqlite:///{tmp_path / 'map.db'}"),
+            capture_output=True, text=True, timeout=30, env=_env())
+        assert revoked.returncode == 0, revoked.stderr
+        assert http.get("/v1/robots", headers=headers).status_code == 401
+
+
+def test_insecure_loopback_is_refused_off_loopback(router: str, tmp_path: Path) -> None:
+    """``--insecure-loopback`` with ``--http 0.0.0.0:PORT`` exits 1 with one line saying why."""
+    cmd = wardmap_cmd("server", "--connect", router, "--db", f"sqlite:///{tmp_path / 'm.db'}",
+                      "--http", f"0.0.0.0:{_free_port()}", "--insecure-loopback")
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=30, env=_env())
+    assert done.returncode == 1
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and "--insecure-loopback refused" in lines[0], done.stderr

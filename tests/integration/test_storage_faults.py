@@ -106,7 +106,7 @@ def _start_server(endpoint: str, db_url: str, port: int, log_dir: Path) -> Proc:
     config = log_dir / "server.toml"
     config.write_text(SERVER_CONFIG)
     cmd = _wardmap("server", "--connect", endpoint, "--db", db_url, "--http", f"127.0.0.1:{port}",
-                   "--config", str(config))
+                   "--config", str(config), "--insecure-loopback")
     expect = f"server ready: http://127.0.0.1:{port}"
     return _start(cmd, lambda ln: ln == expect, log_dir, "server")
 

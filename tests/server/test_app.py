@@ -158,3 +158,29 @@ def test_no_router_no_start(tmp_path: Path, events: list[str]) -> None:
 def test_bad_endpoint_fails_at_construction(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="bad endpoint"):
         MapServer(f"sqlite:///{tmp_path / 'm.db'}", connect=["localhost:7447"])
+
+
+def test_http_socket_sets_tcp_nodelay_on_accepted_connections() -> None:
+    """The REST socket says TCP (asyncio only sets TCP_NODELAY on such sockets) and an accepted
+    connection has TCP_NODELAY on: keep-alive responses do not wait on Nagle's algorithm."""
+    import socket
+
+    listener = app_module._bind("127.0.0.1", 0)
+    try:
+        assert listener.proto == socket.IPPROTO_TCP
+        with socket.create_connection(listener.getsockname()[:2], timeout=5):
+            conn, _ = listener.accept()
+            with conn:
+                assert conn.getsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY) != 0
+    finally:
+        listener.close()
+
+
+def test_insecure_loopback_binds_only_to_loopback() -> None:
+    """``loopback_only`` (``--insecure-loopback``) binds 127.0.0.1 and localhost, and refuses
+    the wildcard address with a message that says why."""
+    for host in ("127.0.0.1", "localhost"):
+        app_module._bind(host, 0, loopback_only=True).close()
+    with pytest.raises(ServerError, match=r"--insecure-loopback refused on '0\.0\.0\.0'"):
+        app_module._bind("0.0.0.0", 0, loopback_only=True)
+    assert app_module.is_loopback("127.0.0.1") and not app_module.is_loopback("0.0.0.0")

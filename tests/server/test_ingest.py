@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import contextlib
 import queue
+import threading
+import time
 from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
@@ -25,7 +27,14 @@ from procs import free_port
 
 pytest.importorskip("zenoh")
 
-from wardmap.server.ingest import Ingest, IngestCounters, IngestError, wire_reason
+from wardmap.server.ingest import (
+    DEFAULT_MAX_BYTES,
+    Ingest,
+    IngestCounters,
+    IngestError,
+    SampleQueue,
+    wire_reason,
+)
 from wardmap.server.store import InsertResult, SqliteKeyframeStore, StoreError, open_store
 from wardmap.server.zenoh_session import ZenohSessionError, open_session
 from wardmap.shared import wire
@@ -45,12 +54,14 @@ def store(tmp_path: Path) -> Iterator[SqliteKeyframeStore]:
 
 
 @contextlib.contextmanager
-def running(router: str, store: Any, capacity: int = 256) -> Iterator[Ingest]:
+def running(
+    router: str, store: Any, capacity: int = 256, max_bytes: int = DEFAULT_MAX_BYTES
+) -> Iterator[Ingest]:
     """An ingest started on its own client session to ``router`` (the server's composition root
     shares one session the same way); stopped, then the session closed."""
     session = open_session([router])
     try:
-        with Ingest(session, store, capacity=capacity) as ingest:
+        with Ingest(session, store, capacity=capacity, max_bytes=max_bytes) as ingest:
             yield ingest
     finally:
         session.close()
@@ -220,6 +231,81 @@ def test_a_full_channel_holds_the_robots_back_and_drops_nothing(
         counters = ingest.counters()
     assert [(a.seq, a.status) for _, a in acks] == [(seq, "stored") for seq in range(40)]
     assert (counters.received, counters.stored, counters.queue_depth) == (40, 40, 0)
+
+
+class _HeldInserts(_FailingInserts):
+    """``store``, except that the first insert waits until ``release`` is set."""
+
+    def __init__(self, store: SqliteKeyframeStore) -> None:
+        super().__init__(store)
+        self.release = threading.Event()
+        self.entered = threading.Event()
+
+    def insert(self, msg: KeyframeMsg, payload: bytes, received_s: float) -> InsertResult:
+        if not self.entered.is_set():
+            self.entered.set()
+            if not self.release.wait(60):
+                raise RuntimeError("never released")
+        return self.store.insert(msg, payload, received_s)
+
+
+def test_the_queue_is_bounded_in_bytes_and_holds_the_robots_back(
+        router: str, store: SqliteKeyframeStore, robots: Robots) -> None:
+    """While the store is stuck on the first keyframe, twelve 3 MiB garbage payloads queue up to
+    at most the 8 MiB bound (not 36 MiB: the rest waits in zenoh's own bounded buffers); once
+    the store moves, all of them are rejected and counted and the 3 keyframes after them stored."""
+    held = _HeldInserts(store)
+    msgs = _keyframes("r1", 4)
+    garbage = [bytes([i]) * (3 * 2**20) for i in range(12)]
+    max_bytes = 8 * 2**20
+    with running(router, held, max_bytes=max_bytes) as ingest:
+        try:
+            robots.put(keyframe_key("r1"), wire.encode(msgs[0]))
+            assert held.entered.wait(EVENT_TIMEOUT_S)
+            sender = threading.Thread(target=lambda: [robots.put(keyframe_key("r1"), g) for g in garbage]
+                                      + [robots.put(keyframe_key("r1"), wire.encode(m)) for m in msgs[1:]],
+                                      daemon=True)
+            sender.start()
+            peak, deadline = 0, time.monotonic() + EVENT_TIMEOUT_S
+            while time.monotonic() < deadline and peak < max_bytes - 3 * 2**20:  # the queue fills
+                peak = max(peak, ingest.counters().queued_bytes)
+                time.sleep(0.01)
+            for _ in range(50):  # and stays within its bound while the store is stuck
+                peak = max(peak, ingest.counters().queued_bytes)
+                time.sleep(0.01)
+            assert max_bytes - 3 * 2**20 <= peak <= max_bytes, peak
+            held.release.set()
+            acks = robots.next_acks(16)
+            sender.join(EVENT_TIMEOUT_S)
+            counters = ingest.counters()
+        finally:
+            held.release.set()
+    stored = [a.seq for _, a in acks if a.status == "stored"]
+    assert stored == [0, 1, 2, 3]
+    assert sum(a.status == "rejected" for _, a in acks) == 12
+    assert store.rejections() == {"wire: payload": 12}
+    assert (counters.received, counters.queued_bytes, counters.queue_depth) == (16, 0, 0)
+
+
+def test_sample_queue_bounds_blocks_and_closes() -> None:
+    """SampleQueue: FIFO; a put that would pass the byte bound waits for a get; an item larger
+    than the bound goes in alone; close releases a waiting put (refused) and get returns what
+    is left, then None."""
+    q = SampleQueue(capacity=3, max_bytes=10)
+    assert q.put("a", 6) and q.depth() == (1, 6)
+    done = threading.Event()
+    waiter = threading.Thread(target=lambda: (q.put("b", 6), done.set()), daemon=True)
+    waiter.start()
+    assert not done.wait(0.2)  # 12 bytes would pass the bound
+    assert q.get() == "a" and done.wait(5) and q.get() == "b"
+    assert q.put("huge", 100) and q.depth() == (1, 100)  # alone, as it can never fit otherwise
+    result: list[bool] = []
+    blocked = threading.Thread(target=lambda: result.append(q.put("c", 1)), daemon=True)
+    blocked.start()
+    q.close()
+    blocked.join(5)
+    assert result == [False]
+    assert q.get() == "huge" and q.get() is None and not q.put("d", 1)
 
 
 @pytest.mark.parametrize("capacity", [0, -3, True, 2.5, "8"])

@@ -243,7 +243,7 @@ def test_run_server_serves_the_map_over_rest_and_zenoh(router: str, client: Any,
 
     def target() -> None:
         try:
-            run_server([router], db, "127.0.0.1", 0, stop=stop, on_ready=on_ready)
+            run_server([router], db, "127.0.0.1", 0, stop=stop, on_ready=on_ready, insecure_loopback=True)
         except BaseException as exc:  # surfaced below
             errors.append(exc)
             ready.set()

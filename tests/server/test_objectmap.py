@@ -391,6 +391,7 @@ def test_limit_and_offset_page_through_results(om: ObjectMap) -> None:
         ({"near": (0, 0, 0), "radius_m": -1.0}, "radius must be a finite number >= 0"),
         ({"near": (0, 0, 0), "radius_m": float("inf")}, "radius must be"),
         ({"near": (0, float("nan"), 0)}, "near must be three finite numbers"),
+        ({"near": (0, 1e155, 0)}, r"within \+-1e\+06 m"),
         ({"min_confidence": 1.5}, r"min_confidence must be in \[0, 1\]"),
         ({"robot": "no spaces"}, "bad robot id"),
         ({"limit": 0}, "limit must be"),
@@ -542,7 +543,7 @@ def test_v1_store_migrates_to_the_object_map(tmp_path: Path) -> None:
         assert raw.execute("PRAGMA user_version").fetchone()[0] == 1
         assert raw.execute("SELECT name FROM sqlite_master WHERE name = 'objects'").fetchone() is None
     with open_store(f"sqlite:///{path}") as store:
-        assert store.stats().schema_version == len(MIGRATIONS) == 8
+        assert store.stats().schema_version == len(MIGRATIONS) == 9
         assert [(r.robot_id, r.keyframes) for r in store.robots()] == [("r1", 0)]
         om = ObjectMap(store, knowledge=KG, clock=Clock())
         om.upsert([_obj(1, 0, 0)])

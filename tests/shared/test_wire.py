@@ -23,7 +23,10 @@ from factories import (
     noise_jpeg,
     pack,
     random_pose,
+    raster_bomb,
     thermal_image,
+    with_jpeg_size,
+    zero_raster_stream,
 )
 
 from wardmap.edge.tracker import PoseSource as TrackerPoseSource
@@ -363,7 +366,7 @@ KEYFRAME_CASES: list[tuple[str, Mutation, str]] = [
     ("depth unknown codec", _set("depth.codec", "png"), "depth.codec"),
     ("depth unit zero", _set("depth.unit", 0.0), "depth.unit"),
     ("depth unit huge", _set("depth.unit", 5.0), "depth.unit"),
-    ("depth width wrong", _set("depth.width", W // 2), "depth.data"),
+    ("depth width wrong", _set("depth.width", W // 2), "depth"),  # sizes: checked before inflating
     ("depth height huge", _set("depth.height", 10**6), "depth.height"),
     ("depth corrupt stream", _corrupt("depth"), "depth.data"),
     ("depth trailing bytes", lambda d: _set("depth.data", d["depth"]["data"] + b"x")(d), "depth.data"),
@@ -561,3 +564,52 @@ def test_keyframe_with_quarter_depth_under_150kb(sim_frames: list[Frame]) -> Non
         payload = wire.encode(msg)
         assert len(payload) < 150_000
         assert_keyframes_equal(msg, wire.decode_keyframe(payload))
+
+
+# --------------------------------------------------------------------------- bounded cost
+
+
+def test_raster_bomb_is_refused_before_anything_is_inflated() -> None:
+    """A 300 KB keyframe whose colour, depth and thermal headers declare 8192x8192 (valid streams of
+    128 MiB each) is refused from its headers: WireError on ``rgb_jpeg`` in well under a second with
+    under 8 MiB allocated at the peak (it took 5.9 s and 0.9 GB when the rasters were decoded)."""
+    import time
+    import tracemalloc
+
+    payload = raster_bomb(np.random.default_rng(3))
+    assert len(payload) < 400_000
+    tracemalloc.start()
+    t = time.perf_counter()
+    try:
+        with pytest.raises(WireError, match="MAX_DECODED_BYTES") as e:
+            wire.decode(payload)
+        elapsed = time.perf_counter() - t
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert e.value.field == "rgb_jpeg"
+    assert elapsed < 0.5 and peak < 8 * 2**20, (elapsed, peak)
+
+
+def test_decoded_size_is_capped_per_message(keyframe_wire: dict[str, Any]) -> None:
+    """The cap counts colour (3 bytes a pixel), depth and thermal (2 each) from the headers:
+    a colour header alone over the cap names ``rgb_jpeg``; a thermal raster that tips the sum
+    over names ``thermal``; a 2048x2048 raster inside the cap is inflated and accepted."""
+    big = dict(keyframe_wire, calib_ref="sha256:" + "ab" * 32)
+    big.pop("intrinsics", None)
+    side = 4200  # colour alone over 48 MiB
+    big["rgb_jpeg"] = with_jpeg_size(big["rgb_jpeg"], side, side)
+    big["depth"] = {**big["depth"], "width": side // 4, "height": side // 4,
+                    "data": zero_raster_stream(side // 4, side // 4)}
+    big.pop("thermal", None)
+    with pytest.raises(WireError) as e:
+        wire.decode(pack(big))
+    assert e.value.field == "rgb_jpeg"
+    ok = dict(big, rgb_jpeg=with_jpeg_size(big["rgb_jpeg"], 2048, 2048))
+    ok["depth"] = {**big["depth"], "width": 2048, "height": 2048, "data": zero_raster_stream(2048, 2048)}
+    assert wire.decode_keyframe(pack(ok)).depth.meta.width == 2048
+    tipped = dict(ok, thermal={**ok["depth"], "unit": 0.01, "width": 4096, "height": 4096,
+                               "data": zero_raster_stream(4096, 4096)})
+    with pytest.raises(WireError) as e:
+        wire.decode(pack(tipped))
+    assert e.value.field == "thermal"

@@ -9,6 +9,7 @@ import sys
 import pytest
 
 from wardmap.shared.errors import ConfigError
+from wardmap.shared.wire import MAX_MESSAGE_BYTES
 from wardmap.shared.zenoh_config import (
     ALL_KEYFRAMES,
     ALL_LIVELINESS,
@@ -128,6 +129,7 @@ def test_config_leaves_paths() -> None:
         "listen/endpoints": ["tcp/127.0.0.1:7447"],
         "scouting/multicast/enabled": False,
         "transport/shared_memory/enabled": False,
+        "transport/link/rx/max_message_size": MAX_MESSAGE_BYTES + 64 * 1024,
     }
 
 

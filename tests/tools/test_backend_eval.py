@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -191,7 +192,7 @@ def test_the_pose_graph_floor_removes_drift_where_the_session_revisits() -> None
     stamps, truth = circle(126, step_s=1.0, speed=0.5)  # two laps of a 5 m circle, 63 s each
     bias = se3_exp(np.array([0.0, 0.0, math.radians(0.3), 0.0, 0.0, 0.0]))  # heading drift per step
     odom = [truth[0]]
-    for a, b in zip(truth, truth[1:], strict=False):
+    for a, b in itertools.pairwise(truth):
         odom.append(odom[-1] @ inverse(a) @ b @ bias)
     keys = [("r", "s", i) for i in range(len(truth))]
     floor = pose_graph_floor(keys, stamps, odom, ["rgb"] * len(keys), truth, GraphConfig())

@@ -16,6 +16,7 @@ from wardmap.server.api.deps import ObjectMapDep
 from wardmap.server.api.schemas import (
     ErrorOut,
     Flag,
+    InvalidOut,
     KeyframeRefOut,
     ObjectDetailOut,
     ObjectList,
@@ -62,7 +63,7 @@ def _vec(values: Any) -> list[float]:
     responses={
         200: {"model": ObjectList},
         400: {"model": ErrorOut, "description": "an unknown `format`"},
-        422: {"model": ErrorOut, "description": "a bad filter (message in detail)"},
+        422: {"model": InvalidOut, "description": "a bad filter or parameter"},
     },
 )
 # async: the work is short and mostly GIL-bound Python, so a worker-thread hop only adds latency.
@@ -120,7 +121,7 @@ async def objects(
 @router.get(
     "/v1/objects/{object_id}",
     response_model=ObjectDetailOut,
-    responses={404: {"model": ErrorOut}, 422: {"model": ErrorOut}},
+    responses={404: {"model": ErrorOut}, 422: {"model": InvalidOut}},
 )
 def object_detail(
     objects: ObjectMapDep,

@@ -1,10 +1,11 @@
 """Scenes for the REST API tests: a keyframe store and an object map, each in a temporary
 SQLite file, and a TestClient over the API-only server (:class:`MapServer` without Zenoh or
-mapping) whose lifespan opens the same file."""
+mapping) whose lifespan opens the same file. The clients send a real ``read`` token created
+in that file (``api/auth.py`` checks it on every data route)."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -16,6 +17,7 @@ from fastapi.testclient import TestClient
 from wardmap.server.app import MapServer
 from wardmap.server.objectmap import ObjectMap, ObjectState, Observation
 from wardmap.server.store import GraphChange, GraphNodeRow, SessionAnchor, open_store
+from wardmap.server.tokens import create_token
 from wardmap.shared import wire
 from wardmap.shared.se3 import make_transform, yaw_transform
 from wardmap.shared.wire import KeyframeMsg
@@ -79,9 +81,22 @@ def keyframe_scene(tmp_path: Path) -> KeyframeScene:
     return scene
 
 
+def _token_headers(url: str, scope: str = "read") -> dict[str, str]:
+    """The Authorization header of a new ``scope`` token in the store at ``url``."""
+    with open_store(url) as store:
+        return {"Authorization": f"Bearer {create_token(store, scope, 'tests').text}"}
+
+
+@pytest.fixture
+def token_headers() -> Callable[..., dict[str, str]]:
+    """``token_headers(url, scope="read")``: the Authorization header of a new token in the
+    store at ``url`` (test modules cannot import this conftest)."""
+    return _token_headers
+
+
 @pytest.fixture
 def keyframe_client(keyframe_scene: KeyframeScene) -> Iterator[TestClient]:
-    with TestClient(MapServer(keyframe_scene.url).app) as c:
+    with TestClient(MapServer(keyframe_scene.url).app, headers=_token_headers(keyframe_scene.url)) as c:
         yield c
 
 
@@ -123,5 +138,5 @@ def object_scene(tmp_path: Path) -> ObjectScene:
 
 @pytest.fixture
 def object_client(object_scene: ObjectScene) -> Iterator[TestClient]:
-    with TestClient(MapServer(object_scene.url).app) as c:
+    with TestClient(MapServer(object_scene.url).app, headers=_token_headers(object_scene.url)) as c:
         yield c

@@ -55,11 +55,13 @@ def browser() -> Iterator[Any]:
 
 
 @pytest.fixture(scope="module")
-def ward(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, MapServer]]:
+def ward(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, MapServer, str]]:
+    """The ward served with tokens required, and a ``read`` token for it."""
     url = f"sqlite:///{tmp_path_factory.mktemp('ward') / 'map.db'}"
     webscene.fill_ward(url)
-    with webscene.live_server(url) as served:
-        yield served
+    token = webscene.read_token(url)
+    with webscene.live_server(url) as (base, root):
+        yield base, root, token
 
 
 @dataclass
@@ -131,13 +133,13 @@ def shot(page: Any, tmp_path: Path, name: str) -> None:
 
 
 def test_page_draws_robots_objects_and_trajectories(
-    browser: Any, ward: tuple[str, MapServer], tmp_path: Path
+    browser: Any, ward: tuple[str, MapServer, str], tmp_path: Path
 ) -> None:
     """The page loads, lists both robots with their anchoring, draws every object where the
     map has it (the canvas pixel at each centre is the category's colour, not background),
     r1's trajectory of 6 keyframes, and nothing leaves the host."""
-    base, _ = ward
-    ctx, page, watch = open_page(browser, base)
+    base, _, token = ward
+    ctx, page, watch = open_page(browser, base, f"/#token={token}")
     try:
         ready(page)
         assert page.evaluate("[...wardmap.state.objects.keys()].sort()") == [1, 2, 3, 4, 5]
@@ -160,12 +162,13 @@ def test_page_draws_robots_objects_and_trajectories(
         ctx.close()
 
 
-def test_nearest_door_from_a_clicked_point(browser: Any, ward: tuple[str, MapServer], tmp_path: Path) -> None:
+def test_nearest_door_from_a_clicked_point(browser: Any, ward: tuple[str, MapServer, str],
+                                           tmp_path: Path) -> None:
     """Clicking the floor at (4, 4) and searching doors lists door 2 (6, 5) first, about 2.2 m
     away, then door 1 (0, 5) and door 3; the bed (5, 2), nearer, is not a door. From robot
     r1's position instead, door 3 comes first."""
-    base, _ = ward
-    ctx, page, watch = open_page(browser, base)
+    base, _, token = ward
+    ctx, page, watch = open_page(browser, base, f"/#token={token}")
     try:
         ready(page)
         page.locator("#map").click(position=screen(page, 4.0, 4.0))
@@ -191,11 +194,11 @@ def test_nearest_door_from_a_clicked_point(browser: Any, ward: tuple[str, MapSer
         ctx.close()
 
 
-def test_object_detail_with_thumbnail(browser: Any, ward: tuple[str, MapServer], tmp_path: Path) -> None:
+def test_object_detail_with_thumbnail(browser: Any, ward: tuple[str, MapServer, str], tmp_path: Path) -> None:
     """Clicking door 2 opens its detail: category, confidence, size, the robot that saw it and
     the thumbnail of r1's keyframe 3 (fetched with the page's headers)."""
-    base, _ = ward
-    ctx, page, watch = open_page(browser, base)
+    base, _, token = ward
+    ctx, page, watch = open_page(browser, base, f"/#token={token}")
     try:
         ready(page)
         page.locator("#map").click(position=screen(page, 6.0, 5.0))
@@ -214,11 +217,11 @@ def test_object_detail_with_thumbnail(browser: Any, ward: tuple[str, MapServer],
         ctx.close()
 
 
-def test_new_object_appears_live(browser: Any, ward: tuple[str, MapServer]) -> None:
+def test_new_object_appears_live(browser: Any, ward: tuple[str, MapServer, str]) -> None:
     """An object the map writer adds after the page loaded is drawn without a reload, within
     1 s of its commit (the update stream, GET /v1/events); deleting it removes it."""
-    base, root = ward
-    ctx, page, watch = open_page(browser, base)
+    base, root, token = ward
+    ctx, page, watch = open_page(browser, base, f"/#token={token}")
     try:
         ready(page)
         assert root.services is not None
@@ -237,30 +240,30 @@ def test_new_object_appears_live(browser: Any, ward: tuple[str, MapServer]) -> N
         ctx.close()
 
 
-def test_token_is_sent_and_kept_out_of_the_address(browser: Any, ward: tuple[str, MapServer]) -> None:
-    """Opened as ``/#token=abc``, the page sends ``Authorization: Bearer abc`` on every data
+def test_token_is_sent_and_kept_out_of_the_address(browser: Any, ward: tuple[str, MapServer, str]) -> None:
+    """Opened as ``/#token=TOKEN``, the page sends ``Authorization: Bearer TOKEN`` on every data
     request (the event stream too, read with fetch) and removes the token from the address."""
-    base, _ = ward
-    ctx, page, watch = open_page(browser, base, "/#token=abc")
+    base, _, token = ward
+    ctx, page, watch = open_page(browser, base, f"/#token={token}")
     try:
         ready(page)
         assert "token" not in page.url
         data = [r for r in watch.requests if urlsplit(r.url).path.startswith("/v1/")]
         paths = {urlsplit(r.url).path for r in data}
         assert paths >= {"/v1/events", "/v1/objects", "/v1/robots", "/v1/categories"}
-        assert all(r.headers.get("authorization") == "Bearer abc" for r in data), [
+        assert all(r.headers.get("authorization") == f"Bearer {token}" for r in data), [
             (r.url, r.headers.get("authorization")) for r in data]
         assert watch.errors == []
     finally:
         ctx.close()
 
 
-def test_tablet_portrait_layout(browser: Any, ward: tuple[str, MapServer], tmp_path: Path) -> None:
+def test_tablet_portrait_layout(browser: Any, ward: tuple[str, MapServer, str], tmp_path: Path) -> None:
     """On a portrait tablet (768 x 1024, touch) the panel moves below the floor view, nothing
     is wider than the screen, and a tap on the floor sets the search point."""
-    base, _ = ward
-    ctx, page, watch = open_page(browser, base, viewport={"width": 768, "height": 1024}, has_touch=True,
-                                 is_mobile=True, device_scale_factor=2)
+    base, _, token = ward
+    ctx, page, watch = open_page(browser, base, f"/#token={token}", viewport={"width": 768, "height": 1024},
+                                 has_touch=True, is_mobile=True, device_scale_factor=2)
     try:
         ready(page)
         floor = page.locator("#floor").bounding_box()
@@ -276,14 +279,12 @@ def test_tablet_portrait_layout(browser: Any, ward: tuple[str, MapServer], tmp_p
         ctx.close()
 
 
-def test_refused_token_is_explained(browser: Any, ward: tuple[str, MapServer]) -> None:
-    """When the data routes answer 401 (a server that wants a token, emulated in the browser),
-    the page says how to give one and keeps running (no uncaught error)."""
-    base, _ = ward
-    ctx, page, watch = open_page(browser, base, "/static/favicon.svg")  # a page that loads nothing
-    ctx.route(f"{base}/v1/**", lambda r: r.fulfill(status=401, json={"detail": "unauthorized"}))
+def test_refused_token_is_explained(browser: Any, ward: tuple[str, MapServer, str]) -> None:
+    """Opened without a token, the server's data routes answer 401: the page says how to give
+    one and keeps running (no uncaught error)."""
+    base, _, _ = ward
+    ctx, page, watch = open_page(browser, base, "/")
     try:
-        page.goto(base + "/")
         page.wait_for_selector("#banner:not([hidden])")
         assert "#token=YOUR_TOKEN" in page.locator("#banner").inner_text()
         assert page.locator("#live").inner_text() == "reconnecting"
@@ -295,11 +296,11 @@ def test_refused_token_is_explained(browser: Any, ward: tuple[str, MapServer]) -
 
 
 @pytest.mark.parametrize(("path", "selector"), [("/docs", ".swagger-ui .info .title"), ("/redoc", "h1")])
-def test_api_docs_work_offline(browser: Any, ward: tuple[str, MapServer], tmp_path: Path,
+def test_api_docs_work_offline(browser: Any, ward: tuple[str, MapServer, str], tmp_path: Path,
                                path: str, selector: str) -> None:
     """Swagger UI and ReDoc render the API from the packaged files, with every other host
     blocked: no request leaves the host, no console error."""
-    base, _ = ward
+    base, _, _ = ward
     ctx, page, watch = open_page(browser, base, path)
     try:
         page.wait_for_selector(selector, timeout=15_000)

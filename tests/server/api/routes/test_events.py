@@ -43,8 +43,10 @@ def test_stream_sends_ready_then_every_change_in_order(tmp_path: Path) -> None:
     arrive as ``update`` events in commit order, each with the whole object as ``GET
     /v1/objects`` shows it; the stream is text/event-stream and not cached."""
     url = f"sqlite:///{tmp_path / 'map.db'}"
-    open_store(url).close()
-    with webscene.live_server(url) as (base, root), httpx.Client(base_url=base, timeout=10) as http:
+    token = webscene.read_token(url)
+    with (webscene.live_server(url) as (base, root),
+          httpx.Client(base_url=base, timeout=10, headers={"Authorization": f"Bearer {token}"}) as http):
+        assert httpx.get(f"{base}/v1/events", timeout=10).status_code == 401  # the stream needs a token
         with http.stream("GET", "/v1/events") as resp:
             assert resp.status_code == 200
             assert resp.headers["content-type"].startswith("text/event-stream")

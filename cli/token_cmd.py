@@ -1,0 +1,61 @@
+"""``wardmap token``: create, list and revoke the REST API's bearer tokens (``server/tokens.py``).
+
+The token text is printed once, by ``create``, and never stored (the store keeps its SHA-256
+digest). Works on the server's database while the server runs: a new or revoked token counts
+from the next request on.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+DEFAULT_DB = "sqlite:///wardmap.db"
+
+
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    p = sub.add_parser("token", help="create, list or revoke REST API tokens", description=__doc__)
+    actions = p.add_subparsers(dest="action", metavar="ACTION")
+    actions.required = True
+    create = actions.add_parser("create", help="create a token and print it (once)")
+    create.add_argument("--scope", required=True, choices=("read", "admin"),
+                        help="read: every read route; admin: also the routes that change state")
+    create.add_argument("--name", default="", help="what the token is for (shown by list)")
+    listing = actions.add_parser("list", help="list tokens (ids, scopes, names; never secrets)")
+    revoke = actions.add_parser("revoke", help="revoke a token by its id")
+    revoke.add_argument("token_id", metavar="ID", help="the id from `wardmap token list`")
+    for q in (create, listing, revoke):
+        q.add_argument("--db", default=DEFAULT_DB, metavar="URL",
+                       help="the map server's store (default: %(default)s)")
+    p.set_defaults(func=run)
+
+
+def _when(s: float | None) -> str:
+    return "-" if s is None else time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(s))
+
+
+def run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from wardmap.server.store import SQLITE_SCHEME, open_store
+    from wardmap.server.tokens import TokenError, create_token, revoke_token
+
+    if args.db.startswith(SQLITE_SCHEME):  # a mistyped path would make a new store nobody serves
+        path = Path(args.db[len(SQLITE_SCHEME):].partition("?")[0])
+        if not path.is_file():
+            raise TokenError(
+                f"no store at {path}: give the server's --db (it creates the file at its first start)"
+            )
+    with open_store(args.db) as store:
+        if args.action == "create":
+            issued = create_token(store, args.scope, args.name)
+            print(issued.text, flush=True)
+        elif args.action == "revoke":
+            revoke_token(store, args.token_id)
+            print(f"revoked {args.token_id}")
+        else:
+            print(f"{'id':<12}  {'scope':<5}  {'created':<20}  {'revoked':<20}  name")
+            for t in store.tokens():
+                when = f"{_when(t.created_s):<20}  {_when(t.revoked_s):<20}"
+                print(f"{t.token_id:<12}  {t.scope:<5}  {when}  {t.name}")
+    return 0
