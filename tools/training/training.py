@@ -546,6 +546,7 @@ def train_and_export(
         raise TrainingError(f"--out must end in .onnx, got {out}")
     if out.exists() and not out.is_file():
         raise TrainingError(f"--out {out} exists and is not a file")
+    _device(cfg)  # a missing GPU fails before the frames are rendered
     started = time.perf_counter()
     kg = KnowledgeGraph.load()
     names = class_names(kg)

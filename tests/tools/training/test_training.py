@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -200,3 +201,6 @@ def test_cuda_without_a_gpu_is_a_clear_error(tmp_path: Path) -> None:
     cfg = _tiny_cfg(tmp_path, device="cuda")
     with pytest.raises(TrainingError, match="sees no GPU"):
         train_model(cfg, build_samples(cfg.data, cfg.cache_dir))
+    with pytest.raises(TrainingError, match="sees no GPU"):  # before any frame is rendered
+        train_and_export(replace(cfg, cache_dir=str(tmp_path / "none")), tmp_path / "m.onnx")
+    assert not (tmp_path / "none").exists()
