@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import os
 import platform
 import re
@@ -61,3 +62,19 @@ def write_section(path: Path, name: str, body: str) -> None:
         pattern.sub(lambda _m: block, text) if pattern.search(text) else text.rstrip() + "\n\n" + block + "\n"
     )
     path.write_text(text)
+
+
+EVAL_SEEDS = (2001, 2002, 2003, 2004, 2005)
+"""Evaluation worlds: benchmarks report on these by default; no setting is tuned on them."""
+TUNE_SEEDS = (1001, 1002)
+"""Tuning worlds: thresholds and rules are chosen on these. Training worlds are < 1000
+(``wardmap.tools.training.segdata.EVAL_SEED_MIN``); the training validation split uses 1000."""
+
+
+def add_seed_arguments(ap: argparse.ArgumentParser, data: Path) -> None:
+    """``--data`` (cached simulated data sets) and ``--seeds`` (default :data:`EVAL_SEEDS`)."""
+    ap.add_argument("--data", type=Path, default=data)
+    ap.add_argument("--seeds", type=int, nargs="+", default=list(EVAL_SEEDS),
+                    help=f"world seeds (default {' '.join(map(str, EVAL_SEEDS))}, the evaluation worlds; "
+                    f"{' '.join(map(str, TUNE_SEEDS))} are tuning worlds, < 1000 the segmentation "
+                    "network's training worlds)")

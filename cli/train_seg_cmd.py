@@ -20,7 +20,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "train-seg",
         help="train the segmentation network on simulated frames, export ONNX + model card",
         description="Render training frames with the simulator (cached), train the BAFF segmentation "
-        "network (paper 003) on CPU, export MODEL.onnx and write MODEL.md (model card) beside it. "
+        "network (paper 003) on the CPU, or on a GPU when torch sees one ([train_seg] device), export "
+        "MODEL.onnx and write MODEL.md (model card) beside it. "
         "Needs the 'train' extra: pip install -e '.[train]'. The last line on stdout is a JSON summary.",
     )
     p.add_argument("--out", required=True, metavar="MODEL.onnx", help="ONNX file to write")

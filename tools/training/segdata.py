@@ -188,6 +188,18 @@ class TrainSegConfig:
             ``logits - alpha log(w_c)`` that undoes the class weighting's bias toward rare
             classes (``tools/training/logit_adjust.py``); the one with the best
             validation mIoU is baked into the exported model. ``[0]`` turns it off.
+        device: ``"auto"`` (CUDA when torch sees a GPU, else CPU), ``"cpu"`` or ``"cuda"``.
+        time_budget_s: wall-clock cap of the training loop in seconds (0: none). The
+            learning-rate schedule runs on ``max(step / total, elapsed / budget)``, so a run
+            stopped by the clock still ends its cycle; such a run is not reproducible.
+        repeat_factor: repeat-factor sampling threshold ``t`` (Gupta et al., LVIS, CVPR 2019;
+            0: off, every frame once per epoch). A class in a share ``f_c`` of the frames gets
+            ``r_c = max(1, sqrt(t / f_c))``; a frame is drawn with probability proportional to
+            the largest ``r_c`` of its classes, so frames holding rare classes come more often.
+        loader_workers: processes that augment batches (0: in the training loop). The batches
+            do not depend on it: each batch's augmentation is seeded by ``(seed, step)``.
+        select_best: score the network on the validation worlds after every epoch and keep
+            the epoch with the best mIoU (before logit adjustment); off: the last epoch.
     """
 
     seed: int = 0
@@ -218,8 +230,17 @@ class TrainSegConfig:
     max_steps: int = 0
     channels_last: bool = True
     logit_adjust: tuple[float, ...] = (0.0, 0.25, 0.5, 0.75, 1.0)
+    device: str = "auto"
+    time_budget_s: float = 0.0
+    repeat_factor: float = 0.0
+    loader_workers: int = 0
+    select_best: bool = False
 
     def __post_init__(self) -> None:
+        if self.device not in ("auto", "cpu", "cuda"):
+            raise ValueError(f"device must be auto, cpu or cuda, got {self.device!r}")
+        if self.time_budget_s < 0 or self.repeat_factor < 0 or self.loader_workers < 0:
+            raise ValueError("time_budget_s, repeat_factor and loader_workers must be >= 0")
         if any(s >= EVAL_SEED_MIN for s in self.data.seeds):
             raise ValueError(f"training seeds must be < {EVAL_SEED_MIN}, got {self.data.seeds}")
         if any(s < EVAL_SEED_MIN for s in self.val.seeds):
@@ -801,6 +822,26 @@ def class_weights(
     med = float(np.median(freq[freq > 0])) if np.any(freq > 0) else 1.0
     w = np.where(freq > 0, (med / np.maximum(freq, 1e-12)) ** power, max_weight)
     return np.clip(w, 1.0 / max_weight, max_weight).astype(np.float32)
+
+
+def repeat_factors(classes: NDArray[np.uint8], num_classes: int, threshold: float) -> NDArray[np.float64]:
+    """Repeat factor (N,) of each frame for repeat-factor sampling (Gupta et al., LVIS, CVPR 2019).
+
+    ``classes``: uint8 (N, H, W) class images. A class present in a share ``f_c`` of the
+    frames gets ``r_c = max(1, sqrt(threshold / f_c))``; a frame gets the largest ``r_c`` of
+    the classes in it (background, index 0, excluded; a frame of background only gets 1).
+    ``threshold`` 0 gives all ones.
+    """
+    n = classes.shape[0]
+    present = np.zeros((n, num_classes), bool)
+    for i in range(n):
+        present[i] = np.bincount(classes[i].reshape(-1), minlength=256)[:num_classes] > 0
+    present[:, 0] = False
+    share = present.mean(axis=0)
+    with np.errstate(divide="ignore"):
+        r_c = np.where(share > 0, np.sqrt(threshold / np.maximum(share, 1e-12)), 1.0)
+    r_c = np.maximum(r_c, 1.0)
+    return np.where(present, r_c[None], 1.0).max(axis=1)
 
 
 def confusion(pred: NDArray[np.integer], truth: NDArray[np.integer], n: int) -> NDArray[np.int64]:

@@ -23,6 +23,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 import platform
 import time
 import warnings
@@ -52,6 +53,7 @@ from wardmap.tools.training.segdata import (
     config_hash,
     confusion,
     iou_from_confusion,
+    repeat_factors,
 )
 
 log = logging.getLogger(__name__)
@@ -247,80 +249,184 @@ class TrainResult:
     summary: dict[str, Any]
 
 
-def _batches(n: int, batch: int, rng: np.random.Generator) -> list[NDArray[np.int64]]:
-    order = rng.permutation(n)
-    return [order[i : i + batch] for i in range(0, n - batch + 1, batch)]
+def _device(cfg: TrainSegConfig) -> torch.device:
+    """The training device of ``cfg.device`` (``auto``: CUDA when torch sees a GPU)."""
+    cuda = torch.cuda.is_available()
+    if cfg.device == "cuda" and not cuda:
+        raise TrainingError("device = cuda, but torch sees no GPU (torch.cuda.is_available() is False)")
+    return torch.device("cuda" if cuda and cfg.device != "cpu" else "cpu")
+
+
+def _plan(cfg: TrainSegConfig, samples: SegSamples) -> list[NDArray[np.int64]]:
+    """Sample indices of every optimiser step, all epochs: a permutation per epoch, or with
+    ``repeat_factor`` as many frames drawn (with replacement) in proportion to their repeat
+    factors (:func:`repeat_factors`)."""
+    rng = np.random.default_rng([cfg.seed, 1])
+    n, b = len(samples), cfg.batch_size
+    p = None
+    if cfg.repeat_factor > 0:
+        r = repeat_factors(samples.classes, len(samples.names), cfg.repeat_factor)
+        p = r / r.sum()
+    steps: list[NDArray[np.int64]] = []
+    for _ in range(cfg.epochs):
+        order = rng.permutation(n) if p is None else rng.choice(n, size=n, p=p)
+        steps += [order[i : i + b] for i in range(0, n - b + 1, b)]
+    return steps[: cfg.max_steps] if cfg.max_steps else steps
+
+
+class _Batches(torch.utils.data.Dataset[tuple[Tensor, Tensor]]):
+    """Item ``step`` = the augmented batch of that step: ``x`` (B, 3|4, h, w) float32 (RGB
+    0..1, depth metres), ``y`` (B, h, w) int64 class indices. Augmentation is seeded by
+    ``(seed, step)``, so batches do not depend on the number of loader processes."""
+
+    def __init__(self, cfg: TrainSegConfig, samples: SegSamples, plan: list[NDArray[np.int64]]) -> None:
+        self.cfg, self.samples, self.plan = cfg, samples, plan
+
+    def __len__(self) -> int:
+        return len(self.plan)
+
+    def __getitem__(self, step: int) -> tuple[Tensor, Tensor]:
+        cfg, s = self.cfg, self.samples
+        rng = np.random.default_rng([cfg.seed, 2, step])
+        pairs = [
+            augment(s.rgb[i], s.classes[i], rng, cfg.crop, s.depth[i] if cfg.depth_input else None)
+            for i in self.plan[step]
+        ]
+        x = torch.from_numpy(np.stack([p[0] for p in pairs])).permute(0, 3, 1, 2).float().div_(255.0)
+        if cfg.depth_input:
+            d = torch.from_numpy(np.stack([cast(NDArray[np.float32], p[2]) for p in pairs]))
+            x = torch.cat([x, d[:, None]], dim=1)
+        y = torch.from_numpy(np.stack([p[1] for p in pairs]).astype(np.int64))
+        return x, y
+
+
+def one_cycle(progress: float, max_lr: float, pct_start: float = 0.1) -> tuple[float, float]:
+    """``(learning rate, Adam beta1)`` at ``progress`` in [0, 1] of a one-cycle schedule (Smith
+    2018; torch's ``OneCycleLR`` defaults: cosine phases, start ``max_lr / 25``, end 1e-4 of
+    that, beta1 0.95 -> 0.85 -> 0.95)."""
+    lo, end = max_lr / 25.0, max_lr / 25.0 / 1e4
+    p = min(max(progress, 0.0), 1.0)
+    if p < pct_start:
+        a = (1.0 - math.cos(math.pi * p / pct_start)) / 2.0
+        return lo + (max_lr - lo) * a, 0.95 - 0.10 * a
+    a = (1.0 - math.cos(math.pi * (p - pct_start) / (1.0 - pct_start))) / 2.0
+    return max_lr + (end - max_lr) * a, 0.85 + 0.10 * a
+
+
+def _val_miou(model: BaffSkipNet, val: SegSamples, device: torch.device, depth: bool) -> float:
+    """Validation mIoU % of the network's own argmax (no logit adjustment), computed in torch."""
+    n = len(val.names)
+    cm = torch.zeros(n * n, dtype=torch.int64, device=device)
+    model.eval()
+    with torch.no_grad():
+        for i in range(0, len(val), 16):
+            x = torch.from_numpy(val.rgb[i : i + 16]).to(device).permute(0, 3, 1, 2).float().div_(255.0)
+            if depth:
+                d = torch.from_numpy(val.depth[i : i + 16].astype(np.float32)).to(device) / 1000.0
+                x = torch.cat([x, d[:, None]], dim=1)
+            pred = model(x).argmax(1).reshape(-1)
+            t = torch.from_numpy(val.classes[i : i + 16]).to(device).reshape(-1).long()
+            keep = t < n
+            cm += torch.bincount(t[keep] * n + pred[keep], minlength=n * n)
+    model.train()
+    iou = iou_from_confusion(cm.reshape(n, n).cpu().numpy())
+    present = cm.reshape(n, n).sum(1).cpu().numpy() > 0
+    return float(np.mean(iou[present]) * 100.0)
 
 
 def train_model(
     cfg: TrainSegConfig,
     samples: SegSamples,
     progress: Progress | None = None,
+    val: SegSamples | None = None,
 ) -> tuple[BaffSkipNet, list[float]]:
-    """Train a :class:`BaffSkipNet` on ``samples``; returns it (eval mode) and the per-epoch mean loss.
+    """Train a :class:`BaffSkipNet` on ``samples``; returns it (eval mode, on the CPU) and the
+    per-epoch mean loss.
 
-    Deterministic for a given config and samples (seeded torch, sample order, augmentation).
+    On the CPU, deterministic for a given config and samples (seeded torch, sample order,
+    augmentation) unless ``time_budget_s`` stops it. With ``select_best`` the epoch with the
+    best mIoU on ``val`` is returned.
     """
     if len(samples) < cfg.batch_size:
         raise TrainingError(f"{len(samples)} samples are fewer than one batch of {cfg.batch_size}")
+    if cfg.select_best and val is None:
+        raise TrainingError("select_best needs validation samples")
+    device = _device(cfg)
     torch.manual_seed(cfg.seed)
     torch.set_num_threads(cfg.threads)
-    torch.use_deterministic_algorithms(True, warn_only=True)
+    # CUDA's deterministic kernels (interpolation backward) are slow or missing; a GPU run is
+    # not bit-reproducible, a CPU run is.
+    torch.use_deterministic_algorithms(device.type == "cpu", warn_only=True)
+    torch.backends.cudnn.benchmark = device.type == "cuda"
     num_classes = len(samples.names)
     model = BaffSkipNet(cfg, num_classes)
     layout = torch.channels_last if cfg.channels_last else torch.contiguous_format
-    model = cast(Any, model).to(memory_format=layout)
+    model = cast(Any, model).to(device=device, memory_format=layout)
     weights = torch.from_numpy(
         class_weights(samples.classes, num_classes, cfg.class_weight_power, cfg.max_class_weight)
     )
-    loss_fn = nn.CrossEntropyLoss(weight=weights, ignore_index=IGNORE_INDEX)
+    loss_fn = nn.CrossEntropyLoss(weight=weights.to(device), ignore_index=IGNORE_INDEX)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    plan = _plan(cfg, samples)
     steps_per_epoch = len(samples) // cfg.batch_size
-    total = cfg.epochs * steps_per_epoch
-    if cfg.max_steps:
-        total = min(total, cfg.max_steps)
-    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=cfg.lr, total_steps=max(total, 2), pct_start=0.1)
-    rng = np.random.default_rng([cfg.seed, 1])
+    total = len(plan)
+    loader = torch.utils.data.DataLoader(
+        _Batches(cfg, samples, plan),
+        batch_size=None,
+        num_workers=cfg.loader_workers,
+        pin_memory=device.type == "cuda",
+        prefetch_factor=4 if cfg.loader_workers else None,
+    )
     model.train()
-    step, losses = 0, []
+    losses: list[float] = []
+    best: tuple[float, dict[str, Tensor] | None, int] = (-1.0, None, 0)
+    epoch_loss, n_batches, epoch = 0.0, 0, 0
     started = time.perf_counter()
-    for epoch in range(cfg.epochs):
+
+    def end_epoch() -> None:
+        nonlocal epoch_loss, n_batches, best
+        losses.append(epoch_loss / max(n_batches, 1))
+        note = ""
+        if cfg.select_best and val is not None:
+            miou = _val_miou(model, val, device, cfg.depth_input)
+            note = f", validation mIoU {miou:.1f} %"
+            if miou > best[0]:
+                best = (miou, {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}, epoch + 1)
+        log.info("epoch %d: mean loss %.4f (%.0f s)%s", epoch + 1, losses[-1], time.perf_counter() - started,
+                 note)
         epoch_loss, n_batches = 0.0, 0
-        for idx in _batches(len(samples), cfg.batch_size, rng):
-            if step >= total:
-                break
-            pairs = [
-                augment(samples.rgb[i], samples.classes[i], rng, cfg.crop,
-                        samples.depth[i] if cfg.depth_input else None)
-                for i in idx
-            ]
-            x = torch.from_numpy(np.stack([p[0] for p in pairs])).permute(0, 3, 1, 2).float().div_(255.0)
-            if cfg.depth_input:
-                d = torch.from_numpy(np.stack([cast(NDArray[np.float32], p[2]) for p in pairs]))
-                x = torch.cat([x, d[:, None]], dim=1)
-            x = x.contiguous(memory_format=layout)
-            y = torch.from_numpy(np.stack([p[1] for p in pairs]).astype(np.int64))
-            loss = loss_fn(model(x), y)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            sched.step()
-            step += 1
-            epoch_loss += float(loss.detach())
-            n_batches += 1
-            if progress is not None:
-                el = time.perf_counter() - started
-                progress(
-                    "train", step, total, f"epoch {epoch + 1} loss {float(loss.detach()):.3f} {el:.0f} s"
-                )
-        if n_batches:
-            losses.append(epoch_loss / n_batches)
-            log.info(
-                "epoch %d: mean loss %.4f (%.0f s)", epoch + 1, losses[-1], time.perf_counter() - started
-            )
-        if step >= total:
+
+    for step, (xb, yb) in enumerate(loader):
+        elapsed = time.perf_counter() - started
+        frac = step / total
+        if cfg.time_budget_s:
+            frac = max(frac, elapsed / cfg.time_budget_s)
+        if frac >= 1.0:
+            log.info("time budget %.0f s reached after %d of %d steps", cfg.time_budget_s, step, total)
             break
-    model = cast(Any, model).to(memory_format=torch.contiguous_format)
+        lr, beta1 = one_cycle(frac, cfg.lr)
+        for group in opt.param_groups:
+            group["lr"], group["betas"] = lr, (beta1, group["betas"][1])
+        x = xb.to(device, non_blocking=True).contiguous(memory_format=layout)
+        y = yb.to(device, non_blocking=True)
+        loss = loss_fn(model(x), y)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        value = float(loss.detach())
+        epoch_loss += value
+        n_batches += 1
+        if progress is not None:
+            progress("train", step + 1, total, f"epoch {epoch + 1} loss {value:.3f} {elapsed:.0f} s")
+        if (step + 1) % steps_per_epoch == 0:
+            end_epoch()
+            epoch += 1
+    if n_batches:
+        end_epoch()
+    if best[1] is not None:
+        log.info("keeping epoch %d (validation mIoU %.1f %%)", best[2], best[0])
+        model.load_state_dict(best[1])
+    model = cast(Any, model).to(device="cpu", memory_format=torch.contiguous_format)
     model.eval()
     return model, losses
 
@@ -440,6 +546,7 @@ def train_and_export(
         raise TrainingError(f"--out must end in .onnx, got {out}")
     if out.exists() and not out.is_file():
         raise TrainingError(f"--out {out} exists and is not a file")
+    _device(cfg)  # a missing GPU fails before the frames are rendered
     started = time.perf_counter()
     kg = KnowledgeGraph.load()
     names = class_names(kg)
@@ -450,7 +557,7 @@ def train_and_export(
     train = build_samples(cfg.data, cfg.cache_dir, data_progress("data"), kg, workers=cfg.threads)
     val = build_samples(cfg.val, cfg.cache_dir, data_progress("val data"), kg, workers=cfg.threads)
     t_data = time.perf_counter() - started
-    model, losses = train_model(cfg, train, progress)
+    model, losses = train_model(cfg, train, progress, val)
     t_train = time.perf_counter() - started - t_data
     export_onnx(model, out, names, cfg.data.width, cfg.data.height)
     diff = check_export(model, out, val.rgb[0], val.depth[0])
@@ -480,6 +587,9 @@ def train_and_export(
         "onnx_torch_max_abs_diff": diff,
         "torch": torch.__version__,
         "cpu": platform.processor() or platform.machine(),
+        "cpu_cores": os.cpu_count(),
+        "device": torch.cuda.get_device_name() if _device(cfg).type == "cuda" else "CPU",
+        "epochs_run": len(losses),
         "config": to_mapping(cfg),
         "classes": list(names),
         "class_pixel_share": _class_share(train, names),
@@ -551,6 +661,26 @@ def _depth_augment(cfg: dict[str, Any]) -> str:
         return ""
     return (";\n  depth follows flip and crop, is divided by the rescale factor (a camera that much\n"
             "  closer), and half the samples get it at half resolution (a robot sending depth at 1/4)")
+
+
+def _schedule_line(cfg: dict[str, Any], summary: dict[str, Any]) -> str:
+    out = []
+    if cfg.get("repeat_factor"):
+        out.append(f" Frames drawn by repeat-factor sampling (threshold {cfg['repeat_factor']}: a frame\n"
+                   "with a class seen in fewer frames comes more often).")
+    if cfg.get("time_budget_s"):
+        out.append(f" Training capped at {cfg['time_budget_s']:.0f} s of wall time (the schedule\n"
+                   f"follows the clock); {summary.get('epochs_run', '?')} epochs run.")
+    if cfg.get("select_best"):
+        out.append(" The epoch with the best validation mIoU was kept.")
+    return "".join(out)
+
+
+def _machine_words(summary: dict[str, Any]) -> str:
+    device, cores = summary.get("device", "CPU"), summary.get("cpu_cores")
+    if device == "CPU" and cores in (None, 2):
+        return "a 2-core machine shared with other jobs"
+    return f"{'' if device == 'CPU' else device + ', '}{cores} CPU cores"
 
 
 def model_card(summary: dict[str, Any], metrics: dict[str, Any]) -> str:
@@ -632,8 +762,9 @@ hash `{summary["train_data_hash"]}`:
 AdamW, one-cycle learning rate (peak {cfg["lr"]}), weight decay {cfg["weight_decay"]},
 batch {cfg["batch_size"]}, {cfg["epochs"]} epochs{stop}, cross-entropy with class weights
 (median frequency / frequency) ^ {cfg["class_weight_power"]} clipped at {cfg["max_class_weight"]};
-seed {cfg["seed"]}, {cfg["threads"]} torch threads, torch {summary["torch"]} on CPU
-({summary["cpu"]}). Mean loss per epoch: {summary["epoch_losses"]}.
+seed {cfg["seed"]}, {cfg["threads"]} torch threads, torch {summary["torch"]} on
+{summary.get("device", "CPU")} ({summary["cpu"]}).{_schedule_line(cfg, summary)} Mean loss per epoch:
+{summary["epoch_losses"]}.
 
 Command:
 
@@ -642,7 +773,7 @@ Command:
 ```
 
 Wall time {t_all:.1f} min in total (data {t_data:.1f} min, training {t_train:.1f} min, the
-rest export and validation) on a 2-core machine shared with other jobs.{cached} ONNX vs torch
+rest export and validation) on {_machine_words(summary)}.{cached} ONNX vs torch
 max abs logit difference {summary["onnx_torch_max_abs_diff"]:.2e}.
 
 {_adjust_section(summary.get("logit_adjust"))}

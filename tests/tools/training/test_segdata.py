@@ -23,6 +23,7 @@ from wardmap.tools.training.segdata import (
     iou_from_confusion,
     look_at,
     render_world,
+    repeat_factors,
 )
 
 TINY = SegDataConfig(scenarios=("walking_staff",), seeds=(3,), frames_per_world=3, track_fraction=0.34)
@@ -180,11 +181,36 @@ def test_seed_split_is_enforced() -> None:
         from_mapping(TrainSegConfig, {"epoch": 3})
 
 
-def test_deploy_config_loads() -> None:
-    """deploy/train_seg.toml is a valid [train_seg] table with the contract's input size."""
+@pytest.mark.parametrize("name", ["train_seg.toml", "train_seg_gpu.toml"])
+def test_deploy_config_loads(name: str) -> None:
+    """deploy/train_seg.toml (the shipped model's) and deploy/train_seg_gpu.toml (the GPU recipe)
+    are valid [train_seg] tables with the contract's input size and the seed split."""
     from wardmap.shared.config import load_config
 
-    path = Path(__file__).resolve().parents[3] / "deploy" / "train_seg.toml"
+    path = Path(__file__).resolve().parents[3] / "deploy" / name
     cfg = load_config(TrainSegConfig, path, section="train_seg")
     assert (cfg.data.width, cfg.data.height) == (320, 240)
     assert max(cfg.data.seeds) < 1000 <= min(cfg.val.seeds)
+
+
+def test_gpu_and_sampling_settings_are_checked() -> None:
+    with pytest.raises(ConfigError, match="device must be auto, cpu or cuda"):
+        from_mapping(TrainSegConfig, {"device": "tpu"})
+    for key in ("time_budget_s", "repeat_factor", "loader_workers"):
+        with pytest.raises(ConfigError, match="must be >= 0"):
+            from_mapping(TrainSegConfig, {key: -1})
+
+
+def test_repeat_factors_favour_frames_with_rare_classes() -> None:
+    """LVIS rule: a class in a share f of the frames gets max(1, sqrt(t / f)); a frame takes the
+    largest factor of its classes; background does not count."""
+    classes = np.zeros((10, 4, 4), np.uint8)
+    classes[:, 0, 0] = 1  # class 1 in every frame
+    classes[0, 1, 1] = 2  # class 2 in one frame of ten
+    classes[1:3, 2, 2] = 3  # class 3 in two frames
+    r = repeat_factors(classes, 4, threshold=0.4)
+    np.testing.assert_allclose(r[0], 2.0)  # sqrt(0.4 / 0.1)
+    np.testing.assert_allclose(r[1:3], np.sqrt(2.0))  # sqrt(0.4 / 0.2)
+    np.testing.assert_allclose(r[3:], 1.0)
+    np.testing.assert_allclose(repeat_factors(classes, 4, threshold=0.0), 1.0)
+    assert repeat_factors(np.zeros((3, 2, 2), np.uint8), 4, 0.5).tolist() == [1.0, 1.0, 1.0]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -66,6 +67,22 @@ def test_network_logits_at_input_resolution() -> None:
         assert rgbd(torch.rand(1, 4, 240, 320)).shape == (1, 14, 240, 320)
 
 
+def _tiny_cfg(tmp_path: Path, **kw: object) -> TrainSegConfig:
+    base: dict[str, object] = dict(
+        threads=1,
+        cache_dir=str(tmp_path / "cache"),
+        data=SegDataConfig(scenarios=("walking_staff",), seeds=(1,), frames_per_world=4),
+        val=SegDataConfig(scenarios=("ward_chairs",), seeds=(1001,), frames_per_world=1),
+        epochs=3,
+        batch_size=2,
+        crop=(96, 128),
+        depth_input=True,
+        device="cpu",
+    )
+    base.update(kw)
+    return TrainSegConfig(**base)  # type: ignore[arg-type]
+
+
 @pytest.mark.parametrize("depth_input", [False, True], ids=["rgb", "rgbd"])
 def test_two_step_training_exports_contract_onnx(tmp_path: Path, depth_input: bool) -> None:
     """Two optimiser steps on a few tiny samples export one ONNX file that meets the contract
@@ -73,16 +90,13 @@ def test_two_step_training_exports_contract_onnx(tmp_path: Path, depth_input: bo
     An RGB-D network takes a 4-channel input."""
     import onnxruntime as ort
 
-    cfg = TrainSegConfig(
-        threads=1,
-        cache_dir=str(tmp_path / "cache"),
+    cfg = _tiny_cfg(
+        tmp_path,
         data=SegDataConfig(scenarios=("walking_staff",), seeds=(1,), frames_per_world=2),
-        val=SegDataConfig(scenarios=("ward_chairs",), seeds=(1001,), frames_per_world=1),
         epochs=1,
-        batch_size=2,
-        crop=(96, 128),
         max_steps=2,
         depth_input=depth_input,
+        device="auto",
     )
     out = tmp_path / "model" / "seg.onnx"
     result = train_and_export(cfg, out, command="pytest smoke")
@@ -116,3 +130,77 @@ def test_bad_output_path_is_a_clear_error(tmp_path: Path) -> None:
 
     with pytest.raises(TrainingError, match=r"must end in \.onnx"):
         train_and_export(TrainSegConfig(), tmp_path / "model.pt")
+
+
+def test_one_cycle_matches_torch_one_cycle_lr() -> None:
+    """The clock-driven schedule follows torch's OneCycleLR (cosine, defaults) step for step."""
+    from wardmap.tools.training.training import one_cycle
+
+    p = torch.nn.Parameter(torch.zeros(1))
+    opt = torch.optim.AdamW([p], lr=0.01)
+    total = 50
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=0.01, total_steps=total, pct_start=0.1)
+    for step in range(total - 1):
+        # OneCycleLR's phases end on step indices (pct * total - 1, total - 1): compare in its units.
+        edge = 0.1 * total - 1
+        frac = 0.1 * step / edge if step <= edge else 0.1 + 0.9 * (step - edge) / (total - 1 - edge)
+        lr, beta1 = one_cycle(frac, 0.01)
+        assert lr == pytest.approx(opt.param_groups[0]["lr"], rel=1e-6)
+        assert beta1 == pytest.approx(opt.param_groups[0]["betas"][0], rel=1e-6)
+        opt.step()
+        sched.step()
+    assert one_cycle(1.0, 0.01)[0] == pytest.approx(0.01 / 25 / 1e4)
+
+
+def test_batches_do_not_depend_on_loader_processes(tmp_path: Path) -> None:
+    """Each step's batch is seeded by (seed, step): two loader processes give the same batches
+    as the training loop alone; repeat-factor sampling draws as many frames per epoch."""
+    from wardmap.tools.training.segdata import build_samples
+    from wardmap.tools.training.training import _Batches, _plan
+
+    cfg = _tiny_cfg(tmp_path, repeat_factor=0.5)
+    samples = build_samples(cfg.data, cfg.cache_dir)
+    plan = _plan(cfg, samples)
+    assert len(plan) == cfg.epochs * (len(samples) // cfg.batch_size)
+    alone = [_Batches(cfg, samples, plan)[i] for i in range(len(plan))]
+    loader = torch.utils.data.DataLoader(_Batches(cfg, samples, plan), batch_size=None, num_workers=2)
+    for (xa, ya), (xb, yb) in zip(alone, loader, strict=True):
+        torch.testing.assert_close(xa, xb)
+        torch.testing.assert_close(ya, yb)
+
+
+def test_time_budget_stops_training_and_best_epoch_is_kept(tmp_path: Path, caplog: pytest.LogCaptureFixture
+                                                           ) -> None:
+    """A wall-clock budget ends the run before its epochs; with select_best the returned network
+    is the epoch with the best validation mIoU (its weights, not the last epoch's)."""
+    import logging
+
+    from wardmap.tools.training.segdata import build_samples
+    from wardmap.tools.training.training import _val_miou, train_model
+
+    cfg = _tiny_cfg(tmp_path, epochs=500, time_budget_s=4.0, select_best=True)
+    train = build_samples(cfg.data, cfg.cache_dir)
+    val = build_samples(cfg.val, cfg.cache_dir)
+    with caplog.at_level(logging.INFO, logger="wardmap.tools.training.training"):
+        model, losses = train_model(cfg, train, val=val)
+    assert 1 <= len(losses) < 500
+    assert any("time budget" in r.message for r in caplog.records)
+    kept = [r.message for r in caplog.records if r.message.startswith("keeping epoch")]
+    scores = [float(r.message.split("validation mIoU ")[1].split(" %")[0]) for r in caplog.records
+              if r.message.startswith("epoch ")]
+    assert kept and f"{max(scores):.1f} %" in kept[0]
+    assert _val_miou(model, val, torch.device("cpu"), True) == pytest.approx(max(scores), abs=0.05)
+
+
+def test_cuda_without_a_gpu_is_a_clear_error(tmp_path: Path) -> None:
+    from wardmap.tools.training.segdata import TrainingError, build_samples
+    from wardmap.tools.training.training import train_model
+
+    if torch.cuda.is_available():
+        pytest.skip("a GPU is present")
+    cfg = _tiny_cfg(tmp_path, device="cuda")
+    with pytest.raises(TrainingError, match="sees no GPU"):
+        train_model(cfg, build_samples(cfg.data, cfg.cache_dir))
+    with pytest.raises(TrainingError, match="sees no GPU"):  # before any frame is rendered
+        train_and_export(replace(cfg, cache_dir=str(tmp_path / "none")), tmp_path / "m.onnx")
+    assert not (tmp_path / "none").exists()
