@@ -418,10 +418,11 @@ class BackendCore:
             if isinstance(found, str):
                 rejected[found] += 1
                 continue
+            if best is not None and found.inliers <= best[1].inliers:
+                continue  # cannot win: its neighbour need not be verified
             if not self._neighbour_agrees(features, cand_row, found, rejected):
                 continue
-            if best is None or found.inliers > best[1].inliers:
-                best = (cand_row, found)
+            best = (cand_row, found)
         return best
 
     def _neighbour_agrees(self, features: KeyframeFeatures, cand_row: int, found: Verified,
