@@ -7,6 +7,8 @@ import json
 import sys
 from pathlib import Path
 
+from wardmap.cli.progress import Progress
+
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
@@ -14,7 +16,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="estimate the colour camera's rolling-shutter readout time from a recording",
         description="Track the first frames of a data-set folder once per candidate readout time and "
         "keep the one under which the most keypoints fit a rigid pose (no ground truth needed; the "
-        "recording should turn the camera). Prints a table on stderr and a JSON summary on stdout; "
+        "recording should turn the camera). Shows progress on stderr and prints a JSON summary on stdout; "
         "--write saves a calibration.toml with [rgb] readout_s set (docs/tracking.md).",
     )
     p.add_argument("dataset", metavar="DATASET", help="data-set folder (ours or a real TUM folder)")
@@ -59,10 +61,16 @@ def run(args: argparse.Namespace) -> int:
     reader = DatasetReader(args.dataset)
     cands = [round(float(c), 6) for c in np.arange(0.0, args.max_ms + 1e-9, args.step_ms) / 1e3]
 
-    def progress(c: float, inl: float) -> None:
-        print(f"readout {1e3 * c:5.1f} ms: {inl:6.1f} inliers per frame", file=sys.stderr, flush=True)
+    with Progress("candidates") as bar:
+        done = 0
 
-    est = estimate_readout(reader, config, candidates_s=cands, max_frames=args.max_frames, progress=progress)
+        def progress(c: float, inl: float) -> None:
+            nonlocal done
+            done += 1
+            bar.update("readout", done, len(cands), note=f"{1e3 * c:.1f} ms: {inl:.1f} inliers per frame")
+
+        est = estimate_readout(reader, config, candidates_s=cands, max_frames=args.max_frames,
+                               progress=progress)
     if est.decisive:
         print(f"estimated readout time: {1e3 * est.readout_s:.1f} ms", file=sys.stderr)
     else:

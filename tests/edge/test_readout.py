@@ -130,6 +130,7 @@ def test_cli_calibrate_readout_writes_a_calibration(tmp_path: Path) -> None:
     assert p.returncode == 0, p.stderr
     summary = json.loads(p.stdout.strip().splitlines()[-1])
     assert summary["candidates_s"] == [0.0, 0.01]
+    assert "readout: 2/2 candidates" in p.stderr  # progress as plain lines: stderr is no terminal
     assert load_calibration(out).rgb_readout_s == summary["readout_s"]
     assert load_calibration(out).rgb == DatasetReader(TUM).calibration.rgb
     before = out.read_text()
