@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import logging
 import sqlite3
 from typing import Any
 
+import pytest
 from fastapi.testclient import TestClient
+
+from wardmap.server.api.routes.health import public_reason
 
 
 def test_healthz(keyframe_client: TestClient) -> None:
@@ -23,18 +27,42 @@ def test_readyz_ok_while_the_store_can_write(keyframe_client: TestClient) -> Non
 
 
 def test_readyz_503_while_another_process_holds_the_write_lock(
-    keyframe_scene: Any, keyframe_client: TestClient
+    keyframe_scene: Any, keyframe_client: TestClient, caplog: pytest.LogCaptureFixture
 ) -> None:
-    """Another connection holds the database's write lock: not ready (503, the reason says why),
-    and ready again once it lets go."""
+    """Another connection holds the database's write lock: not ready (503), with a short public
+    reason that names no path, while the server logs the full reason (once for two probes); ready
+    again once it lets go."""
     path = keyframe_scene.url.removeprefix("sqlite:///")
     other = sqlite3.connect(path, isolation_level=None)
     try:
         other.execute("BEGIN EXCLUSIVE")
-        r = keyframe_client.get("/readyz")
+        with caplog.at_level(logging.WARNING, logger="wardmap.server.api.routes.health"):
+            r = keyframe_client.get("/readyz")
+            assert keyframe_client.get("/readyz").status_code == 503
         assert r.status_code == 503
-        assert r.json()["status"] != "ok"
+        assert r.json() == {"status": "keyframe store locked"}
+        logged = [rec.getMessage() for rec in caplog.records if "not ready" in rec.getMessage()]
+        assert len(logged) == 1 and "locked" in logged[0], logged
     finally:
         other.execute("ROLLBACK")
         other.close()
     assert keyframe_client.get("/readyz").status_code == 200
+
+
+@pytest.mark.parametrize(
+    ("why", "public"),
+    [
+        ("ingest is not running", "ingest is not running"),
+        ("keyframe store cannot write: damaged: database disk image is malformed", "keyframe store damaged"),
+        ("keyframe store /srv/map.db: no space left (disk or max_pages cap full)", "keyframe store full"),
+        ("keyframe store cannot write: keyframe store /srv/map.db: database is locked",
+         "keyframe store locked"),
+        ("closed", "keyframe store closed"),
+        ("keyframe store /srv/map.db: readiness probe: attempt to write a readonly database",
+         "keyframe store cannot write"),
+    ],
+)
+def test_readyz_public_reason_is_a_fixed_phrase(why: str, public: str) -> None:
+    """Every full reason maps to one fixed phrase; none carries a path or SQLite's words."""
+    assert public_reason(why) == public
+    assert "/" not in public_reason(why)
