@@ -9,12 +9,13 @@ Depends(get_objectmap)]``), so a test can see from its signature what it touches
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Annotated, Protocol
 
 from fastapi import Depends, Request
 from prometheus_client import CollectorRegistry
 
+from wardmap.server.api.readiness import ReadinessLog
 from wardmap.server.ingest import Ingest
 from wardmap.server.mapping import MapPipeline
 from wardmap.server.objectmap import ObjectMap
@@ -40,12 +41,14 @@ class Services:
         objects: the object map on it.
         ingest: the keyframe ingest, or None when the server has no Zenoh (API only).
         pipeline: the mapping stage, or None when keyframes are stored but not mapped.
+        readiness: logs why ``/readyz`` says not ready, once per change.
     """
 
     store: MapStore
     objects: ObjectMap
     ingest: Ingest | None = None
     pipeline: MapPipeline | None = None
+    readiness: ReadinessLog = field(default_factory=ReadinessLog)
 
 
 class ServerLifecycle(Protocol):

@@ -9,7 +9,7 @@ from typing import Any
 import pytest
 from fastapi.testclient import TestClient
 
-from wardmap.server.api.routes.health import public_reason
+from wardmap.server.api.readiness import public_reason
 
 
 def test_healthz(keyframe_client: TestClient) -> None:
@@ -36,7 +36,7 @@ def test_readyz_503_while_another_process_holds_the_write_lock(
     other = sqlite3.connect(path, isolation_level=None)
     try:
         other.execute("BEGIN EXCLUSIVE")
-        with caplog.at_level(logging.WARNING, logger="wardmap.server.api.routes.health"):
+        with caplog.at_level(logging.WARNING, logger="wardmap.server.api.readiness"):
             r = keyframe_client.get("/readyz")
             assert keyframe_client.get("/readyz").status_code == 503
         assert r.status_code == 503
