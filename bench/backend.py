@@ -59,6 +59,7 @@ One core: OpenCV, numba and BLAS threads = 1.
 
     python bench/backend.py [--data out/bench_data] [--seeds 2001 ...] [--tune] [--only SCENARIO ...]
                             [--scale 5000] [--no-scale | --scale-only] [--objects] [--write BENCHMARKS.md]
+                            [--plot DIR]
 """
 
 from __future__ import annotations
@@ -89,6 +90,7 @@ from _report import git_rev, machine, publish
 from wardmap.server.association.types import Landmark
 from wardmap.server.backend.core import BackendConfig, BackendCore, Closure
 from wardmap.shared.dataset import DatasetReader
+from wardmap.shared.metrics import ate_series
 from wardmap.shared.se3 import inverse, transform_to_tum
 from wardmap.shared.wire import PoseSource
 from wardmap.sim.runner import generate
@@ -110,6 +112,7 @@ from wardmap.tools.backend_eval import (
 )
 from wardmap.tools.keyframes import KeyframeCache, cache_keyframes, folder_lock
 from wardmap.tools.offline_map import MapConfig, associate, measure_dataset
+from wardmap.tools.plots import plot_ate_compared
 
 ROOT = Path(__file__).resolve().parents[1]
 TUM = ROOT.parent / "shared" / "data" / "tum_fr1_rpy_s3_first100"
@@ -537,6 +540,29 @@ def object_rows(scores: list[ObjectScore]) -> list[str]:
 # ------------------------------------------------------------------------------------- report
 
 
+def plot_session(core: BackendCore, steps: list[Step], out: Path, title: str) -> None:
+    """PNG of the first session's frontend, online and final server trajectories against ground truth."""
+    session = steps[0].key[:2]
+    posed = [(s, s.truth) for s in steps if s.key[:2] == session and s.truth is not None]
+    stamps = [s.stamp for s, _ in posed]
+    gt_all = np.stack([gt for _, gt in posed])
+    runs = [("frontend", *ate_series(stamps, np.stack([s.T_odom_camera for s, _ in posed]), stamps, gt_all))]
+    on = [(s.stamp, s.online, gt) for s, gt in posed if s.online is not None]
+    if len(on) >= 3:
+        st = [t for t, _, _ in on]
+        runs.append(("server, online", *ate_series(st, np.stack([T for _, T, _ in on]), st,
+                                                   np.stack([gt for _, _, gt in on]))))
+    final = [(s.stamp, core.estimate(s.key), gt) for s, gt in posed]
+    done = [(t, T, gt) for t, T, gt in final if T is not None]
+    if len(done) == len(final):
+        st = [t for t, _, _ in done]
+        runs.append(("server, final", *ate_series(st, np.stack([T for _, T, _ in done]), st,
+                                                  np.stack([gt for _, _, gt in done]))))
+    plot_ate_compared(runs, out, title=f"{title}: {session[0]}/{session[1]}")
+    print(f"wrote {out}", file=sys.stderr)
+
+
+
 def fmt(v: float | None, spec: str = ".2f") -> str:
     return "-" if v is None else format(v, spec)
 
@@ -717,7 +743,12 @@ def main() -> int:
     ap.add_argument("--scale-only", action="store_true", help="only the scaled run (its own section)")
     ap.add_argument("--objects", action="store_true", help="also compare object maps (slower)")
     ap.add_argument("--write", type=Path, help="update this markdown file's backend section")
+    ap.add_argument("--plot", type=Path, metavar="DIR",
+                    help="also write, per scenario and seed, a PNG of the map's first session: frontend, "
+                         "server online and server final against ground truth (top view, error over time)")
     args = ap.parse_args()
+    if args.plot is not None and not args.plot.is_dir():
+        raise SystemExit(f"--plot {args.plot}: not a folder")
     cv2.setNumThreads(1)
     seeds = list(TUNE_SEEDS) if args.tune else args.seeds
     names = [] if args.scale_only else [n for n in args.only or SCENARIOS if n != "tum"]
@@ -732,6 +763,9 @@ def main() -> int:
                   file=sys.stderr)
             core, steps = replay(runs, config)
             scores.append(score(scenario, seed, core, steps))
+            if args.plot is not None:
+                plot_session(core, steps, args.plot / f"backend_{scenario}_s{seed}.png",
+                             f"{scenario}, world {seed}")
             for line in closure_rows(scores[-1:])[2:] + session_rows(scores[-1:])[2:]:
                 print(line, file=sys.stderr)
             if args.objects:

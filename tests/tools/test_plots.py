@@ -11,7 +11,7 @@ from procs import one_line_error, wardmap
 
 from wardmap.shared import se3
 from wardmap.shared.metrics import ate_series
-from wardmap.tools.plots import PlotError, plot_ate, top_down_axes
+from wardmap.tools.plots import PlotError, plot_ate, plot_ate_compared, top_down_axes
 
 
 def _square_walk(n: int = 60) -> tuple[np.ndarray, np.ndarray]:
@@ -45,6 +45,23 @@ def test_plot_is_a_png(tmp_path: Path) -> None:
     assert (width, height) == (1100, 450)
     with pytest.raises(PlotError, match="cannot write"):
         plot_ate(result, series, tmp_path / "no" / "such" / "dir.png")
+
+
+def test_compared_plot_draws_each_estimate(tmp_path: Path) -> None:
+    """Two estimates of one walk in one PNG (1100 x 450 px); nothing to plot is a PlotError."""
+    stamps, T = _square_walk()
+    rng = np.random.default_rng(1)
+    runs = []
+    for label, noise in (("coarse", 0.05), ("fine", 0.01)):
+        est = np.array([t @ se3.make_transform(np.eye(3), rng.normal(0, noise, 3)) for t in T])
+        runs.append((label, *ate_series(stamps, est, stamps, T)))
+    out = tmp_path / "compared.png"
+    plot_ate_compared(runs, out, title="two estimates")
+    data = out.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")) == (1100, 450)
+    with pytest.raises(PlotError, match="nothing to plot"):
+        plot_ate_compared([], out)
 
 
 def test_eval_ate_plot_from_the_command_line(tmp_path: Path) -> None:
