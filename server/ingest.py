@@ -8,13 +8,11 @@ that the worker reads. :meth:`Ingest.stop` undeclares all of them; the session o
 
 Queue policy: **FIFO, bounded in samples and in payload bytes, block when full
 (backpressure, never drop)**. When the queue holds ``capacity`` samples or ``max_bytes`` of
-payload, the callback waits, so zenoh stops taking samples off the transport; the router then
-drops keyframes towards this server (its egress congestion control is ``drop``,
-``ROUTER_EGRESS_DROP`` in ``shared/zenoh_config.py``) instead of stalling every robot, and
-the robots resend them from their outboxes after ``resend_after_s``. A message larger than
-the session's ``max_message_size`` (``shared/zenoh_config.py``, a little over the wire's
-4 MiB) is dropped by zenoh before it is reassembled, so a queue of ``max_bytes`` holds at most
-``max_bytes`` plus one such message.
+payload, the callback waits, so zenoh stops taking samples off the transport; the robots
+publish reliable with congestion control ``BLOCK``, so their puts wait instead of being
+dropped. A message larger than the session's ``max_message_size`` (``shared/zenoh_config.py``,
+a little over the wire's 4 MiB) is dropped by zenoh before it is reassembled, so a queue of
+``max_bytes`` holds at most ``max_bytes`` plus one such message.
 
 For each sample the worker decodes the keyframe, checks that the robot id in the key equals
 the message's ``robot_id``, stores it and only *after* the insert committed publishes an

@@ -34,9 +34,7 @@ def _load_config(listen: Sequence[str], config_file: Path | None) -> Any:
 
     ``mode``, ``listen/endpoints`` and wardmap's defaults (shared memory off, multicast
     scouting off) win over the file; each value of the file that they replace is logged
-    as a warning, so nothing is overridden silently. ``qos/network`` is the exception: the
-    file's rules stay and wardmap's (``ROUTER_EGRESS_DROP``) are appended unless the file has
-    a rule with the same ``id``.
+    as a warning, so nothing is overridden silently.
     """
     import zenoh
 
@@ -52,12 +50,6 @@ def _load_config(listen: Sequence[str], config_file: Path | None) -> Any:
         raise ConfigError(f"bad zenoh config file {path}: {first_line(exc)}") from exc
     for key, value in config_leaves(ours):
         before = conf.get_json(key)
-        if key == "qos/network" and before is not None:
-            # The site's own QoS rules stay; wardmap's are added unless one has the same id.
-            theirs = json.loads(before)
-            ids = {rule.get("id") for rule in theirs}
-            conf.insert_json5(key, json.dumps(theirs + [r for r in value if r["id"] not in ids]))
-            continue
         if before is not None and before != value and key != "listen/endpoints":
             log.warning(
                 "%s sets %s=%s; wardmap router uses %s", path, key, json.dumps(before), json.dumps(value)

@@ -26,7 +26,6 @@ __all__ = [
     "ALL_KEYFRAMES",
     "ALL_LIVELINESS",
     "KEY_PREFIX",
-    "ROUTER_EGRESS_DROP",
     "ack_key",
     "client_config",
     "config_leaves",
@@ -57,26 +56,6 @@ MAX_ZENOH_MESSAGE_BYTES = MAX_MESSAGE_BYTES + 64 * 1024
 max_message_size``; zenoh's default is 1 GiB): the wire's limit plus room for zenoh's own
 framing. Zenoh drops a larger message at the receiving link before it is reassembled, so a
 50 MB payload never reaches ingest's queue (``wire.encode`` never makes one)."""
-
-ROUTER_EGRESS_DROP: dict[str, Any] = {
-    "id": "wardmap-resendable-drop",
-    "messages": ["put"],
-    "flows": ["egress"],
-    "key_exprs": [
-        f"{KEY_PREFIX}/robot/*/keyframe",
-        f"{KEY_PREFIX}/robot/*/ack",
-        f"{KEY_PREFIX}/robot/*/heartbeat",
-        f"{KEY_PREFIX}/robots/*/correction",
-    ],
-    "overwrite": {"congestion_control": "drop"},
-}
-"""The router's QoS overwrite (``qos/network``): on the way *out* of the router, keyframes, acks,
-heartbeats and corrections use congestion control ``drop``, so a subscriber that stops reading
-(a stuck callback) never stalls the router's forwarding to the server and the other robots.
-Whatever is dropped comes again: the edge's outbox resends a keyframe until it is acked, a lost
-ack makes it resend and get ``duplicate``, heartbeats are periodic and robots query their
-correction every ``correction_query_s``. Publishers still put ``block`` into the router
-(docs/wire.md, "Congestion")."""
 
 _ROBOT_ID_RE = re.compile(r"[A-Za-z0-9_.-]{1,64}")
 _ROBOT_KEY_RE = re.compile(rf"{re.escape(KEY_PREFIX)}/robot/([A-Za-z0-9_.-]{{1,64}})/[A-Za-z0-9_.-]+")
@@ -162,8 +141,7 @@ def router_config(
     """Config dict of a Zenoh router listening on ``listen`` (``tcp/HOST:PORT`` each).
 
     Shared memory and multicast scouting are off unless asked for: robots reach their
-    router by explicit endpoints (docs/ARCHITECTURE.md, "Scale"). ``qos/network`` holds
-    :data:`ROUTER_EGRESS_DROP` (a stuck subscriber never stalls the router). ``extra`` is merged
+    router by explicit endpoints (docs/ARCHITECTURE.md, "Scale"). ``extra`` is merged
     in recursively (e.g. ``{"adminspace": {"enabled": True}}``) but may not change
     ``mode`` or ``listen``.
     """
@@ -171,7 +149,6 @@ def router_config(
         "mode": "router",
         "listen": {"endpoints": _validate_endpoints(listen, "router listen")},
         **_common(shm, multicast_scouting),
-        "qos": {"network": [copy.deepcopy(ROUTER_EGRESS_DROP)]},
     }
     if extra:
         for fixed in ("mode", "listen"):

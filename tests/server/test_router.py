@@ -12,9 +12,9 @@ import pytest
 
 zenoh = pytest.importorskip("zenoh")
 
-from wardmap.server.router import RouterError, _load_config, run_router  # noqa: E402  (after the importorskip guard)
+from wardmap.server.router import RouterError, run_router  # noqa: E402  (after the importorskip guard)
 from wardmap.shared.errors import ConfigError  # noqa: E402
-from wardmap.shared.zenoh_config import ROUTER_EGRESS_DROP, client_config  # noqa: E402
+from wardmap.shared.zenoh_config import client_config  # noqa: E402
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -61,22 +61,6 @@ def test_router_in_thread_with_config_file(tmp_path: Path, caplog: pytest.LogCap
     assert not worker.is_alive()
     assert not errors, errors
     assert any("scouting/multicast/enabled" in r.getMessage() for r in caplog.records)
-
-
-def test_config_file_qos_rules_are_kept_and_wardmaps_added(tmp_path: Path) -> None:
-    """A site's own ``qos/network`` rule stays in the router's config, and wardmap's egress
-    ``drop`` rule (a stuck subscriber never stalls the router) is added after it."""
-    conf_file = tmp_path / "zenoh.json5"
-    site = {"id": "site-rule", "messages": ["put"], "key_exprs": ["site/**"], "flows": ["ingress"],
-            "overwrite": {"priority": "data_low"}}
-    conf_file.write_text(json.dumps({"qos": {"network": [site]}}))
-    conf = _load_config([f"tcp/127.0.0.1:{_free_port()}"], conf_file)
-    rules = json.loads(conf.get_json("qos/network"))
-    assert [r["id"] for r in rules] == ["site-rule", ROUTER_EGRESS_DROP["id"]]
-    assert rules[1]["overwrite"]["congestion_control"] == "drop"
-    assert json.loads(_load_config(["tcp/127.0.0.1:7447"], None).get_json("qos/network"))[0]["id"] == (
-        ROUTER_EGRESS_DROP["id"]
-    )
 
 
 def test_port_in_use_raises_router_error() -> None:

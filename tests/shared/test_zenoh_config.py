@@ -11,11 +11,9 @@ import pytest
 from wardmap.shared.errors import ConfigError
 from wardmap.shared.wire import MAX_MESSAGE_BYTES
 from wardmap.shared.zenoh_config import (
-    ALL_CORRECTIONS,
     ALL_KEYFRAMES,
     ALL_LIVELINESS,
     KEY_PREFIX,
-    ROUTER_EGRESS_DROP,
     ack_key,
     client_config,
     config_leaves,
@@ -132,23 +130,7 @@ def test_config_leaves_paths() -> None:
         "scouting/multicast/enabled": False,
         "transport/shared_memory/enabled": False,
         "transport/link/rx/max_message_size": MAX_MESSAGE_BYTES + 64 * 1024,
-        "qos/network": [ROUTER_EGRESS_DROP],
     }
-
-
-def test_router_drops_resendable_messages_on_egress_and_zenoh_takes_it() -> None:
-    """The router's QoS overwrite makes keyframes, acks, heartbeats and corrections ``drop`` on the way out
-    (and nothing on the way in, nothing else); zenoh accepts it as written."""
-    zenoh = pytest.importorskip("zenoh")
-    (rule,) = router_config(["tcp/127.0.0.1:7447"])["qos"]["network"]
-    assert rule["flows"] == ["egress"] and rule["messages"] == ["put"]
-    assert rule["overwrite"] == {"congestion_control": "drop"}
-    assert sorted(rule["key_exprs"]) == sorted(
-        [ALL_KEYFRAMES, "wardmap/v1/robot/*/ack", "wardmap/v1/robot/*/heartbeat", ALL_CORRECTIONS]
-    )
-    conf = zenoh.Config.from_json5(json.dumps(router_config(["tcp/127.0.0.1:7447"])))
-    (taken,) = json.loads(conf.get_json("qos/network"))
-    assert taken["overwrite"]["congestion_control"] == "drop" and taken["flows"] == ["egress"]
 
 
 def test_robot_keys() -> None:
