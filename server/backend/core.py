@@ -49,16 +49,17 @@ import time
 from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Literal, cast
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from wardmap.server.backend.bundle import BundleConfig, BundleFrame, BundleResult, bundle_adjust
 from wardmap.server.backend.graph import EdgeRecord, GraphConfig, GraphUpdate, NodeRecord, PoseGraph
 from wardmap.server.backend.places import FernConfig, FernEncoder, FernIndex
 from wardmap.server.backend.verify import KeyframeFeatures, Verified, VerifyConfig, verify_pair
-from wardmap.shared.errors import ConfigError, WardmapError
+from wardmap.shared.errors import ConfigError, GeometryError, WardmapError
 from wardmap.shared.wire import KeyframeMsg, decode_depth
 
 log = logging.getLogger(__name__)
@@ -102,6 +103,14 @@ class BackendConfig:
             anchors a session, asks the mapping stage to rebuild the object map.
         loop_gap: keyframes of a session not searched for loops after one of its loop edges
             entered the graph (0: search every keyframe).
+        bundle_enabled: after a loop edge between anchored keyframes, bundle-adjust the
+            sessions it joins (``bundle``) and tie their consecutive keyframes by ``bundle``
+            edges (ORB-SLAM2's global bundle adjustment after loop closure) ...
+        bundle_min_pairs: ... when at least this many of their consecutive keyframe pairs have
+            no ``bundle`` edge yet ...
+        bundle_context: ... over those pairs' keyframes and this many more on each side of
+            them and of the loop's two ends ...
+        bundle_max_keyframes: ... at most this many (the newest; bounds the adjustment's time).
     """
 
     enabled: bool = True
@@ -127,6 +136,11 @@ class BackendConfig:
     check_deg: float = 30.0
     rebuild_move_m: float = 0.02
     loop_gap: int = 10
+    bundle_enabled: bool = True
+    bundle: BundleConfig = field(default_factory=BundleConfig)
+    bundle_min_pairs: int = 30
+    bundle_context: int = 10
+    bundle_max_keyframes: int = 400
 
     def __post_init__(self) -> None:
         if self.candidates < 1:
@@ -143,6 +157,11 @@ class BackendConfig:
             raise ConfigError(f"backend.anchor_votes must be >= 1, got {self.anchor_votes}")
         if self.loop_gap < 0:
             raise ConfigError(f"backend.loop_gap must be >= 0, got {self.loop_gap}")
+        if self.bundle_context < 0:
+            raise ConfigError(f"backend.bundle_context must be >= 0, got {self.bundle_context}")
+        if self.bundle_min_pairs < 1 or self.bundle_max_keyframes < 2:
+            raise ConfigError(f"backend.bundle_min_pairs must be >= 1 and bundle_max_keyframes >= 2, got "
+                              f"{self.bundle_min_pairs} and {self.bundle_max_keyframes}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -180,7 +199,9 @@ class KeyframeResult:
         rejected: verification and gate rejections by reason.
         update: the graph update (estimates moved, sessions anchored).
         rebuild: the map moved enough to rebuild the object map.
-        ms: milliseconds per step: ``encode``, ``query``, ``verify``, ``graph``.
+        ms: milliseconds per step: ``encode``, ``query``, ``verify``, ``graph``, and
+            ``bundle`` (the adjustment and its graph update) when one ran.
+        bundle: the bundle adjustment this keyframe's loop closure ran, or None.
     """
 
     key: NodeKey
@@ -192,6 +213,7 @@ class KeyframeResult:
     update: GraphUpdate
     rebuild: bool
     ms: dict[str, float]
+    bundle: BundleResult | None = None
 
 
 @dataclass
@@ -313,13 +335,20 @@ class BackendCore:
         t4 = time.perf_counter()
         update = self.graph.update()
         ms["graph"] = (time.perf_counter() - t4) * 1e3
+        bundle = None
+        if self.cfg.bundle_enabled and any(c.kind == "loop" for c in closures):
+            t5 = time.perf_counter()
+            bundle = self._bundle(closures)
+            if bundle is not None:
+                update = _merged(update, self.graph.update())
+                ms["bundle"] = (time.perf_counter() - t5) * 1e3
         # A session anchored at its first keyframe (the map's first, or a map-pose prior) moved
         # nothing that was mapped; one anchored later brings its waiting keyframes.
         grown = any(len(self._session_rows.get(self._sessions.get(s, -1), [])) > 1
                     for s in update.anchored)
         rebuild = grown or update.moved_m > self.cfg.rebuild_move_m
         return KeyframeResult(key, codes.tobytes(), n_cand, bool(searched), closures, rejected, update,
-                              rebuild, ms)
+                              rebuild, ms, bundle)
 
     def encode(self, msg: KeyframeMsg) -> NDArray[np.uint8]:
         """The keyframe's fern code (decodes its JPEG colour and depth)."""
@@ -354,6 +383,51 @@ class BackendCore:
         return len(self._nodes)
 
     # ------------------------------------------------------------------ internals
+
+    def _bundle(self, closures: Sequence[Closure]) -> BundleResult | None:
+        """Bundle-adjust around this keyframe's loop ``closures`` and add the ``bundle`` edges.
+
+        The frames: the keyframes of the closures' (anchored) sessions in a pair without a
+        ``bundle`` edge, and ``bundle_context`` keyframes on each side of those and of every
+        closure's two ends (the views the loop shares), at most the newest
+        ``bundle_max_keyframes``; initial poses are the graph's estimates. None when fewer than
+        ``bundle_min_pairs`` pairs are new or the adjustment has nothing to work on."""
+        cfg = self.cfg
+        sessions = sorted({k[:2] for c in closures for k in (c.a, c.b) if self.graph.anchored(k[:2])})
+        new_pairs = {s: self.graph.unbundled(s) for s in sessions}
+        if sum(len(p) for p in new_pairs.values()) < cfg.bundle_min_pairs:
+            return None
+        chosen: list[tuple[float, Session, int, NodeKey]] = []
+        for s in sessions:
+            keys = self.graph.session_keys(s)
+            wanted = np.zeros(len(keys), bool)
+            for i in new_pairs[s]:
+                wanted[max(0, i - cfg.bundle_context): i + 2 + cfg.bundle_context] = True
+            for c in closures:
+                for k in (c.a, c.b):
+                    if k[:2] == s and k in self._row:
+                        at = keys.index(k)
+                        wanted[max(0, at - cfg.bundle_context): at + 1 + cfg.bundle_context] = True
+            chosen.extend((self._nodes[self._row[k]].stamp, s, j, k) for j, k in enumerate(keys) if wanted[j])
+        chosen = sorted(chosen)[-cfg.bundle_max_keyframes:]
+        frames = []
+        for _, s, _, k in sorted(chosen, key=lambda c: (c[1], c[2])):
+            est = self.graph.estimate(k)
+            feats = None if est is None else self._features_of(k)
+            if est is not None and feats is not None:
+                frames.append(BundleFrame(k, est, feats, chain=s))
+        if len(frames) < 2:
+            return None
+        try:
+            result = bundle_adjust(frames, cfg.bundle)
+        except (GeometryError, RuntimeError) as exc:  # different cameras; gtsam's own failures
+            log.warning("bundle adjustment over %d keyframes skipped: %s", len(frames), exc)
+            return None
+        added = self.graph.add_bundle_edges(cast(dict[NodeKey, F64], result.poses))
+        log.info("bundle adjustment: %d keyframes, %d landmarks, %d observations (%d dropped), %d edges, "
+                 "%.0f ms", len(frames), result.landmarks, result.observations, result.dropped, added,
+                 result.ms)
+        return result
 
     def _remember(self, key: NodeKey, stamp: float, T_odom_camera: F64, codes: NDArray[np.uint8],
                   features: KeyframeFeatures | None) -> int:
@@ -600,6 +674,14 @@ class BackendCore:
             return None
         T_map_b = Ta @ closure.T_a_b
         return np.asarray(T_map_b @ np.linalg.inv(self._nodes[self._row[b]].T_odom_camera), np.float64)
+
+
+def _merged(first: GraphUpdate, second: GraphUpdate) -> GraphUpdate:
+    """Two consecutive graph updates as one: the larger move, sessions reported by either
+    (the second's newer values), anchored by either."""
+    return GraphUpdate(moved_m=max(first.moved_m, second.moved_m),
+                       sessions={**first.sessions, **second.sessions},
+                       anchored=first.anchored + tuple(s for s in second.anchored if s not in first.anchored))
 
 
 def _angle_deg(T: F64) -> float:

@@ -15,7 +15,10 @@ Variables and factors (integer gtsam keys, assigned when a keyframe enters iSAM2
 - ``loop``: ``BetweenFactorPose3`` on a verified ``T_a_b`` (pose of keyframe b in keyframe a's
   camera frame) under a robust kernel (Cauchy or Huber), sigmas from the PnP inlier count;
 - ``prior``: ``PriorFactorPose3`` on ``T_map_a``: the gauge of the first session (its first
-  keyframe, tight) or a ``--map-pose`` prior (``prior_T_map_odom @ T_odom_a``, loose).
+  keyframe, tight) or a ``--map-pose`` prior (``prior_T_map_odom @ T_odom_a``, loose);
+- ``bundle``: ``BetweenFactorPose3`` between consecutive keyframes of an anchored session on
+  their relative pose after a bundle adjustment over their features (``bundle.py``), Gaussian
+  and tight (``bundle_sigmas``): added once per pair, after a loop closure.
 
 gtsam's ``Pose3`` tangent order is (rx, ry, rz, tx, ty, tz); a between factor's error is
 ``Log(T_a_b^-1 @ inv(T_map_a) @ T_map_b)``, expressed in keyframe b's camera frame, so sigmas
@@ -33,9 +36,10 @@ Single owner, not thread-safe: the back-end stage calls every method from one th
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Literal, TypeAlias
 
@@ -67,7 +71,7 @@ NodeKey: TypeAlias = tuple[str, str, int]
 """A keyframe: ``(robot_id, session_id, seq)``."""
 SessionKey: TypeAlias = tuple[str, str]
 """A robot session, i.e. one ``odom`` frame: ``(robot_id, session_id)``."""
-EdgeKind: TypeAlias = Literal["odometry", "loop", "prior"]
+EdgeKind: TypeAlias = Literal["odometry", "loop", "prior", "bundle"]
 LoopResult: TypeAlias = Literal["loop", "anchored", "floating"]
 Sigmas6: TypeAlias = tuple[float, float, float, float, float, float]
 
@@ -205,6 +209,9 @@ class GraphConfig:
     refresh_tail: int = 3
     """After a plain update (no loop, no anchoring), the estimates re-read are the new
     keyframes' and those of the last ``refresh_tail`` keyframes of each session that grew."""
+    bundle_sigmas: Sigmas6 = (1e-4, 1e-4, 1e-4, 1e-3, 1e-3, 1e-3)
+    """Sigmas (rx, ry, rz rad, tx, ty, tz m) of a ``bundle`` edge: the relative pose of two
+    consecutive keyframes after a bundle adjustment, which then outweighs their odometry edge."""
     report_trans_m: float = 0.001
     """``GraphUpdate.sessions`` reports a session whose ``T_map_odom`` moved more than this
     (metres) ..."""
@@ -219,7 +226,7 @@ class GraphConfig:
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
                 raise ConfigError(f"{name} must be a finite number > 0, got {value!r}")
-        for name in ("prior_sigmas", "gauge_sigmas"):
+        for name in ("prior_sigmas", "gauge_sigmas", "bundle_sigmas"):
             value = getattr(self, name)
             if len(value) != 6 or not all(math.isfinite(v) and v > 0 for v in value):
                 raise ConfigError(f"{name} must be 6 finite numbers > 0 (rad x3, m x3), got {value!r}")
@@ -284,7 +291,8 @@ class EdgeRecord:
 
     Attributes:
         kind: ``odometry`` (consecutive keyframes of a session), ``loop`` (verified place
-            recognition) or ``prior`` (on one keyframe's map pose).
+            recognition), ``prior`` (on one keyframe's map pose) or ``bundle`` (consecutive
+            keyframes of a session, their relative pose from a bundle adjustment).
         a: first keyframe.
         b: second keyframe; None for a prior.
         T_a_b: (4, 4) pose of keyframe b's camera in keyframe a's camera frame; for a prior
@@ -302,8 +310,8 @@ class EdgeRecord:
     robust: bool
 
     def __post_init__(self) -> None:
-        if self.kind not in ("odometry", "loop", "prior"):
-            raise GraphError(f"kind: expected odometry, loop or prior, got {self.kind!r:.40}")
+        if self.kind not in ("odometry", "loop", "prior", "bundle"):
+            raise GraphError(f"kind: expected odometry, loop, prior or bundle, got {self.kind!r:.40}")
         _check_node_key(self.a, "a")
         if (self.b is None) != (self.kind == "prior"):
             raise GraphError("b: must be None exactly for a prior edge")
@@ -450,6 +458,8 @@ class PoseGraph:
         self._emitted_edges = 0
         self._hints: dict[NodeKey, F64] = {}
         """During :meth:`restore`: stored ``T_map_camera`` estimates, used as initial values."""
+        self._bundled: set[tuple[NodeKey, NodeKey]] = set()
+        """Consecutive keyframe pairs that have a ``bundle`` edge."""
 
     # ------------------------------------------------------------------ input
 
@@ -535,6 +545,35 @@ class PoseGraph:
         rec = EdgeRecord("loop", a, b, _pose(T_a_b, "T_a_b"), edge_sigmas, robust=True)
         self._edges.append(rec)
         return self._place_loop(rec)
+
+    def add_bundle_edges(self, poses: Mapping[NodeKey, ArrayLike]) -> int:
+        """Add a ``bundle`` edge between every two consecutive keyframes of an anchored session
+        that are both in ``poses`` (``key -> (4, 4) T_map_camera`` from a bundle adjustment) and
+        have none yet: ``T_a_b = inv(P_a) @ P_b`` with ``bundle_sigmas``. Returns how many."""
+        added = 0
+        for sess in self._sessions.values():
+            if not sess.anchored:
+                continue
+            for a, b in itertools.pairwise(sess.nodes):
+                if (a, b) in self._bundled or a not in poses or b not in poses:
+                    continue
+                T_a_b = inverse(_pose(poses[a], "poses")) @ _pose(poses[b], "poses")
+                rec = EdgeRecord("bundle", a, b, T_a_b, np.array(self.config.bundle_sigmas), robust=False)
+                self._edges.append(rec)
+                self._add_factor(rec)
+                self._bundled.add((a, b))
+                added += 1
+        return added
+
+    def unbundled(self, session: SessionKey) -> list[int]:
+        """Consecutive keyframe pairs of a session without a ``bundle`` edge: index i stands
+        for the pair (i, i + 1) of :meth:`session_keys`."""
+        nodes = self._sessions[session].nodes if session in self._sessions else []
+        return [i for i, (a, b) in enumerate(itertools.pairwise(nodes)) if (a, b) not in self._bundled]
+
+    def session_keys(self, session: SessionKey) -> list[NodeKey]:
+        """The keyframes of a session in arrival order."""
+        return list(self._sessions[session].nodes) if session in self._sessions else []
 
     # ----------------------------------------------------------------- update
 
@@ -730,6 +769,13 @@ class PoseGraph:
         for rec in stored:
             if rec.kind == "loop":
                 graph._place_loop(rec)
+        for rec in stored:
+            if rec.kind == "bundle":  # within an anchored session, added after its anchoring
+                b = _end_b(rec)
+                if not graph._sessions[(rec.a[0], rec.a[1])].anchored:
+                    raise GraphError(f"bundle edge on a floating session: {rec.a!r:.80}")
+                graph._add_factor(rec)
+                graph._bundled.add((rec.a, b))
         graph._edges = stored
         graph._hints = {}
         graph.update()

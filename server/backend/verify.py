@@ -76,12 +76,15 @@ class KeyframeFeatures:
         depth_m: float32 (N,) depth along the camera's z axis, metres; 0 = none.
         descriptors: uint8 (N, 32) ORB descriptors (256 bits).
         camera: the colour camera's intrinsics and distortion.
+        octave: int (N,) ORB pyramid level of each keypoint (0 = full resolution), or None
+            (unknown; bundle adjustment then weighs all as level 0).
     """
 
     uv: F32
     depth_m: F32
     descriptors: U8
     camera: PinholeCamera
+    octave: NDArray[np.integer] | None = None
 
     def __post_init__(self) -> None:
         uv = np.asarray(self.uv)
@@ -109,6 +112,12 @@ class KeyframeFeatures:
         object.__setattr__(self, "uv", _readonly(uv.astype(np.float32, copy=False)))
         object.__setattr__(self, "depth_m", _readonly(depth.astype(np.float32, copy=False)))
         object.__setattr__(self, "descriptors", _readonly(desc))
+        if self.octave is not None:
+            octave = np.asarray(self.octave)
+            if octave.shape != (n,) or not np.issubdtype(octave.dtype, np.integer):
+                raise GeometryError(
+                    f"keyframe features: expected octave int ({n},), got {octave.dtype} {octave.shape}")
+            object.__setattr__(self, "octave", _readonly(octave))
 
     def __len__(self) -> int:
         return int(self.uv.shape[0])
@@ -116,7 +125,8 @@ class KeyframeFeatures:
     @staticmethod
     def from_keypoints(keypoints: Keypoints, camera: PinholeCamera) -> KeyframeFeatures:
         """The features of a wire :class:`~wardmap.shared.wire.Keypoints` seen by ``camera``."""
-        return KeyframeFeatures(keypoints.uv, keypoints.depth_m, keypoints.descriptors, camera)
+        return KeyframeFeatures(keypoints.uv, keypoints.depth_m, keypoints.descriptors, camera,
+                                keypoints.octave)
 
 
 @dataclass(frozen=True)

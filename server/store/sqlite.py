@@ -110,6 +110,22 @@ log = logging.getLogger(__name__)
 APPLICATION_ID: Final = 0x77726D73  # "wrms": marks the SQLite file as a wardmap keyframe store
 BUSY_TIMEOUT_S: Final = 10.0
 
+
+
+def _graph_edges_table(name: str, kinds: tuple[str, ...]) -> str:
+    """``CREATE TABLE`` of the pose graph's factors (v8; v10 widened ``kinds``)."""
+    allowed = ", ".join(f"'{k}'" for k in kinds)
+    return f"""CREATE TABLE {name} (
+            edge_id INTEGER PRIMARY KEY,
+            kind TEXT NOT NULL CHECK (kind IN ({allowed})),
+            a_robot TEXT NOT NULL, a_session TEXT NOT NULL, a_seq INTEGER NOT NULL,
+            b_robot TEXT, b_session TEXT, b_seq INTEGER,
+            T_a_b BLOB NOT NULL CHECK (length(T_a_b) = 128),
+            sigmas BLOB NOT NULL CHECK (length(sigmas) = 48),
+            robust INTEGER NOT NULL CHECK (robust IN (0, 1)),
+            inliers INTEGER NOT NULL)"""
+
+
 # SQL statements that take the schema from version ``i`` to ``i + 1`` (``MIGRATIONS[i]``).
 MIGRATIONS: Final[tuple[sqlitedb.Migration, ...]] = (
     # v1: robots, sessions, keyframes, rejection counters.
@@ -248,15 +264,7 @@ MIGRATIONS: Final[tuple[sqlitedb.Migration, ...]] = (
             prior BLOB CHECK (prior IS NULL OR length(prior) = 128),
             codes BLOB NOT NULL,
             PRIMARY KEY (robot_id, session_id, seq)) WITHOUT ROWID""",
-        """CREATE TABLE graph_edges (
-            edge_id INTEGER PRIMARY KEY,
-            kind TEXT NOT NULL CHECK (kind IN ('odometry', 'loop', 'prior')),
-            a_robot TEXT NOT NULL, a_session TEXT NOT NULL, a_seq INTEGER NOT NULL,
-            b_robot TEXT, b_session TEXT, b_seq INTEGER,
-            T_a_b BLOB NOT NULL CHECK (length(T_a_b) = 128),
-            sigmas BLOB NOT NULL CHECK (length(sigmas) = 48),
-            robust INTEGER NOT NULL CHECK (robust IN (0, 1)),
-            inliers INTEGER NOT NULL)""",
+        _graph_edges_table("graph_edges", ("odometry", "loop", "prior")),
         """CREATE TABLE graph_sessions (
             robot_id TEXT NOT NULL,
             session_id TEXT NOT NULL,
@@ -276,6 +284,14 @@ MIGRATIONS: Final[tuple[sqlitedb.Migration, ...]] = (
             secret_sha256 BLOB NOT NULL CHECK (length(secret_sha256) = 32),
             created_s REAL NOT NULL,
             revoked_s REAL) WITHOUT ROWID""",
+    ),
+    # v10: ``bundle`` edges (consecutive keyframes' relative pose after a bundle adjustment);
+    # SQLite cannot alter a CHECK, so the table is copied.
+    (
+        _graph_edges_table("graph_edges_v10", ("odometry", "loop", "prior", "bundle")),
+        "INSERT INTO graph_edges_v10 SELECT * FROM graph_edges",
+        "DROP TABLE graph_edges",
+        "ALTER TABLE graph_edges_v10 RENAME TO graph_edges",
     ),
 )
 

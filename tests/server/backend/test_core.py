@@ -147,3 +147,36 @@ def test_a_session_rests_loop_gap_keyframes_after_a_loop_edge(drive: list[Keyfra
     assert all(searched[: anchored_at + 1])
     # the two keyframes after the anchoring edge are not searched; the third is again
     assert searched[anchored_at + 1: anchored_at + 4] == [False, False, True]
+
+
+def test_a_loop_between_anchored_sessions_bundle_adjusts_them(drive: list[KeyframeMsg]) -> None:
+    """After a loop edge between two anchored sessions, their keyframes are bundle-adjusted
+    and each consecutive pair gets one ``bundle`` edge; the edges survive a restore."""
+    from wardmap.server.backend.graph import PoseGraph
+
+    core = BackendCore(BackendConfig(loop_gap=0, bundle_min_pairs=3))
+    for m in drive:
+        core.add(m)
+    second = _as(drive, "r2", "day2", T=yaw_transform(np.radians(-20.0), 1.0, 0.5, 0.0), dt=86_400.0)
+    bundles = []
+    for m in second:
+        res = core.add(m)
+        if res.bundle is not None:
+            bundles.append(res)
+            assert any(c.kind == "loop" for c in res.closures)
+            assert res.ms["bundle"] > 0
+    assert bundles, "no loop between the anchored sessions ran a bundle adjustment"
+    nodes, edges = core.graph.records()
+    pairs = [(e.a, e.b) for e in edges if e.kind == "bundle"]
+    assert len(pairs) == len(set(pairs)) > 0  # once per pair
+    assert all(a[:2] == b[:2] and b[2] == a[2] + 1 for a, b in pairs if b is not None)
+    # the same views of both sessions stay together (the adjustment did not tear the map)
+    for a, b in zip(drive, second, strict=True):
+        Ta, Tb = core.estimate((a.robot_id, a.session_id, a.seq)), core.estimate((b.robot_id, b.session_id, b.seq))
+        assert Ta is not None and Tb is not None
+        assert np.linalg.norm(Ta[:3, 3] - Tb[:3, 3]) < 0.05
+    restored = PoseGraph.restore(core.graph.config, nodes, edges)
+    for n in nodes:
+        est, got = core.estimate(n.key), restored.estimate(n.key)
+        assert est is not None and got is not None
+        np.testing.assert_allclose(got[:3, 3], est[:3, 3], atol=2e-3)

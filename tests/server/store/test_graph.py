@@ -52,6 +52,15 @@ def test_a_committed_graph_reads_back_in_order_with_its_cursor(backend: Backend)
     np.testing.assert_array_equal(got_edges[1].T_a_b, edges[1].T_a_b)
 
 
+def test_bundle_edges_are_stored(store: MapStore) -> None:
+    for seq in range(2):
+        store.insert(*keyframe("r1", "s1", seq), 1.0)
+    nodes = [_node("r1", "s1", seq) for seq in range(2)]
+    edges = [_edge(nodes[0].key, nodes[1].key), _edge(nodes[0].key, nodes[1].key, "bundle")]
+    store.commit_graph("backend", 2, GraphChange(nodes, edges))
+    assert [e.kind for e in store.graph_records()[1]] == ["odometry", "bundle"]
+
+
 def test_estimates_sessions_and_the_latest_node_per_robot(store: MapStore) -> None:
     for seq in range(2):
         store.insert(*keyframe("r1", "s1", seq), 1.0)

@@ -20,11 +20,19 @@ import pytest
 from procs import sigkill_after
 
 from wardmap.server.objectmap import ObjectMap, ObjectState
-from wardmap.server.store import MIGRATIONS, SqliteMapStore, StoreError, open_store
+from wardmap.server.store import (
+    MIGRATIONS,
+    GraphChange,
+    GraphEdgeRow,
+    GraphNodeRow,
+    SqliteMapStore,
+    StoreError,
+    open_store,
+)
 from wardmap.server.store import sqlite as sqlite_backend
 from wardmap.shared.se3 import yaw_transform
 
-from .conftest import keyframe
+from .conftest import T0, keyframe
 
 
 def _user_version(path: Path) -> int:
@@ -55,6 +63,29 @@ def test_migration_from_empty_v0_file(tmp_path: Path) -> None:
             assert conn.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
             indexes = {r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE type = 'index'")}
             assert "keyframes_robot_stamp" in indexes
+
+
+def test_a_version_9_store_keeps_its_graph_edges(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """v10 copies ``graph_edges`` to widen its kind CHECK: the stored edges survive it."""
+    path = tmp_path / "map.db"
+    with monkeypatch.context() as m:
+        v9 = dataclasses.replace(sqlite_backend.STORE_DB, migrations=MIGRATIONS[:9])
+        m.setattr(sqlite_backend, "STORE_DB", v9)
+        with SqliteMapStore.open(path) as st:
+            st.insert(*keyframe("r1", "s1", 0), 1.0)
+            st.insert(*keyframe("r1", "s1", 1), 1.0)
+            key0, key1 = ("r1", "s1", 0), ("r1", "s1", 1)
+            nodes = [GraphNodeRow(k, T0 + k[2], np.eye(4), "rgb", np.eye(4), None, b"\x00" * 8)
+                     for k in (key0, key1)]
+            st.commit_graph("backend", 2, GraphChange(nodes, [GraphEdgeRow("odometry", key0, key1, np.eye(4),
+                                                                           np.full(6, 0.01), False)]))
+    assert _user_version(path) == 9
+    with SqliteMapStore.open(path) as st:
+        assert _user_version(path) == len(MIGRATIONS)
+        assert [e.kind for e in st.graph_records()[1]] == ["odometry"]
+        st.commit_graph("backend", 2, GraphChange((), [GraphEdgeRow("bundle", key0, key1, np.eye(4),
+                                                                    np.full(6, 0.001), False)]))
+        assert [e.kind for e in st.graph_records()[1]] == ["odometry", "bundle"]
 
 
 def test_failed_migration_rolls_back(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
