@@ -1,0 +1,135 @@
+"""The server's probes and start-up against real processes: a ``wardmap router`` subprocess that
+is killed and started again, and a ``wardmap server`` subprocess (default mapping stage, tokens
+required; the probes need none). ``/readyz``'s rule: ``server/api/readiness.py``.
+
+The tests wait on ready lines, log lines and the probe's own answers (polled every 50 ms, the
+event under test), never on fixed sleeps.
+"""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import httpx
+import pytest
+from procs import Proc, free_port, kill_proc, read_line, spawn_logged, start, stop, stop_proc, wardmap_cmd
+
+pytest.importorskip("zenoh")
+
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
+
+READY_TIMEOUT_S = 60.0
+
+
+def _router(endpoint: str) -> subprocess.Popen[str]:
+    cmd = wardmap_cmd("router", "--listen", endpoint)
+    return start(cmd, f"router listening on {endpoint}", READY_TIMEOUT_S)
+
+
+def _server_cmd(endpoint: str, db: Path, port: int) -> list[str]:
+    return wardmap_cmd("server", "--connect", endpoint, "--db", f"sqlite:///{db}",
+                       "--http", f"127.0.0.1:{port}")
+
+
+def _until(check: Callable[[], bool], timeout_s: float) -> float:
+    """Poll ``check`` every 50 ms until it is true; the seconds it took (fails after ``timeout_s``)."""
+    t0 = time.monotonic()
+    while not check():
+        if time.monotonic() - t0 > timeout_s:
+            pytest.fail(f"not within {timeout_s} s")
+        time.sleep(0.05)
+    return time.monotonic() - t0
+
+
+def _ready(http: httpx.Client) -> tuple[int, dict[str, str]]:
+    r = http.get("/readyz")
+    return r.status_code, r.json()
+
+
+@pytest.fixture
+def endpoint() -> str:
+    return f"tcp/127.0.0.1:{free_port()}"
+
+
+@pytest.fixture
+def server_proc(endpoint: str, tmp_path: Path) -> Iterator[tuple[subprocess.Popen[str], str]]:
+    """A router, then a server connected to it, after both ready lines; yields the router
+    process (the test kills it) and the server's base URL."""
+    router = _router(endpoint)
+    port = free_port()
+    url = f"http://127.0.0.1:{port}"
+    server = start(_server_cmd(endpoint, tmp_path / "map.db", port), f"server ready: {url}", READY_TIMEOUT_S)
+    try:
+        yield router, url
+    finally:
+        stop(server)
+        stop(router)
+
+
+def test_readyz_follows_the_router(server_proc: tuple[subprocess.Popen[str], str], endpoint: str) -> None:
+    """Ready with its router; the router SIGKILLed: ``/readyz`` answers 503 "zenoh router not
+    connected" within 2 s while ``/healthz`` stays 200; a router started again on the same
+    endpoint: ready (200) again within 10 s."""
+    router, url = server_proc
+    with httpx.Client(base_url=url, timeout=5) as http:
+        _until(lambda: _ready(http)[0] == 200, 30)
+        router.send_signal(signal.SIGKILL)
+        router.wait(timeout=10)
+        took = _until(lambda: _ready(http)[0] == 503, 5)
+        assert took < 2.0, took
+        assert _ready(http) == (503, {"status": "zenoh router not connected"})
+        assert http.get("/healthz").status_code == 200
+        again = _router(endpoint)
+        try:
+            _until(lambda: _ready(http) == (200, {"status": "ok"}), 10)
+        finally:
+            stop(again)
+
+
+def _stderr_has(proc: Proc, text: str) -> Callable[[], bool]:
+    def check() -> bool:
+        if proc.popen.poll() is not None:
+            pytest.fail(f"server exited ({proc.popen.returncode}): {proc.stderr()[-2000:]}")
+        return text in proc.stderr()
+    return check
+
+
+def test_a_server_started_before_its_router_waits_for_it(endpoint: str, tmp_path: Path) -> None:
+    """No router yet: the server does not exit; it logs a "waiting for a zenoh router" warning
+    per attempt (at least two, 1 s apart, no traceback); once a router listens it prints its ready
+    line and ``/readyz`` answers 200; SIGTERM then exits 0."""
+    port = free_port()
+    server = spawn_logged(_server_cmd(endpoint, tmp_path / "map.db", port), tmp_path, "server")
+    try:
+        _until(lambda: _stderr_has(server, "attempt 2 failed")(), 60)
+        waits = [ln for ln in server.stderr().splitlines() if "waiting for a zenoh router" in ln]
+        assert len(waits) >= 2, server.stderr()
+        assert endpoint in waits[0]
+        router = _router(endpoint)
+        try:
+            assert server.popen.stdout is not None
+            line = read_line(server.popen.stdout, 60)
+            assert line == f"server ready: http://127.0.0.1:{port}\n", server.stderr()
+            with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=5) as http:
+                _until(lambda: _ready(http)[0] == 200, 30)
+            assert stop_proc(server) == 0
+        finally:
+            stop(router)
+    finally:
+        kill_proc(server)
+    assert "Traceback" not in server.stderr()
+
+
+def test_sigterm_while_waiting_for_the_router_exits_0(endpoint: str, tmp_path: Path) -> None:
+    """A server still waiting for its router ends on SIGTERM with exit code 0 and no traceback."""
+    server = spawn_logged(_server_cmd(endpoint, tmp_path / "map.db", free_port()), tmp_path, "server")
+    try:
+        _until(_stderr_has(server, "waiting for a zenoh router"), 60)
+        assert stop_proc(server, timeout_s=20) == 0, server.stderr()
+    finally:
+        kill_proc(server)
+    assert "Traceback" not in server.stderr()
