@@ -8,6 +8,8 @@ import json
 from pathlib import Path
 from typing import Any
 
+from wardmap.cli.logopts import add_log_format
+
 OUTBOX_FILE = "outbox.sqlite"
 """Name of the outbox file inside ``--outbox DIR``."""
 
@@ -40,6 +42,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "lets the server put this session's objects on the map",
     )
     p.add_argument("--config", metavar="FILE", help="TOML file with [tracker] and [agent] tables")
+    add_log_format(p)
     p.set_defaults(func=run)
 
 

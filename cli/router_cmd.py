@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from wardmap.cli.logopts import add_log_format
+
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("router", help="run a Zenoh router", description=__doc__)
@@ -21,6 +23,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         metavar="FILE",
         help="zenoh config file (.json5/.json/.yaml); --listen and wardmap defaults override it",
     )
+    add_log_format(p)
     p.set_defaults(func=run)
 
 

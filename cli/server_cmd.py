@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from wardmap.cli.logopts import add_log_format
 from wardmap.shared.errors import ConfigError
 
 
@@ -32,6 +33,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="serve the REST API without tokens; refused unless --http is a loopback address "
              "(demo and tests; create tokens with `wardmap token create`)",
     )
+    add_log_format(p)
     p.set_defaults(func=run)
 
 

@@ -8,6 +8,7 @@ event under test), never on fixed sleeps.
 
 from __future__ import annotations
 
+import json
 import signal
 import subprocess
 import time
@@ -125,11 +126,16 @@ def test_a_server_started_before_its_router_waits_for_it(endpoint: str, tmp_path
 
 
 def test_sigterm_while_waiting_for_the_router_exits_0(endpoint: str, tmp_path: Path) -> None:
-    """A server still waiting for its router ends on SIGTERM with exit code 0 and no traceback."""
-    server = spawn_logged(_server_cmd(endpoint, tmp_path / "map.db", free_port()), tmp_path, "server")
+    """A server still waiting for its router ends on SIGTERM with exit code 0 and no traceback;
+    with ``--log-format json`` every stderr line is one JSON object."""
+    cmd = [*_server_cmd(endpoint, tmp_path / "map.db", free_port()), "--log-format", "json"]
+    server = spawn_logged(cmd, tmp_path, "server")
     try:
         _until(_stderr_has(server, "waiting for a zenoh router"), 60)
         assert stop_proc(server, timeout_s=20) == 0, server.stderr()
     finally:
         kill_proc(server)
+    records = [json.loads(line) for line in server.stderr().splitlines()]
+    assert records and all(isinstance(r, dict) for r in records)
+    assert any(r["level"] == "WARNING" and "waiting for a zenoh router" in r["message"] for r in records)
     assert "Traceback" not in server.stderr()
