@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -42,6 +44,14 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "lets the server put this session's objects on the map",
     )
     p.add_argument("--config", metavar="FILE", help="TOML file with [tracker] and [agent] tables")
+    p.add_argument(
+        "--metrics-port", type=int, metavar="N",
+        help="serve the agent's Prometheus metrics at http://HOST:N/metrics (off by default)",
+    )
+    p.add_argument(
+        "--metrics-host", default="0.0.0.0", metavar="HOST",
+        help="address of --metrics-port (default: %(default)s, for a Prometheus off the robot)",
+    )
     add_log_format(p)
     p.set_defaults(func=run)
 
@@ -65,6 +75,7 @@ def parse_map_pose(text: str) -> Any:
 
 def run(args: argparse.Namespace) -> int:
     from wardmap.edge.agent import AgentConfig, EdgeAgent, run_agent
+    from wardmap.edge.metrics import EdgeMetrics
     from wardmap.edge.tracker import TrackerConfig
     from wardmap.shared.config import load_config
     from wardmap.shared.dataset import FrameSource
@@ -86,6 +97,7 @@ def run(args: argparse.Namespace) -> int:
         overrides["labels"] = args.labels
     agent_cfg = dataclasses.replace(agent_cfg, **overrides)  # re-validated by __post_init__
     T_map_odom = None if args.map_pose is None else parse_map_pose(args.map_pose)
+    metrics = None if args.metrics_port is None else EdgeMetrics(args.robot)
     agent = EdgeAgent(
         args.robot,
         source,
@@ -94,6 +106,7 @@ def run(args: argparse.Namespace) -> int:
         config=agent_cfg,
         tracker_config=tracker_cfg,
         T_map_odom=T_map_odom,
+        metrics=metrics,
     )
 
     def ready(session_id: str, pending: int) -> None:
@@ -103,6 +116,10 @@ def run(args: argparse.Namespace) -> int:
             flush=True,
         )
 
-    summary = run_agent(agent, ready)
+    with contextlib.ExitStack() as stack:
+        if metrics is not None:
+            url = stack.enter_context(metrics.serve(args.metrics_port, args.metrics_host))
+            print(f"edge {args.robot} metrics: {url}/metrics", file=sys.stderr, flush=True)
+        summary = run_agent(agent, ready)
     print(json.dumps(summary), flush=True)
     return 0
