@@ -79,6 +79,7 @@ def run(args: argparse.Namespace) -> int:
     from wardmap.edge.tracker import TrackerConfig
     from wardmap.shared.config import load_config
     from wardmap.shared.dataset import FrameSource
+    from wardmap.shared.sdnotify import notify
 
     source: str | FrameSource = args.source
     if args.source.startswith("sim:"):
@@ -115,6 +116,7 @@ def run(args: argparse.Namespace) -> int:
             f"{pending} keyframes pending in {args.outbox / OUTBOX_FILE}",
             flush=True,
         )
+        notify("READY=1")
 
     with contextlib.ExitStack() as stack:
         if metrics is not None:

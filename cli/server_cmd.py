@@ -48,11 +48,13 @@ def parse_http(text: str) -> tuple[str, int]:
 
 def run(args: argparse.Namespace) -> int:
     from wardmap.server.app import run_server
+    from wardmap.shared.sdnotify import notify
 
     host, port = parse_http(args.http)
 
     def ready(url: str) -> None:
         print(f"server ready: {url}", flush=True)
+        notify("READY=1")  # systemd Type=notify: store open, router connected, ingest subscribed
 
     run_server(args.connect, args.db, host, port, on_ready=ready, config_path=args.config,
                insecure_loopback=args.insecure_loopback)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import signal
+import socket
 import subprocess
 import time
 from collections.abc import Callable, Iterator
@@ -17,7 +18,20 @@ from pathlib import Path
 
 import httpx
 import pytest
-from procs import Proc, free_port, kill_proc, read_line, spawn_logged, start, stop, stop_proc, wardmap_cmd
+from procs import (
+    Proc,
+    child_env,
+    free_port,
+    kill_proc,
+    one_line_error,
+    read_line,
+    spawn_logged,
+    start,
+    stop,
+    stop_proc,
+    wardmap,
+    wardmap_cmd,
+)
 
 pytest.importorskip("zenoh")
 
@@ -139,3 +153,23 @@ def test_sigterm_while_waiting_for_the_router_exits_0(endpoint: str, tmp_path: P
     assert records and all(isinstance(r, dict) for r in records)
     assert any(r["level"] == "WARNING" and "waiting for a zenoh router" in r["message"] for r in records)
     assert "Traceback" not in server.stderr()
+
+
+def test_router_check_and_systemd_readiness(endpoint: str, tmp_path: Path) -> None:
+    """A router started with ``NOTIFY_SOCKET`` sends systemd ``READY=1`` once it listens;
+    ``wardmap router --check`` exits 0 naming it, and 1 with one error line once it is gone."""
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as notify_sock:
+        notify_sock.bind(str(tmp_path / "notify"))
+        notify_sock.settimeout(READY_TIMEOUT_S)
+        env = {**child_env(), "NOTIFY_SOCKET": str(tmp_path / "notify")}
+        router = subprocess.Popen(wardmap_cmd("router", "--listen", endpoint), stdout=subprocess.PIPE,
+                                  stderr=subprocess.PIPE, text=True, env=env)
+        try:
+            assert notify_sock.recv(64) == b"READY=1"
+            ok = wardmap("router", "--check", endpoint, timeout_s=60)
+            assert ok.returncode == 0, ok.stderr
+            assert ok.stdout.startswith("zenoh router ") and endpoint in ok.stdout
+        finally:
+            stop(router)
+    gone = wardmap("router", "--check", endpoint, timeout_s=60)
+    one_line_error(gone, f"no zenoh router answers at {endpoint}", "router")
