@@ -9,6 +9,7 @@ event under test), never on fixed sleeps.
 from __future__ import annotations
 
 import json
+import queue
 import signal
 import socket
 import subprocess
@@ -17,7 +18,10 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import httpx
+import numpy as np
 import pytest
+from factories import keyframe
+from peers import ALL_ACKS, matched_publisher, open_client
 from procs import (
     Proc,
     child_env,
@@ -34,6 +38,9 @@ from procs import (
 )
 
 pytest.importorskip("zenoh")
+
+from wardmap.shared.wire import AckMsg, decode_ack, encode
+from wardmap.shared.zenoh_config import keyframe_key
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
 
@@ -88,7 +95,8 @@ def server_proc(endpoint: str, tmp_path: Path) -> Iterator[tuple[subprocess.Pope
 def test_readyz_follows_the_router(server_proc: tuple[subprocess.Popen[str], str], endpoint: str) -> None:
     """Ready with its router; the router SIGKILLed: ``/readyz`` answers 503 "zenoh router not
     connected" within 2 s while ``/healthz`` stays 200; a router started again on the same
-    endpoint: ready (200) again within 10 s."""
+    endpoint: ready (200) again within 10 s, and ready means it: a keyframe published through
+    the new router is acked ``stored``."""
     router, url = server_proc
     with httpx.Client(base_url=url, timeout=5) as http:
         _until(lambda: _ready(http)[0] == 200, 30)
@@ -101,6 +109,15 @@ def test_readyz_follows_the_router(server_proc: tuple[subprocess.Popen[str], str
         again = _router(endpoint)
         try:
             _until(lambda: _ready(http) == (200, {"status": "ok"}), 10)
+            acks: queue.Queue[AckMsg] = queue.Queue()
+            with (
+                open_client(endpoint) as session,
+                session.declare_subscriber(ALL_ACKS, lambda s: acks.put(decode_ack(s.payload.to_bytes()))),
+            ):
+                msg = keyframe(np.random.default_rng(3), robot_id="r1")
+                matched_publisher(session, keyframe_key("r1"), 10).put(encode(msg))
+                ack = acks.get(timeout=10)
+            assert (ack.robot_id, ack.seq, ack.status) == ("r1", msg.seq, "stored")
         finally:
             stop(again)
 
