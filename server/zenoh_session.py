@@ -66,9 +66,9 @@ def open_session(connect: Sequence[str]) -> Any:
 def has_router(session: Any) -> bool:
     """Whether ``session`` is connected to at least one router now (``session.info.routers_zid()``).
 
-    A client session loses its router within about 10 ms of the router process dying (the TCP
-    link closes) and finds it again within about 100 ms of its return (zenoh reconnects by
-    itself), measured on loopback. False once the session is closed.
+    A client session loses its router as soon as the router's TCP link closes and finds it again
+    when the router returns (zenoh reconnects by itself); ``bench/health.py`` measures both
+    through ``/readyz`` (BENCHMARKS.md). False once the session is closed.
     """
     import zenoh
 
