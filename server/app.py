@@ -16,7 +16,9 @@ then the store.
 :func:`run_server` checks what a user can get wrong up front (the store URL, the HTTP port)
 so those fail with one clear :class:`ServerError`/:class:`StoreError`, then runs uvicorn on a
 helper thread; the main thread handles the signals and waits on one event that either a
-signal, the caller's ``stop`` or the end of the HTTP thread sets.
+signal, the caller's ``stop`` or the end of the HTTP thread sets. What may come up later (a
+database server, the router) is waited for instead: ``start()`` retries it with a warning per
+attempt until it answers or that event is set (a stop while waiting exits cleanly).
 """
 
 from __future__ import annotations
