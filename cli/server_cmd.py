@@ -48,14 +48,26 @@ def parse_http(text: str) -> tuple[str, int]:
 
 def run(args: argparse.Namespace) -> int:
     from wardmap.server.app import run_server
-    from wardmap.shared.sdnotify import notify
+    from wardmap.shared.sdnotify import notify, start_watchdog
 
     host, port = parse_http(args.http)
 
     def ready(url: str) -> None:
         print(f"server ready: {url}", flush=True)
         notify("READY=1")  # systemd Type=notify: store open, router connected, ingest subscribed
+        start_watchdog(lambda: _answers(f"{url}/healthz"))  # WatchdogSec: the HTTP loop still serves
 
     run_server(args.connect, args.db, host, port, on_ready=ready, config_path=args.config,
                insecure_loopback=args.insecure_loopback)
     return 0
+
+
+def _answers(url: str) -> bool:
+    """Whether ``GET url`` answers 200 within 5 s."""
+    import urllib.request
+
+    try:
+        with urllib.request.urlopen(url, timeout=5) as r:
+            return bool(r.status == 200)
+    except OSError:
+        return False

@@ -190,3 +190,24 @@ def test_router_check_and_systemd_readiness(endpoint: str, tmp_path: Path) -> No
             stop(router)
     gone = wardmap("router", "--check", endpoint, timeout_s=60)
     one_line_error(gone, f"no zenoh router answers at {endpoint}", "router")
+
+
+def test_server_tells_systemd_it_is_ready_and_alive(endpoint: str, tmp_path: Path) -> None:
+    """Under a ``Type=notify`` unit with ``WatchdogSec`` (stood in for by ``NOTIFY_SOCKET`` and
+    ``WATCHDOG_USEC`` = 1 s): the server sends ``READY=1`` once ready, then ``WATCHDOG=1`` while its
+    HTTP loop answers."""
+    router = _router(endpoint)
+    port = free_port()
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as notify_sock:
+        notify_sock.bind(str(tmp_path / "notify"))
+        notify_sock.settimeout(READY_TIMEOUT_S)
+        env = {**child_env(), "NOTIFY_SOCKET": str(tmp_path / "notify"), "WATCHDOG_USEC": "1000000"}
+        server = subprocess.Popen(_server_cmd(endpoint, tmp_path / "map.db", port), stdout=subprocess.PIPE,
+                                  stderr=subprocess.PIPE, text=True, env=env)
+        try:
+            assert notify_sock.recv(64) == b"READY=1"
+            notify_sock.settimeout(5)
+            assert [notify_sock.recv(64) for _ in range(2)] == [b"WATCHDOG=1"] * 2
+        finally:
+            stop(server)
+            stop(router)
