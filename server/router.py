@@ -111,7 +111,8 @@ def check_router(endpoint: str) -> str:
     try:
         session = open_session([endpoint])
     except ZenohSessionError as exc:
-        raise RouterError(f"no zenoh router answers at {endpoint}: {exc}") from exc
+        why = first_line(exc.__cause__) if exc.__cause__ is not None else str(exc)
+        raise RouterError(f"no zenoh router answers at {endpoint}: {why}") from exc
     with session:
         if not has_router(session):
             raise RouterError(f"no zenoh router at {endpoint} (a peer or client answered)")

@@ -40,7 +40,7 @@ def first_line(exc: BaseException) -> str:
     picked = [ln for ln in lines if ln.startswith(("-->", "= "))] if len(lines) > 1 else lines
     text = " ".join(picked or lines[:1])
     cut = text.rfind(" at /")
-    return text[:cut] if cut > 0 else text
+    return text[:cut].rstrip() if cut > 0 else text
 
 
 def open_session(connect: Sequence[str]) -> Any:
