@@ -3,10 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
+import sys
 from pathlib import Path
 from typing import Any
+
+from wardmap.cli.logopts import add_log_format
 
 OUTBOX_FILE = "outbox.sqlite"
 """Name of the outbox file inside ``--outbox DIR``."""
@@ -40,6 +44,15 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "lets the server put this session's objects on the map",
     )
     p.add_argument("--config", metavar="FILE", help="TOML file with [tracker] and [agent] tables")
+    p.add_argument(
+        "--metrics-port", type=int, metavar="N",
+        help="serve the agent's Prometheus metrics at http://HOST:N/metrics (off by default)",
+    )
+    p.add_argument(
+        "--metrics-host", default="0.0.0.0", metavar="HOST",
+        help="address of --metrics-port (default: %(default)s, for a Prometheus off the robot)",
+    )
+    add_log_format(p)
     p.set_defaults(func=run)
 
 
@@ -62,9 +75,11 @@ def parse_map_pose(text: str) -> Any:
 
 def run(args: argparse.Namespace) -> int:
     from wardmap.edge.agent import AgentConfig, EdgeAgent, run_agent
+    from wardmap.edge.metrics import EdgeMetrics
     from wardmap.edge.tracker import TrackerConfig
     from wardmap.shared.config import load_config
     from wardmap.shared.dataset import FrameSource
+    from wardmap.shared.sdnotify import notify
 
     source: str | FrameSource = args.source
     if args.source.startswith("sim:"):
@@ -83,6 +98,7 @@ def run(args: argparse.Namespace) -> int:
         overrides["labels"] = args.labels
     agent_cfg = dataclasses.replace(agent_cfg, **overrides)  # re-validated by __post_init__
     T_map_odom = None if args.map_pose is None else parse_map_pose(args.map_pose)
+    metrics = None if args.metrics_port is None else EdgeMetrics(args.robot)
     agent = EdgeAgent(
         args.robot,
         source,
@@ -91,6 +107,7 @@ def run(args: argparse.Namespace) -> int:
         config=agent_cfg,
         tracker_config=tracker_cfg,
         T_map_odom=T_map_odom,
+        metrics=metrics,
     )
 
     def ready(session_id: str, pending: int) -> None:
@@ -99,7 +116,12 @@ def run(args: argparse.Namespace) -> int:
             f"{pending} keyframes pending in {args.outbox / OUTBOX_FILE}",
             flush=True,
         )
+        notify("READY=1")
 
-    summary = run_agent(agent, ready)
+    with contextlib.ExitStack() as stack:
+        if metrics is not None:
+            url = stack.enter_context(metrics.serve(args.metrics_port, args.metrics_host))
+            print(f"edge {args.robot} metrics: {url}/metrics", file=sys.stderr, flush=True)
+        summary = run_agent(agent, ready)
     print(json.dumps(summary), flush=True)
     return 0

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from wardmap.cli.logopts import add_log_format
 from wardmap.shared.errors import ConfigError
 
 
@@ -32,6 +33,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="serve the REST API without tokens; refused unless --http is a loopback address "
              "(demo and tests; create tokens with `wardmap token create`)",
     )
+    add_log_format(p)
     p.set_defaults(func=run)
 
 
@@ -46,12 +48,26 @@ def parse_http(text: str) -> tuple[str, int]:
 
 def run(args: argparse.Namespace) -> int:
     from wardmap.server.app import run_server
+    from wardmap.shared.sdnotify import notify, start_watchdog
 
     host, port = parse_http(args.http)
 
     def ready(url: str) -> None:
         print(f"server ready: {url}", flush=True)
+        notify("READY=1")  # systemd Type=notify: store open, router connected, ingest subscribed
+        start_watchdog(lambda: _answers(f"{url}/healthz"))  # WatchdogSec: the HTTP loop still serves
 
     run_server(args.connect, args.db, host, port, on_ready=ready, config_path=args.config,
                insecure_loopback=args.insecure_loopback)
     return 0
+
+
+def _answers(url: str) -> bool:
+    """Whether ``GET url`` answers 200 within 5 s."""
+    import urllib.request
+
+    try:
+        with urllib.request.urlopen(url, timeout=5) as r:
+            return bool(r.status == 200)
+    except OSError:
+        return False

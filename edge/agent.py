@@ -79,6 +79,7 @@ from numpy.typing import NDArray
 from wardmap.edge.corrections import Corrections
 from wardmap.edge.keyframes import build_keyframe_msg, thermal_due
 from wardmap.edge.labels import LabelSource, make_label_source
+from wardmap.edge.metrics import EdgeMetrics
 from wardmap.edge.offline import odom_at
 from wardmap.edge.outbox import Outbox, OutboxFull, OutboxItem, SessionIds
 from wardmap.edge.tracker import Tracker, TrackerConfig, TrackInput
@@ -246,10 +247,13 @@ class EdgeAgent:
         config: AgentConfig | None = None,
         tracker_config: TrackerConfig | None = None,
         T_map_odom: NDArray[np.float64] | None = None,
+        metrics: EdgeMetrics | None = None,
     ) -> None:
         """Args:
             T_map_odom: (4, 4) this session's odom frame (the base at start) in the shared map,
                 when the robot starts at a known map pose; sent with every keyframe.
+            metrics: where frames, outbox depth and ack latency are recorded
+                (``edge/metrics.py``), or None.
         """
         self.robot_id = validate_robot_id(robot_id)
         self.T_map_odom = None if T_map_odom is None else np.array(T_map_odom, np.float64)
@@ -265,6 +269,7 @@ class EdgeAgent:
         self.outbox_path = Path(outbox_path)
         self.cfg = config or AgentConfig()
         self.tracker_cfg = tracker_config or TrackerConfig()
+        self._metrics = metrics
         self._stop = threading.Event()  # set once: end tracking
         self._sender_stop = threading.Event()  # set once: end the sender thread
         self._drained = threading.Event()  # set by the sender when the outbox is empty
@@ -417,6 +422,8 @@ class EdgeAgent:
             res = tracker.track(inp)
             track.frames += 1
             track.lost += int(res.lost)
+            if self._metrics is not None:
+                self._metrics.frame(bool(res.lost))
             if res.keyframe and frame is not None:
                 msg = build_keyframe_msg(
                     frame, res, tracker, T_odom_base=T_odom_base, intrinsics=intrinsics,
@@ -601,6 +608,8 @@ class EdgeAgent:
             stats.acked += 1
             stats.duplicates += int(ack.status == "duplicate")
             first = stats.first_sent.pop((ack.robot_id, ack.session_id, ack.seq), None)
+            if first is not None and self._metrics is not None:
+                self._metrics.ack_seconds.observe(time.monotonic() - first)
             if first is not None and len(stats.latencies_ms) < MAX_LATENCY_SAMPLES:
                 stats.latencies_ms.append((time.monotonic() - first) * 1e3)
         self._space.set()
@@ -622,6 +631,9 @@ class EdgeAgent:
 
     def _heartbeat(self, pub: Any, outbox: Outbox, ids: SessionIds, stats: _SenderStats) -> None:
         frames, keyframes, lost = self._progress
+        pending = len(outbox)
+        if self._metrics is not None:
+            self._metrics.outbox_depth.set(pending)
         msg = HeartbeatMsg(
             robot_id=self.robot_id,
             session_id=ids.session_id,
@@ -630,7 +642,7 @@ class EdgeAgent:
                 "frames": frames,
                 "keyframes": keyframes,
                 "lost": lost,
-                "pending": len(outbox),
+                "pending": pending,
                 "sent": stats.sent,
                 "acked": stats.acked,
                 "resent": stats.resent,

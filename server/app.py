@@ -16,26 +16,30 @@ then the store.
 :func:`run_server` checks what a user can get wrong up front (the store URL, the HTTP port)
 so those fail with one clear :class:`ServerError`/:class:`StoreError`, then runs uvicorn on a
 helper thread; the main thread handles the signals and waits on one event that either a
-signal, the caller's ``stop`` or the end of the HTTP thread sets.
+signal, the caller's ``stop`` or the end of the HTTP thread sets. What may come up later (a
+database server, the router) is waited for instead: ``start()`` retries it with a warning per
+attempt until it answers or that event is set (a stop while waiting exits cleanly).
 """
 
 from __future__ import annotations
 
+import functools
 import ipaddress
 import logging
 import socket
 import threading
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import ExitStack, contextmanager
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from wardmap.server.api import Services, create_app
 from wardmap.server.corrections import CorrectionPublisher
 from wardmap.server.ingest import Ingest
 from wardmap.server.mapserve import MapServe
 from wardmap.server.objectmap import ObjectMap
-from wardmap.server.store import open_store
-from wardmap.server.zenoh_session import open_session
+from wardmap.server.store import StoreUnavailableError, open_store
+from wardmap.server.telemetry import ServerTelemetry
+from wardmap.server.zenoh_session import ZenohSessionError, has_router, open_session
 from wardmap.shared.errors import WardmapError
 from wardmap.shared.signals import on_stop_signals
 from wardmap.shared.zenoh_config import client_config
@@ -50,6 +54,12 @@ log = logging.getLogger(__name__)
 __all__ = ["MapServer", "ServerError", "is_loopback", "run_server"]
 
 SHUTDOWN_TIMEOUT_S = 15.0
+RETRY_FIRST_S = 1.0
+"""First wait (seconds) before opening the store or the Zenoh session again at start-up."""
+RETRY_MAX_S = 30.0
+"""Longest wait between two attempts (the wait doubles from :data:`RETRY_FIRST_S`)."""
+
+T = TypeVar("T")
 
 
 class ServerError(WardmapError):
@@ -70,6 +80,8 @@ class MapServer:
         connect: Sequence[str] | None = None,
         pipeline_factory: PipelineFactory | None = None,
         require_tokens: bool = True,
+        telemetry: ServerTelemetry | None = None,
+        retry_until: threading.Event | None = None,
     ) -> None:
         """
         Args:
@@ -82,6 +94,12 @@ class MapServer:
                 stored but not mapped.
             require_tokens: the REST API's data routes need a bearer token (``server/tokens.py``);
                 False only for insecure-loopback mode (:func:`run_server` checks the address).
+            telemetry: the histograms and per-robot series of this process (the pipeline
+                factory's parts record into the same one); a new one when None.
+            retry_until: when given, ``start()`` waits for a store that is unavailable or a
+                router that does not answer, trying again with a capped backoff
+                (:data:`RETRY_FIRST_S` doubling to :data:`RETRY_MAX_S`, a warning each attempt)
+                until it succeeds or this event is set; None: fail at once.
 
         Raises:
             ConfigError: a bad endpoint in ``connect``.
@@ -91,6 +109,9 @@ class MapServer:
         self._db_url = db_url
         self._connect = None if connect is None else list(connect)
         self._pipeline_factory = pipeline_factory
+        self._telemetry = telemetry if telemetry is not None else ServerTelemetry()
+        self._retry_until = retry_until
+        self._cancelled = False  # start() gave up waiting because retry_until was set
         self._running: ExitStack | None = None
         self._services: Services | None = None
         self.app: FastAPI = create_app(self, require_tokens=require_tokens)
@@ -106,7 +127,7 @@ class MapServer:
             The running parts the REST API reads.
 
         Raises:
-            ServerError: already started.
+            ServerError: already started, or ``retry_until`` was set while waiting.
             StoreError: the store cannot be opened.
             ZenohSessionError: no router answers at ``connect``.
             WardmapError: a part cannot start (its own error).
@@ -114,15 +135,19 @@ class MapServer:
         if self._running is not None:
             raise ServerError("map server already started")
         with ExitStack() as stack:  # closes in reverse on an error, until pop_all()
-            store = open_store(self._db_url)
+            store = self._retrying("the keyframe store", StoreUnavailableError,
+                                   functools.partial(open_store, self._db_url))
             stack.callback(store.close)
             objects = ObjectMap(store)
             ingest: Ingest | None = None
             corrections: CorrectionPublisher | None = None
+            router_connected: Callable[[], bool] | None = None
             if self._connect is not None:
-                session = open_session(self._connect)
+                session = self._retrying(f"a zenoh router at {', '.join(self._connect)}", ZenohSessionError,
+                                         functools.partial(open_session, self._connect))
                 stack.callback(session.close)  # after ingest and map service undeclared theirs
-                ingest = Ingest(session, store)
+                router_connected = functools.partial(has_router, session)
+                ingest = Ingest(session, store, telemetry=self._telemetry)
                 ingest.start()
                 stack.callback(ingest.stop)
                 mapserve = MapServe(session, objects)
@@ -140,8 +165,26 @@ class MapServer:
                 pipeline.start()
                 stack.callback(pipeline.stop)
             self._running = stack.pop_all()
-        self._services = Services(store=store, objects=objects, ingest=ingest, pipeline=pipeline)
+        self._services = Services(store=store, objects=objects, ingest=ingest, pipeline=pipeline,
+                                  router_connected=router_connected, telemetry=self._telemetry)
         return self._services
+
+    def _retrying(self, what: str, transient: type[Exception], attempt: Callable[[], T]) -> T:
+        """``attempt()``; while it raises ``transient`` and ``retry_until`` is given and not set,
+        log one warning and try again after a capped, doubling wait."""
+        delay, n = RETRY_FIRST_S, 1
+        while True:
+            try:
+                return attempt()
+            except transient as exc:
+                if self._retry_until is None:
+                    raise
+                log.warning("waiting for %s (attempt %d failed: %s); next attempt in %.0f s",
+                            what, n, exc, delay)
+                if self._retry_until.wait(delay):
+                    self._cancelled = True
+                    raise ServerError(f"stopped while waiting for {what}") from exc
+                delay, n = min(2.0 * delay, RETRY_MAX_S), n + 1
 
     def stop(self) -> None:
         """Stop the mapping stage, the map service and the ingest, close the session, then the
@@ -154,12 +197,12 @@ class MapServer:
     @classmethod
     def from_config(
         cls, db_url: str, *, connect: Sequence[str] | None, config_path: str | None = None,
-        require_tokens: bool = True,
+        require_tokens: bool = True, retry_until: threading.Event | None = None,
     ) -> MapServer:
         """The server ``wardmap server`` runs, with its mapping stage configured from a file.
 
         Args:
-            db_url, connect, require_tokens: as in the constructor.
+            db_url, connect, require_tokens, retry_until: as in the constructor.
             config_path: TOML file with ``[pipeline]``, ``[perception]`` and ``[association]``
                 tables (defaults when None; ``deploy/server.toml``). With ``[pipeline]
                 enabled = false`` keyframes are stored but not mapped.
@@ -182,17 +225,26 @@ class MapServer:
         perception_cfg = load_config(PerceptionConfig, config_path, section="perception")
         association_cfg = load_config(AssociationConfig, config_path, section="association")
         backend_cfg = load_config(BackendConfig, config_path, section="backend")
+        telemetry = ServerTelemetry()
         if not pipeline_cfg.enabled:
-            return cls(db_url, connect=connect, require_tokens=require_tokens)
+            return cls(db_url, connect=connect, require_tokens=require_tokens, telemetry=telemetry,
+                       retry_until=retry_until)
         # Build the segmenter now: a missing or bad model is one clear error before anything starts.
         segmenter = make_segmenter(perception_cfg.segmenter, perception_cfg)
 
         def make_pipeline(store: MapStore, objects: ObjectMap) -> MapPipeline:
             return MapPipeline(store, objects, config=pipeline_cfg, perception=perception_cfg,
                                association=association_cfg, segmenter=segmenter,
-                               backend=BackendStage(store, backend_cfg))
+                               backend=BackendStage(store, backend_cfg, telemetry=telemetry),
+                               telemetry=telemetry)
 
-        return cls(db_url, connect=connect, pipeline_factory=make_pipeline, require_tokens=require_tokens)
+        return cls(db_url, connect=connect, pipeline_factory=make_pipeline, require_tokens=require_tokens,
+                   telemetry=telemetry, retry_until=retry_until)
+
+    @property
+    def start_cancelled(self) -> bool:
+        """Whether ``start()`` gave up because ``retry_until`` was set while it waited."""
+        return self._cancelled
 
     @property
     def services(self) -> Services | None:
@@ -262,7 +314,8 @@ def _uvicorn_thread(
         try:
             server.run(sockets=[sock])
         except SystemExit:  # uvicorn exits this way when the lifespan start-up fails
-            log.error("HTTP server start-up failed")
+            if not stop.is_set():  # set: stopped on purpose while the start-up waited
+                log.error("HTTP server start-up failed")
         finally:
             done.set()
             stop.set()
@@ -323,10 +376,13 @@ def run_server(
     )
 
     client_config(connect)  # validate the endpoints before anything starts
-    server_root = MapServer.from_config(db_url, connect=connect, config_path=config_path,
-                                        require_tokens=not insecure_loopback)
-    open_store(db_url).close()  # validate URL and file here, so the error is one clear line
     stop = stop if stop is not None else threading.Event()
+    server_root = MapServer.from_config(db_url, connect=connect, config_path=config_path,
+                                        require_tokens=not insecure_loopback, retry_until=stop)
+    try:
+        open_store(db_url).close()  # validate URL and file here, so the error is one clear line
+    except StoreUnavailableError as exc:  # may pass later: start() waits for it
+        log.warning("keyframe store not available yet: %s", exc)
     started = threading.Event()
     done = threading.Event()  # set by a signal, by `stop`, or when the HTTP thread ends
 
@@ -356,9 +412,17 @@ def run_server(
     bound_port = int(sock.getsockname()[1])
     url = f"http://{http_host}:{bound_port}"
     uvicorn_log.addFilter(noisy)
+
+    def not_cancelled(record: logging.LogRecord) -> bool:  # a stop while waiting is no failure
+        return not server_root.start_cancelled
+
+    uvicorn_log.addFilter(not_cancelled)
     try:
         with on_stop_signals(stop.set, "the server"), _uvicorn_thread(server, sock, done, stop):
             done.wait()  # start-up finished or failed
+            if not started.is_set() and server_root.start_cancelled:
+                log.info("map server stopped before it was ready")
+                return
             if not started.is_set():
                 raise ServerError(f"map server failed to start on {url} (see the log above)")
             log.info("map server ready at %s, ingest via %s", url, ", ".join(connect))
@@ -370,5 +434,6 @@ def run_server(
             log.info("stopping map server")
     finally:
         uvicorn_log.removeFilter(noisy)
+        uvicorn_log.removeFilter(not_cancelled)
         sock.close()
     log.info("map server stopped")

@@ -44,6 +44,7 @@ from dataclasses import dataclass, field
 from typing import Any, Final
 
 from wardmap.server.store import KeyframeStore, StoreDamagedError, StoreError
+from wardmap.server.telemetry import ServerTelemetry
 from wardmap.server.zenoh_session import first_line
 from wardmap.shared.errors import ConfigError, WardmapError, WireError
 from wardmap.shared.wire import AckMsg, AckStatus, KeyframeMsg, decode_keyframe, encode
@@ -177,6 +178,7 @@ class Ingest:
         capacity: int = DEFAULT_CAPACITY,
         max_bytes: int = DEFAULT_MAX_BYTES,
         clock: Any = time.time,
+        telemetry: ServerTelemetry | None = None,
     ) -> None:
         """
         Args:
@@ -186,6 +188,8 @@ class Ingest:
             capacity: most samples queued (>= 1).
             max_bytes: most payload bytes queued (>= 1; one larger sample passes alone).
             clock: wall-clock seconds for ``received_s`` (``time.time``).
+            telemetry: where ingest and ack latencies and per-robot series go (a private one
+                when None).
         """
         if isinstance(capacity, bool) or not isinstance(capacity, int) or capacity < 1:
             raise ConfigError(f"ingest capacity must be an int >= 1, got {capacity!r}")
@@ -196,6 +200,7 @@ class Ingest:
         self._capacity = capacity
         self._max_bytes = max_bytes
         self._clock = clock
+        self._telemetry = telemetry if telemetry is not None else ServerTelemetry()
         self._lock = threading.Lock()
         self._counts = {"received": 0, "stored": 0, "duplicates": 0, "rejected": 0, "ack_failures": 0,
                         "retry_later": 0}
@@ -331,6 +336,7 @@ class Ingest:
             self._count_rejection("internal")
 
     def _process(self, key: str, payload: bytes) -> None:
+        started = time.perf_counter()
         try:
             key_robot: str | None = robot_id_from_key(key)
         except ConfigError:
@@ -349,6 +355,8 @@ class Ingest:
             # The server's own failure, never the message's: the robot keeps it and resends.
             self._retry_later(msg, exc)
             return
+        self._telemetry.ingest_seconds.observe(time.perf_counter() - started)
+        self._telemetry.keyframe(msg.robot_id, result, time.time())
         if self._store_fault is not None:
             log.warning("keyframe store writes again (was: %s)", self._store_fault)
             self._store_fault = None
@@ -360,6 +368,7 @@ class Ingest:
     def _retry_later(self, msg: KeyframeMsg, exc: StoreError) -> None:
         """Ack ``retry``: the keyframe is valid but was not stored; logged once per fault."""
         self._count("retry_later")
+        self._telemetry.keyframe(msg.robot_id, "retry", time.time())
         damaged = isinstance(exc, StoreDamagedError)
         kind = "damaged" if damaged else "cannot store"
         if self._store_fault is None:
@@ -379,6 +388,7 @@ class Ingest:
         log.debug("rejected sample (%s): %s", reason, detail)
         if robot is None:
             return
+        self._telemetry.keyframe(robot, "rejected", time.time())
         session_id, seq = ("unknown", 0) if msg is None else (msg.session_id, msg.seq)
         status: AckStatus = "rejected"
         try:
@@ -417,6 +427,7 @@ class Ingest:
 
         if self._stopping.is_set():
             return
+        started = time.perf_counter()
         try:
             pub = self._publishers.get(robot_id)
             if pub is None:
@@ -432,6 +443,7 @@ class Ingest:
             else:
                 self._publishers.move_to_end(robot_id)
             pub.put(encode(ack))
+            self._telemetry.ack_seconds.observe(time.perf_counter() - started)
         except (zenoh.ZError, WardmapError) as exc:
             self._count("ack_failures")
             log.warning("cannot ack %s/%s/%d: %s", ack.robot_id, ack.session_id, ack.seq, exc)

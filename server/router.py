@@ -15,14 +15,14 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from wardmap.server.zenoh_session import first_line
+from wardmap.server.zenoh_session import ZenohSessionError, first_line, has_router, open_session
 from wardmap.shared.errors import ConfigError, WardmapError
 from wardmap.shared.signals import on_stop_signals
 from wardmap.shared.zenoh_config import config_leaves, router_config
 
 log = logging.getLogger(__name__)
 
-__all__ = ["RouterError", "run_router"]
+__all__ = ["RouterError", "check_router", "run_router"]
 
 
 class RouterError(WardmapError):
@@ -98,3 +98,22 @@ def run_router(
             stop.wait()
             log.info("closing zenoh router")
     log.info("zenoh router closed")
+
+
+def check_router(endpoint: str) -> str:
+    """The health check of a router (``wardmap router --check``): open a client session to
+    ``endpoint`` and see a router on it; returns the router's id.
+
+    Raises:
+        ConfigError: a bad endpoint.
+        RouterError: nothing answers at ``endpoint``, or what answers is no router.
+    """
+    try:
+        session = open_session([endpoint])
+    except ZenohSessionError as exc:
+        why = first_line(exc.__cause__) if exc.__cause__ is not None else str(exc)
+        raise RouterError(f"no zenoh router answers at {endpoint}: {why}") from exc
+    with session:
+        if not has_router(session):
+            raise RouterError(f"no zenoh router at {endpoint} (a peer or client answered)")
+        return str(next(iter(session.info.routers_zid())))

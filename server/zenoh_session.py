@@ -21,7 +21,7 @@ from typing import Any
 from wardmap.shared.errors import WardmapError
 from wardmap.shared.zenoh_config import client_config
 
-__all__ = ["ZenohSessionError", "first_line", "open_session"]
+__all__ = ["ZenohSessionError", "first_line", "has_router", "open_session"]
 
 
 class ZenohSessionError(WardmapError):
@@ -40,7 +40,7 @@ def first_line(exc: BaseException) -> str:
     picked = [ln for ln in lines if ln.startswith(("-->", "= "))] if len(lines) > 1 else lines
     text = " ".join(picked or lines[:1])
     cut = text.rfind(" at /")
-    return text[:cut] if cut > 0 else text
+    return text[:cut].rstrip() if cut > 0 else text
 
 
 def open_session(connect: Sequence[str]) -> Any:
@@ -61,3 +61,18 @@ def open_session(connect: Sequence[str]) -> Any:
         return zenoh.open(zenoh.Config.from_json5(json.dumps(config)))
     except zenoh.ZError as exc:
         raise ZenohSessionError(f"cannot connect to {', '.join(connect)}: {first_line(exc)}") from exc
+
+
+def has_router(session: Any) -> bool:
+    """Whether ``session`` is connected to at least one router now (``session.info.routers_zid()``).
+
+    A client session loses its router as soon as the router's TCP link closes and finds it again
+    when the router returns (zenoh reconnects by itself); ``bench/health.py`` measures both
+    through ``/readyz`` (BENCHMARKS.md). False once the session is closed.
+    """
+    import zenoh
+
+    try:
+        return any(True for _ in session.info.routers_zid())
+    except zenoh.ZError:
+        return False

@@ -9,6 +9,7 @@ Depends(get_objectmap)]``), so a test can see from its signature what it touches
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Annotated, Protocol
 
@@ -20,6 +21,7 @@ from wardmap.server.ingest import Ingest
 from wardmap.server.mapping import MapPipeline
 from wardmap.server.objectmap import ObjectMap
 from wardmap.server.store import MapStore
+from wardmap.server.telemetry import ServerTelemetry
 
 __all__ = [
     "IngestDep",
@@ -42,6 +44,9 @@ class Services:
         ingest: the keyframe ingest, or None when the server has no Zenoh (API only).
         pipeline: the mapping stage, or None when keyframes are stored but not mapped.
         readiness: logs why ``/readyz`` says not ready, once per change.
+        router_connected: whether the server's Zenoh session has a router now (thread safe,
+            fast), or None when the server has no Zenoh.
+        telemetry: the histograms and per-robot series the parts record into.
     """
 
     store: MapStore
@@ -49,6 +54,8 @@ class Services:
     ingest: Ingest | None = None
     pipeline: MapPipeline | None = None
     readiness: ReadinessLog = field(default_factory=ReadinessLog)
+    router_connected: Callable[[], bool] | None = None
+    telemetry: ServerTelemetry = field(default_factory=ServerTelemetry)
 
 
 class ServerLifecycle(Protocol):

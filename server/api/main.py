@@ -4,9 +4,10 @@
 lifespan calls the composition root's ``start()`` (``server/app.py``: it opens the store,
 the Zenoh session and starts ingest, map service and mapping), keeps the running
 :class:`~wardmap.server.api.deps.Services` on ``app.state`` for the dependencies
-(``deps.py``) together with the app's own Prometheus registry, and calls ``stop()`` at
-shutdown. :class:`~wardmap.shared.errors.WardmapError` maps to HTTP in one place
-(:func:`_wardmap_error`).
+(``deps.py``) together with the app's own Prometheus registry (the parts' counters and the
+process's :class:`~wardmap.server.telemetry.ServerTelemetry`; each request's time per route
+is observed by ``api/timing.py``), and calls ``stop()`` at shutdown.
+:class:`~wardmap.shared.errors.WardmapError` maps to HTTP in one place (:func:`_wardmap_error`).
 
 Two routers: :data:`public_router` (the probes ``/healthz`` and ``/readyz``; only what carries
 no map data belongs here) and :data:`data_router`, whose dependency
@@ -40,6 +41,7 @@ from wardmap.server.api.routes import (
     robots,
     web,
 )
+from wardmap.server.api.timing import RouteTiming
 from wardmap.server.store import StoreDamagedError, StoreError, StoreUnavailableError
 from wardmap.shared.errors import WardmapError
 
@@ -79,6 +81,7 @@ def create_app(server: ServerLifecycle, *, require_tokens: bool = True) -> FastA
             app.state.metrics = metrics_registry(
                 ServerCollector(services.store, services.objects, services.ingest, services.pipeline)
             )
+            services.telemetry.register(app.state.metrics)
             yield
         finally:
             app.state.services = None
@@ -88,6 +91,7 @@ def create_app(server: ServerLifecycle, *, require_tokens: bool = True) -> FastA
     # /docs and /redoc come from the packaged copies (routes/docs.py), not FastAPI's CDN pages.
     app = FastAPI(title="wardmap map server", version="1", lifespan=lifespan, docs_url=None, redoc_url=None)
     app.add_exception_handler(WardmapError, _wardmap_error)
+    app.add_middleware(RouteTiming)
     app.include_router(public_router)
     app.include_router(data_router)
     app.include_router(web.router)  # the page and API docs: public, no data

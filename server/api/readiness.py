@@ -1,4 +1,9 @@
-"""What the public readiness probe may say, and the log of why it is not ready.
+"""When the server is ready, what the public readiness probe may say, and the log of why not.
+
+:func:`check` is ``/readyz``'s rule: ready when the Zenoh session has a router, keyframes can
+be stored (the ingest runs and the store can write), and the mapping stage runs with no more
+than ``[pipeline] ready_max_backlog`` stored keyframes waiting for it; each part the server
+runs without (no Zenoh, no mapping stage) is left out.
 
 ``/readyz`` is public (orchestrators call it without credentials), so its 503 body names only
 a fixed category (:func:`public_reason`), never the store's own text, which can hold the
@@ -10,11 +15,18 @@ from __future__ import annotations
 
 import logging
 import threading
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from wardmap.server.api.deps import Services
 
 log = logging.getLogger(__name__)
 
 # (words in the full reason, public reason); the first match wins.
 _CATEGORIES = (
+    (("no zenoh router",), "zenoh router not connected"),
+    (("mapping stage is not running",), "mapping stage not running"),
+    (("mapping backlog",), "mapping backlog too long"),
     (("ingest is not running",), "ingest is not running"),
     (("damaged", "malformed", "corrupt"), "keyframe store damaged"),
     (("no space", "full"), "keyframe store full"),
@@ -25,6 +37,7 @@ _CATEGORIES = (
 
 def public_reason(why: str) -> str:
     """The short, fixed reason ``/readyz`` returns for the full reason ``why``: one of
+    ``zenoh router not connected``, ``mapping stage not running``, ``mapping backlog too long``,
     ``ingest is not running``, ``keyframe store damaged|full|locked|closed``, else
     ``keyframe store cannot write``. Never contains text of ``why`` itself."""
     low = why.lower()
@@ -32,6 +45,28 @@ def public_reason(why: str) -> str:
         if any(w in low for w in words):
             return reason
     return "keyframe store cannot write"
+
+
+def check(services: Services) -> tuple[bool, str]:
+    """``(True, "ok")`` when ``services`` are ready (the module docstring's rule), else
+    ``(False, why)`` with the first failing part's full reason (for the log; the probe answers
+    :func:`public_reason` of it). Never raises; may wait about 1 s on a locked database."""
+    if services.router_connected is not None and not services.router_connected():
+        return False, "no zenoh router connected to the server's session"
+    if services.ingest is not None:
+        ok, why = services.ingest.ready()
+    else:
+        ok, why = services.store.writable()
+    if not ok:
+        return False, why
+    pipeline = services.pipeline
+    if pipeline is not None:
+        if not pipeline.running():
+            return False, "mapping stage is not running (see the server log)"
+        backlog, bound = pipeline.counters().backlog, pipeline.cfg.ready_max_backlog
+        if backlog > bound:
+            return False, f"mapping backlog of {backlog} keyframes over pipeline.ready_max_backlog={bound}"
+    return True, "ok"
 
 
 class ReadinessLog:
@@ -50,6 +85,6 @@ class ReadinessLog:
                 return
             self._last = now
         if now is None:
-            log.info("ready again: keyframes can be stored")
+            log.info("ready again")
         else:
             log.warning("not ready (/readyz 503): %s", now)

@@ -38,6 +38,7 @@ from wardmap.server.backend.core import BackendConfig, BackendCore, KeyframeResu
 from wardmap.server.backend.graph import EdgeRecord, NodeRecord, PoseGraph
 from wardmap.server.backend.verify import KeyframeFeatures
 from wardmap.server.store import GraphChange, GraphEdgeRow, GraphNodeRow, MapStore, SessionAnchor
+from wardmap.server.telemetry import ServerTelemetry
 from wardmap.shared.errors import WardmapError, WireError
 from wardmap.shared.wire import KeyframeMsg, PoseSource, decode_keyframe
 
@@ -93,13 +94,15 @@ class BackendStage:
         poll_s: sleep when no keyframe waits; batch: keyframes per round.
         retry_s, max_retry_s, max_attempts: recovery from unexpected errors.
         clock: wall-clock seconds (anchoring times).
+        telemetry: where each keyframe's time in the back-end goes (stage ``backend``), or None.
     """
 
     def __init__(self, store: MapStore, config: BackendConfig | None = None, *,
                  publish: Publish | None = None, poll_s: float = 0.1, batch: int = 16, retry_s: float = 1.0,
                  max_retry_s: float = 60.0, max_attempts: int = 3,
-                 clock: Callable[[], float] = time.time) -> None:
+                 clock: Callable[[], float] = time.time, telemetry: ServerTelemetry | None = None) -> None:
         self.store = store
+        self._telemetry = telemetry
         self.cfg = config or BackendConfig()
         self._publish = publish
         self._poll_s, self._batch = poll_s, batch
@@ -131,6 +134,11 @@ class BackendStage:
         if self._thread is not None:
             self._thread.join()
             self._thread = None
+
+    def running(self) -> bool:
+        """Whether the thread is started and has not stopped or died."""
+        thread = self._thread
+        return thread is not None and thread.is_alive() and not self._stop.is_set() and self._error is None
 
     def set_publish(self, publish: Publish | None) -> None:
         """Who receives corrections (call before :meth:`start`)."""
@@ -224,9 +232,12 @@ class BackendStage:
                 self._failures[reason] += 1
 
     def _add(self, rowid: int, msg: KeyframeMsg) -> None:
+        started = time.perf_counter()
         res = self.core.add(msg)
         change, changed = self._change(msg, res)
         self.store.commit_graph(CURSOR_NAME, rowid, change)
+        if self._telemetry is not None:
+            self._telemetry.mapping("backend", time.perf_counter() - started)
         with self._lock:
             self._counts["processed"] += 1
             self._counts["candidates"] += res.candidates

@@ -65,6 +65,7 @@ from wardmap.server.perception.keyframe import keyframe_camera, keyframe_map_pos
 from wardmap.server.perception.models import Segmenter, make_segmenter
 from wardmap.server.perception.types import ObjectMeasurement
 from wardmap.server.store import Checkpoint, MappedPose, MapStore
+from wardmap.server.telemetry import ServerTelemetry
 from wardmap.shared.errors import ConfigError, WardmapError, WireError
 from wardmap.shared.knowledge import KnowledgeGraph
 from wardmap.shared.wire import KeyframeMsg, decode_keyframe
@@ -98,6 +99,8 @@ class PipelineConfig:
             after it; 0 = never (every restart replays every stored measurement).
         rebuild_min_s: least time between two object-map rebuilds after the back-end moved
             keyframes (seconds, stage clock); keyframes mapped meanwhile use the latest poses.
+        ready_max_backlog: ``/readyz`` answers 503 while more stored keyframes than this wait
+            for the mapping stage (the server stores them but the map falls behind).
     """
 
     enabled: bool = True
@@ -109,6 +112,7 @@ class PipelineConfig:
     close_idle_s: float = 60.0
     checkpoint_s: float = 600.0
     rebuild_min_s: float = 5.0
+    ready_max_backlog: int = 1000
 
     def __post_init__(self) -> None:
         if not self.poll_s > 0:
@@ -125,6 +129,8 @@ class PipelineConfig:
             raise ConfigError(f"pipeline.rebuild_min_s must be >= 0, got {self.rebuild_min_s}")
         if not (math.isfinite(self.checkpoint_s) and self.checkpoint_s >= 0):
             raise ConfigError(f"pipeline.checkpoint_s must be >= 0 (0 = never), got {self.checkpoint_s}")
+        if self.ready_max_backlog < 1:
+            raise ConfigError(f"pipeline.ready_max_backlog must be >= 1, got {self.ready_max_backlog}")
 
 
 @dataclass(frozen=True)
@@ -208,6 +214,8 @@ class MapPipeline:
         clock: monotonic seconds, for idle sessions and checkpoint intervals.
         backend: the back-end stage this one follows (started and stopped with it); None
             builds one with default settings.
+        telemetry: where the time of each perception, association and rebuild step goes (a
+            private one when None).
     """
 
     def __init__(
@@ -221,8 +229,10 @@ class MapPipeline:
         segmenter: Segmenter | None = None,
         clock: Callable[[], float] = time.monotonic,
         backend: BackendStage | None = None,
+        telemetry: ServerTelemetry | None = None,
     ) -> None:
         self.store = store
+        self._telemetry = telemetry if telemetry is not None else ServerTelemetry()
         self.backend = backend if backend is not None else BackendStage(store)
         self.objects = objects
         self.cfg = config or PipelineConfig()
@@ -280,6 +290,12 @@ class MapPipeline:
                                     self._backlog, dict(c.failures), len(self._writer.landmarks()),
                                     c.restarts, c.last_error, c.closed_idle, c.floating, c.beyond_range,
                                     dict(c.skipped), c.wall_pieces, c.floor_pieces, c.rebuilds)
+
+    def running(self) -> bool:
+        """Whether this stage's thread and the back-end's run (started, not stopped, not died)."""
+        thread = self._thread
+        return (thread is not None and thread.is_alive() and not self._stop.is_set() and self._error is None
+                and self.backend.running())
 
     def wait_idle(self, timeout_s: float) -> bool:
         """Block until every stored keyframe is measured, associated and on the object map at the
@@ -377,6 +393,7 @@ class MapPipeline:
             self.objects.delete(gone)
         self._settle()
         self._rebuild_after = self._clock() + self.cfg.rebuild_min_s
+        self._telemetry.mapping("rebuild", time.monotonic() - started)
         with self._lock:
             self._counts.rebuilds += 1
             self._done_epoch = self._epoch
@@ -397,8 +414,10 @@ class MapPipeline:
 
     def _process(self, rowid: int, key: str, payload: bytes) -> None:
         try:
+            started = time.perf_counter()
             msg = decode_keyframe(payload)
             measurements = self._measure(msg, key)
+            self._telemetry.mapping("perception", time.perf_counter() - started)
         except (WardmapError, WireError, cv2.error, ValueError) as exc:
             reason = f"{type(exc).__name__}: {exc}"[:MAX_FAILURE_REASON]
             log.warning("keyframe %s: perception skipped: %s", key, reason)
@@ -444,7 +463,9 @@ class MapPipeline:
         writer = self._writer
         for kf in keyframes:
             self._last_seen[kf.stream] = self._clock()
+            started = time.perf_counter()
             far = writer.associate(kf)
+            self._telemetry.mapping("association", time.perf_counter() - started)
             with self._lock:
                 self._counts.mapped += 1
                 self._counts.beyond_range += far

@@ -155,6 +155,48 @@ def test_no_router_no_start(tmp_path: Path, events: list[str]) -> None:
     assert events == []
 
 
+def test_start_waits_for_a_store_that_is_unavailable(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """With ``retry_until``, a store that is unavailable at start (a database server not up yet;
+    stood in for by an ``open_store`` failing twice) is tried again with a warning per attempt and
+    the server starts on the third; a permanent store error is not retried; setting the event while
+    it waits ends the wait with ServerError."""
+    from wardmap.server.store import StoreError, StoreUnavailableError, open_store
+
+    monkeypatch.setattr(app_module, "RETRY_FIRST_S", 0.01)
+    url = f"sqlite:///{tmp_path / 'm.db'}"
+    calls: list[str] = []
+
+    def flaky(u: str) -> Any:
+        calls.append(u)
+        if len(calls) <= 2:
+            raise StoreUnavailableError("connection refused")
+        return open_store(u)
+
+    monkeypatch.setattr(app_module, "open_store", flaky)
+    with caplog.at_level("WARNING", logger="wardmap.server.app"), \
+            MapServer(url, retry_until=threading.Event()) as server:
+        assert server.services is not None
+    waits = [r.getMessage() for r in caplog.records if "waiting for the keyframe store" in r.getMessage()]
+    assert len(calls) == 3 and len(waits) == 2 and "attempt 2 failed: connection refused" in waits[1]
+
+    def bad(u: str) -> Any:
+        raise StoreError("unknown store URL")
+
+    monkeypatch.setattr(app_module, "open_store", bad)
+    with pytest.raises(StoreError, match="unknown store URL"):
+        MapServer(url, retry_until=threading.Event()).start()
+
+    gave_up = threading.Event()
+    monkeypatch.setattr(app_module, "open_store", lambda u: (gave_up.set(), flaky("x"))[1])
+    calls.clear()
+    server = MapServer(url, retry_until=gave_up)
+    with pytest.raises(ServerError, match="stopped while waiting for the keyframe store"):
+        server.start()
+    assert server.start_cancelled and server.services is None
+
+
 def test_bad_endpoint_fails_at_construction(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="bad endpoint"):
         MapServer(f"sqlite:///{tmp_path / 'm.db'}", connect=["localhost:7447"])

@@ -36,6 +36,7 @@ from wardmap.server.ingest import (
     wire_reason,
 )
 from wardmap.server.store import InsertResult, SqliteKeyframeStore, StoreError, open_store
+from wardmap.server.telemetry import ServerTelemetry
 from wardmap.server.zenoh_session import ZenohSessionError, open_session
 from wardmap.shared import wire
 from wardmap.shared.errors import ConfigError
@@ -55,13 +56,14 @@ def store(tmp_path: Path) -> Iterator[SqliteKeyframeStore]:
 
 @contextlib.contextmanager
 def running(
-    router: str, store: Any, capacity: int = 256, max_bytes: int = DEFAULT_MAX_BYTES
+    router: str, store: Any, capacity: int = 256, max_bytes: int = DEFAULT_MAX_BYTES,
+    telemetry: ServerTelemetry | None = None,
 ) -> Iterator[Ingest]:
     """An ingest started on its own client session to ``router`` (the server's composition root
     shares one session the same way); stopped, then the session closed."""
     session = open_session([router])
     try:
-        with Ingest(session, store, capacity=capacity, max_bytes=max_bytes) as ingest:
+        with Ingest(session, store, capacity=capacity, max_bytes=max_bytes, telemetry=telemetry) as ingest:
             yield ingest
     finally:
         session.close()
@@ -136,6 +138,42 @@ def test_stores_acks_and_counts_duplicates(router: str, store: SqliteKeyframeSto
                                       ack_failures=0)
     assert [store.payload("r1", "s1", seq) for seq in range(3)] == payloads
     assert store.rejections() == {}
+
+
+def test_telemetry_times_ingest_and_acks_and_follows_each_robot(
+    router: str, store: SqliteKeyframeStore, robots: Robots
+) -> None:
+    """Two keyframes of r1 and one of r2, r1's first sent again: the ingest and ack histograms
+    hold one observation per keyframe received, each robot's keyframes are counted by their ack
+    status, and its last-seen time is the wall clock of its last keyframe."""
+    telemetry = ServerTelemetry()
+    msgs = {"r1": _keyframes("r1", 2), "r2": _keyframes("r2", 1)}
+    before = time.time()
+    with running(router, store, telemetry=telemetry):
+        for robot, kfs in msgs.items():
+            for m in kfs:
+                robots.put(keyframe_key(robot), wire.encode(m))
+        robots.next_acks(3)
+        robots.put(keyframe_key("r1"), wire.encode(msgs["r1"][0]))
+        robots.next_acks(1)
+    after = time.time()
+
+    def value(name: str, **labels: str) -> float:
+        for metric in (telemetry.ingest_seconds, telemetry.ack_seconds, telemetry.robot_keyframes,
+                       telemetry.robot_last_seen):
+            for fam in metric.collect():
+                for sample in fam.samples:
+                    if sample.name == name and sample.labels == labels:
+                        return float(sample.value)
+        raise AssertionError(f"no sample {name} {labels}")
+
+    assert value("wardmap_ingest_seconds_count") == 4
+    assert value("wardmap_ack_seconds_count") == 4
+    assert value("wardmap_robot_keyframes_total", robot="r1", result="stored") == 2
+    assert value("wardmap_robot_keyframes_total", robot="r1", result="duplicate") == 1
+    assert value("wardmap_robot_keyframes_total", robot="r2", result="stored") == 1
+    for robot in ("r1", "r2"):
+        assert before <= value("wardmap_robot_last_seen_seconds", robot=robot) <= after
 
 
 def test_bad_samples_are_acked_rejected_and_counted_by_reason(

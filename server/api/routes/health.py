@@ -1,5 +1,6 @@
-"""``GET /healthz``: the liveness probe; ``GET /readyz``: the readiness probe (503 while
-keyframes cannot be stored; the body names a fixed category, the server logs the full reason:
+"""``GET /healthz``: the liveness probe (the process answers); ``GET /readyz``: the readiness
+probe (503 while no router is connected, keyframes cannot be stored, or the mapping stage is
+stopped or too far behind; the body names a fixed category, the server logs the full reason:
 ``server/api/readiness.py``)."""
 
 from __future__ import annotations
@@ -8,7 +9,7 @@ from fastapi import APIRouter
 from fastapi.responses import JSONResponse
 
 from wardmap.server.api.deps import ServicesDep
-from wardmap.server.api.readiness import public_reason
+from wardmap.server.api.readiness import check, public_reason
 from wardmap.server.api.schemas import Health, Readiness
 
 router = APIRouter()
@@ -21,12 +22,8 @@ def healthz() -> Health:
 
 @router.get("/readyz", response_model=Readiness, responses={503: {"model": Readiness}})
 def readyz(services: ServicesDep) -> JSONResponse:
-    """Ready when keyframes can be stored now: the ingest runs and the store can write
-    (``Ingest.ready``; without ingest, ``KeyframeStore.writable``). A plain ``def``: the
-    probe may wait about 1 s on a locked database, off the event loop."""
-    if services.ingest is not None:
-        ok, why = services.ingest.ready()
-    else:
-        ok, why = services.store.writable()
+    """Ready by :func:`~wardmap.server.api.readiness.check`. A plain ``def``: the probe may wait
+    about 1 s on a locked database, off the event loop."""
+    ok, why = check(services)
     services.readiness.note(ok, why)
     return JSONResponse({"status": "ok" if ok else public_reason(why)}, status_code=200 if ok else 503)

@@ -4,12 +4,17 @@ from __future__ import annotations
 
 import logging
 import sqlite3
+from types import SimpleNamespace
 from typing import Any
 
 import pytest
 from fastapi.testclient import TestClient
 
-from wardmap.server.api.readiness import public_reason
+from wardmap.server.api.deps import Services
+from wardmap.server.api.readiness import check, public_reason
+from wardmap.server.mapping import PipelineConfig
+from wardmap.server.objectmap import ObjectMap
+from wardmap.server.store import open_store
 
 
 def test_healthz(keyframe_client: TestClient) -> None:
@@ -66,3 +71,40 @@ def test_readyz_public_reason_is_a_fixed_phrase(why: str, public: str) -> None:
     """Every full reason maps to one fixed phrase; none carries a path or SQLite's words."""
     assert public_reason(why) == public
     assert "/" not in public_reason(why)
+
+
+class _Pipeline:
+    """Stands in for the mapping stage in :func:`check` (only ``running``, ``counters`` and ``cfg``)."""
+
+    def __init__(self, running: bool, backlog: int, bound: int) -> None:
+        self._running, self._backlog = running, backlog
+        self.cfg = PipelineConfig(ready_max_backlog=bound)
+
+    def running(self) -> bool:
+        return self._running
+
+    def counters(self) -> Any:
+        return SimpleNamespace(backlog=self._backlog)
+
+
+@pytest.mark.parametrize(
+    ("router", "pipeline", "public"),
+    [
+        (True, _Pipeline(True, 10, 10), "ok"),
+        (False, _Pipeline(True, 0, 10), "zenoh router not connected"),
+        (True, _Pipeline(False, 0, 10), "mapping stage not running"),
+        (True, _Pipeline(True, 11, 10), "mapping backlog too long"),
+    ],
+)
+def test_readiness_needs_the_router_and_a_mapping_stage_keeping_up(
+    keyframe_scene: Any, router: bool, pipeline: _Pipeline, public: str
+) -> None:
+    """On a writable store: not ready without a router, with the mapping stage stopped, or with
+    more keyframes waiting for it than ``ready_max_backlog`` (a backlog equal to it is ready); the
+    full reason (for the log) maps to the fixed public phrase."""
+    with open_store(keyframe_scene.url) as store:
+        services = Services(store=store, objects=ObjectMap(store), pipeline=pipeline,  # type: ignore[arg-type]
+                            router_connected=lambda: router)
+        ok, why = check(services)
+    assert ok == (public == "ok")
+    assert (why if ok else public_reason(why)) == public

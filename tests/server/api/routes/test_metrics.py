@@ -42,3 +42,23 @@ def test_metrics_reads_the_counters_at_each_scrape(keyframe_client: TestClient) 
     after = _samples(keyframe_client.get("/metrics").text)
     key = 'wardmap_rejections_total{reason="wire: payload"}'
     assert (before[key], after[key]) == (2, 3)
+
+
+def test_metrics_time_each_route_by_its_template(keyframe_client: TestClient) -> None:
+    """REST requests are timed per route template, never per raw path: two robots' trajectories
+    are one series, a path no route matches is ``unmatched``; the build info names the version and
+    the python."""
+    for robot in ("r1", "r2"):
+        keyframe_client.get(f"/v1/robots/{robot}/trajectory")
+    keyframe_client.get("/healthz")
+    keyframe_client.get("/no/such/path/at/all")
+    text = keyframe_client.get("/metrics").text
+    samples = _samples(text)
+    count = 'wardmap_http_request_seconds_count{method="GET",route="/v1/robots/{robot_id}/trajectory"}'
+    assert samples[count] == 2
+    assert samples['wardmap_http_request_seconds_count{method="GET",route="/healthz"}'] == 1
+    assert samples['wardmap_http_request_seconds_count{method="GET",route="unmatched"}'] == 1
+    assert not any("r1" in name or "/no/such" in name for name in samples)
+    assert "# TYPE wardmap_http_request_seconds histogram" in text
+    build = next(name for name in samples if name.startswith("wardmap_build_info"))
+    assert 'python="3.' in build and 'version="' in build and 'git="' in build
