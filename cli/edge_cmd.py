@@ -8,6 +8,8 @@ import json
 from pathlib import Path
 from typing import Any
 
+from wardmap.cli.sources import SOURCE_HELP, SOURCE_METAVAR, add_bag_options, open_source
+
 OUTBOX_FILE = "outbox.sqlite"
 """Name of the outbox file inside ``--outbox DIR``."""
 
@@ -22,11 +24,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "then a JSON summary line at the end. SIGTERM/Ctrl-C stop tracking and flush.",
     )
     p.add_argument("--robot", required=True, metavar="ID", help="robot id, 1-64 of [A-Za-z0-9_.-]")
-    p.add_argument(
-        "--source", required=True, metavar="DATASET|sim:SCENARIO[:SEED[:ROBOT]]",
-        help="data-set folder, or a simulated robot rendered live "
-        "(e.g. sim:aisle_slow_1, sim:two_robots:0:robot_1)",
-    )
+    p.add_argument("--source", required=True, metavar=SOURCE_METAVAR, help=SOURCE_HELP)
     p.add_argument(
         "--connect", action="append", required=True, metavar="tcp/HOST:PORT", help="router endpoint (repeat)"
     )
@@ -39,7 +37,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="the robot's start pose on the shared map (metres, degrees), e.g. its dock; "
         "lets the server put this session's objects on the map",
     )
-    p.add_argument("--config", metavar="FILE", help="TOML file with [tracker] and [agent] tables")
+    p.add_argument("--config", metavar="FILE", help="TOML file with [tracker], [agent] and [source] tables")
+    add_bag_options(p)
     p.set_defaults(func=run)
 
 
@@ -64,14 +63,8 @@ def run(args: argparse.Namespace) -> int:
     from wardmap.edge.agent import AgentConfig, EdgeAgent, run_agent
     from wardmap.edge.tracker import TrackerConfig
     from wardmap.shared.config import load_config
-    from wardmap.shared.dataset import FrameSource
 
-    source: str | FrameSource = args.source
-    if args.source.startswith("sim:"):
-        from wardmap.sim.live import LiveRun, SimSource
-
-        spec = SimSource.parse(args.source)
-        source = LiveRun(spec.scenario, spec.seed, spec.robot)
+    source = open_source(args.source, args, args.config)
     tracker_cfg = load_config(TrackerConfig, args.config, section="tracker")
     agent_cfg = load_config(AgentConfig, args.config, section="agent")
     overrides: dict[str, Any] = {}  # field name -> value; dataclasses.replace re-validates
