@@ -3,7 +3,7 @@
 One :class:`EdgeAgent` runs one robot. Threads and the state each one owns:
 
 - the *tracking* thread (the caller of :meth:`EdgeAgent.run`, normally the main thread)
-  owns the :class:`~wardmap.edge.tracker.Tracker`, reads frames, builds and encodes a
+  owns the :class:`~wardmap.edge.tracker.Tracker`, takes frames from the stream, builds and encodes a
   :class:`~wardmap.shared.wire.KeyframeMsg` for every keyframe and puts it into the
   :class:`~wardmap.edge.outbox.Outbox` *before* anything is published. When the outbox is
   full (:class:`~wardmap.edge.outbox.OutboxFull`) it waits for acks and retries:
@@ -32,9 +32,15 @@ warning. ``retry`` (the server's storage failed: disk full, locked, damaged) kee
 it is resent ``resend_after_s`` after its last send, like an unacked one, and counted in
 ``retry_later`` (summary and heartbeat); a warning is logged when such a spell begins.
 
-Sources: a data-set folder (:class:`~wardmap.shared.dataset.DatasetReader`) or any
-:class:`~wardmap.shared.dataset.FrameSource` object, e.g. the simulator's live run that
-``wardmap edge --source sim:SCENARIO`` builds. Label source: ``none``, ``oracle`` or
+Sources (:mod:`wardmap.edge.stream`, docs/sources.md): any
+:class:`~wardmap.edge.stream.StreamSource` (a ROS recording, :class:`~wardmap.edge.bag.BagSource`),
+or a data-set folder or :class:`~wardmap.shared.dataset.FrameSource` object (e.g. the
+simulator's live run that ``wardmap edge --source sim:SCENARIO`` builds), streamed through
+:class:`~wardmap.edge.stream.FrameSourceStream`. A :class:`~wardmap.edge.stream.FrameStream`
+runs the source on its own *frame-stream* thread and hands the tracking thread each frame
+with its odometry pose; when tracking falls behind a live or paced source, frames are dropped
+and counted (``frames_dropped`` in the summary, ``dropped`` in the heartbeat), never queued
+without bound. :meth:`EdgeAgent.stop` closes the stream. Label source: ``none``, ``oracle`` or
 ``onnx:PATH`` (:mod:`wardmap.edge.labels`), exactly as ``wardmap track`` runs it.
 
 Keypoints: the tracker's own features of the keyframe, after dynamic-point removal (what

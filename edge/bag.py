@@ -19,7 +19,9 @@ A ``calibration.toml`` (``calibration`` key) replaces the CameraInfo and tf cali
 and depth images pair by header stamp (nearest within ``max_depth_dt_s``, the data-set rule);
 stamps are header stamps rounded to the microsecond (the data-set files' resolution); messages
 are read in the recording's order (its log time), so frames reach the stream as a robot would
-have delivered them. Colour images without a depth partner are counted (``unpaired``).
+have delivered them: a depth image may come after later colour images (a colour image without a
+partner waits until depth :data:`REORDER_S` past its window has come). Colour images without
+a depth partner are counted (``unpaired``).
 """
 
 from __future__ import annotations
@@ -53,6 +55,8 @@ SOURCE_PREFIX: Final = "bag:"
 INSTALL_HINT: Final = "reading ROS recordings needs the rosbags package: pip install 'wardmap[ros]'"
 MAX_PENDING: Final = 64
 """Colour or depth images waiting for their partner at most (the oldest is dropped beyond)."""
+REORDER_S: Final = 0.1
+"""A colour image without a depth partner waits until depth this much past its window came."""
 
 IMAGE: Final = "sensor_msgs/msg/Image"
 COMPRESSED: Final = "sensor_msgs/msg/CompressedImage"
@@ -374,9 +378,12 @@ class BagSource:
         index = start
         while colour:
             c_stamp = colour[0][0]
-            if not final and (not depth or depth[-1][0] <= c_stamp + tol):
-                return  # a nearer depth image may still come
             near = [k for k, d in enumerate(depth) if abs(d[0] - c_stamp) <= tol]
+            newest = depth[-1][0] if depth else -math.inf
+            # settled: a depth image past the pairing window came (none nearer will), or, without
+            # a partner yet, one past the window plus REORDER_S (a late partner may still come)
+            if not final and newest <= c_stamp + tol + (0.0 if near else REORDER_S):
+                return
             _, c_msg, c_type = colour.pop(0)
             if not near:
                 self.skipped["unpaired"] += 1

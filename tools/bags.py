@@ -85,6 +85,9 @@ class BagWriter:
         self._tmp: Path | None = None
         if self._ros1:
             self._ts = typesys.get_typestore(typesys.Stores.ROS1_NOETIC)
+            # rosbags' ROS 1 store lacks tf2_msgs; its definition is one line
+            self._ts.register(typesys.get_types_from_msg("geometry_msgs/TransformStamped[] transforms",
+                                                         "tf2_msgs/msg/TFMessage"))
             self._writer: Any = rosbag1.Writer(self.out)
         else:
             self._ts = typesys.get_typestore(typesys.Stores.ROS2_HUMBLE)
