@@ -30,6 +30,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     p.add_argument("--outbox", required=True, type=Path, metavar="DIR", help=f"outbox folder ({OUTBOX_FILE})")
     p.add_argument("--rate", type=float, metavar="HZ", help="frames per second (0 = as fast as possible)")
+    p.add_argument("--drop-when-behind", action="store_true", default=None,
+                   help="replay like a camera: drop (and count) frames tracking cannot keep up with")
     p.add_argument("--max-frames", type=int, metavar="K", help="stop after K frames")
     p.add_argument("--labels", metavar="none|oracle|onnx:PATH", help="label source for dynamic-point removal")
     p.add_argument(
@@ -72,6 +74,8 @@ def run(args: argparse.Namespace) -> int:
         overrides["rate_hz"] = args.rate
     if args.max_frames is not None:
         overrides["max_frames"] = args.max_frames
+    if args.drop_when_behind is not None:
+        overrides["drop_when_behind"] = True
     if args.labels is not None:
         overrides["labels"] = args.labels
     agent_cfg = dataclasses.replace(agent_cfg, **overrides)  # re-validated by __post_init__

@@ -40,7 +40,8 @@ simulator's live run that ``wardmap edge --source sim:SCENARIO`` builds), stream
 runs the source on its own *frame-stream* thread and hands the tracking thread each frame
 with its odometry pose; when tracking falls behind a live or paced source, frames are dropped
 and counted (``frames_dropped`` in the summary, ``dropped`` in the heartbeat), never queued
-without bound. :meth:`EdgeAgent.stop` closes the stream. Label source: ``none``, ``oracle`` or
+without bound (a replay does so only with :attr:`AgentConfig.drop_when_behind`; otherwise it
+waits for the tracker). :meth:`EdgeAgent.stop` closes the stream. Label source: ``none``, ``oracle`` or
 ``onnx:PATH`` (:mod:`wardmap.edge.labels`), exactly as ``wardmap track`` runs it.
 
 Keypoints: the tracker's own features of the keyframe, after dynamic-point removal (what
@@ -135,9 +136,11 @@ class AgentConfig:
     """Settings of one edge agent (``[agent]`` table of a TOML config; CLI flags override).
 
     Attributes:
-        rate_hz: replay a recorded source on a camera clock at this rate: frames the tracker
-            cannot keep up with are dropped and counted (:mod:`wardmap.edge.stream`); 0 = as
-            fast as the tracker goes, nothing dropped (a live source always drops).
+        rate_hz: frames per second a recorded source is replayed at, at most; 0 = as fast as
+            the tracker goes.
+        drop_when_behind: replay like a camera: frames the tracker cannot keep up with are
+            dropped and counted instead of slowing the replay (:mod:`wardmap.edge.stream`; a
+            live source always does this).
         max_frames: stop after this many frames (None: the whole source).
         stream_capacity: frames waiting for the tracker at most (the stream's slot).
         resend_after_s: re-send an item not acked this long after its last send.
@@ -161,6 +164,7 @@ class AgentConfig:
 
     rate_hz: float = 0.0
     max_frames: int | None = None
+    drop_when_behind: bool = False
     stream_capacity: int = 2
     resend_after_s: float = 2.0
     flush_timeout_s: float = 10.0
@@ -326,7 +330,7 @@ class EdgeAgent:
                                    threads=self.cfg.label_threads)
         tracker = Tracker(source.calibration, self.tracker_cfg, kg.mobility_lut())
         stream = FrameStream(source, capacity=self.cfg.stream_capacity, rate_hz=self.cfg.rate_hz,
-                             max_frames=self.cfg.max_frames)
+                             drop_when_behind=self.cfg.drop_when_behind, max_frames=self.cfg.max_frames)
         zcfg = zenoh.Config.from_json5(json.dumps(client_config(self.connect)))
         t_start = time.monotonic()
         track = _TrackStats()

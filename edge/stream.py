@@ -15,11 +15,12 @@ stamp. Threads and state:
   for odometry (see "Odometry" below); it puts paired frames into the bounded *slot*.
 - the consumer (whoever iterates the stream) takes items from the slot.
 - the slot (``capacity`` items) is the only state both touch, under one condition variable.
-  Its policy is named (:data:`DROP_OLDEST` or :data:`BLOCK`): a live source (a camera) or a
-  paced replay (``rate_hz > 0``: frames are produced on a camera clock) never waits for the
-  tracker: when the slot is full the oldest frame is dropped and counted, so the tracker
-  always gets the newest frames and the queue never grows. A replay as fast as possible
-  (``rate_hz = 0``, not live) blocks instead: reading a file may wait, and nothing is lost.
+  Its policy is named (:data:`DROP_OLDEST` or :data:`BLOCK`): a live source (a camera), or a
+  replay asked to behave like one (``drop_when_behind``), never waits for the tracker: when
+  the slot is full the oldest frame is dropped and counted, so the tracker always gets the
+  newest frames and the queue never grows. Any other replay blocks instead: reading a file may
+  wait, and nothing is lost. ``rate_hz`` paces a replay on a camera clock (at most that many
+  frames per second), with either policy.
 
 Odometry: a frame is held until an odometry sample at or after its stamp has arrived (so its
 pose can be interpolated, as :func:`wardmap.edge.offline.odom_at` does on a whole file), until
@@ -168,12 +169,14 @@ class StreamItem:
         frame: the frame, or None when it could not be used (``problem`` says why).
         T_odom_base: (4, 4) wheel-odometry pose at ``stamp`` or None (no odometry near it).
         problem: why ``frame`` is None.
+        released_s: ``time.monotonic()`` when the producer put it into the slot (latency).
     """
 
     stamp: float
     frame: Frame | None
     T_odom_base: F64 | None
     problem: str | None = None
+    released_s: float = 0.0
 
 
 class _OdometryBuffer:
@@ -222,12 +225,12 @@ class FrameStream:
     """
 
     def __init__(self, source: StreamSource, *, capacity: int = 2, rate_hz: float = 0.0,
-                 max_frames: int | None = None) -> None:
+                 drop_when_behind: bool = False, max_frames: int | None = None) -> None:
         """Args:
             capacity: items the slot holds at most (>= 1).
-            rate_hz: release frames on a clock at this rate (a paced replay: policy
-                :data:`DROP_OLDEST`); 0 = as they come (policy :data:`DROP_OLDEST` for a live
-                source, :data:`BLOCK` otherwise).
+            rate_hz: release frames on a clock at this rate; 0 = as they come.
+            drop_when_behind: policy :data:`DROP_OLDEST` for a replay too (a live source always
+                has it); otherwise :data:`BLOCK`.
             max_frames: stop after this many frames have been released (None: all).
         """
         if capacity < 1:
@@ -238,7 +241,7 @@ class FrameStream:
         self.capacity = capacity
         self.rate_hz = rate_hz
         self.max_frames = max_frames
-        self.policy = DROP_OLDEST if (source.live or rate_hz > 0) else BLOCK
+        self.policy = DROP_OLDEST if (source.live or drop_when_behind) else BLOCK
         self.received = 0
         self.dropped = 0
         self.late = 0
@@ -352,8 +355,8 @@ class FrameStream:
     def _item(self, ev: Frame | FrameProblem, odo: _OdometryBuffer) -> StreamItem:
         T = odo.at(ev.stamp)
         if isinstance(ev, FrameProblem):
-            return StreamItem(ev.stamp, None, T, ev.problem)
-        return StreamItem(ev.stamp, ev, T)
+            return StreamItem(ev.stamp, None, T, ev.problem, time.monotonic())
+        return StreamItem(ev.stamp, ev, T, None, time.monotonic())
 
     def _put(self, item: StreamItem) -> bool:
         """Put ``item`` into the slot by the policy; False when the stream was closed."""

@@ -125,8 +125,9 @@ def test_bad_recordings_and_topics_are_one_line_errors(sim: Path, tmp_path: Path
 @pytest.mark.timeout(180)
 def test_edge_on_a_bag_sends_the_keyframes_the_folder_gives(sim: Path, tmp_path: Path) -> None:
     """``wardmap edge --source bag:`` (MCAP) and ``--source FOLDER`` through a real router with no
-    server: both outboxes keep the same keyframes: the same stamps, and odom-frame camera poses
-    equal to 1e-9 m (the camera mount travels as a /tf_static quaternion, so the last bits differ)."""
+    server: both outboxes keep the same keyframes: the same stamps, and odom-frame camera poses and
+    wheel-odometry base poses (time aligned from the bag's nav_msgs/Odometry) equal to 1e-9 m (the
+    camera mount travels as a /tf_static quaternion, so the last bits differ)."""
     from wardmap.edge.outbox import Outbox
     from wardmap.shared.wire import decode_keyframe
 
@@ -149,3 +150,5 @@ def test_edge_on_a_bag_sends_the_keyframes_the_folder_gives(sim: Path, tmp_path:
     for a, b in zip(folder, bag, strict=True):
         assert a.stamp == b.stamp
         np.testing.assert_allclose(a.T_odom_camera, b.T_odom_camera, rtol=0, atol=1e-9)
+        assert a.T_odom_base is not None and b.T_odom_base is not None  # the bag's wheel odometry
+        np.testing.assert_allclose(a.T_odom_base, b.T_odom_base, rtol=0, atol=1e-9)

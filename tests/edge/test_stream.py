@@ -57,13 +57,15 @@ class _ScriptedSource:
         self.finished.set()
 
 
-def test_a_slow_consumer_makes_a_live_source_drop_the_oldest_frames_with_a_count() -> None:
-    """A live source gives 50 frames while the consumer is stuck on its first one: the producer
-    never waits, the slot never holds more than its capacity, the frames that did not fit are
-    counted as dropped and the consumer then gets the newest ones."""
+@pytest.mark.parametrize("live", [True, False])
+def test_a_slow_consumer_makes_a_camera_like_source_drop_the_oldest_frames_with_a_count(live: bool) -> None:
+    """A live source (or a replay with drop_when_behind) gives 50 frames while the consumer is
+    stuck on its first one: the producer never waits, the slot never holds more than its
+    capacity, the frames that did not fit are counted as dropped and the consumer then gets the
+    newest ones."""
     frames: list[SourceEvent] = [_frame(i, 100.0 + i / 30) for i in range(50)]
-    source = _ScriptedSource(frames, live=True)
-    stream = FrameStream(source, capacity=3)
+    source = _ScriptedSource(frames, live=live)
+    stream = FrameStream(source, capacity=3, drop_when_behind=not live)
     source.stream = stream
     assert stream.policy == DROP_OLDEST
     got: list[float] = []
