@@ -19,6 +19,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import argparse
+import os
 import tempfile
 import time
 
@@ -86,6 +87,7 @@ def main() -> int:
         generate("aisle_slow_1", 0, aisle, frames=100, overwrite=True)
     inputs.append(("simulated aisle_slow_1", aisle, 10.0, "simulated rig"))
     rows = []
+    load_1min = os.getloadavg()[0]
     with tempfile.TemporaryDirectory() as tmp:
         for name, folder, hz, size in inputs:
             bag = Path(tmp) / f"{folder.name}.mcap"
@@ -100,7 +102,8 @@ def main() -> int:
     body = "\n".join([
         "## Streaming sources: a recording on a camera clock (issue 38)",
         "",
-        f"`python bench/stream.py --write BENCHMARKS.md` at {git_rev()}; {machine()}; one core for the",
+        f"`python bench/stream.py --write BENCHMARKS.md` at {git_rev()}; {machine()}; load average",
+        f"{load_1min:.1f} when it started (a shared host: figures are upper bounds); one core for the",
         "tracker (numba/OpenCV threads = 1), the replay on its own thread. Each input is written as an MCAP",
         "recording and replayed through the edge's stream (slot of 2) into the tracker, labels `none`:",
         "at the camera rate, dropping the oldest frame when the tracker is behind (`--rate HZ",
