@@ -13,7 +13,8 @@ them (:class:`BagSourceConfig`, the ``[source]`` table of a config file):
   rational_polynomial distortion; its first five coefficients are OpenCV's k1 k2 p1 p2 k3);
 - extrinsics ``T_base_rgb``: ``/tf_static`` (``tf2_msgs/TFMessage``), the chain from the
   base frame to the colour image's frame;
-- wheel odometry: ``nav_msgs/Odometry`` (``pose.pose`` is ``T_odom_base``).
+- wheel odometry: ``nav_msgs/Odometry`` (``pose.pose`` is ``T_odom_base``), or, in a recording
+  without it, the ``/tf`` transforms from the odometry frame to the base frame.
 
 A ``calibration.toml`` (``calibration`` key) replaces the CameraInfo and tf calibration. Colour
 and depth images pair by header stamp (nearest within ``max_depth_dt_s``, the data-set rule);
@@ -64,6 +65,9 @@ CAMERA_INFO: Final = "sensor_msgs/msg/CameraInfo"
 ODOMETRY: Final = "nav_msgs/msg/Odometry"
 TF: Final = "tf2_msgs/msg/TFMessage"
 TF_STATIC_TOPIC: Final = "/tf_static"
+TF_TOPIC: Final = "/tf"
+TF_SCAN_MESSAGES: Final = 1000
+"""``/tf`` messages searched at most for the odometry transform when the source opens."""
 
 
 @dataclass(frozen=True)
@@ -74,9 +78,12 @@ class BagSourceConfig:
         rgb_topic: colour images (``Image`` or ``CompressedImage``).
         depth_topic: depth images registered to the colour camera (``Image``).
         camera_info_topic: the colour camera's ``CameraInfo``.
-        odom_topic: ``nav_msgs/Odometry``; None: ``/odom`` when the recording has it; ``""``: none.
+        odom_topic: ``nav_msgs/Odometry``, or ``/tf`` (odometry as the transforms
+            ``odom_frame`` -> ``base_frame``); None: ``/odom`` when the recording has it, else
+            ``/tf`` when it holds that transform; ``""``: none.
+        odom_frame: the odometry frame in ``/tf``.
         base_frame: the robot base's tf frame; None: the odometry's ``child_frame_id``
-            (``base_link`` without odometry).
+            (``base_link`` without ``nav_msgs/Odometry``).
         calibration: a ``calibration.toml`` replacing CameraInfo and tf (``""``: none).
         depth_unit_m: metres per unit of ``16UC1`` depth (ROS: 0.001).
         max_depth_dt_s: largest |colour stamp - depth stamp| of a pair, seconds.
@@ -86,6 +93,7 @@ class BagSourceConfig:
     depth_topic: str = "/camera/aligned_depth_to_color/image_raw"
     camera_info_topic: str = "/camera/color/camera_info"
     odom_topic: str | None = None
+    odom_frame: str = "odom"
     base_frame: str | None = None
     calibration: str = ""
     depth_unit_m: float = 0.001
@@ -276,9 +284,19 @@ class BagSource:
             self._check_topic(topics, "depth_topic", self.cfg.depth_topic, (IMAGE,))
             odom = self.cfg.odom_topic
             if odom is None:
-                odom = "/odom" if "/odom" in topics else ""
+                tf_odom = TF_TOPIC if topics.get(TF_TOPIC) == TF else ""
+                odom = "/odom" if topics.get("/odom") == ODOMETRY else tf_odom
             if odom:
-                self._check_topic(topics, "odom_topic", odom, (ODOMETRY,))
+                self._check_topic(topics, "odom_topic", odom, (ODOMETRY, TF))
+            self._odom_is_tf = bool(odom) and topics[odom] == TF
+            self.base_frame = self._base_frame(reader, odom)
+            if self._odom_is_tf and not self._tf_has_odometry(reader, odom):
+                if self.cfg.odom_topic is not None:
+                    raise DatasetError(f"{self.path}: {odom} has no transform {self.cfg.odom_frame!r} -> "
+                                       f"{self.base_frame!r} (odometry) in its first {TF_SCAN_MESSAGES} "
+                                       "messages; set odom_frame / base_frame")
+                odom = ""  # /tf without odometry: none
+                self._odom_is_tf = False
             self._odom_topic = odom
             self.has_odometry = bool(odom)
             self.frame_count = sum(c.msgcount for c in reader.connections if c.topic == self.cfg.rgb_topic)
@@ -302,6 +320,26 @@ class BagSource:
             raise DatasetError(f"{self.path}: topic {topic!r} ({key}) carries {topics[topic]}, "
                                f"expected {' or '.join(types)}")
 
+    def _base_frame(self, reader: Any, odom_topic: str) -> str:
+        if self.cfg.base_frame is not None:
+            return _frame_id(self.cfg.base_frame)
+        odo = self._first(reader, odom_topic) if odom_topic and not self._odom_is_tf else None
+        return _frame_id(odo.child_frame_id) if odo is not None and odo.child_frame_id else "base_link"
+
+    def _tf_has_odometry(self, reader: Any, topic: str) -> bool:
+        conns = [c for c in reader.connections if c.topic == topic]
+        for k, (conn, _, raw) in enumerate(reader.messages(connections=conns)):
+            if any(self._is_odometry(tr) for tr in reader.deserialize(raw, conn.msgtype).transforms):
+                return True
+            if k + 1 >= TF_SCAN_MESSAGES:
+                break
+        return False
+
+    def _is_odometry(self, tr: Any) -> bool:
+        """True for a tf transform odometry frame -> base frame."""
+        return bool(_frame_id(tr.header.frame_id) == _frame_id(self.cfg.odom_frame)
+                    and _frame_id(tr.child_frame_id) == self.base_frame)
+
     def _first(self, reader: Any, topic: str) -> Any | None:
         conns = [c for c in reader.connections if c.topic == topic]
         if not conns:  # rosbags reads every topic when given none
@@ -322,10 +360,7 @@ class BagSource:
                 "calibration.toml (--calibration)")
         camera = camera_from_info(info, f"{self.path} {info_topic}")
         cam_frame = _frame_id(info.header.frame_id)
-        base = self.cfg.base_frame
-        if base is None:
-            odo = self._first(reader, self._odom_topic) if self._odom_topic else None
-            base = _frame_id(odo.child_frame_id) if odo is not None and odo.child_frame_id else "base_link"
+        base = self.base_frame
         statics: dict[str, tuple[str, F64]] = {}
         conns = [c for c in reader.connections if c.topic == TF_STATIC_TOPIC and _msgtype(c.msgtype) == TF]
         for conn, _, raw in reader.messages(connections=conns) if conns else ():
@@ -352,6 +387,12 @@ class BagSource:
             for conn, _, raw in reader.messages(connections=conns):
                 msgtype = _msgtype(conn.msgtype)
                 msg = reader.deserialize(raw, conn.msgtype)
+                if conn.topic == self._odom_topic and self._odom_is_tf:
+                    for tr in msg.transforms:
+                        if self._is_odometry(tr):
+                            yield OdometrySample(stamp_of(tr.header), _pose_matrix(tr.transform.translation,
+                                                                                   tr.transform.rotation))
+                    continue
                 if conn.topic == self._odom_topic:
                     yield OdometrySample(stamp_of(msg.header), _pose_matrix(msg.pose.pose.position,
                                                                             msg.pose.pose.orientation))

@@ -199,16 +199,25 @@ class BagWriter:
                 twist=t("geometry_msgs/msg/Twist")(linear=zero, angular=zero), covariance=np.zeros(36)))
         self._write(self.topics.odom_topic or "/odom", msg, stamp if log_stamp is None else log_stamp)
 
-    def write_tf_static(self, stamp: float, T_base_rgb: ArrayLike) -> None:
-        """The colour camera's mount on the base (``base_link`` -> the camera frame)."""
+    def _tf(self, stamp: float, parent: str, child: str, T_parent_child: ArrayLike) -> Any:
         t = self._t
-        v = transform_to_tum(T_base_rgb)
+        v = transform_to_tum(T_parent_child)
         tr = t("geometry_msgs/msg/TransformStamped")(
-            header=self._header(stamp, BASE_FRAME), child_frame_id=CAMERA_FRAME,
+            header=self._header(stamp, parent), child_frame_id=child,
             transform=t("geometry_msgs/msg/Transform")(
                 translation=t("geometry_msgs/msg/Vector3")(x=v[0], y=v[1], z=v[2]),
                 rotation=t("geometry_msgs/msg/Quaternion")(x=v[3], y=v[4], z=v[5], w=v[6])))
-        self._write("/tf_static", t("tf2_msgs/msg/TFMessage")(transforms=[tr]), stamp)
+        return t("tf2_msgs/msg/TFMessage")(transforms=[tr])
+
+    def write_tf_static(self, stamp: float, T_base_rgb: ArrayLike) -> None:
+        """The colour camera's mount on the base (``base_link`` -> the camera frame)."""
+        self._write("/tf_static", self._tf(stamp, BASE_FRAME, CAMERA_FRAME, T_base_rgb), stamp)
+
+    def write_tf_odometry(self, stamp: float, T_odom_base: ArrayLike, *,
+                          log_stamp: float | None = None) -> None:
+        """One wheel-odometry pose as a ``/tf`` transform ``odom`` -> ``base_link``."""
+        self._write("/tf", self._tf(stamp, ODOM_FRAME, BASE_FRAME, T_odom_base),
+                    stamp if log_stamp is None else log_stamp)
 
 
 def dataset_to_bag(dataset: str | Path, out: str | Path, *, rgb_format: RgbFormat = "raw",

@@ -152,3 +152,29 @@ def test_edge_on_a_bag_sends_the_keyframes_the_folder_gives(sim: Path, tmp_path:
         np.testing.assert_allclose(a.T_odom_camera, b.T_odom_camera, rtol=0, atol=1e-9)
         assert a.T_odom_base is not None and b.T_odom_base is not None  # the bag's wheel odometry
         np.testing.assert_allclose(a.T_odom_base, b.T_odom_base, rtol=0, atol=1e-9)
+
+
+def test_topics_from_the_config_source_table_and_the_options(sim: Path, tmp_path: Path) -> None:
+    """A recording on other topic names: the config's [source] table names them and the
+    command-line option overrides the table (here a wrong table entry corrected by the option)."""
+    from wardmap.edge.bag import BagSourceConfig
+    from wardmap.shared.dataset import DatasetReader
+    from wardmap.tools.bags import BagWriter
+
+    topics = BagSourceConfig(rgb_topic="/cam/rgb", depth_topic="/cam/depth", camera_info_topic="/cam/info")
+    reader = DatasetReader(sim)
+    with BagWriter(tmp_path / "named.mcap", topics=topics) as w:
+        w.write_camera_info(float(reader.stamps[0]), reader.calibration.rgb)
+        for i in range(3):
+            f = reader.frame(i)
+            w.write_frame(f.stamp, f.rgb, f.depth_m)
+    config = tmp_path / "source.toml"
+    config.write_text('[source]\nrgb_topic = "/cam/rgb"\ndepth_topic = "/cam/nope"\n'
+                      'camera_info_topic = "/cam/info"\n')
+    out = tmp_path / "t.txt"
+    source = f"bag:{tmp_path / 'named.mcap'}"
+    one_line_error(wardmap("track", "--source", source, "--out", str(out), "--config", str(config)),
+                   "no topic '/cam/nope' (depth_topic)", "track")
+    _ok("track", "--source", source, "--out", str(out), "--config", str(config),
+        "--depth-topic", "/cam/depth")
+    assert len(_trajectory(out)) == 3

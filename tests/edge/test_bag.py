@@ -42,7 +42,7 @@ def _images(n: int, seed: int = 0) -> list[tuple[float, np.ndarray, np.ndarray]]
 
 
 def _write(path: Path, frames: list[tuple[float, np.ndarray, np.ndarray]], *, camera_info: bool = True,
-           odometry: bool = True, log_order: list[int] | None = None, **kw: Any) -> None:
+           odometry: str = "odom", log_order: list[int] | None = None, **kw: Any) -> None:
     with BagWriter(path, **kw) as w:
         if camera_info:
             w.write_camera_info(frames[0][0], CAM)
@@ -52,10 +52,10 @@ def _write(path: Path, frames: list[tuple[float, np.ndarray, np.ndarray]], *, ca
             stamp, rgb, depth = frames[i]
             log_t = frames[k][0]  # written at the k-th slot of the recording
             w.write_frame(stamp, rgb, depth, log_stamp=log_t)
-        if odometry:
-            for k in range(int(len(frames) / 30 * 50) + 3):
-                t = round(50.0 + k / 50, 6)
-                w.write_odometry(t, yaw_transform(0.1 * k, 0.0, 0.01 * k), log_stamp=t + 0.005)
+        for k in range(int(len(frames) / 30 * 50) + 3) if odometry else ():
+            t = round(50.0 + k / 50, 6)
+            write = w.write_odometry if odometry == "odom" else w.write_tf_odometry
+            write(t, yaw_transform(0.1 * k, 0.0, 0.01 * k), log_stamp=t + 0.005)
 
 
 @pytest.mark.parametrize("name", ["r2", "one.mcap", "r1.bag"])
@@ -177,3 +177,25 @@ def test_out_of_order_messages_give_the_same_frames_in_stamp_order(tmp_path: Pat
         np.testing.assert_array_equal(x.frame.rgb, y.frame.rgb)  # type: ignore[union-attr]
         assert x.T_odom_base is not None and y.T_odom_base is not None
         np.testing.assert_array_equal(x.T_odom_base, y.T_odom_base)
+
+
+def test_odometry_from_tf_when_the_recording_has_no_odometry_topic(tmp_path: Path) -> None:
+    """A recording whose wheel odometry is only the /tf transform odom -> base_link streams the
+    same odometry poses as one with nav_msgs/Odometry; a wrong odometry frame named explicitly is
+    an error, and without odometry nothing is waited for."""
+    frames = _images(6)
+    _write(tmp_path / "odom", frames)
+    _write(tmp_path / "tf", frames, odometry="tf")
+    _write(tmp_path / "none", frames, odometry="")
+    runs = []
+    for name in ("odom", "tf"):
+        source = BagSource(tmp_path / name)
+        assert source.has_odometry and source.base_frame == "base_link"
+        with FrameStream(source) as stream:
+            runs.append(list(stream))
+    for x, y in zip(*runs, strict=True):
+        assert x.T_odom_base is not None and y.T_odom_base is not None
+        np.testing.assert_allclose(x.T_odom_base, y.T_odom_base, atol=1e-12)
+    with pytest.raises(DatasetError, match="no transform 'map' -> 'base_link'"):
+        BagSource(tmp_path / "tf", BagSourceConfig(odom_topic="/tf", odom_frame="map"))
+    assert not BagSource(tmp_path / "none").has_odometry
