@@ -38,10 +38,10 @@ or a data-set folder or :class:`~wardmap.shared.dataset.FrameSource` object (e.g
 simulator's live run that ``wardmap edge --source sim:SCENARIO`` builds), streamed through
 :class:`~wardmap.edge.stream.FrameSourceStream`. A :class:`~wardmap.edge.stream.FrameStream`
 runs the source on its own *frame-stream* thread and hands the tracking thread each frame
-with its odometry pose; when tracking falls behind a live or paced source, frames are dropped
-and counted (``frames_dropped`` in the summary, ``dropped`` in the heartbeat), never queued
-without bound (a replay does so only with :attr:`AgentConfig.drop_when_behind`; otherwise it
-waits for the tracker). :meth:`EdgeAgent.stop` closes the stream. Label source: ``none``, ``oracle`` or
+with its odometry pose; when tracking falls behind a live source (or a replay with
+:attr:`AgentConfig.drop_when_behind`), frames are dropped and counted (``frames_dropped`` in the
+summary, ``dropped`` in the heartbeat), never queued without bound; any other replay waits for
+the tracker. :meth:`EdgeAgent.stop` closes the stream. Label source: ``none``, ``oracle`` or
 ``onnx:PATH`` (:mod:`wardmap.edge.labels`), exactly as ``wardmap track`` runs it.
 
 Keypoints: the tracker's own features of the keyframe, after dynamic-point removal (what
