@@ -27,21 +27,9 @@ from wardmap.shared.se3 import transform_to_tum
 log = logging.getLogger(__name__)
 
 
-def track_dataset(
-    dataset: str | Path,
-    out: str | Path,
-    *,
-    config: TrackerConfig | None = None,
-    labels: str = "none",
-    max_frames: int | None = None,
-    label_threads: int = 1,
-    progress: Callable[[int, int, TrackResult], None] | None = None,
-    calibration: Calibration | None = None,
-) -> dict[str, Any]:
-    """Track every frame of the data-set folder ``dataset`` (see :func:`track_source`)."""
-    return track_source(FrameSourceStream(DatasetReader(dataset)), out, config=config, labels=labels,
-                        max_frames=max_frames, label_threads=label_threads, progress=progress,
-                        calibration=calibration)
+def track_dataset(dataset: str | Path, out: str | Path, **options: Any) -> dict[str, Any]:
+    """Track every frame of the data-set folder ``dataset``; ``options`` are :func:`track_source`'s."""
+    return track_source(FrameSourceStream(DatasetReader(dataset)), out, **options)
 
 
 def track_source(
