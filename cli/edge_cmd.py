@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from wardmap.cli.logopts import add_log_format
+from wardmap.cli.sources import SOURCE_HELP, SOURCE_METAVAR, add_bag_options, open_source
 
 OUTBOX_FILE = "outbox.sqlite"
 """Name of the outbox file inside ``--outbox DIR``."""
@@ -26,16 +27,14 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "then a JSON summary line at the end. SIGTERM/Ctrl-C stop tracking and flush.",
     )
     p.add_argument("--robot", required=True, metavar="ID", help="robot id, 1-64 of [A-Za-z0-9_.-]")
-    p.add_argument(
-        "--source", required=True, metavar="DATASET|sim:SCENARIO[:SEED[:ROBOT]]",
-        help="data-set folder, or a simulated robot rendered live "
-        "(e.g. sim:aisle_slow_1, sim:two_robots:0:robot_1)",
-    )
+    p.add_argument("--source", required=True, metavar=SOURCE_METAVAR, help=SOURCE_HELP)
     p.add_argument(
         "--connect", action="append", required=True, metavar="tcp/HOST:PORT", help="router endpoint (repeat)"
     )
     p.add_argument("--outbox", required=True, type=Path, metavar="DIR", help=f"outbox folder ({OUTBOX_FILE})")
     p.add_argument("--rate", type=float, metavar="HZ", help="frames per second (0 = as fast as possible)")
+    p.add_argument("--drop-when-behind", action="store_true", default=None,
+                   help="replay like a camera: drop (and count) frames tracking cannot keep up with")
     p.add_argument("--max-frames", type=int, metavar="K", help="stop after K frames")
     p.add_argument("--labels", metavar="none|oracle|onnx:PATH", help="label source for dynamic-point removal")
     p.add_argument(
@@ -43,7 +42,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="the robot's start pose on the shared map (metres, degrees), e.g. its dock; "
         "lets the server put this session's objects on the map",
     )
-    p.add_argument("--config", metavar="FILE", help="TOML file with [tracker] and [agent] tables")
+    p.add_argument("--config", metavar="FILE", help="TOML file with [tracker], [agent] and [source] tables")
     p.add_argument(
         "--metrics-port", type=int, metavar="N",
         help="serve the agent's Prometheus metrics at http://HOST:N/metrics (off by default)",
@@ -53,6 +52,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="address of --metrics-port (default: %(default)s, for a Prometheus off the robot)",
     )
     add_log_format(p)
+    add_bag_options(p)
     p.set_defaults(func=run)
 
 
@@ -78,15 +78,9 @@ def run(args: argparse.Namespace) -> int:
     from wardmap.edge.metrics import EdgeMetrics
     from wardmap.edge.tracker import TrackerConfig
     from wardmap.shared.config import load_config
-    from wardmap.shared.dataset import FrameSource
     from wardmap.shared.sdnotify import notify
 
-    source: str | FrameSource = args.source
-    if args.source.startswith("sim:"):
-        from wardmap.sim.live import LiveRun, SimSource
-
-        spec = SimSource.parse(args.source)
-        source = LiveRun(spec.scenario, spec.seed, spec.robot)
+    source = open_source(args.source, args, args.config)
     tracker_cfg = load_config(TrackerConfig, args.config, section="tracker")
     agent_cfg = load_config(AgentConfig, args.config, section="agent")
     overrides: dict[str, Any] = {}  # field name -> value; dataclasses.replace re-validates
@@ -94,6 +88,8 @@ def run(args: argparse.Namespace) -> int:
         overrides["rate_hz"] = args.rate
     if args.max_frames is not None:
         overrides["max_frames"] = args.max_frames
+    if args.drop_when_behind is not None:
+        overrides["drop_when_behind"] = True
     if args.labels is not None:
         overrides["labels"] = args.labels
     agent_cfg = dataclasses.replace(agent_cfg, **overrides)  # re-validated by __post_init__

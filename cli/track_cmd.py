@@ -6,18 +6,21 @@ import argparse
 import json
 
 from wardmap.cli.progress import Progress
+from wardmap.cli.sources import SOURCE_HELP, SOURCE_METAVAR, add_bag_options, open_source
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "track",
         help="run the tracking frontend on a data set, write a TUM trajectory",
-        description="Track every frame of a data-set folder (ours or a real TUM folder) and write "
-        "the camera trajectory in TUM format. The last line on stdout is a JSON summary.",
+        description="Track every frame of a data-set folder (ours or a real TUM folder), a ROS "
+        "recording (bag:PATH) or a simulated robot (sim:SCENARIO) and write the camera trajectory in "
+        "TUM format. The last line on stdout is a JSON summary.",
     )
-    p.add_argument("dataset", metavar="DATASET", help="data-set folder")
+    p.add_argument("dataset", nargs="?", metavar="DATASET", help="data-set folder (or use --source)")
+    p.add_argument("--source", metavar=SOURCE_METAVAR, help=SOURCE_HELP)
     p.add_argument("--out", required=True, metavar="TRAJ.txt", help="trajectory file to write")
-    p.add_argument("--config", metavar="FILE", help="TOML file with a [tracker] table")
+    p.add_argument("--config", metavar="FILE", help="TOML file with [tracker] and [source] tables")
     p.add_argument(
         "--labels",
         default="none",
@@ -26,18 +29,23 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     p.add_argument("--label-threads", type=int, default=1, metavar="N", help="threads for label inference")
     p.add_argument("--max-frames", type=int, metavar="K", help="stop after K frames")
+    add_bag_options(p)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from wardmap.edge.offline import track_dataset
+    from wardmap.edge.offline import track_source
     from wardmap.edge.tracker import TrackerConfig
     from wardmap.shared.config import load_config
+    from wardmap.shared.errors import ConfigError
 
+    if (args.dataset is None) == (args.source is None):
+        raise ConfigError("give the data set as DATASET or --source (one of them)")
     config = load_config(TrackerConfig, args.config, section="tracker")
+    source = open_source(args.dataset or args.source, args, args.config)
     with Progress("frames") as bar:
-        summary = track_dataset(
-            args.dataset,
+        summary = track_source(
+            source,
             args.out,
             config=config,
             labels=args.labels,

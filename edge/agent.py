@@ -3,7 +3,7 @@
 One :class:`EdgeAgent` runs one robot. Threads and the state each one owns:
 
 - the *tracking* thread (the caller of :meth:`EdgeAgent.run`, normally the main thread)
-  owns the :class:`~wardmap.edge.tracker.Tracker`, reads frames, builds and encodes a
+  owns the :class:`~wardmap.edge.tracker.Tracker`, takes frames from the stream, builds and encodes a
   :class:`~wardmap.shared.wire.KeyframeMsg` for every keyframe and puts it into the
   :class:`~wardmap.edge.outbox.Outbox` *before* anything is published. When the outbox is
   full (:class:`~wardmap.edge.outbox.OutboxFull`) it waits for acks and retries:
@@ -32,9 +32,16 @@ warning. ``retry`` (the server's storage failed: disk full, locked, damaged) kee
 it is resent ``resend_after_s`` after its last send, like an unacked one, and counted in
 ``retry_later`` (summary and heartbeat); a warning is logged when such a spell begins.
 
-Sources: a data-set folder (:class:`~wardmap.shared.dataset.DatasetReader`) or any
-:class:`~wardmap.shared.dataset.FrameSource` object, e.g. the simulator's live run that
-``wardmap edge --source sim:SCENARIO`` builds. Label source: ``none``, ``oracle`` or
+Sources (:mod:`wardmap.edge.stream`, docs/sources.md): any
+:class:`~wardmap.edge.stream.StreamSource` (a ROS recording, :class:`~wardmap.edge.bag.BagSource`),
+or a data-set folder or :class:`~wardmap.shared.dataset.FrameSource` object (e.g. the
+simulator's live run that ``wardmap edge --source sim:SCENARIO`` builds), streamed through
+:class:`~wardmap.edge.stream.FrameSourceStream`. A :class:`~wardmap.edge.stream.FrameStream`
+runs the source on its own *frame-stream* thread and hands the tracking thread each frame
+with its odometry pose; when tracking falls behind a live source (or a replay with
+:attr:`AgentConfig.drop_when_behind`), frames are dropped and counted (``frames_dropped`` in the
+summary, ``dropped`` in the heartbeat), never queued without bound; any other replay waits for
+the tracker. :meth:`EdgeAgent.stop` closes the stream. Label source: ``none``, ``oracle`` or
 ``onnx:PATH`` (:mod:`wardmap.edge.labels`), exactly as ``wardmap track`` runs it.
 
 Keypoints: the tracker's own features of the keyframe, after dynamic-point removal (what
@@ -80,8 +87,8 @@ from wardmap.edge.corrections import Corrections
 from wardmap.edge.keyframes import build_keyframe_msg, thermal_due
 from wardmap.edge.labels import LabelSource, make_label_source
 from wardmap.edge.metrics import EdgeMetrics
-from wardmap.edge.offline import odom_at
 from wardmap.edge.outbox import Outbox, OutboxFull, OutboxItem, SessionIds
+from wardmap.edge.stream import FrameSourceStream, FrameStream, StreamSource
 from wardmap.edge.tracker import Tracker, TrackerConfig, TrackInput
 from wardmap.shared.dataset import DatasetReader, Frame, FrameSource
 from wardmap.shared.errors import ConfigError, DatasetError, WardmapError, WireError
@@ -130,8 +137,13 @@ class AgentConfig:
     """Settings of one edge agent (``[agent]`` table of a TOML config; CLI flags override).
 
     Attributes:
-        rate_hz: frames per second fed to the tracker; 0 = as fast as possible.
-        max_frames: stop after this many frames (None: the whole data set).
+        rate_hz: frames per second a recorded source is replayed at, at most; 0 = as fast as
+            the tracker goes.
+        drop_when_behind: replay like a camera: frames the tracker cannot keep up with are
+            dropped and counted instead of slowing the replay (:mod:`wardmap.edge.stream`; a
+            live source always does this).
+        max_frames: stop after this many frames (None: the whole source).
+        stream_capacity: frames waiting for the tracker at most (the stream's slot).
         resend_after_s: re-send an item not acked this long after its last send.
         flush_timeout_s: on stop, wait at most this long for the outbox to empty.
         heartbeat_period_s: period of the heartbeat message.
@@ -153,6 +165,8 @@ class AgentConfig:
 
     rate_hz: float = 0.0
     max_frames: int | None = None
+    drop_when_behind: bool = False
+    stream_capacity: int = 2
     resend_after_s: float = 2.0
     flush_timeout_s: float = 10.0
     heartbeat_period_s: float = 1.0
@@ -196,7 +210,7 @@ class AgentConfig:
             raise ConfigError(f"agent.thermal_unit_k must be in (0, 1] K, got {self.thermal_unit_k}")
         if self.label_threads < 1:
             raise ConfigError(f"agent.label_threads must be >= 1, got {self.label_threads}")
-        for name in ("send_batch", "inbox_size", "outbox_max_items", "outbox_max_bytes"):
+        for name in ("stream_capacity", "send_batch", "inbox_size", "outbox_max_items", "outbox_max_bytes"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"agent.{name} must be >= 1, got {getattr(self, name)}")
 
@@ -240,7 +254,7 @@ class EdgeAgent:
     def __init__(
         self,
         robot_id: str,
-        source: str | Path | FrameSource,
+        source: str | Path | FrameSource | StreamSource,
         connect: Sequence[str],
         outbox_path: str | Path,
         *,
@@ -263,9 +277,9 @@ class EdgeAgent:
         if isinstance(source, (str, Path)):
             if not Path(source).is_dir():
                 raise DatasetError(f"data set {str(source)!r} is not a folder")
-            self.source: FrameSource = DatasetReader(source)
-        else:
-            self.source = source
+            source = DatasetReader(source)
+        # a random-access data set (a folder, the simulator's live run) streams like any source
+        self.source: StreamSource = FrameSourceStream(source) if hasattr(source, "frame") else source  # type: ignore[arg-type]
         self.outbox_path = Path(outbox_path)
         self.cfg = config or AgentConfig()
         self.tracker_cfg = tracker_config or TrackerConfig()
@@ -284,12 +298,16 @@ class EdgeAgent:
         # (T_odom_base, T_odom_camera) of the latest keyframe put: swapped whole by the tracker
         self._latest_pose: tuple[NDArray[np.float64] | None, NDArray[np.float64]] | None = None
         self._sender_error: BaseException | None = None
+        self._stream: FrameStream | None = None  # set by run(); close() ends its iteration
 
     # ------------------------------------------------------------------ control
 
     def stop(self) -> None:
         """Ask the agent to stop tracking, flush and exit (thread and signal safe)."""
         self._stop.set()
+        stream = self._stream
+        if stream is not None:
+            stream.close()
 
     def _enqueue(self, entry: bytes | _Correction) -> None:
         """Put into the sender's inbox without blocking (policy :data:`INBOX_POLICY`)."""
@@ -311,11 +329,13 @@ class EdgeAgent:
         """
         import zenoh  # the only zenoh user on the edge; imported here, not at module import
 
-        reader = self.source
+        source = self.source
         kg = KnowledgeGraph.load()
-        labels = make_label_source(self.cfg.labels, dataset=reader, kg=kg, threads=self.cfg.label_threads)
-        tracker = Tracker(reader.calibration, self.tracker_cfg, kg.mobility_lut())
-        n_frames = len(reader) if self.cfg.max_frames is None else min(self.cfg.max_frames, len(reader))
+        labels = make_label_source(self.cfg.labels, dataset=source.dataset, kg=kg,
+                                   threads=self.cfg.label_threads)
+        tracker = Tracker(source.calibration, self.tracker_cfg, kg.mobility_lut())
+        stream = FrameStream(source, capacity=self.cfg.stream_capacity, rate_hz=self.cfg.rate_hz,
+                             drop_when_behind=self.cfg.drop_when_behind, max_frames=self.cfg.max_frames)
         zcfg = zenoh.Config.from_json5(json.dumps(client_config(self.connect)))
         t_start = time.monotonic()
         track = _TrackStats()
@@ -342,7 +362,11 @@ class EdgeAgent:
                 try:
                     if on_ready is not None:
                         on_ready(ids.session_id, len(outbox))
-                    self._track_loop(reader, labels, tracker, outbox, ids, n_frames, track)
+                    self._stream = stream
+                    if self._stop.is_set():
+                        stream.close()
+                    with stream:
+                        self._track_loop(stream, labels, tracker, outbox, ids, track)
                     flushed = self._flush(outbox)
                 finally:
                     self._stop.set()
@@ -360,6 +384,7 @@ class EdgeAgent:
             "frames": track.frames,
             "keyframes": track.keyframes,
             "lost_frames": track.lost,
+            **{f"frames_{k}": v for k, v in stream.counters().items()},
             "sent": s.sent,
             "resent": s.resent,
             "acked": s.acked,
@@ -382,41 +407,27 @@ class EdgeAgent:
 
     def _track_loop(
         self,
-        reader: FrameSource,
+        stream: FrameStream,
         labels: LabelSource,
         tracker: Tracker,
         outbox: Outbox,
         ids: SessionIds,
-        n_frames: int,
         track: _TrackStats,
     ) -> None:
-        odo = reader.odometry()
-        calib = reader.calibration
+        calib = stream.source.calibration
         intrinsics = Intrinsics.from_camera(calib.rgb, calib.depth_scale)
-        period = 1.0 / self.cfg.rate_hz if self.cfg.rate_hz > 0 else 0.0
-        next_t = time.monotonic()
-        for i in range(n_frames):
+        for item in stream:
             if self._stop.is_set():
                 break
-            if period:
-                delay = next_t - time.monotonic()
-                if delay > 0 and self._stop.wait(delay):
-                    break
-                next_t = max(next_t + period, time.monotonic() - period)
-            stamp = float(reader.stamps[i])
-            T_odom_base = odom_at(odo, stamp)
-            frame: Frame | None
-            try:
-                frame = reader.frame(i)
-            except DatasetError as exc:
-                log.warning("frame %d: %s", i, exc)
-                frame = None
+            frame: Frame | None = item.frame
+            T_odom_base = item.T_odom_base
             if frame is None:
-                inp = TrackInput(stamp, None, None, T_odom_base=T_odom_base, problem="cannot read frame")
+                inp = TrackInput(item.stamp, None, None, T_odom_base=T_odom_base,
+                                 problem=item.problem or "cannot read frame")
             else:
                 lab = labels.labels(frame)
                 inp = TrackInput(
-                    stamp, frame.rgb, frame.depth_m, frame.thermal_k, T_odom_base,
+                    item.stamp, frame.rgb, frame.depth_m, frame.thermal_k, T_odom_base,
                     class_image=None if lab is None else lab.class_image,
                 )
             res = tracker.track(inp)
@@ -642,6 +653,7 @@ class EdgeAgent:
                 "frames": frames,
                 "keyframes": keyframes,
                 "lost": lost,
+                **self._stream_stats(),
                 "pending": pending,
                 "sent": stats.sent,
                 "acked": stats.acked,
@@ -654,6 +666,13 @@ class EdgeAgent:
         )
         pub.put(encode(msg))
         stats.heartbeats += 1
+
+    def _stream_stats(self) -> dict[str, int]:
+        """Frames the source gave and those dropped because tracking was behind (heartbeat)."""
+        stream = self._stream
+        if stream is None:
+            return {"received": 0, "dropped": 0}
+        return {"received": stream.received, "dropped": stream.dropped + stream.late}
 
     def _pose_args(self) -> dict[str, NDArray[np.float64] | None]:
         """The latest keyframe's odom-frame poses as keyword arguments of the map-pose methods."""

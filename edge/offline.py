@@ -1,7 +1,8 @@
-"""Run the tracking frontend over a data-set folder (``wardmap track``).
+"""Run the tracking frontend over a recorded source (``wardmap track``).
 
 The edge daemon runs the very same :class:`~wardmap.edge.tracker.Tracker`; this module
-only feeds it frames from disk and writes the trajectory (TUM format, every frame).
+only feeds it the frames of a source (a data-set folder, a ROS recording, the simulator;
+:mod:`wardmap.edge.stream`) and writes the trajectory (TUM format, every frame).
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from wardmap.edge.labels import make_label_source
+from wardmap.edge.stream import FrameSourceStream, FrameStream, StreamSource
 from wardmap.edge.tracker import Tracker, TrackerConfig, TrackInput, TrackResult
 from wardmap.shared.dataset import Calibration, DatasetReader, pose_at
 from wardmap.shared.errors import DatasetError, WardmapError
@@ -25,8 +27,13 @@ from wardmap.shared.se3 import transform_to_tum
 log = logging.getLogger(__name__)
 
 
-def track_dataset(
-    dataset: str | Path,
+def track_dataset(dataset: str | Path, out: str | Path, **options: Any) -> dict[str, Any]:
+    """Track every frame of the data-set folder ``dataset``; ``options`` are :func:`track_source`'s."""
+    return track_source(FrameSourceStream(DatasetReader(dataset)), out, **options)
+
+
+def track_source(
+    source: StreamSource,
     out: str | Path,
     *,
     config: TrackerConfig | None = None,
@@ -36,16 +43,18 @@ def track_dataset(
     progress: Callable[[int, int, TrackResult], None] | None = None,
     calibration: Calibration | None = None,
 ) -> dict[str, Any]:
-    """Track every frame of ``dataset``; write ``out`` (TUM trajectory); return a summary.
+    """Track every frame of ``source``; write ``out`` (TUM trajectory); return a summary.
 
-    ``calibration`` replaces the folder's own (e.g. with a readout time estimated by
+    The source is replayed as fast as the tracker goes (a :class:`FrameStream` that blocks,
+    never drops; a live source drops what the tracker cannot keep up with, counted).
+    ``calibration`` replaces the source's own (e.g. with a readout time estimated by
     :func:`wardmap.edge.readout.estimate_readout`).
 
-    The summary has frames, keyframes, lost frames (with the reasons), pose sources, and
-    milliseconds per frame (median and p95) for each stage and in total; label inference
-    is timed apart (``labels_ms``) and is not part of ``total``.
+    The summary has frames, keyframes, lost frames (with the reasons), pose sources, the
+    stream's counters (``stream``: received, dropped, late) and milliseconds per frame (median
+    and p95) for each stage and in total; label inference is timed apart (``labels_ms``) and is
+    not part of ``total``.
     """
-    reader = DatasetReader(dataset)
     out = Path(out)
     if out.is_dir():
         raise DatasetError(f"--out {out} is a folder; give a file name for the trajectory")
@@ -54,36 +63,37 @@ def track_dataset(
     if max_frames is not None and max_frames <= 0:
         raise WardmapError(f"--max-frames must be positive, got {max_frames}")
     kg = KnowledgeGraph.load()
-    source = make_label_source(labels, dataset=reader, kg=kg, threads=label_threads)
-    tracker = Tracker(calibration or reader.calibration, config, kg.mobility_lut())
-    odo = reader.odometry()
-    n = len(reader) if max_frames is None else min(max_frames, len(reader))
+    label_source = make_label_source(labels, dataset=source.dataset, kg=kg, threads=label_threads)
+    tracker = Tracker(calibration or source.calibration, config, kg.mobility_lut())
+    n = source.frame_count or 0  # for progress only: 0 when unknown
+    if max_frames is not None and n:
+        n = min(n, max_frames)
     results: list[TrackResult] = []
     label_ms: list[float] = []
-    for i in range(n):
-        stamp = float(reader.stamps[i])
-        try:
-            frame = reader.frame(i)
-        except DatasetError as exc:
-            log.warning("frame %d: %s", i, exc)
-            inp = TrackInput(
-                stamp, None, None, T_odom_base=odom_at(odo, stamp), problem=f"cannot read frame: {exc}"
-            )
-            results.append(tracker.track(inp))
-            continue
-        class_image = None
-        t0 = time.perf_counter()
-        lab = source.labels(frame)
-        if lab is not None:
-            class_image = lab.class_image
-            label_ms.append(lab.inference_ms if lab.inference_ms else (time.perf_counter() - t0) * 1e3)
-        inp = TrackInput(stamp, frame.rgb, frame.depth_m, frame.thermal_k, odom_at(odo, stamp), class_image)
-        res = tracker.track(inp)
-        results.append(res)
-        if progress is not None:
-            progress(i + 1, n, res)
+    with FrameStream(source, max_frames=max_frames) as stream:
+        for item in stream:
+            frame = item.frame
+            if frame is None:
+                problem = item.problem or "no frame"
+                results.append(tracker.track(TrackInput(item.stamp, None, None, T_odom_base=item.T_odom_base,
+                                                        problem=problem)))
+                continue
+            class_image = None
+            t0 = time.perf_counter()
+            lab = label_source.labels(frame)
+            if lab is not None:
+                class_image = lab.class_image
+                label_ms.append(lab.inference_ms if lab.inference_ms else (time.perf_counter() - t0) * 1e3)
+            inp = TrackInput(item.stamp, frame.rgb, frame.depth_m, frame.thermal_k, item.T_odom_base,
+                             class_image)
+            res = tracker.track(inp)
+            results.append(res)
+            if progress is not None:
+                progress(len(results), max(n, len(results)), res)
+    if not results:
+        raise DatasetError(f"{source.name}: no frame to track")
     _write_tum(out, results)
-    return summarize(results, label_ms)
+    return {**summarize(results, label_ms), "stream": stream.counters()}
 
 
 def odom_at(odo: tuple[np.ndarray, np.ndarray] | None, stamp: float) -> np.ndarray | None:
