@@ -8,6 +8,8 @@ import json
 from pathlib import Path
 from typing import Any
 
+from wardmap.cli.zenoh_args import add_zenoh_args, zenoh_options
+
 OUTBOX_FILE = "outbox.sqlite"
 """Name of the outbox file inside ``--outbox DIR``."""
 
@@ -28,7 +30,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "(e.g. sim:aisle_slow_1, sim:two_robots:0:robot_1)",
     )
     p.add_argument(
-        "--connect", action="append", required=True, metavar="tcp/HOST:PORT", help="router endpoint (repeat)"
+        "--connect", action="append", required=True, metavar="tcp|tls/HOST:PORT",
+        help="router endpoint (repeat)",
     )
     p.add_argument("--outbox", required=True, type=Path, metavar="DIR", help=f"outbox folder ({OUTBOX_FILE})")
     p.add_argument("--rate", type=float, metavar="HZ", help="frames per second (0 = as fast as possible)")
@@ -39,7 +42,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="the robot's start pose on the shared map (metres, degrees), e.g. its dock; "
         "lets the server put this session's objects on the map",
     )
-    p.add_argument("--config", metavar="FILE", help="TOML file with [tracker] and [agent] tables")
+    p.add_argument("--config", metavar="FILE", help="TOML file with [tracker], [agent] and [zenoh] tables")
+    add_zenoh_args(p)
     p.set_defaults(func=run)
 
 
@@ -74,6 +78,7 @@ def run(args: argparse.Namespace) -> int:
         source = LiveRun(spec.scenario, spec.seed, spec.robot)
     tracker_cfg = load_config(TrackerConfig, args.config, section="tracker")
     agent_cfg = load_config(AgentConfig, args.config, section="agent")
+    options = zenoh_options(args, args.config)
     overrides: dict[str, Any] = {}  # field name -> value; dataclasses.replace re-validates
     if args.rate is not None:
         overrides["rate_hz"] = args.rate
@@ -91,6 +96,7 @@ def run(args: argparse.Namespace) -> int:
         config=agent_cfg,
         tracker_config=tracker_cfg,
         T_map_odom=T_map_odom,
+        zenoh_options=options,
     )
 
     def ready(session_id: str, pending: int) -> None:

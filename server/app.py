@@ -35,10 +35,10 @@ from wardmap.server.ingest import Ingest
 from wardmap.server.mapserve import MapServe
 from wardmap.server.objectmap import ObjectMap
 from wardmap.server.store import open_store
-from wardmap.server.zenoh_session import open_session
+from wardmap.server.zenoh_session import check_session_config, open_session
 from wardmap.shared.errors import WardmapError
 from wardmap.shared.signals import on_stop_signals
-from wardmap.shared.zenoh_config import client_config
+from wardmap.shared.zenoh_config import ZenohOptions, client_config
 
 if TYPE_CHECKING:
     from fastapi import FastAPI
@@ -70,24 +70,27 @@ class MapServer:
         connect: Sequence[str] | None = None,
         pipeline_factory: PipelineFactory | None = None,
         require_tokens: bool = True,
+        zenoh_options: ZenohOptions | None = None,
     ) -> None:
         """
         Args:
             db_url: keyframe store URL, ``sqlite:///PATH`` (opened by ``start()``).
-            connect: zenoh router endpoints ``tcp/HOST:PORT`` (checked now). The server opens
-                one session to them for the ingest and the map service. None: no Zenoh
-                (REST API only; tests, benchmarks).
+            connect: zenoh router endpoints ``tcp/HOST:PORT`` or ``tls/HOST:PORT`` (checked
+                now). The server opens one session to them for the ingest and the map
+                service. None: no Zenoh (REST API only; tests, benchmarks).
             pipeline_factory: builds the mapping stage (``server/pipeline.py``) from the
                 store and the object map; started last, stopped first. None: keyframes are
                 stored but not mapped.
             require_tokens: the REST API's data routes need a bearer token (``server/tokens.py``);
                 False only for insecure-loopback mode (:func:`run_server` checks the address).
+            zenoh_options: TLS files and zenoh config file of the session (docs/security.md).
 
         Raises:
             ConfigError: a bad endpoint in ``connect``.
         """
         if connect is not None:
-            client_config(connect)  # validates the endpoints now
+            client_config(connect, options=zenoh_options)  # validates the endpoints now
+        self._zenoh_options = zenoh_options
         self._db_url = db_url
         self._connect = None if connect is None else list(connect)
         self._pipeline_factory = pipeline_factory
@@ -120,7 +123,7 @@ class MapServer:
             ingest: Ingest | None = None
             corrections: CorrectionPublisher | None = None
             if self._connect is not None:
-                session = open_session(self._connect)
+                session = open_session(self._connect, self._zenoh_options)
                 stack.callback(session.close)  # after ingest and map service undeclared theirs
                 ingest = Ingest(session, store)
                 ingest.start()
@@ -154,12 +157,12 @@ class MapServer:
     @classmethod
     def from_config(
         cls, db_url: str, *, connect: Sequence[str] | None, config_path: str | None = None,
-        require_tokens: bool = True,
+        require_tokens: bool = True, zenoh_options: ZenohOptions | None = None,
     ) -> MapServer:
         """The server ``wardmap server`` runs, with its mapping stage configured from a file.
 
         Args:
-            db_url, connect, require_tokens: as in the constructor.
+            db_url, connect, require_tokens, zenoh_options: as in the constructor.
             config_path: TOML file with ``[pipeline]``, ``[perception]`` and ``[association]``
                 tables (defaults when None; ``deploy/server.toml``). With ``[pipeline]
                 enabled = false`` keyframes are stored but not mapped.
@@ -183,7 +186,7 @@ class MapServer:
         association_cfg = load_config(AssociationConfig, config_path, section="association")
         backend_cfg = load_config(BackendConfig, config_path, section="backend")
         if not pipeline_cfg.enabled:
-            return cls(db_url, connect=connect, require_tokens=require_tokens)
+            return cls(db_url, connect=connect, require_tokens=require_tokens, zenoh_options=zenoh_options)
         # Build the segmenter now: a missing or bad model is one clear error before anything starts.
         segmenter = make_segmenter(perception_cfg.segmenter, perception_cfg)
 
@@ -192,7 +195,8 @@ class MapServer:
                                association=association_cfg, segmenter=segmenter,
                                backend=BackendStage(store, backend_cfg))
 
-        return cls(db_url, connect=connect, pipeline_factory=make_pipeline, require_tokens=require_tokens)
+        return cls(db_url, connect=connect, pipeline_factory=make_pipeline, require_tokens=require_tokens,
+                   zenoh_options=zenoh_options)
 
     @property
     def services(self) -> Services | None:
@@ -288,11 +292,13 @@ def run_server(
     on_ready: Callable[[str], None] | None = None,
     config_path: str | None = None,
     insecure_loopback: bool = False,
+    zenoh_options: ZenohOptions | None = None,
 ) -> None:
     """Serve until ``stop`` is set or SIGTERM/SIGINT (in the main thread).
 
     Args:
-        connect: zenoh router endpoints ``tcp/HOST:PORT`` the ingest connects to.
+        connect: zenoh router endpoints ``tcp/HOST:PORT`` or ``tls/HOST:PORT`` the ingest
+            connects to.
         db_url: keyframe store URL, ``sqlite:///PATH``.
         http_host, http_port: where the REST API listens (port 0: any free port).
         stop: event that ends the server when set.
@@ -302,6 +308,7 @@ def run_server(
             tables (defaults when None; ``deploy/server.toml``).
         insecure_loopback: serve every route without a token; refused unless ``http_host``
             is a loopback address (the demo's mode).
+        zenoh_options: TLS files and zenoh config file of the session (docs/security.md).
 
     Raises:
         ConfigError: a bad zenoh endpoint.
@@ -322,9 +329,9 @@ def run_server(
         throttled_exception_handler,
     )
 
-    client_config(connect)  # validate the endpoints before anything starts
+    check_session_config(connect, zenoh_options)  # endpoints, TLS files: one clear line, before start
     server_root = MapServer.from_config(db_url, connect=connect, config_path=config_path,
-                                        require_tokens=not insecure_loopback)
+                                        require_tokens=not insecure_loopback, zenoh_options=zenoh_options)
     open_store(db_url).close()  # validate URL and file here, so the error is one clear line
     stop = stop if stop is not None else threading.Event()
     started = threading.Event()
