@@ -35,6 +35,7 @@ from wardmap.shared.zenoh_config import (  # noqa: E402
     ZenohOptions,
     ack_key,
     client_config,
+    correction_key,
     keyframe_key,
 )
 from wardmap.shared.zenoh_load import load_zenoh_config  # noqa: E402
@@ -182,17 +183,22 @@ def test_a_robot_certificate_cannot_impersonate_forge_or_eavesdrop(
     everything before it passed the router. robot_1's own keyframe is stored and acked, yet
     robot_1 got no forged ack or update, the server stored nothing as robot_1 but its own
     keyframe, robot_0 never saw robot_1's keyframe, and a map query of robot_1 got only the
-    server's answer."""
+    server's answer. What robot_1 may do still works: a correction query reaches a peer with
+    the server certificate and its answer comes back."""
     rng = np.random.default_rng(39)
     forged_kf = encode(keyframe(rng, robot_id="robot_1", session_id="forged"))
     own_kf = encode(keyframe(rng, robot_id="robot_0", session_id="sentinel"))
     real_kf = encode(keyframe(rng, robot_id="robot_1", session_id="genuine"))
     forged_ack = encode(AckMsg("robot_1", "genuine", 0, "stored", ""))
     fake = b"fake door at (99, 99)"
-    r0_acks, r0_keyframes, r1_acks, r1_updates, r1_replies = (_Inbox() for _ in range(5))
+    correction = b"correction of robot_1"
+    r0_acks, r0_keyframes, r1_acks, r1_updates, r1_replies, r1_corrections = (_Inbox() for _ in range(6))
     with (
+        _open(router, _options(site, "server")) as trusted,
         _open(router, _options(site, "robot_0")) as r0,
         _open(router, _options(site, "robot_1")) as r1,
+        trusted.declare_queryable(correction_key("robot_1"), lambda q: q.reply(correction_key("robot_1"),
+                                                                              correction)),
         r0.declare_subscriber(ack_key("robot_0"), r0_acks.on_sample),
         r0.declare_subscriber(ALL_KEYFRAMES, r0_keyframes.on_sample),
         r0.declare_queryable(MAP_OBJECTS_KEY, lambda q: q.reply(MAP_OBJECTS_KEY, fake)),
@@ -209,10 +215,13 @@ def test_a_robot_certificate_cannot_impersonate_forge_or_eavesdrop(
         every_answer = {"target": zenoh.QueryTarget.ALL, "consolidation": zenoh.ConsolidationMode.NONE}
         for reply in r1.get(MAP_OBJECTS_KEY, **every_answer, timeout=EVENT_TIMEOUT_S):
             r1_replies.add("", reply.ok.payload.to_bytes() if reply.ok is not None else b"error")
+        for reply in r1.get(correction_key("robot_1"), **every_answer, timeout=EVENT_TIMEOUT_S):
+            r1_corrections.add("", reply.ok.payload.to_bytes() if reply.ok is not None else b"error")
     assert len(r1_acks.items) == 1  # the server's ack only; the forged one never arrived
     assert r1_updates.items == []
     assert real_kf not in [p for _, p in r0_keyframes.items]
     assert [p for _, p in r1_replies.items if p == fake] == []
     assert len(r1_replies.items) == 1  # the server's reply to the map query
+    assert correction in [p for _, p in r1_corrections.items]
     robot_1 = _robots(server)["robot_1"]
     assert (robot_1["keyframes"], robot_1["sessions"]) == (1, 1)  # "genuine" only, not "forged"
