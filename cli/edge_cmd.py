@@ -30,7 +30,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "(e.g. sim:aisle_slow_1, sim:two_robots:0:robot_1)",
     )
     p.add_argument(
-        "--connect", action="append", required=True, metavar="tcp|tls/HOST:PORT",
+        "--connect", action="append", required=True, metavar="tcp|tls|quic/HOST:PORT",
         help="router endpoint (repeat)",
     )
     p.add_argument("--outbox", required=True, type=Path, metavar="DIR", help=f"outbox folder ({OUTBOX_FILE})")

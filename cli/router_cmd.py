@@ -1,6 +1,6 @@
 """``wardmap router``: run a Zenoh router that robots and map servers connect to.
 
-With ``--listen tls/HOST:PORT``, ``--tls-cert``/``--tls-key`` (the router's certificate) and
+With ``--listen tls/HOST:PORT`` (or ``quic/``), ``--tls-cert``/``--tls-key`` (the router's certificate) and
 ``--tls-ca`` (the site CA) it accepts only clients with a certificate of that CA; the ACL
 that ``wardmap certs`` writes (``--zenoh-config DIR/acl.json5``) limits what each may do.
 """
@@ -18,7 +18,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "--listen",
         action="append",
         required=True,
-        metavar="tcp|tls/HOST:PORT",
+        metavar="tcp|tls|quic/HOST:PORT",
         help="endpoint to listen on (repeatable), e.g. tcp/0.0.0.0:7447 or tls/0.0.0.0:7447",
     )
     add_zenoh_args(p)

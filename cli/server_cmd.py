@@ -14,7 +14,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "--connect",
         action="append",
         required=True,
-        metavar="tcp|tls/HOST:PORT",
+        metavar="tcp|tls|quic/HOST:PORT",
         help="zenoh router endpoint to connect to (repeatable), e.g. tcp/127.0.0.1:7447",
     )
     p.add_argument(

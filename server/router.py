@@ -1,10 +1,10 @@
 """The wardmap Zenoh router: one zenoh session in router mode, nothing else.
 
-Robots and map servers connect to it by explicit ``tcp/HOST:PORT`` or ``tls/HOST:PORT``
+Robots and map servers connect to it by explicit ``tcp/``, ``tls/`` or ``quic/HOST:PORT``
 endpoints (multicast scouting and shared memory are off by default, see :func:`router_config`).
 With TLS files it listens with mutual TLS, and a site config file (``--zenoh-config``, e.g.
 the ``acl.json5`` of ``wardmap certs``) adds access control (docs/security.md). This module
-is the only place the router touches zenoh; the CLI (``wardmap router``) is a thin
+is the only place the router opens a zenoh session; the CLI (``wardmap router``) is a thin
 wrapper around :func:`run_router`.
 """
 
@@ -38,7 +38,7 @@ def run_router(
     """Run a Zenoh router listening on ``listen`` until ``stop`` is set or SIGTERM/SIGINT.
 
     Args:
-        listen: endpoints ``tcp/HOST:PORT`` or ``tls/HOST:PORT`` to listen on (at least one).
+        listen: endpoints ``tcp/``, ``tls/`` or ``quic/HOST:PORT`` to listen on (at least one).
         options: TLS files (the router's certificate and key; with a CA, mutual TLS) and an
             optional zenoh JSON5/JSON/YAML config file laid under wardmap's values.
         stop: event that ends the router when set; signals set it too when this runs in
@@ -46,7 +46,7 @@ def run_router(
         on_ready: called once with the listen endpoints after the router is open.
 
     Raises:
-        ConfigError: bad endpoint or config file, a ``tls/`` endpoint without certificate and
+        ConfigError: bad endpoint or config file, a ``tls/`` or ``quic/`` endpoint without certificate and
             key, a missing TLS file.
         RouterError: zenoh cannot open the router (e.g. address already in use).
     """

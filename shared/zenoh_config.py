@@ -75,10 +75,9 @@ framing. Zenoh drops a larger message at the receiving link before it is reassem
 
 _ROBOT_ID_RE = re.compile(r"[A-Za-z0-9_.-]{1,64}")
 _ROBOT_KEY_RE = re.compile(rf"{re.escape(KEY_PREFIX)}/robot/([A-Za-z0-9_.-]{{1,64}})/[A-Za-z0-9_.-]+")
-# tcp/HOST:PORT or tls/HOST:PORT with HOST a DNS name, an IPv4 address or a bracketed IPv6
-# address.
+# tcp/, tls/ or quic/HOST:PORT with HOST a DNS name, an IPv4 address or a bracketed IPv6 address.
 _ENDPOINT_RE = re.compile(
-    r"(?P<proto>tcp|tls)/(?P<host>\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9](?:[A-Za-z0-9.-]*[A-Za-z0-9])?):(?P<port>\d+)"
+    r"(?P<proto>tcp|tls|quic)/(?P<host>\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9](?:[A-Za-z0-9.-]*[A-Za-z0-9])?):(?P<port>\d+)"
 )
 
 
@@ -86,7 +85,8 @@ _ENDPOINT_RE = re.compile(
 
 
 def validate_endpoint(endpoint: str) -> str:
-    """Check one Zenoh endpoint of the form ``tcp/HOST:PORT`` or ``tls/HOST:PORT`` (port 1-65535).
+    """Check one Zenoh endpoint ``tcp/HOST:PORT``, ``tls/HOST:PORT`` or ``quic/HOST:PORT`` (port
+    1-65535). ``tls/`` and ``quic/`` take the TLS files of :class:`ZenohOptions`.
 
     Returns the endpoint unchanged; raises :class:`ConfigError` naming the endpoint and
     the expected form otherwise.
@@ -98,7 +98,7 @@ def validate_endpoint(endpoint: str) -> str:
     m = _ENDPOINT_RE.fullmatch(endpoint)
     if m is None:
         raise ConfigError(
-            f"bad endpoint {endpoint!r}: expected 'tcp/HOST:PORT' or 'tls/HOST:PORT', "
+            f"bad endpoint {endpoint!r}: expected 'tcp/HOST:PORT', 'tls/HOST:PORT' or 'quic/HOST:PORT', "
             "e.g. 'tcp/127.0.0.1:7447'"
         )
     port = int(m.group("port"))

@@ -5,8 +5,8 @@ and the edge agent (``edge/agent.py``) share: an optional Zenoh config file of t
 (:attr:`~wardmap.shared.zenoh_config.ZenohOptions.config`, e.g. the ACL that ``wardmap certs``
 writes) is read first and wardmap's values are laid on top, each value of the file they
 replace logged as a warning, so nothing is overridden silently. Before zenoh sees the config,
-:func:`load_zenoh_config` checks that every ``tls/`` endpoint has the files it needs and that
-every TLS file it names exists: a missing CA is a clear error here, not a connect timeout.
+:func:`load_zenoh_config` checks that every ``tls/`` or ``quic/`` endpoint has the files it
+needs and that every TLS file it names exists: a missing CA is a clear error here, not a connect timeout.
 zenoh is imported when a config is built, never at import.
 """
 
@@ -23,7 +23,7 @@ from wardmap.shared.zenoh_config import ZenohOptions, config_leaves
 
 log = logging.getLogger(__name__)
 
-__all__ = ["TLS_FILE_KEYS", "connect_hint", "load_zenoh_config", "zenoh_error_line"]
+__all__ = ["TLS_FILE_KEYS", "TLS_PROTOCOLS", "connect_hint", "load_zenoh_config", "zenoh_error_line"]
 
 TLS_FILE_KEYS = (
     "root_ca_certificate",
@@ -33,6 +33,9 @@ TLS_FILE_KEYS = (
     "connect_private_key",
 )
 """Keys of ``transport/link/tls`` that name PEM files (checked to exist)."""
+
+TLS_PROTOCOLS = ("tls/", "quic/")
+"""Endpoint prefixes whose links use the ``transport/link/tls`` files."""
 
 _NEEDS = {
     "connect": (("root_ca_certificate", "--tls-ca"),),
@@ -56,12 +59,12 @@ def zenoh_error_line(exc: BaseException) -> str:
 
 
 def connect_hint(connect: Sequence[str]) -> str:
-    """What to append to a failed connect to ``connect``: over ``tls/`` a refused handshake
+    """What to append to a failed connect to ``connect``: over ``tls/`` or ``quic/`` a refused handshake
     (unknown CA, no or foreign client certificate, wrong host name) shows only as a timeout."""
-    if not any(str(e).startswith("tls/") for e in connect):
+    if not any(str(e).startswith(TLS_PROTOCOLS) for e in connect):
         return ""
     return (
-        "; over tls/ check that the router's certificate names that host and is signed by "
+        "; over TLS check that the router's certificate names that host and is signed by "
         "--tls-ca, and that this process's --tls-cert comes from the router's CA"
     )
 
@@ -76,7 +79,7 @@ def load_zenoh_config(ours: Mapping[str, Any], options: ZenohOptions | None = No
             already in ``ours``).
 
     Raises:
-        ConfigError: the file is missing or malformed, a ``tls/`` endpoint lacks its CA (client)
+        ConfigError: the file is missing or malformed, a ``tls/`` or ``quic/`` endpoint lacks its CA (client)
             or certificate and key (router), or a named TLS file does not exist.
     """
     import zenoh
@@ -104,12 +107,13 @@ def load_zenoh_config(ours: Mapping[str, Any], options: ZenohOptions | None = No
 
 
 def _check_tls(conf: Any, side: str, path: Path | None) -> None:
-    """Raise ConfigError when a ``tls/`` endpoint of ``side`` lacks a file, or a file is missing."""
+    """Raise ConfigError when a ``tls/`` or ``quic/`` endpoint of ``side`` lacks a file, or a
+    named file is missing."""
     tls = json.loads(conf.get_json("transport/link/tls"))
     endpoints = json.loads(conf.get_json(f"{side}/endpoints"))
     if isinstance(endpoints, Mapping):  # zenoh allows {router: [...], peer: [...]} per mode
         endpoints = [e for group in endpoints.values() for e in group]
-    tls_endpoints = [e for e in endpoints if str(e).startswith("tls/")]
+    tls_endpoints = [e for e in endpoints if str(e).startswith(TLS_PROTOCOLS)]
     where = f" or transport/link/tls/ in {path}" if path is not None else ""
     for key, flag in _NEEDS[side] if tls_endpoints else ():
         if not tls.get(key):

@@ -1,7 +1,8 @@
 """Zenoh with mutual TLS and the fleet ACL (docs/security.md), as a site runs it: a real
-``wardmap router`` on ``tls/127.0.0.1`` with the ``acl.json5`` of ``wardmap certs``, a real
-``wardmap server`` and ``wardmap edge`` with their own certificates, and zenoh clients in this
-process holding robot certificates (or none) as attackers would.
+``wardmap router`` on ``tls/127.0.0.1`` (and again on ``quic/127.0.0.1``) with the ``acl.json5``
+of ``wardmap certs``, a real ``wardmap server`` and ``wardmap edge`` with their own
+certificates, and zenoh clients in this process holding robot certificates (or none) as
+attackers would.
 
 Every session is a client with shared memory and multicast scouting off; the tests wait on
 ready lines, acks and replies, never on sleeps. A put the ACL drops is shown absent by a later
@@ -78,10 +79,11 @@ def _open(endpoint: str, options: ZenohOptions) -> Any:
     return zenoh.open(load_zenoh_config(client_config([endpoint], options=options), options))
 
 
-@pytest.fixture(scope="module")
-def router(site: Path) -> Iterator[str]:
-    """``wardmap router`` on a free tls/ port with mutual TLS and the fleet's ACL; its endpoint."""
-    endpoint = f"tls/127.0.0.1:{free_port()}"
+@pytest.fixture(scope="module", params=["tls", "quic"])
+def router(site: Path, request: pytest.FixtureRequest) -> Iterator[str]:
+    """``wardmap router`` on a free tls/ (TCP) or quic/ (UDP) port with mutual TLS and the
+    fleet's ACL; its endpoint."""
+    endpoint = f"{request.param}/127.0.0.1:{free_port()}"
     cmd = wardmap_cmd("router", "--listen", endpoint, *_flags(site, "router"),
                       "--zenoh-config", str(site / ACL_FILE))
     proc = start(cmd, f"router listening on {endpoint}", READY_TIMEOUT_S)
@@ -129,7 +131,7 @@ def test_edge_with_its_certificate_stores_keyframes_through_the_tls_router(
 
 
 def test_without_a_certificate_of_the_site_nobody_connects(site: Path, router: str, tmp_path: Path) -> None:
-    """No client certificate, a certificate of another CA, plain tcp to the tls port: zenoh
+    """No client certificate, a certificate of another CA, plain tcp to the router's port: zenoh
     refuses each session; the edge says so in one line and exits 1."""
     other = site.parent / "other"
     port = router.rsplit(":", 1)[1]
@@ -167,8 +169,20 @@ class _Inbox:
             return self._changed.wait_for(lambda: any(ok(k, p) for k, p in self.items), EVENT_TIMEOUT_S)
 
 
+PROBE = b"probe"
+"""Put by a server-certificate session on a key a test subscribed to: once it arrives, the
+subscription is known to the router (nothing sent later can miss it)."""
+
+
+def _subscribed(trusted: Any, key: str, inbox: _Inbox) -> None:
+    trusted.put(key, PROBE)
+    assert inbox.wait_for(lambda _k, p: p == PROBE), f"subscription to {key} not in place"
+
+
 def _acked(inbox: _Inbox, robot_id: str, session_id: str) -> bool:
     def ok(_key: str, payload: bytes) -> bool:
+        if payload == PROBE:
+            return False
         ack = decode_ack(payload)
         return (ack.robot_id, ack.session_id, ack.status) == (robot_id, session_id, "stored")
 
@@ -205,6 +219,9 @@ def test_a_robot_certificate_cannot_impersonate_forge_or_eavesdrop(
         r1.declare_subscriber(ack_key("robot_1"), r1_acks.on_sample),
         r1.declare_subscriber(MAP_UPDATES_KEY, r1_updates.on_sample),
     ):
+        _subscribed(trusted, ack_key("robot_0"), r0_acks)
+        _subscribed(trusted, ack_key("robot_1"), r1_acks)
+        _subscribed(trusted, MAP_UPDATES_KEY, r1_updates)
         r0.put(keyframe_key("robot_1"), forged_kf)
         r0.put(ack_key("robot_1"), forged_ack)
         r0.put(MAP_UPDATES_KEY, fake)
@@ -217,8 +234,8 @@ def test_a_robot_certificate_cannot_impersonate_forge_or_eavesdrop(
             r1_replies.add("", reply.ok.payload.to_bytes() if reply.ok is not None else b"error")
         for reply in r1.get(correction_key("robot_1"), **every_answer, timeout=EVENT_TIMEOUT_S):
             r1_corrections.add("", reply.ok.payload.to_bytes() if reply.ok is not None else b"error")
-    assert len(r1_acks.items) == 1  # the server's ack only; the forged one never arrived
-    assert r1_updates.items == []
+    assert len([p for _, p in r1_acks.items if p != PROBE]) == 1  # the server's ack, not the forged one
+    assert [p for _, p in r1_updates.items if p != PROBE] == []
     assert real_kf not in [p for _, p in r0_keyframes.items]
     assert [p for _, p in r1_replies.items if p == fake] == []
     assert len(r1_replies.items) == 1  # the server's reply to the map query

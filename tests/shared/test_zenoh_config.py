@@ -88,10 +88,10 @@ def test_client_config_modes() -> None:
 @pytest.mark.parametrize(
     "endpoint",
     ["tcp/127.0.0.1:1", "tcp/localhost:65535", "tcp/router-1.ward3.example.org:7447", "tcp/[::1]:7447",
-     "tls/router-1.ward3.example.org:7447", "tls/[::1]:7447"],
+     "tls/router-1.ward3.example.org:7447", "tls/[::1]:7447", "quic/127.0.0.1:7447"],
 )
 def test_valid_endpoints(endpoint: str) -> None:
-    """Well-formed tcp and tls endpoints pass through unchanged."""
+    """Well-formed tcp, tls and quic endpoints pass through unchanged."""
     assert validate_endpoint(endpoint) == endpoint
 
 
@@ -102,7 +102,7 @@ def test_valid_endpoints(endpoint: str) -> None:
         ("tcp/127.0.0.1:65536", "1..65535"),
         ("tcp/127.0.0.1", "tcp/HOST:PORT"),
         ("127.0.0.1:7447", "tcp/HOST:PORT"),
-        ("udp/127.0.0.1:7447", "tcp/HOST:PORT' or 'tls/HOST:PORT"),
+        ("udp/127.0.0.1:7447", "'tls/HOST:PORT' or 'quic/HOST:PORT'"),
         ("tcp/:7447", "tcp/HOST:PORT"),
         ("tcp/127.0.0.1:74a7", "tcp/HOST:PORT"),
         ("tcp/127.0.0.1:7447 ", "tcp/HOST:PORT"),
