@@ -311,7 +311,7 @@ def run_server(
         zenoh_options: TLS files and zenoh config file of the session (docs/security.md).
 
     Raises:
-        ConfigError: a bad zenoh endpoint.
+        ConfigError: a bad zenoh endpoint, zenoh config file or TLS file.
         StoreError: the store URL or file is bad.
         ServerError: the HTTP port cannot be bound (or ``insecure_loopback`` off loopback),
             or start-up failed (see the log).

@@ -6,8 +6,9 @@ and the edge agent (``edge/agent.py``) share: an optional Zenoh config file of t
 writes) is read first and wardmap's values are laid on top, each value of the file they
 replace logged as a warning, so nothing is overridden silently. Before zenoh sees the config,
 :func:`load_zenoh_config` checks that every ``tls/`` or ``quic/`` endpoint has the files it
-needs and that every TLS file it names exists: a missing CA is a clear error here, not a connect timeout.
-zenoh is imported when a config is built, never at import.
+needs and that every TLS file it names exists: a missing CA is one clear line here, not a
+handshake that fails later as "Unable to connect". zenoh is imported when a config is built,
+never at import.
 """
 
 from __future__ import annotations
