@@ -16,9 +16,16 @@ machines on a network), multicast scouting off.
    as Zenoh accepts them (reliable, congestion control block) and times until the last ack:
    keyframes and megabytes per second the server ingests, decodes, validates and commits.
 
+With ``--security mtls`` the same run goes through a router on ``tls/`` with mutual TLS and the
+fleet ACL (docs/security.md): ``wardmap certs`` makes a site CA and a certificate for the
+router, the server, each robot and the bench's own sessions (a server certificate: they
+subscribe to every robot's heartbeats and re-publish keyframes as every robot), and the
+table is written as its own section.
+
 Data sets are cached under ``--data`` (``<scenario>_s<seed>``, shared with bench/tracking.py).
 
-    python bench/transport.py [--frames 300] [--data out/bench_data] [--write BENCHMARKS.md]
+    python bench/transport.py [--frames 300] [--data out/bench_data] [--security none|mtls]
+                              [--write BENCHMARKS.md]
 """
 
 from __future__ import annotations
@@ -42,9 +49,11 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _report import git_rev, machine, write_section
 
+from wardmap.server.certs import ACL_FILE, init_ca, issue
 from wardmap.shared.dataset import DatasetReader
 from wardmap.shared.wire import decode_ack, decode_heartbeat
-from wardmap.shared.zenoh_config import ack_key, client_config, heartbeat_key, keyframe_key
+from wardmap.shared.zenoh_config import ZenohOptions, ack_key, client_config, heartbeat_key, keyframe_key
+from wardmap.shared.zenoh_load import load_zenoh_config
 from wardmap.sim.runner import generate
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -112,25 +121,65 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def start_router(work: Path) -> tuple[Proc, str]:
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
-    router = Proc(["router", "--listen", endpoint], work / "router.log")
+class Site:
+    """Who connects how: plain tcp (``site`` None) or mutual TLS with certificates in ``site``."""
+
+    def __init__(self, site: Path | None) -> None:
+        self.site = site
+
+    @classmethod
+    def make(cls, security: str, work: Path, robots: list[str]) -> Site:
+        """``none``: plain tcp; ``mtls``: a CA and certificates for every process in ``work/site``."""
+        if security == "none":
+            return cls(None)
+        site = work / "site"
+        init_ca(site)
+        issue(site, "router", "router", hosts=["127.0.0.1"])
+        for name in ("server", "bench"):
+            issue(site, name, "server")
+        for robot_id in robots:
+            issue(site, robot_id, "robot")
+        return cls(site)
+
+    @property
+    def scheme(self) -> str:
+        return "tcp" if self.site is None else "tls"
+
+    def options(self, name: str) -> ZenohOptions:
+        if self.site is None:
+            return ZenohOptions()
+        return ZenohOptions(tls_ca=str(self.site / "ca.crt"), tls_cert=str(self.site / f"{name}.crt"),
+                            tls_key=str(self.site / f"{name}.key"))
+
+    def flags(self, name: str) -> list[str]:
+        """The ``wardmap`` flags of process ``name`` (its certificate; the router also its ACL)."""
+        if self.site is None:
+            return []
+        o = self.options(name)
+        acl = ["--zenoh-config", str(self.site / ACL_FILE)] if name == "router" else []
+        return ["--tls-ca", o.tls_ca, "--tls-cert", o.tls_cert, "--tls-key", o.tls_key, *acl]
+
+
+def start_router(work: Path, site: Site) -> tuple[Proc, str]:
+    endpoint = f"{site.scheme}/127.0.0.1:{_free_port()}"
+    router = Proc(["router", "--listen", endpoint, *site.flags("router")], work / "router.log")
     router.wait_line(lambda s: s.startswith("router listening"), READY_TIMEOUT_S)
     return router, endpoint
 
 
-def start_server(endpoint: str, db: Path, work: Path, name: str) -> tuple[Proc, str]:
+def start_server(endpoint: str, db: Path, work: Path, name: str, site: Site) -> tuple[Proc, str]:
     port = _free_port()
-    server = Proc(["server", "--connect", endpoint, "--db", f"sqlite:///{db}", "--http", f"127.0.0.1:{port}"],
-                  work / f"{name}.log")
+    server = Proc(["server", "--connect", endpoint, "--db", f"sqlite:///{db}", "--http", f"127.0.0.1:{port}",
+                   *site.flags("server")], work / f"{name}.log")
     server.wait_line(lambda s: s.startswith("server ready:"), READY_TIMEOUT_S)
     return server, f"http://127.0.0.1:{port}"
 
 
-def zenoh_client(endpoint: str) -> Any:
+def zenoh_client(endpoint: str, site: Site) -> Any:
     import zenoh
 
-    return zenoh.open(zenoh.Config.from_json5(json.dumps(client_config([endpoint]))))
+    options = site.options("bench")
+    return zenoh.open(load_zenoh_config(client_config([endpoint], options=options), options))
 
 
 # ------------------------------------------------------------------------------ phases
@@ -150,7 +199,7 @@ def datasets(data: Path, frames: int) -> dict[str, Path]:
     return out
 
 
-def real_time(endpoint: str, sets: dict[str, Path], frames: int, work: Path) -> dict[str, Any]:
+def real_time(endpoint: str, sets: dict[str, Path], frames: int, work: Path, site: Site) -> dict[str, Any]:
     """Phase 1: four agents at 10 Hz; heartbeats sampled for the backlog."""
     backlog: dict[str, list[tuple[float, int]]] = {r: [] for r in sets}
     lock = threading.Lock()
@@ -162,14 +211,14 @@ def real_time(endpoint: str, sets: dict[str, Path], frames: int, work: Path) -> 
             backlog[hb.robot_id].append((time.monotonic() - t0, int(hb.stats["pending"])))
 
     edges: dict[str, Proc] = {}
-    with zenoh_client(endpoint) as session:
+    with zenoh_client(endpoint, site) as session:
         subs = [session.declare_subscriber(heartbeat_key(r), on_heartbeat) for r in sets]
         try:
             for robot_id, path in sets.items():
                 edges[robot_id] = Proc(
                     ["edge", "--robot", robot_id, "--source", str(path), "--connect", endpoint,
                      "--outbox", str(work / "outbox" / robot_id), "--rate", "10",
-                     "--max-frames", str(frames)],
+                     "--max-frames", str(frames), *site.flags(robot_id)],
                     work / f"edge_{robot_id}.log",
                 )
             summaries = {}
@@ -197,7 +246,7 @@ def real_time(endpoint: str, sets: dict[str, Path], frames: int, work: Path) -> 
             "slope": slope, "heartbeats": sum(len(v) for v in backlog.values())}
 
 
-def throughput(endpoint: str, payloads: list[tuple[str, bytes]]) -> dict[str, float]:
+def throughput(endpoint: str, payloads: list[tuple[str, bytes]], site: Site) -> dict[str, float]:
     """Phase 2: publish every payload as fast as possible; time until the last ack."""
     import zenoh
 
@@ -210,7 +259,7 @@ def throughput(endpoint: str, payloads: list[tuple[str, bytes]]) -> dict[str, fl
         statuses[ack.status] = statuses.get(ack.status, 0) + 1
         acked.release()
 
-    with zenoh_client(endpoint) as session:
+    with zenoh_client(endpoint, site) as session:
         subs = [session.declare_subscriber(ack_key(r), on_ack) for r in robots]
         pubs = {
             r: session.declare_publisher(keyframe_key(r), reliability=zenoh.Reliability.RELIABLE,
@@ -248,23 +297,26 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     ap.add_argument("--frames", type=int, default=300, help="frames per robot (10 Hz: 300 = 30 s)")
     ap.add_argument("--data", type=Path, default=ROOT / "out" / "bench_data")
+    ap.add_argument("--security", choices=("none", "mtls"), default="none",
+                    help="mtls: router on tls/ with mutual TLS and the fleet ACL (docs/security.md)")
     ap.add_argument("--write", type=Path, help="write the table into this markdown file")
     args = ap.parse_args()
     sets = datasets(args.data, args.frames)
     with tempfile.TemporaryDirectory(prefix="wardmap-bench-transport-") as tmp:
         work = Path(tmp)
-        router, endpoint = start_router(work)
+        site = Site.make(args.security, work, list(sets))
+        router, endpoint = start_router(work, site)
         try:
             db = work / "rt.db"
-            server, _ = start_server(endpoint, db, work, "server_rt")
+            server, _ = start_server(endpoint, db, work, "server_rt", site)
             try:
-                rt = real_time(endpoint, sets, args.frames, work)
+                rt = real_time(endpoint, sets, args.frames, work, site)
             finally:
                 server.stop()
             payloads = stored_payloads(db)
-            server2, _ = start_server(endpoint, work / "flood.db", work, "server_flood")
+            server2, _ = start_server(endpoint, work / "flood.db", work, "server_flood", site)
             try:
-                tp = throughput(endpoint, payloads)
+                tp = throughput(endpoint, payloads, site)
             finally:
                 server2.stop()
         finally:
@@ -272,7 +324,7 @@ def main() -> None:
     body = report(rt, tp, payloads, args)
     print(body)
     if args.write:
-        write_section(args.write, "transport", body)
+        write_section(args.write, "transport" if args.security == "none" else "transport_mtls", body)
 
 
 def report(rt: dict[str, Any], tp: dict[str, float], payloads: list[tuple[str, bytes]],
@@ -280,13 +332,17 @@ def report(rt: dict[str, Any], tp: dict[str, float], payloads: list[tuple[str, b
     sizes: dict[str, list[int]] = {}
     for robot_id, p in payloads:
         sizes.setdefault(robot_id, []).append(len(p))
+    mtls = args.security == "mtls"
     lines = [
-        "## Transport: 4 robots, router, server (issue 4)",
+        "## Transport over mutual TLS with the fleet ACL (issue 39)" if mtls
+        else "## Transport: 4 robots, router, server (issue 4)",
         "",
-        f"Command: `python bench/transport.py --frames {args.frames}`. "
+        f"Command: `python bench/transport.py --frames {args.frames}{' --security mtls' if mtls else ''}`. "
         f"Machine: {machine()}; commit {git_rev()}.",
         "Real processes on loopback, Zenoh shared memory off; each agent tracks its simulated sequence at "
-        "10 Hz (the demo's four robots, seed 0).",
+        "10 Hz (the demo's four robots, seed 0)."
+        + (" Router on tls/ with mutual TLS and the ACL of `wardmap certs`; every process has its own "
+           "certificate." if mtls else ""),
         "",
         "| robot | frames | keyframes | delivered | bytes/keyframe mean | max "
         "| latency p50 ms | p95 | p99 | max |",

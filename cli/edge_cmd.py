@@ -12,6 +12,7 @@ from typing import Any
 
 from wardmap.cli.logopts import add_log_format
 from wardmap.cli.sources import SOURCE_HELP, SOURCE_METAVAR, add_bag_options, open_source
+from wardmap.cli.zenoh_args import add_zenoh_args, zenoh_options
 
 OUTBOX_FILE = "outbox.sqlite"
 """Name of the outbox file inside ``--outbox DIR``."""
@@ -29,7 +30,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--robot", required=True, metavar="ID", help="robot id, 1-64 of [A-Za-z0-9_.-]")
     p.add_argument("--source", required=True, metavar=SOURCE_METAVAR, help=SOURCE_HELP)
     p.add_argument(
-        "--connect", action="append", required=True, metavar="tcp/HOST:PORT", help="router endpoint (repeat)"
+        "--connect", action="append", required=True, metavar="tcp|tls|quic/HOST:PORT",
+        help="router endpoint (repeat)",
     )
     p.add_argument("--outbox", required=True, type=Path, metavar="DIR", help=f"outbox folder ({OUTBOX_FILE})")
     p.add_argument("--rate", type=float, metavar="HZ", help="frames per second (0 = as fast as possible)")
@@ -42,7 +44,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="the robot's start pose on the shared map (metres, degrees), e.g. its dock; "
         "lets the server put this session's objects on the map",
     )
-    p.add_argument("--config", metavar="FILE", help="TOML file with [tracker], [agent] and [source] tables")
+    p.add_argument("--config", metavar="FILE",
+                   help="TOML file with [tracker], [agent], [source] and [zenoh] tables")
     p.add_argument(
         "--metrics-port", type=int, metavar="N",
         help="serve the agent's Prometheus metrics at http://HOST:N/metrics (off by default)",
@@ -53,6 +56,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     add_log_format(p)
     add_bag_options(p)
+    add_zenoh_args(p)
     p.set_defaults(func=run)
 
 
@@ -83,6 +87,7 @@ def run(args: argparse.Namespace) -> int:
     source = open_source(args.source, args, args.config)
     tracker_cfg = load_config(TrackerConfig, args.config, section="tracker")
     agent_cfg = load_config(AgentConfig, args.config, section="agent")
+    options = zenoh_options(args, args.config)
     overrides: dict[str, Any] = {}  # field name -> value; dataclasses.replace re-validates
     if args.rate is not None:
         overrides["rate_hz"] = args.rate
@@ -104,6 +109,7 @@ def run(args: argparse.Namespace) -> int:
         tracker_config=tracker_cfg,
         T_map_odom=T_map_odom,
         metrics=metrics,
+        zenoh_options=options,
     )
 
     def ready(session_id: str, pending: int) -> None:

@@ -13,6 +13,7 @@ from collections.abc import Sequence
 from importlib.metadata import PackageNotFoundError, version
 
 from wardmap.cli import (
+    certs_cmd,
     dataset_cmd,
     demo_cmd,
     edge_cmd,
@@ -63,6 +64,7 @@ def build_parser() -> argparse.ArgumentParser:
     router_cmd.register(sub)
     server_cmd.register(sub)
     token_cmd.register(sub)
+    certs_cmd.register(sub)
     edge_cmd.register(sub)
     demo_cmd.register(sub)
     export_cmd.register(sub)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from wardmap.cli.logopts import add_log_format
+from wardmap.cli.zenoh_args import add_zenoh_args, zenoh_options
 from wardmap.shared.errors import ConfigError
 
 
@@ -14,7 +15,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "--connect",
         action="append",
         required=True,
-        metavar="tcp/HOST:PORT",
+        metavar="tcp|tls|quic/HOST:PORT",
         help="zenoh router endpoint to connect to (repeatable), e.g. tcp/127.0.0.1:7447",
     )
     p.add_argument(
@@ -26,7 +27,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     p.add_argument(
         "--config", metavar="FILE",
-        help="TOML file with [pipeline], [perception] and [association] tables (deploy/server.toml)",
+        help="TOML file with [pipeline], [perception], [association] and [zenoh] tables "
+             "(deploy/server.toml)",
     )
     p.add_argument(
         "--insecure-loopback", action="store_true",
@@ -34,6 +36,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
              "(demo and tests; create tokens with `wardmap token create`)",
     )
     add_log_format(p)
+    add_zenoh_args(p)
     p.set_defaults(func=run)
 
 
@@ -51,6 +54,7 @@ def run(args: argparse.Namespace) -> int:
     from wardmap.shared.sdnotify import notify, start_watchdog
 
     host, port = parse_http(args.http)
+    options = zenoh_options(args, args.config)
 
     def ready(url: str) -> None:
         print(f"server ready: {url}", flush=True)
@@ -58,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
         start_watchdog(lambda: _answers(f"{url}/healthz"))  # WatchdogSec: the HTTP loop still serves
 
     run_server(args.connect, args.db, host, port, on_ready=ready, config_path=args.config,
-               insecure_loopback=args.insecure_loopback)
+               insecure_loopback=args.insecure_loopback, zenoh_options=options)
     return 0
 
 

@@ -69,7 +69,6 @@ original ``(robot, session, seq)`` by the next start.
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
 import queue
 import threading
@@ -102,6 +101,7 @@ from wardmap.shared.wire import (
     encode,
 )
 from wardmap.shared.zenoh_config import (
+    ZenohOptions,
     ack_key,
     client_config,
     correction_key,
@@ -111,6 +111,7 @@ from wardmap.shared.zenoh_config import (
     validate_endpoint,
     validate_robot_id,
 )
+from wardmap.shared.zenoh_load import connect_hint, load_zenoh_config, zenoh_error_line
 
 log = logging.getLogger(__name__)
 
@@ -262,16 +263,20 @@ class EdgeAgent:
         tracker_config: TrackerConfig | None = None,
         T_map_odom: NDArray[np.float64] | None = None,
         metrics: EdgeMetrics | None = None,
+        zenoh_options: ZenohOptions | None = None,
     ) -> None:
         """Args:
             T_map_odom: (4, 4) this session's odom frame (the base at start) in the shared map,
                 when the robot starts at a known map pose; sent with every keyframe.
             metrics: where frames, outbox depth and ack latency are recorded
                 (``edge/metrics.py``), or None.
+            zenoh_options: TLS files (site CA, this robot's certificate and key) and a zenoh
+                config file for the session (docs/security.md); checked when :meth:`run` starts.
         """
         self.robot_id = validate_robot_id(robot_id)
         self.T_map_odom = None if T_map_odom is None else np.array(T_map_odom, np.float64)
         self.connect = [validate_endpoint(e) for e in connect]
+        self.zenoh_options = zenoh_options
         if not self.connect:
             raise ConfigError("the edge agent needs at least one --connect endpoint")
         if isinstance(source, (str, Path)):
@@ -336,7 +341,7 @@ class EdgeAgent:
         tracker = Tracker(source.calibration, self.tracker_cfg, kg.mobility_lut())
         stream = FrameStream(source, capacity=self.cfg.stream_capacity, rate_hz=self.cfg.rate_hz,
                              drop_when_behind=self.cfg.drop_when_behind, max_frames=self.cfg.max_frames)
-        zcfg = zenoh.Config.from_json5(json.dumps(client_config(self.connect)))
+        zcfg = load_zenoh_config(client_config(self.connect, options=self.zenoh_options), self.zenoh_options)
         t_start = time.monotonic()
         track = _TrackStats()
         with Outbox.open(
@@ -346,8 +351,10 @@ class EdgeAgent:
             try:
                 session = zenoh.open(zcfg)
             except zenoh.ZError as exc:
-                detail = str(exc).split(" at /", 1)[0]  # drop zenoh's Rust source location
-                raise WardmapError(f"cannot connect to {', '.join(self.connect)}: {detail}") from exc
+                raise WardmapError(
+                    f"cannot connect to {', '.join(self.connect)}: {zenoh_error_line(exc)}"
+                    f"{connect_hint(self.connect)}"
+                ) from exc
             with session, contextlib.ExitStack() as decl:
                 decl.enter_context(session.declare_subscriber(ack_key(self.robot_id), self._on_ack))
                 decl.enter_context(

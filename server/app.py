@@ -39,10 +39,10 @@ from wardmap.server.mapserve import MapServe
 from wardmap.server.objectmap import ObjectMap
 from wardmap.server.store import StoreUnavailableError, open_store
 from wardmap.server.telemetry import ServerTelemetry
-from wardmap.server.zenoh_session import ZenohSessionError, has_router, open_session
+from wardmap.server.zenoh_session import ZenohSessionError, check_session_config, has_router, open_session
 from wardmap.shared.errors import WardmapError
 from wardmap.shared.signals import on_stop_signals
-from wardmap.shared.zenoh_config import client_config
+from wardmap.shared.zenoh_config import ZenohOptions, client_config
 
 if TYPE_CHECKING:
     from fastapi import FastAPI
@@ -82,13 +82,14 @@ class MapServer:
         require_tokens: bool = True,
         telemetry: ServerTelemetry | None = None,
         retry_until: threading.Event | None = None,
+        zenoh_options: ZenohOptions | None = None,
     ) -> None:
         """
         Args:
             db_url: keyframe store URL, ``sqlite:///PATH`` (opened by ``start()``).
-            connect: zenoh router endpoints ``tcp/HOST:PORT`` (checked now). The server opens
-                one session to them for the ingest and the map service. None: no Zenoh
-                (REST API only; tests, benchmarks).
+            connect: zenoh router endpoints ``tcp/HOST:PORT`` or ``tls/HOST:PORT`` (checked
+                now). The server opens one session to them for the ingest and the map
+                service. None: no Zenoh (REST API only; tests, benchmarks).
             pipeline_factory: builds the mapping stage (``server/pipeline.py``) from the
                 store and the object map; started last, stopped first. None: keyframes are
                 stored but not mapped.
@@ -100,12 +101,14 @@ class MapServer:
                 router that does not answer, trying again with a capped backoff
                 (:data:`RETRY_FIRST_S` doubling to :data:`RETRY_MAX_S`, a warning each attempt)
                 until it succeeds or this event is set; None: fail at once.
+            zenoh_options: TLS files and zenoh config file of the session (docs/security.md).
 
         Raises:
             ConfigError: a bad endpoint in ``connect``.
         """
         if connect is not None:
-            client_config(connect)  # validates the endpoints now
+            client_config(connect, options=zenoh_options)  # validates the endpoints now
+        self._zenoh_options = zenoh_options
         self._db_url = db_url
         self._connect = None if connect is None else list(connect)
         self._pipeline_factory = pipeline_factory
@@ -144,7 +147,7 @@ class MapServer:
             router_connected: Callable[[], bool] | None = None
             if self._connect is not None:
                 session = self._retrying(f"a zenoh router at {', '.join(self._connect)}", ZenohSessionError,
-                                         functools.partial(open_session, self._connect))
+                                         functools.partial(open_session, self._connect, self._zenoh_options))
                 stack.callback(session.close)  # after ingest and map service undeclared theirs
                 router_connected = functools.partial(has_router, session)
                 ingest = Ingest(session, store, telemetry=self._telemetry)
@@ -198,11 +201,12 @@ class MapServer:
     def from_config(
         cls, db_url: str, *, connect: Sequence[str] | None, config_path: str | None = None,
         require_tokens: bool = True, retry_until: threading.Event | None = None,
+        zenoh_options: ZenohOptions | None = None,
     ) -> MapServer:
         """The server ``wardmap server`` runs, with its mapping stage configured from a file.
 
         Args:
-            db_url, connect, require_tokens, retry_until: as in the constructor.
+            db_url, connect, require_tokens, retry_until, zenoh_options: as in the constructor.
             config_path: TOML file with ``[pipeline]``, ``[perception]`` and ``[association]``
                 tables (defaults when None; ``deploy/server.toml``). With ``[pipeline]
                 enabled = false`` keyframes are stored but not mapped.
@@ -228,7 +232,7 @@ class MapServer:
         telemetry = ServerTelemetry()
         if not pipeline_cfg.enabled:
             return cls(db_url, connect=connect, require_tokens=require_tokens, telemetry=telemetry,
-                       retry_until=retry_until)
+                       retry_until=retry_until, zenoh_options=zenoh_options)
         # Build the segmenter now: a missing or bad model is one clear error before anything starts.
         segmenter = make_segmenter(perception_cfg.segmenter, perception_cfg)
 
@@ -239,7 +243,7 @@ class MapServer:
                                telemetry=telemetry)
 
         return cls(db_url, connect=connect, pipeline_factory=make_pipeline, require_tokens=require_tokens,
-                   telemetry=telemetry, retry_until=retry_until)
+                   telemetry=telemetry, retry_until=retry_until, zenoh_options=zenoh_options)
 
     @property
     def start_cancelled(self) -> bool:
@@ -341,11 +345,13 @@ def run_server(
     on_ready: Callable[[str], None] | None = None,
     config_path: str | None = None,
     insecure_loopback: bool = False,
+    zenoh_options: ZenohOptions | None = None,
 ) -> None:
     """Serve until ``stop`` is set or SIGTERM/SIGINT (in the main thread).
 
     Args:
-        connect: zenoh router endpoints ``tcp/HOST:PORT`` the ingest connects to.
+        connect: zenoh router endpoints ``tcp/HOST:PORT`` or ``tls/HOST:PORT`` the ingest
+            connects to.
         db_url: keyframe store URL, ``sqlite:///PATH``.
         http_host, http_port: where the REST API listens (port 0: any free port).
         stop: event that ends the server when set.
@@ -355,9 +361,10 @@ def run_server(
             tables (defaults when None; ``deploy/server.toml``).
         insecure_loopback: serve every route without a token; refused unless ``http_host``
             is a loopback address (the demo's mode).
+        zenoh_options: TLS files and zenoh config file of the session (docs/security.md).
 
     Raises:
-        ConfigError: a bad zenoh endpoint.
+        ConfigError: a bad zenoh endpoint, zenoh config file or TLS file.
         StoreError: the store URL or file is bad.
         ServerError: the HTTP port cannot be bound (or ``insecure_loopback`` off loopback),
             or start-up failed (see the log).
@@ -375,10 +382,11 @@ def run_server(
         throttled_exception_handler,
     )
 
-    client_config(connect)  # validate the endpoints before anything starts
+    check_session_config(connect, zenoh_options)  # endpoints, TLS files: one clear line, before start
     stop = stop if stop is not None else threading.Event()
     server_root = MapServer.from_config(db_url, connect=connect, config_path=config_path,
-                                        require_tokens=not insecure_loopback, retry_until=stop)
+                                        require_tokens=not insecure_loopback, retry_until=stop,
+                                        zenoh_options=zenoh_options)
     try:
         open_store(db_url).close()  # validate URL and file here, so the error is one clear line
     except StoreUnavailableError as exc:  # may pass later: start() waits for it

@@ -8,59 +8,59 @@ publishers on it and undeclare them when they stop. The root closes the session 
 stopped: undeclare first, then close, and close every session, or the process hangs at exit.
 
 The config comes from :func:`~wardmap.shared.zenoh_config.client_config` (pure, in
-``shared/``); only this module (and the router, ``server/router.py``) turns a config into a
-session. zenoh is imported when a session is opened, never at import.
+``shared/``) through :func:`~wardmap.shared.zenoh_load.load_zenoh_config`; only this module
+(and the router, ``server/router.py``) turns a config into a session on the server side.
+zenoh is imported when a session is opened, never at import.
 """
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
 from typing import Any
 
 from wardmap.shared.errors import WardmapError
-from wardmap.shared.zenoh_config import client_config
+from wardmap.shared.zenoh_config import ZenohOptions, client_config
+from wardmap.shared.zenoh_load import connect_hint, load_zenoh_config
+from wardmap.shared.zenoh_load import zenoh_error_line as first_line
 
-__all__ = ["ZenohSessionError", "first_line", "has_router", "open_session"]
+__all__ = ["ZenohSessionError", "check_session_config", "first_line", "has_router", "open_session"]
 
 
 class ZenohSessionError(WardmapError):
     """The server's Zenoh session cannot be opened (e.g. no router answers at the endpoints)."""
 
 
-def first_line(exc: BaseException) -> str:
-    """Zenoh error text on one line, without its Rust source location (`` at /path/file.rs:NN.``).
+def check_session_config(connect: Sequence[str], options: ZenohOptions | None = None) -> None:
+    """Raise what :func:`open_session` would raise for its config, without connecting.
 
-    Parse errors of config files span several lines (``--> 2:1``, a code excerpt,
-    ``= expected ...``); only the location and the explanation are kept.
+    Raises:
+        ConfigError: a bad endpoint, config file or TLS file.
     """
-    lines = [ln.strip() for ln in str(exc).strip().splitlines() if ln.strip()]
-    if not lines:
-        return type(exc).__name__
-    picked = [ln for ln in lines if ln.startswith(("-->", "= "))] if len(lines) > 1 else lines
-    text = " ".join(picked or lines[:1])
-    cut = text.rfind(" at /")
-    return text[:cut].rstrip() if cut > 0 else text
+    load_zenoh_config(client_config(connect, options=options), options)
 
 
-def open_session(connect: Sequence[str]) -> Any:
+def open_session(connect: Sequence[str], options: ZenohOptions | None = None) -> Any:
     """A ``zenoh.Session`` in client mode connected to the routers at ``connect``.
 
-    Shared memory and multicast scouting are off (``client_config``). The caller owns the
+    Shared memory and multicast scouting are off (``client_config``). ``options`` adds the
+    TLS files (the site CA; this server's certificate and key for mutual TLS) and a zenoh
+    config file laid under wardmap's values (``shared/zenoh_load.py``). The caller owns the
     session: it closes it (``session.close()`` or a ``with`` block) after undeclaring what it
     declared on it.
 
     Raises:
-        ConfigError: a bad endpoint (checked before zenoh is touched).
+        ConfigError: a bad endpoint, config file or TLS file (checked before connecting).
         ZenohSessionError: zenoh cannot open the session (e.g. no router at ``connect``).
     """
-    config = client_config(connect)
+    config = load_zenoh_config(client_config(connect, options=options), options)
     import zenoh
 
     try:
-        return zenoh.open(zenoh.Config.from_json5(json.dumps(config)))
+        return zenoh.open(config)
     except zenoh.ZError as exc:
-        raise ZenohSessionError(f"cannot connect to {', '.join(connect)}: {first_line(exc)}") from exc
+        raise ZenohSessionError(
+            f"cannot connect to {', '.join(connect)}: {first_line(exc)}{connect_hint(connect)}"
+        ) from exc
 
 
 def has_router(session: Any) -> bool:

@@ -43,7 +43,7 @@ from numpy.typing import NDArray
 from wardmap.shared.errors import WireError
 from wardmap.shared.se3 import make_transform, quat_to_rotation
 from wardmap.shared.wire import QUAT_NORM_TOL, _check_float, _check_int, _check_text, _Fields
-from wardmap.shared.zenoh_config import KEY_PREFIX
+from wardmap.shared.zenoh_config import MAP_OBJECTS_KEY, MAP_UPDATES_KEY
 
 __all__ = [
     "CHANGE_KINDS",
@@ -68,8 +68,8 @@ __all__ = [
     "object_to_wire",
 ]
 
-OBJECTS_KEY: Final = f"{KEY_PREFIX}/map/objects"
-UPDATES_KEY: Final = f"{KEY_PREFIX}/map/updates"
+OBJECTS_KEY: Final = MAP_OBJECTS_KEY
+UPDATES_KEY: Final = MAP_UPDATES_KEY
 SCHEMA_OBJECTS: Final = "wardmap.map.objects"
 SCHEMA_UPDATE: Final = "wardmap.map.update"
 SCHEMA_ERROR: Final = "wardmap.map.error"

@@ -69,8 +69,8 @@ def events(monkeypatch: pytest.MonkeyPatch) -> list[str]:
     log: list[str] = []
     sessions: list[_SpySession] = []
 
-    def spy_open(connect: Any) -> _SpySession:
-        sessions.append(_SpySession(open_session(connect), log))
+    def spy_open(connect: Any, options: Any = None) -> _SpySession:
+        sessions.append(_SpySession(open_session(connect, options), log))
         log.append("session opened")
         return sessions[-1]
 

@@ -14,7 +14,7 @@ zenoh = pytest.importorskip("zenoh")
 
 from wardmap.server.router import RouterError, run_router  # noqa: E402  (after the importorskip guard)
 from wardmap.shared.errors import ConfigError  # noqa: E402
-from wardmap.shared.zenoh_config import client_config  # noqa: E402
+from wardmap.shared.zenoh_config import ZenohOptions, client_config  # noqa: E402
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -27,7 +27,8 @@ def _free_port() -> int:
 
 def test_router_in_thread_with_config_file(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     """A router on a worker thread, under a JSON5 file enabling multicast scouting, serves a client,
-    warns that wardmap overrides the file's scouting value, and returns once ``stop`` is set."""
+    warns that wardmap overrides the file's scouting value (and only that: the values the file
+    leaves at zenoh's defaults are not the file's), and returns once ``stop`` is set."""
     endpoint = f"tcp/127.0.0.1:{_free_port()}"
     conf_file = tmp_path / "zenoh.json5"
     conf_file.write_text("{\n  // user file\n  scouting: { multicast: { enabled: true } },\n}\n")
@@ -41,12 +42,12 @@ def test_router_in_thread_with_config_file(tmp_path: Path, caplog: pytest.LogCap
 
     def target() -> None:
         try:
-            run_router([endpoint], config_file=conf_file, stop=stop, on_ready=on_ready)
+            run_router([endpoint], options=ZenohOptions(config=str(conf_file)), stop=stop, on_ready=on_ready)
         except BaseException as exc:  # surfaced to the test thread below
             errors.append(exc)
             ready.set()
 
-    caplog.set_level(logging.WARNING, logger="wardmap.server.router")
+    caplog.set_level(logging.WARNING, logger="wardmap.shared.zenoh_load")
     worker = threading.Thread(target=target)
     worker.start()
     try:
@@ -60,7 +61,8 @@ def test_router_in_thread_with_config_file(tmp_path: Path, caplog: pytest.LogCap
         worker.join(10)
     assert not worker.is_alive()
     assert not errors, errors
-    assert any("scouting/multicast/enabled" in r.getMessage() for r in caplog.records)
+    warned = [r.getMessage() for r in caplog.records if r.name == "wardmap.shared.zenoh_load"]
+    assert len(warned) == 1 and "scouting/multicast/enabled" in warned[0], warned
 
 
 def test_port_in_use_raises_router_error() -> None:
@@ -88,4 +90,4 @@ def test_bad_config_file_raises_config_error(tmp_path: Path, name: str, text: st
     if text is not None:
         path.write_text(text)
     with pytest.raises(ConfigError, match=match):
-        run_router(["tcp/127.0.0.1:1"], config_file=path, stop=threading.Event())
+        run_router(["tcp/127.0.0.1:1"], options=ZenohOptions(config=str(path)), stop=threading.Event())

@@ -14,9 +14,14 @@ from wardmap.shared.zenoh_config import (
     ALL_KEYFRAMES,
     ALL_LIVELINESS,
     KEY_PREFIX,
+    MAP_OBJECTS_KEY,
+    MAP_UPDATES_KEY,
+    ZenohOptions,
+    access_control,
     ack_key,
     client_config,
     config_leaves,
+    correction_key,
     heartbeat_key,
     keyframe_key,
     liveliness_key,
@@ -82,10 +87,11 @@ def test_client_config_modes() -> None:
 
 @pytest.mark.parametrize(
     "endpoint",
-    ["tcp/127.0.0.1:1", "tcp/localhost:65535", "tcp/router-1.ward3.example.org:7447", "tcp/[::1]:7447"],
+    ["tcp/127.0.0.1:1", "tcp/localhost:65535", "tcp/router-1.ward3.example.org:7447", "tcp/[::1]:7447",
+     "tls/router-1.ward3.example.org:7447", "tls/[::1]:7447", "quic/127.0.0.1:7447"],
 )
 def test_valid_endpoints(endpoint: str) -> None:
-    """Well-formed tcp endpoints pass through unchanged."""
+    """Well-formed tcp, tls and quic endpoints pass through unchanged."""
     assert validate_endpoint(endpoint) == endpoint
 
 
@@ -96,7 +102,7 @@ def test_valid_endpoints(endpoint: str) -> None:
         ("tcp/127.0.0.1:65536", "1..65535"),
         ("tcp/127.0.0.1", "tcp/HOST:PORT"),
         ("127.0.0.1:7447", "tcp/HOST:PORT"),
-        ("udp/127.0.0.1:7447", "tcp/HOST:PORT"),
+        ("udp/127.0.0.1:7447", "'tls/HOST:PORT' or 'quic/HOST:PORT'"),
         ("tcp/:7447", "tcp/HOST:PORT"),
         ("tcp/127.0.0.1:74a7", "tcp/HOST:PORT"),
         ("tcp/127.0.0.1:7447 ", "tcp/HOST:PORT"),
@@ -172,3 +178,77 @@ def test_module_is_pure() -> None:
     """Importing the module does not import zenoh (shared/ is pure)."""
     code = "import sys, wardmap.shared.zenoh_config; sys.exit('zenoh' in sys.modules)"
     assert subprocess.run([sys.executable, "-c", code], timeout=60).returncode == 0
+
+
+# --------------------------------------------------------------------------- TLS and ACL
+
+
+def test_tls_endpoints_and_options_on_both_sides() -> None:
+    """``tls/`` endpoints pass; a client gets the CA and its certificate with mutual TLS on,
+    a router its listen certificate, and mutual TLS only when it has a CA to check clients."""
+    opts = ZenohOptions(tls_ca="ca.crt", tls_cert="me.crt", tls_key="me.key")
+    client = client_config(["tls/router.ward.local:7447"], options=opts)
+    assert client["transport"]["link"]["tls"] == {
+        "root_ca_certificate": "ca.crt", "connect_certificate": "me.crt",
+        "connect_private_key": "me.key", "enable_mtls": True,
+    }
+    router = router_config(["tls/0.0.0.0:7447"], options=opts)
+    assert router["transport"]["link"]["tls"] == {
+        "root_ca_certificate": "ca.crt", "listen_certificate": "me.crt",
+        "listen_private_key": "me.key", "enable_mtls": True,
+    }
+    no_ca = ZenohOptions(tls_cert="r.crt", tls_key="r.key")
+    server_auth_only = router_config(["tls/0.0.0.0:7447"], options=no_ca)
+    assert "enable_mtls" not in server_auth_only["transport"]["link"]["tls"]
+    assert "tls" not in client_config(["tcp/127.0.0.1:7447"], options=ZenohOptions())["transport"]["link"]
+    with pytest.raises(ValueError, match="go together"):
+        ZenohOptions(tls_ca="ca.crt", tls_cert="me.crt")
+
+
+def _rules_of(acl: dict, subject: str) -> list[dict]:
+    (policy,) = [p for p in acl["policies"] if p["subjects"] == [subject]]
+    return [r for r in acl["rules"] if r["id"] in policy["rules"]]
+
+
+def test_access_control_confines_each_robot_to_its_own_keys() -> None:
+    """Every key a robot may put, declare or query from (ingress) lies in its own subtrees or is
+    a map read; it never may put acks, corrections or map updates, reply, or declare a
+    queryable; what it receives (egress puts and replies) is its own or the map's; servers
+    may do everything under ``wardmap/v1``; the default is deny; subjects are cert names."""
+    acl = access_control(["robot_0", "robot_1"], ["server"])
+    assert acl["enabled"] is True and acl["default_permission"] == "deny"
+    assert {s["id"]: s["cert_common_names"] for s in acl["subjects"]} == {
+        "servers": ["server"], "robot_robot_0": ["robot_0"], "robot_robot_1": ["robot_1"],
+    }
+    assert all(r["permission"] == "allow" for r in acl["rules"])
+    for rid in ("robot_0", "robot_1"):
+        rules = _rules_of(acl, f"robot_{rid}")
+        mine = (f"{KEY_PREFIX}/robot/{rid}/", f"{KEY_PREFIX}/robots/{rid}/")
+        granted = {
+            (m, f, k) for r in rules for m in r["messages"] for f in r["flows"] for k in r["key_exprs"]
+        }
+        ingress_puts = {k for m, f, k in granted if f == "ingress" and m == "put"}
+        assert ingress_puts == {keyframe_key(rid), heartbeat_key(rid)}
+        assert not {(m, f) for m, f, _ in granted} & {
+            ("reply", "ingress"), ("declare_queryable", "ingress"), ("delete", "ingress"),
+        }
+        for m, f, k in granted:
+            if f == "ingress" or m in ("put", "reply"):
+                assert k.startswith(mine) or k in (MAP_OBJECTS_KEY, MAP_UPDATES_KEY), (m, f, k)
+        assert ("put", "egress", ack_key(rid)) in granted
+        assert ("put", "egress", correction_key(rid)) in granted
+    server_rules = _rules_of(acl, "servers")
+    assert {k for r in server_rules for k in r["key_exprs"]} == {f"{KEY_PREFIX}/**"}
+    assert {f for r in server_rules for f in r["flows"]} == {"ingress", "egress"}
+    assert json.loads(json.dumps(acl)) == acl
+
+
+@pytest.mark.parametrize(
+    ("robots", "servers", "match"),
+    [(["bad id"], [], "bad robot id"), (["a"], ["a"], "both robot and server"),
+     (["a", "a"], [], "twice"), ([], [], "empty")],
+)
+def test_access_control_bad_fleets(robots: list[str], servers: list[str], match: str) -> None:
+    """A bad name, a name in both roles, a repeated name or an empty fleet: ConfigError."""
+    with pytest.raises(ConfigError, match=match):
+        access_control(robots, servers)

@@ -172,7 +172,8 @@ def test_a_loop_between_anchored_sessions_bundle_adjusts_them(drive: list[Keyfra
     assert all(a[:2] == b[:2] and b[2] == a[2] + 1 for a, b in pairs if b is not None)
     # the same views of both sessions stay together (the adjustment did not tear the map)
     for a, b in zip(drive, second, strict=True):
-        Ta, Tb = core.estimate((a.robot_id, a.session_id, a.seq)), core.estimate((b.robot_id, b.session_id, b.seq))
+        Ta = core.estimate((a.robot_id, a.session_id, a.seq))
+        Tb = core.estimate((b.robot_id, b.session_id, b.seq))
         assert Ta is not None and Tb is not None
         assert np.linalg.norm(Ta[:3, 3] - Tb[:3, 3]) < 0.05
     restored = PoseGraph.restore(core.graph.config, nodes, edges)
