@@ -9,7 +9,8 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
     PIP_NO_CACHE_DIR=1 \
     PIP_DISABLE_PIP_VERSION_CHECK=1
 
-RUN useradd --system --create-home --home-dir /var/lib/wardmap --uid 10001 wardmap
+RUN useradd --system --create-home --home-dir /var/lib/wardmap --uid 10001 wardmap \
+    && mkdir -p /etc/wardmap/tls && chown wardmap /etc/wardmap/tls  # the TLS volume (deploy/compose.yaml)
 
 WORKDIR /opt/wardmap
 COPY pyproject.toml README.md ./

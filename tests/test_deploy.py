@@ -177,6 +177,14 @@ def test_compose_services() -> None:
             assert pinned, f"{name}: unpinned {svc['image']}"
             continue
         cmd = svc["command"]
+        if svc.get("entrypoint") == ["/bin/sh", "-c"]:  # a script of wardmap commands (the certs service)
+            (script,) = cmd
+            steps = [part.strip(" {};") for part in re.split(r"&&|\|\|", script)]
+            commands = [shlex.split(step)[1:] for step in steps if step.startswith("wardmap ")]
+            assert commands, f"{name}: no wardmap command in its script"
+            for argv in commands:
+                _parses(argv)
+            continue
         if "--db-password-file" in cmd and not _has_option("server", "--db-password-file"):
             continue  # the PostgreSQL store's option (another branch); parsed once it is merged
         _parses(cmd)
@@ -282,6 +290,26 @@ def test_systemd_unit_scores_ok_or_better(path: Path) -> None:
     assert m is not None, run.stdout[-2000:] + run.stderr[-2000:]
     assert float(m.group(1)) < 5.0 and m.group(2) in ("PERFECT", "SAFE", "OK"), m.group(0)
     assert run.returncode == 0, m.group(0)
+
+
+def test_every_deployed_zenoh_link_is_mutual_tls() -> None:
+    """Issue 39: the deploy files never run Zenoh in the clear. Every router listens on ``tls/``
+    with the site CA, its certificate and the ACL; every client connects on ``tls/`` with its own
+    certificate (a robot's named after its ``--robot`` id, as the ACL expects)."""
+    argvs = [shlex.split(_unit(p)["Service"]["ExecStart"][0])[1:] for p in UNITS]
+    argvs += [svc["command"] for svc in _compose()["services"].values()
+              if svc.get("entrypoint") is None and "command" in svc and svc["command"][0] in
+              ("router", "server", "edge")]
+    assert len(argvs) >= 6
+    for argv in argvs:
+        endpoints = [argv[i + 1] for i, a in enumerate(argv) if a in ("--listen", "--connect")]
+        assert endpoints and all(e.startswith("tls/") for e in endpoints), argv
+        assert {"--tls-ca", "--tls-cert", "--tls-key"} <= set(argv), argv
+        if argv[0] == "router":
+            assert argv[argv.index("--zenoh-config") + 1].endswith("acl.json5"), argv
+        if argv[0] == "edge":
+            robot = argv[argv.index("--robot") + 1]
+            assert argv[argv.index("--tls-cert") + 1].endswith(f"/{robot}.crt"), argv
 
 
 def test_no_deployment_file_serves_the_api_without_tokens() -> None:

@@ -151,6 +151,18 @@ def test_without_a_certificate_of_the_site_nobody_connects(site: Path, router: s
     one_line_error(done, "cannot connect to", "edge")
 
 
+def test_the_health_check_speaks_mutual_tls(site: Path, router: str) -> None:
+    """``wardmap router --check tls/...`` (the compose file's router health check) finds the
+    router with a site certificate, and fails with one line without one."""
+    ok = subprocess.run(wardmap_cmd("router", "--check", router, *_flags(site, "server")),
+                        capture_output=True, text=True, timeout=RUN_TIMEOUT_S, env=child_env())
+    assert ok.returncode == 0, ok.stderr
+    assert ok.stdout.startswith("zenoh router ")
+    bad = subprocess.run(wardmap_cmd("router", "--check", router, "--tls-ca", str(site / "ca.crt")),
+                         capture_output=True, text=True, timeout=RUN_TIMEOUT_S, env=child_env())
+    one_line_error(bad, "no zenoh router answers", "router")
+
+
 class _Inbox:
     """Payloads a subscriber or a get received, with an event per awaited payload."""
 
