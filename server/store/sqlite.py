@@ -56,9 +56,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from wardmap.server.perception.types import ObjectMeasurement
+from wardmap.server.store import schema
 from wardmap.server.store.codec import (
     camera_from_json,
-    camera_to_json,
     pack_measurement,
     pose_blob,
     pose_from_blob,
@@ -66,8 +66,6 @@ from wardmap.server.store.codec import (
     unpack_measurement,
 )
 from wardmap.server.store.records import (
-    MAX_PAGE,
-    MAX_REASON_LEN,
     AnchoredKeyframe,
     Checkpoint,
     ClosedSession,
@@ -89,7 +87,6 @@ from wardmap.server.store.records import (
     ObjectRow,
     ObjectWrite,
     Observation,
-    ObservationRecord,
     RobotSummary,
     SessionAnchor,
     StoreDamagedError,
@@ -102,6 +99,24 @@ from wardmap.server.store.records import (
     UnknownObjectError,
     Vec3,
 )
+from wardmap.server.store.rows import (
+    OBJECT_COLUMNS,
+    OBS_COLUMNS,
+    TOKEN_COLUMNS,
+    check_cursor,
+    check_limit,
+    check_reason,
+    check_seconds,
+    check_seq,
+    check_str,
+    insert_args,
+    mapped_params,
+    object_params,
+    object_record,
+    observation_params,
+    observation_record,
+    token_from_row,
+)
 from wardmap.shared import sqlitedb
 from wardmap.shared.wire import KeyframeMsg
 
@@ -110,174 +125,8 @@ log = logging.getLogger(__name__)
 APPLICATION_ID: Final = 0x77726D73  # "wrms": marks the SQLite file as a wardmap keyframe store
 BUSY_TIMEOUT_S: Final = 10.0
 
-# SQL statements that take the schema from version ``i`` to ``i + 1`` (``MIGRATIONS[i]``).
-MIGRATIONS: Final[tuple[sqlitedb.Migration, ...]] = (
-    # v1: robots, sessions, keyframes, rejection counters.
-    (
-        """CREATE TABLE robots (
-            robot_id TEXT PRIMARY KEY,
-            first_seen_s REAL NOT NULL,
-            last_seen_s REAL NOT NULL)""",
-        """CREATE TABLE sessions (
-            robot_id TEXT NOT NULL,
-            session_id TEXT NOT NULL,
-            started_s REAL NOT NULL,
-            PRIMARY KEY (robot_id, session_id))""",
-        # payload last: reading the small columns never walks the blob's overflow pages.
-        # T_odom_camera: 16 little-endian float64, row-major (128 bytes).
-        """CREATE TABLE keyframes (
-            robot_id TEXT NOT NULL,
-            session_id TEXT NOT NULL,
-            seq INTEGER NOT NULL,
-            stamp REAL NOT NULL,
-            received_s REAL NOT NULL,
-            pose_source TEXT NOT NULL,
-            payload_bytes INTEGER NOT NULL,
-            T_odom_camera BLOB NOT NULL CHECK (length(T_odom_camera) = 128),
-            payload BLOB NOT NULL,
-            PRIMARY KEY (robot_id, session_id, seq))""",
-        # The page and trajectory order (stamp, session_id, seq) per robot.
-        "CREATE INDEX keyframes_robot_stamp ON keyframes (robot_id, stamp, session_id, seq)",
-        "CREATE TABLE rejections (reason TEXT PRIMARY KEY, count INTEGER NOT NULL)",
-    ),
-    # v2: the object map (server/objectmap.py). Poses are 16 little-endian float64, row-major.
-    (
-        """CREATE TABLE objects (
-            object_id INTEGER PRIMARY KEY,
-            category TEXT NOT NULL,
-            confidence REAL NOT NULL CHECK (confidence >= 0 AND confidence <= 1),
-            T_world_object BLOB NOT NULL CHECK (length(T_world_object) = 128),
-            x REAL NOT NULL, y REAL NOT NULL, z REAL NOT NULL, yaw REAL NOT NULL,
-            qx REAL NOT NULL, qy REAL NOT NULL, qz REAL NOT NULL, qw REAL NOT NULL,
-            size_x REAL NOT NULL, size_y REAL NOT NULL, size_z REAL NOT NULL,
-            min_x REAL NOT NULL, min_y REAL NOT NULL, min_z REAL NOT NULL,
-            max_x REAL NOT NULL, max_y REAL NOT NULL, max_z REAL NOT NULL,
-            color_r REAL, color_g REAL, color_b REAL,
-            n_observations INTEGER NOT NULL,
-            first_seen_s REAL NOT NULL,
-            last_seen_s REAL NOT NULL)""",
-        # Rows of one category come out in object_id (rowid) order, the default result order.
-        "CREATE INDEX objects_category ON objects (category)",
-        """CREATE TABLE object_robots (
-            object_id INTEGER NOT NULL,
-            robot_id TEXT NOT NULL,
-            PRIMARY KEY (object_id, robot_id)) WITHOUT ROWID""",
-        "CREATE INDEX object_robots_robot ON object_robots (robot_id, object_id)",
-        # One row per measurement of an object in a keyframe, keyed by keyframe and box.
-        """CREATE TABLE observations (
-            observation_id INTEGER PRIMARY KEY,
-            object_id INTEGER NOT NULL,
-            robot_id TEXT NOT NULL,
-            session_id TEXT NOT NULL,
-            seq INTEGER NOT NULL,
-            stamp REAL NOT NULL,
-            added_s REAL NOT NULL,
-            category TEXT NOT NULL,
-            confidence REAL NOT NULL,
-            box_x1 REAL NOT NULL, box_y1 REAL NOT NULL, box_x2 REAL NOT NULL, box_y2 REAL NOT NULL,
-            T_world_object BLOB NOT NULL CHECK (length(T_world_object) = 128),
-            size_x REAL NOT NULL, size_y REAL NOT NULL, size_z REAL NOT NULL,
-            UNIQUE (robot_id, session_id, seq, box_x1, box_y1, box_x2, box_y2))""",
-        "CREATE INDEX observations_object ON observations (object_id, added_s)",
-        # Axis-aligned world bounds of each object (float32, rounded outwards by SQLite).
-        "CREATE VIRTUAL TABLE objects_rtree USING rtree(object_id, min_x, max_x, min_y, max_y, min_z, max_z)",
-    ),
-    # v3: the mapping stage (server/mapping/): object measurements per keyframe and how far
-    # the stage got (the keyframes' rowid, i.e. insertion order).
-    (
-        """CREATE TABLE measurements (
-            measurement_id INTEGER PRIMARY KEY,
-            robot_id TEXT NOT NULL,
-            session_id TEXT NOT NULL,
-            seq INTEGER NOT NULL,
-            anchored INTEGER NOT NULL,
-            payload BLOB NOT NULL)""",
-        "CREATE INDEX measurements_keyframe ON measurements (robot_id, session_id, seq)",
-        "CREATE TABLE pipeline_cursor (name TEXT PRIMARY KEY, last_rowid INTEGER NOT NULL)",
-    ),
-    # v4: what association needs of each keyframe the mapping stage has processed, so a restart
-    # replays without reading keyframe payloads. T_map_camera is NULL for a keyframe that is not
-    # on the map (unanchored session, undecodable payload); camera is the colour camera as JSON.
-    (
-        """CREATE TABLE mapped_keyframes (
-            robot_id TEXT NOT NULL,
-            session_id TEXT NOT NULL,
-            seq INTEGER NOT NULL,
-            T_map_camera BLOB CHECK (T_map_camera IS NULL OR length(T_map_camera) = 128),
-            camera TEXT,
-            PRIMARY KEY (robot_id, session_id, seq)) WITHOUT ROWID""",
-    ),
-    # v5: sessions whose last, incomplete keyframe group the mapping stage associated because
-    # no keyframe came for a while (pipeline.close_idle_s), with the stage's cursor at that
-    # moment, so a restart replays the closure at the same point.
-    (
-        """CREATE TABLE closed_sessions (
-            robot_id TEXT NOT NULL,
-            session_id TEXT NOT NULL,
-            at_rowid INTEGER NOT NULL,
-            PRIMARY KEY (at_rowid, robot_id, session_id)) WITHOUT ROWID""",
-    ),
-    # v6: the mapping stage's association state at a settled cursor (one row, in the data-only
-    # format of server/association/state.py), so a restart replays only the keyframes after it
-    # (server/mapping/stage.py, "Restart").
-    (
-        """CREATE TABLE association_checkpoint (
-            id INTEGER PRIMARY KEY CHECK (id = 1),
-            last_rowid INTEGER NOT NULL,
-            config_key TEXT NOT NULL,
-            state BLOB NOT NULL,
-            written_s REAL NOT NULL)""",
-    ),
-    # v7: objects association has not confirmed (AssociationConfig.confirm_classes: seen only as
-    # flat slivers at the side of the view); the map's queries leave them out by default.
-    (
-        "ALTER TABLE objects ADD COLUMN confirmed INTEGER NOT NULL DEFAULT 1 CHECK (confirmed IN (0, 1))",
-    ),
-    # v8: the SLAM back-end (server/backend/): pose-graph nodes with their place-recognition
-    # codes and latest map estimates, factors, each session's anchoring, and the graph epoch.
-    (
-        """CREATE TABLE graph_nodes (
-            robot_id TEXT NOT NULL,
-            session_id TEXT NOT NULL,
-            seq INTEGER NOT NULL,
-            node_order INTEGER NOT NULL UNIQUE,
-            stamp REAL NOT NULL,
-            pose_source TEXT NOT NULL,
-            T_odom_camera BLOB NOT NULL CHECK (length(T_odom_camera) = 128),
-            T_map_camera BLOB CHECK (T_map_camera IS NULL OR length(T_map_camera) = 128),
-            prior BLOB CHECK (prior IS NULL OR length(prior) = 128),
-            codes BLOB NOT NULL,
-            PRIMARY KEY (robot_id, session_id, seq)) WITHOUT ROWID""",
-        """CREATE TABLE graph_edges (
-            edge_id INTEGER PRIMARY KEY,
-            kind TEXT NOT NULL CHECK (kind IN ('odometry', 'loop', 'prior')),
-            a_robot TEXT NOT NULL, a_session TEXT NOT NULL, a_seq INTEGER NOT NULL,
-            b_robot TEXT, b_session TEXT, b_seq INTEGER,
-            T_a_b BLOB NOT NULL CHECK (length(T_a_b) = 128),
-            sigmas BLOB NOT NULL CHECK (length(sigmas) = 48),
-            robust INTEGER NOT NULL CHECK (robust IN (0, 1)),
-            inliers INTEGER NOT NULL)""",
-        """CREATE TABLE graph_sessions (
-            robot_id TEXT NOT NULL,
-            session_id TEXT NOT NULL,
-            T_map_odom BLOB CHECK (T_map_odom IS NULL OR length(T_map_odom) = 128),
-            anchored_s REAL,
-            anchored_to TEXT NOT NULL,
-            revision INTEGER NOT NULL,
-            PRIMARY KEY (robot_id, session_id)) WITHOUT ROWID""",
-        "CREATE TABLE graph_epoch (id INTEGER PRIMARY KEY CHECK (id = 1), epoch INTEGER NOT NULL)",
-    ),
-    # v9: the REST API's bearer tokens; the secret only as its SHA-256 digest (server/api/auth.py).
-    (
-        """CREATE TABLE api_tokens (
-            token_id TEXT PRIMARY KEY,
-            name TEXT NOT NULL,
-            scope TEXT NOT NULL CHECK (scope IN ('read', 'admin')),
-            secret_sha256 BLOB NOT NULL CHECK (length(secret_sha256) = 32),
-            created_s REAL NOT NULL,
-            revoked_s REAL) WITHOUT ROWID""",
-    ),
-)
+MIGRATIONS: Final[tuple[sqlitedb.Migration, ...]] = schema.migrations("sqlite")
+"""SQL statements that take the schema from version ``i`` to ``i + 1`` (``MIGRATIONS[i]``; ``schema.py``)."""
 
 # SQLite primary result codes (``sqlite3.Error.sqlite_errorcode & 0xFF``).
 _UNAVAILABLE_CODES: Final = frozenset({
@@ -459,15 +308,7 @@ class SqliteMapStore(sqlitedb.GuardedAccess):
         Raises:
             StoreError: bad arguments or a database failure (nothing was stored).
         """
-        if not isinstance(msg, KeyframeMsg):
-            raise StoreError(f"msg must be a KeyframeMsg, got {type(msg).__name__}")
-        if not isinstance(payload, bytes | bytearray | memoryview):
-            raise StoreError(f"payload must be bytes, got {type(payload).__name__}")
-        data = bytes(payload)
-        if not data:
-            raise StoreError("payload is empty")
-        t = _check_seconds(received_s, "received_s")
-        key = (msg.robot_id, msg.session_id, int(msg.seq))
+        key, data, t = insert_args(msg, payload, received_s)
         pose = pose_blob(msg.T_odom_camera)
         with self._write("insert") as conn:
             cur = conn.execute(
@@ -517,10 +358,7 @@ class SqliteMapStore(sqlitedb.GuardedAccess):
             StoreError: ``reason`` is not a 1-200 character str, ``n`` is not an int >= 1, or
                 another database failure.
         """
-        if not isinstance(reason, str) or not 0 < len(reason) <= MAX_REASON_LEN:
-            raise StoreError(f"reason must be a str of 1-{MAX_REASON_LEN} characters, got {reason!r:.80}")
-        if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n < 2**62:
-            raise StoreError(f"n must be an int >= 1, got {n!r:.40}")
+        check_reason(reason, n)
         with self._write("count_rejection") as conn:
             conn.execute(
                 "INSERT INTO rejections (reason, count) VALUES (?, ?) "
@@ -628,9 +466,8 @@ class SqliteMapStore(sqlitedb.GuardedAccess):
             StoreError: bad arguments, a ``(session_id, seq)`` cursor that names no keyframe
                 of this robot, or a database failure.
         """
-        _check_str(robot_id, "robot_id")
-        if isinstance(limit, bool) or not isinstance(limit, int) or not 1 <= limit <= MAX_PAGE:
-            raise StoreError(f"limit must be an int in [1, {MAX_PAGE}], got {limit!r}")
+        check_str(robot_id, "robot_id")
+        check_limit(limit)
         columns = "robot_id, session_id, seq, stamp, received_s, pose_source, payload_bytes"
         with self._read("keyframes") as conn:
             if after is None:
@@ -645,7 +482,7 @@ class SqliteMapStore(sqlitedb.GuardedAccess):
                     stamp, session_id, seq = self._cursor_position(conn, robot_id, after)
                     where, params = "(stamp, session_id, seq) > (?, ?, ?)", (stamp, session_id, seq)
                 else:
-                    where, params = "stamp > ?", (_check_seconds(after, "after", positive=False),)
+                    where, params = "stamp > ?", (check_seconds(after, "after", positive=False),)
                 rows = conn.execute(
                     f"SELECT {columns} FROM keyframes WHERE robot_id = ? AND {where} "
                     "ORDER BY stamp, session_id, seq LIMIT ?",
@@ -669,7 +506,7 @@ class SqliteMapStore(sqlitedb.GuardedAccess):
         Returns:
             ``(stamps, T_odom_camera)``: float64 (N,) seconds and float64 (N, 4, 4).
         """
-        _check_str(robot_id, "robot_id")
+        check_str(robot_id, "robot_id")
         with self._read("trajectory") as conn:
             if session_id is None:
                 rows = conn.execute(
@@ -678,7 +515,7 @@ class SqliteMapStore(sqlitedb.GuardedAccess):
                     (robot_id,),
                 ).fetchall()
             else:
-                _check_str(session_id, "session_id")
+                check_str(session_id, "session_id")
                 rows = conn.execute(
                     "SELECT stamp, T_odom_camera FROM keyframes WHERE robot_id = ? AND session_id = ? "
                     "ORDER BY stamp, seq",
@@ -689,9 +526,9 @@ class SqliteMapStore(sqlitedb.GuardedAccess):
 
     def payload(self, robot_id: str, session_id: str, seq: int) -> bytes | None:
         """The stored wire bytes of one keyframe (the first copy received), None if absent."""
-        _check_str(robot_id, "robot_id")
-        _check_str(session_id, "session_id")
-        _check_seq(seq)
+        check_str(robot_id, "robot_id")
+        check_str(session_id, "session_id")
+        check_seq(seq)
         with self._read("payload") as conn:
             row = conn.execute(
                 "SELECT payload FROM keyframes WHERE robot_id = ? AND session_id = ? AND seq = ?",
@@ -723,8 +560,8 @@ class SqliteMapStore(sqlitedb.GuardedAccess):
         self, objects: Sequence[ObjectRow], observations: Sequence[Observation], now_s: float
     ) -> list[ObjectWrite]:
         """See :meth:`~wardmap.server.store.protocol.ObjectStore.write_objects`."""
-        obj_rows = [_object_params(o, now_s) for o in objects]
-        obs_rows = [_observation_params(o, now_s) for o in observations]
+        obj_rows = [object_params(o, now_s) for o in objects]
+        obs_rows = [observation_params(o, now_s) for o in observations]
         ids = [o.object_id for o in objects]
         with self._write("object map upsert") as conn:
             existing = _existing(conn, ids)
@@ -839,7 +676,7 @@ class SqliteMapStore(sqlitedb.GuardedAccess):
             robots = _robots(conn, [int(r[0]) for r in page])
         hits = [
             ObjectHit(
-                _record(r, robots.get(int(r[0]), ())),
+                object_record(r, robots.get(int(r[0]), ())),
                 None if near is None else math.sqrt(max(float(r[28]), 0.0)),
             )
             for r in page
@@ -856,7 +693,7 @@ class SqliteMapStore(sqlitedb.GuardedAccess):
                 if oid not in records:
                     return None
                 obs_rows = conn.execute(
-                    f"SELECT {_OBS_COLUMNS} FROM observations WHERE object_id = ? "
+                    f"SELECT {OBS_COLUMNS} FROM observations WHERE object_id = ? "
                     "ORDER BY added_s DESC, observation_id DESC LIMIT ?",
                     (oid, max_observations),
                 ).fetchall()
@@ -871,7 +708,7 @@ class SqliteMapStore(sqlitedb.GuardedAccess):
                 ).fetchall()
             finally:
                 conn.execute("COMMIT")
-        observations = [_observation(r) for r in obs_rows]
+        observations = [observation_record(r) for r in obs_rows]
         keyframes = [KeyframeRef(str(r[0]), str(r[1]), int(r[2]), float(r[3]), bool(r[4])) for r in kf_rows]
         return ObjectDetail(records[oid], observations, keyframes)
 
@@ -945,7 +782,7 @@ class SqliteMapStore(sqlitedb.GuardedAccess):
                 "VALUES (?, ?, ?, ?, ?)",
                 rows,
             )
-            conn.execute(_INSERT_MAPPED, _mapped_params(pose))
+            conn.execute(_INSERT_MAPPED, mapped_params(pose))
             conn.execute(
                 "INSERT INTO pipeline_cursor (name, last_rowid) VALUES (?, ?) "
                 "ON CONFLICT(name) DO UPDATE SET last_rowid = excluded.last_rowid",
@@ -966,7 +803,7 @@ class SqliteMapStore(sqlitedb.GuardedAccess):
     def record_mapped(self, poses: Sequence[MappedPose]) -> None:
         """See :meth:`~wardmap.server.store.protocol.MappingStore.record_mapped`."""
         with self._write("mapping: backfill mapped keyframes") as conn:
-            conn.executemany(_INSERT_MAPPED, [_mapped_params(p) for p in poses])
+            conn.executemany(_INSERT_MAPPED, [mapped_params(p) for p in poses])
 
     def anchored_keyframes(self, after: int, upto: int, limit: int) -> list[AnchoredKeyframe]:
         """See :meth:`~wardmap.server.store.protocol.MappingStore.anchored_keyframes`."""
@@ -1145,10 +982,10 @@ class SqliteMapStore(sqlitedb.GuardedAccess):
 
     def map_trajectory(self, robot_id: str, session_id: str | None = None) -> Trajectory:
         """See :meth:`~wardmap.server.store.protocol.GraphStore.map_trajectory`."""
-        _check_str(robot_id, "robot_id")
+        check_str(robot_id, "robot_id")
         where, params = "k.robot_id = ?", [robot_id]
         if session_id is not None:
-            _check_str(session_id, "session_id")
+            check_str(session_id, "session_id")
             where, params = where + " AND k.session_id = ?", [robot_id, session_id]
         with self._read("map trajectory") as conn:
             rows = conn.execute(
@@ -1164,9 +1001,7 @@ class SqliteMapStore(sqlitedb.GuardedAccess):
     def _cursor_position(
         conn: sqlite3.Connection, robot_id: str, after: tuple[object, ...]
     ) -> tuple[float, str, int]:
-        if len(after) != 2 or not isinstance(after[0], str):
-            raise StoreError(f"cursor must be (session_id, seq) or a stamp, got {after!r:.80}")
-        session_id, seq = after[0], _check_seq(after[1])
+        session_id, seq = check_cursor(after)
         row = conn.execute(
             "SELECT stamp FROM keyframes WHERE robot_id = ? AND session_id = ? AND seq = ?",
             (robot_id, session_id, seq),
@@ -1192,17 +1027,17 @@ class SqliteMapStore(sqlitedb.GuardedAccess):
         """See :meth:`~wardmap.server.store.protocol.TokenStore.token`."""
         with self._read("tokens: look-up") as conn:
             row = conn.execute(
-                f"SELECT {_TOKEN_COLUMNS} FROM api_tokens WHERE token_id = ?", (token_id,)
+                f"SELECT {TOKEN_COLUMNS} FROM api_tokens WHERE token_id = ?", (token_id,)
             ).fetchone()
-        return None if row is None else _token(row)
+        return None if row is None else token_from_row(row)
 
     def tokens(self) -> list[TokenRecord]:
         """See :meth:`~wardmap.server.store.protocol.TokenStore.tokens`."""
         with self._read("tokens: list") as conn:
             rows = conn.execute(
-                f"SELECT {_TOKEN_COLUMNS} FROM api_tokens ORDER BY created_s, token_id"
+                f"SELECT {TOKEN_COLUMNS} FROM api_tokens ORDER BY created_s, token_id"
             ).fetchall()
-        return [_token(r) for r in rows]
+        return [token_from_row(r) for r in rows]
 
     def revoke_token(self, token_id: str, revoked_s: float) -> bool:
         """See :meth:`~wardmap.server.store.protocol.TokenStore.revoke_token`."""
@@ -1284,51 +1119,8 @@ class SqliteMapStore(sqlitedb.GuardedAccess):
 
 # ---------------------------------------------------------------------- helpers
 
-_TOKEN_COLUMNS: Final = "token_id, name, scope, secret_sha256, created_s, revoked_s"
-
-
-def _token(r: Sequence[Any]) -> TokenRecord:
-    scope = str(r[2])
-    if scope not in ("read", "admin"):  # the table's CHECK forbids it: only a hand-edited file
-        raise StoreDamagedError(f"token {r[0]!r} has an unknown scope {scope!r}")
-    return TokenRecord(str(r[0]), str(r[1]), "admin" if scope == "admin" else "read", bytes(r[3]),
-                       float(r[4]), None if r[5] is None else float(r[5]))
-
-
-
-def _check_str(value: object, field: str) -> str:
-    if not isinstance(value, str) or not value:
-        raise StoreError(f"{field} must be a non-empty str, got {value!r:.80}")
-    return value
-
-
-def _check_seq(value: object) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value < 2**63:
-        raise StoreError(f"seq must be an int in [0, 2**63), got {value!r:.80}")
-    return value
-
-
-def _check_seconds(value: object, field: str, *, positive: bool = True) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise StoreError(f"{field} must be a number of seconds, got {value!r:.80}")
-    v = float(value)
-    if not math.isfinite(v) or (positive and v <= 0):
-        raise StoreError(f"{field} must be a finite{' positive' if positive else ''} number, got {v}")
-    return v
-
-
 # ---------------------------------------------------------------------- object map rows
 
-_OBJECT_COLUMNS: Final = (
-    "o.object_id, o.category, o.confidence, o.T_world_object, o.x, o.y, o.z, o.yaw, "
-    "o.qx, o.qy, o.qz, o.qw, o.size_x, o.size_y, o.size_z, "
-    "o.min_x, o.min_y, o.min_z, o.max_x, o.max_y, o.max_z, "
-    "o.color_r, o.color_g, o.color_b, o.n_observations, o.first_seen_s, o.last_seen_s, o.confirmed"
-)
-_OBS_COLUMNS: Final = (
-    "observation_id, added_s, object_id, robot_id, session_id, seq, stamp, category, confidence, "
-    "box_x1, box_y1, box_x2, box_y2, T_world_object, size_x, size_y, size_z"
-)
 _IN_IDS: Final = "(SELECT value FROM json_each(?))"
 """A list of ids as one JSON parameter (no limit on the number of SQL variables)."""
 _INSERT_MAPPED: Final = ("INSERT OR REPLACE INTO mapped_keyframes (robot_id, session_id, seq, T_map_camera, "
@@ -1355,7 +1147,7 @@ def find_sql(
     where: list[str] = []
     params: dict[str, Any] = {"limit": limit + 1, "offset": offset}
     source = "objects AS o"
-    select = _OBJECT_COLUMNS
+    select = OBJECT_COLUMNS
     order = "o.object_id"
     if near is not None:
         params.update(px=near[0], py=near[1], pz=near[2])
@@ -1393,40 +1185,6 @@ def find_sql(
         sql += " WHERE " + " AND ".join(where)
     sql += f" ORDER BY {order} LIMIT :limit OFFSET :offset"
     return sql, params
-
-
-def _object_params(o: ObjectRow, now_s: float) -> dict[str, Any]:
-    T = o.T_world_object
-    row: dict[str, Any] = {
-        "object_id": o.object_id, "category": o.category, "confidence": o.confidence,
-        "T": pose_blob(T), "x": T[0, 3], "y": T[1, 3], "z": T[2, 3], "yaw": o.yaw,
-        "qx": o.q_xyzw[0], "qy": o.q_xyzw[1], "qz": o.q_xyzw[2], "qw": o.q_xyzw[3],
-        "size_x": o.size[0], "size_y": o.size[1], "size_z": o.size[2],
-        "min_x": o.bounds_min[0], "min_y": o.bounds_min[1], "min_z": o.bounds_min[2],
-        "max_x": o.bounds_max[0], "max_y": o.bounds_max[1], "max_z": o.bounds_max[2],
-        "color_r": None, "color_g": None, "color_b": None, "confirmed": int(o.confirmed), "now": now_s,
-    }
-    if o.color_rgb is not None:
-        row.update(color_r=o.color_rgb[0], color_g=o.color_rgb[1], color_b=o.color_rgb[2])
-    return {k: float(v) if isinstance(v, np.floating) else v for k, v in row.items()}
-
-
-def _observation_params(obs: Observation, now_s: float) -> dict[str, Any]:
-    box, size = obs.box_xyxy, obs.size
-    return {
-        "object_id": obs.object_id, "robot_id": obs.robot_id, "session_id": obs.session_id,
-        "seq": int(obs.seq), "stamp": float(obs.stamp), "category": obs.category,
-        "confidence": float(obs.confidence),
-        "box_x1": float(box[0]), "box_y1": float(box[1]), "box_x2": float(box[2]), "box_y2": float(box[3]),
-        "T": pose_blob(obs.T_world_object),
-        "size_x": float(size[0]), "size_y": float(size[1]), "size_z": float(size[2]), "now": now_s,
-    }
-
-
-def _mapped_params(p: MappedPose) -> tuple[str, str, int, bytes | None, str | None]:
-    if p.T_map_camera is None or p.camera is None:
-        return p.robot_id, p.session_id, p.seq, None, None
-    return p.robot_id, p.session_id, p.seq, pose_blob(p.T_map_camera), camera_to_json(p.camera)
 
 
 def _existing(conn: sqlite3.Connection, ids: Sequence[int]) -> set[int]:
@@ -1474,32 +1232,8 @@ def _robots(conn: sqlite3.Connection, ids: Sequence[int]) -> dict[int, tuple[str
 
 def _records(conn: sqlite3.Connection, ids: Sequence[int]) -> dict[int, ObjectRecord]:
     rows = conn.execute(
-        f"SELECT {_OBJECT_COLUMNS} FROM objects AS o WHERE o.object_id IN {_IN_IDS}",
+        f"SELECT {OBJECT_COLUMNS} FROM objects AS o WHERE o.object_id IN {_IN_IDS}",
         (json.dumps(list(ids)),),
     ).fetchall()
     robots = _robots(conn, [int(r[0]) for r in rows])
-    return {int(r[0]): _record(r, robots.get(int(r[0]), ())) for r in rows}
-
-
-def _record(r: Sequence[Any], robots: tuple[str, ...]) -> ObjectRecord:
-    color = None if r[21] is None else (float(r[21]), float(r[22]), float(r[23]))
-    return ObjectRecord(
-        object_id=int(r[0]), category=str(r[1]), confidence=float(r[2]), T_world_object=pose_from_blob(r[3]),
-        position=(float(r[4]), float(r[5]), float(r[6])), yaw=float(r[7]),
-        q_xyzw=(float(r[8]), float(r[9]), float(r[10]), float(r[11])),
-        size=(float(r[12]), float(r[13]), float(r[14])),
-        bounds_min=(float(r[15]), float(r[16]), float(r[17])),
-        bounds_max=(float(r[18]), float(r[19]), float(r[20])),
-        color_rgb=color, n_observations=int(r[24]), first_seen_s=float(r[25]), last_seen_s=float(r[26]),
-        robots=robots, confirmed=bool(r[27]),
-    )
-
-
-def _observation(r: Sequence[Any]) -> ObservationRecord:
-    return ObservationRecord(
-        observation_id=int(r[0]), added_s=float(r[1]), object_id=int(r[2]), robot_id=str(r[3]),
-        session_id=str(r[4]), seq=int(r[5]), stamp=float(r[6]), category=str(r[7]), confidence=float(r[8]),
-        box_xyxy=np.array([r[9], r[10], r[11], r[12]], dtype=np.float64),
-        T_world_object=pose_from_blob(r[13]),
-        size=np.array([r[14], r[15], r[16]], dtype=np.float64),
-    )
+    return {int(r[0]): object_record(r, robots.get(int(r[0]), ())) for r in rows}
