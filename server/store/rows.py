@@ -14,6 +14,7 @@ from typing import Any, Final
 
 import numpy as np
 
+from wardmap.server.store import schema
 from wardmap.server.store.codec import camera_to_json, pose_blob, pose_from_blob
 from wardmap.server.store.records import (
     MAX_PAGE,
@@ -26,7 +27,9 @@ from wardmap.server.store.records import (
     StoreDamagedError,
     StoreError,
     TokenRecord,
+    Vec3,
 )
+from wardmap.server.store.schema import Dialect
 from wardmap.shared.wire import KeyframeMsg
 
 
@@ -169,3 +172,78 @@ def observation_record(r: Sequence[Any]) -> ObservationRecord:
         T_world_object=pose_from_blob(r[13]),
         size=np.array([r[14], r[15], r[16]], dtype=np.float64),
     )
+
+
+def find_sql(
+    dialect: Dialect,
+    *,
+    category: str | None,
+    near: Vec3 | None,
+    radius_m: float | None,
+    min_confidence: float | None,
+    robot: str | None,
+    include_unconfirmed: bool,
+    limit: int,
+    offset: int,
+) -> tuple[str, dict[str, Any]]:
+    """The SELECT (and its parameters, ``:name`` placeholders) a store's ``find_objects`` runs:
+    up to ``limit + 1`` rows of :data:`OBJECT_COLUMNS`, then the squared distance to ``near``
+    when given.
+
+    With ``radius_m`` the dialect's spatial index selects candidates whose bounds meet the cube
+    of half-side ``radius_m`` around ``near`` (SQLite: the R*Tree; PostgreSQL: the GiST index
+    over the bounds' xy box, then z; PostGIS: the n-D GiST index over the 3D bounds); the exact
+    centre distance then decides.
+    """
+    where: list[str] = []
+    params: dict[str, Any] = {"limit": limit + 1, "offset": offset}
+    source = "objects AS o"
+    select = OBJECT_COLUMNS
+    order = "o.object_id"
+    if near is not None:
+        params.update(px=near[0], py=near[1], pz=near[2])
+        d2 = "((o.x - :px) * (o.x - :px) + (o.y - :py) * (o.y - :py) + (o.z - :pz) * (o.z - :pz))"
+        select += f", {d2} AS d2"
+        order = "d2, o.object_id"
+        if radius_m is not None:
+            r = float(radius_m)
+            if dialect == "sqlite":
+                # CROSS JOIN: the R*Tree drives the loop (SQLite keeps the left table outermost).
+                source = "objects_rtree AS r CROSS JOIN objects AS o ON o.object_id = r.object_id"
+                where += [
+                    "r.max_x >= :lo_x", "r.min_x <= :hi_x", "r.max_y >= :lo_y", "r.min_y <= :hi_y",
+                    "r.max_z >= :lo_z", "r.min_z <= :hi_z",
+                ]
+            elif dialect == "postgis":  # the indexed expression (schema.POSTGIS_BOUNDS), verbatim
+                where.append(f"{schema.POSTGIS_BOUNDS} &&& ST_MakeLine(ST_MakePoint(:lo_x, :lo_y, :lo_z), "
+                             "ST_MakePoint(:hi_x, :hi_y, :hi_z))")
+            else:
+                where += [
+                    "box(point(o.min_x, o.min_y), point(o.max_x, o.max_y)) && "
+                    "box(point(:lo_x, :lo_y), point(:hi_x, :hi_y))",
+                    "o.max_z >= :lo_z", "o.min_z <= :hi_z",
+                ]
+            where.append(f"{d2} <= :r2")
+            params.update(
+                lo_x=near[0] - r, hi_x=near[0] + r, lo_y=near[1] - r, hi_y=near[1] + r,
+                lo_z=near[2] - r, hi_z=near[2] + r, r2=r * r,
+            )
+    if category is not None:
+        where.append("o.category = :category")
+        params["category"] = category
+    if not include_unconfirmed:
+        where.append("o.confirmed = 1")
+    if min_confidence is not None:
+        where.append("o.confidence >= :min_confidence")
+        params["min_confidence"] = float(min_confidence)
+    if robot is not None:
+        where.append(
+            "EXISTS (SELECT 1 FROM object_robots AS ro WHERE ro.object_id = o.object_id "
+            "AND ro.robot_id = :robot)"
+        )
+        params["robot"] = robot
+    sql = f"SELECT {select} FROM {source}"
+    if where:
+        sql += " WHERE " + " AND ".join(where)
+    sql += f" ORDER BY {order} LIMIT :limit OFFSET :offset"
+    return sql, params

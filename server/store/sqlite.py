@@ -49,7 +49,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
-from typing import Any, Final, NoReturn
+from typing import Final, NoReturn
 from urllib.parse import unquote
 
 import numpy as np
@@ -109,6 +109,7 @@ from wardmap.server.store.rows import (
     check_seconds,
     check_seq,
     check_str,
+    find_sql,
     insert_args,
     mapped_params,
     object_params,
@@ -667,6 +668,7 @@ class SqliteMapStore(sqlitedb.GuardedAccess):
     ) -> ObjectPage:
         """See :meth:`~wardmap.server.store.protocol.ObjectStore.find_objects`."""
         sql, params = find_sql(
+            "sqlite",
             category=category, near=near, radius_m=radius_m, min_confidence=min_confidence, robot=robot,
             include_unconfirmed=include_unconfirmed, limit=limit, offset=offset,
         )
@@ -1125,66 +1127,6 @@ _IN_IDS: Final = "(SELECT value FROM json_each(?))"
 """A list of ids as one JSON parameter (no limit on the number of SQL variables)."""
 _INSERT_MAPPED: Final = ("INSERT OR REPLACE INTO mapped_keyframes (robot_id, session_id, seq, T_map_camera, "
                          "camera) VALUES (?, ?, ?, ?, ?)")
-
-
-def find_sql(
-    *,
-    category: str | None,
-    near: Vec3 | None,
-    radius_m: float | None,
-    min_confidence: float | None,
-    robot: str | None,
-    include_unconfirmed: bool,
-    limit: int,
-    offset: int,
-) -> tuple[str, dict[str, Any]]:
-    """The SELECT (and its parameters) :meth:`SqliteMapStore.find_objects` runs: up to
-    ``limit + 1`` rows of the object columns, then the squared distance to ``near`` when given.
-
-    With ``radius_m`` the R*Tree selects candidates whose bounds meet the cube of half-side
-    ``radius_m`` around ``near``; the exact centre distance then decides.
-    """
-    where: list[str] = []
-    params: dict[str, Any] = {"limit": limit + 1, "offset": offset}
-    source = "objects AS o"
-    select = OBJECT_COLUMNS
-    order = "o.object_id"
-    if near is not None:
-        params.update(px=near[0], py=near[1], pz=near[2])
-        d2 = "((o.x - :px) * (o.x - :px) + (o.y - :py) * (o.y - :py) + (o.z - :pz) * (o.z - :pz))"
-        select += f", {d2} AS d2"
-        order = "d2, o.object_id"
-        if radius_m is not None:
-            r = float(radius_m)
-            # CROSS JOIN: the R*Tree drives the loop (SQLite keeps the left table outermost).
-            source = "objects_rtree AS r CROSS JOIN objects AS o ON o.object_id = r.object_id"
-            where += [
-                "r.max_x >= :lo_x", "r.min_x <= :hi_x", "r.max_y >= :lo_y", "r.min_y <= :hi_y",
-                "r.max_z >= :lo_z", "r.min_z <= :hi_z", f"{d2} <= :r2",
-            ]
-            params.update(
-                lo_x=near[0] - r, hi_x=near[0] + r, lo_y=near[1] - r, hi_y=near[1] + r,
-                lo_z=near[2] - r, hi_z=near[2] + r, r2=r * r,
-            )
-    if category is not None:
-        where.append("o.category = :category")
-        params["category"] = category
-    if not include_unconfirmed:
-        where.append("o.confirmed = 1")
-    if min_confidence is not None:
-        where.append("o.confidence >= :min_confidence")
-        params["min_confidence"] = float(min_confidence)
-    if robot is not None:
-        where.append(
-            "EXISTS (SELECT 1 FROM object_robots AS ro WHERE ro.object_id = o.object_id "
-            "AND ro.robot_id = :robot)"
-        )
-        params["robot"] = robot
-    sql = f"SELECT {select} FROM {source}"
-    if where:
-        sql += " WHERE " + " AND ".join(where)
-    sql += f" ORDER BY {order} LIMIT :limit OFFSET :offset"
-    return sql, params
 
 
 def _existing(conn: sqlite3.Connection, ids: Sequence[int]) -> set[int]:

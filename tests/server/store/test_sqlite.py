@@ -22,6 +22,7 @@ from procs import sigkill_after
 from wardmap.server.objectmap import ObjectMap, ObjectState
 from wardmap.server.store import MIGRATIONS, SqliteMapStore, StoreError, open_store
 from wardmap.server.store import sqlite as sqlite_backend
+from wardmap.server.store.rows import find_sql
 from wardmap.shared.se3 import yaw_transform
 
 from .conftest import keyframe
@@ -126,7 +127,9 @@ def test_read_only_folder(tmp_path: Path) -> None:
 @pytest.mark.parametrize(
     ("url", "match"),
     [
-        ("postgresql://u:secret@host/db", "not available yet"),
+        ("postgresql://u:secret@host/db", "carries a password"),
+        ("postgres://u:secret@host/db?sslmode=require", "carries a password"),
+        ("postgresql+psycopg://u@host/db", "expected postgresql://"),
         ("mysql://host/db", "unknown store URL"),
         ("map.db", "unknown store URL"),
         ("sqlite:///", "no file path"),
@@ -201,8 +204,8 @@ def test_radius_queries_search_the_rtree(tmp_path: Path) -> None:
         om.upsert([_door(1, 0.0), _door(2, 0.5), _door(3, 10.0)])
         om.delete(1, merged_into=2)
         om.delete(3)
-    sql, params = sqlite_backend.find_sql(
-        category="door", near=(10.0, 10.0, 1.0), radius_m=3.0, min_confidence=None, robot=None,
+    sql, params = find_sql(
+        "sqlite", category="door", near=(10.0, 10.0, 1.0), radius_m=3.0, min_confidence=None, robot=None,
         include_unconfirmed=False, limit=10, offset=0,
     )
     with closing(sqlite3.connect(path)) as conn:
