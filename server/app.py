@@ -70,10 +70,12 @@ class MapServer:
         connect: Sequence[str] | None = None,
         pipeline_factory: PipelineFactory | None = None,
         require_tokens: bool = True,
+        db_password: str | None = None,
     ) -> None:
         """
         Args:
-            db_url: keyframe store URL, ``sqlite:///PATH`` (opened by ``start()``).
+            db_url: keyframe store URL, ``sqlite:///PATH`` or ``postgresql://USER@HOST:PORT/DB``
+                (opened by ``start()``; :func:`~wardmap.server.store.open_store`).
             connect: zenoh router endpoints ``tcp/HOST:PORT`` (checked now). The server opens
                 one session to them for the ingest and the map service. None: no Zenoh
                 (REST API only; tests, benchmarks).
@@ -82,6 +84,8 @@ class MapServer:
                 stored but not mapped.
             require_tokens: the REST API's data routes need a bearer token (``server/tokens.py``);
                 False only for insecure-loopback mode (:func:`run_server` checks the address).
+            db_password: the PostgreSQL password (``--db-password-file``); None: the store's
+                own sources (``WARDMAP_DB_PASSWORD``, ``~/.pgpass``).
 
         Raises:
             ConfigError: a bad endpoint in ``connect``.
@@ -89,6 +93,7 @@ class MapServer:
         if connect is not None:
             client_config(connect)  # validates the endpoints now
         self._db_url = db_url
+        self._db_password = db_password
         self._connect = None if connect is None else list(connect)
         self._pipeline_factory = pipeline_factory
         self._running: ExitStack | None = None
@@ -114,7 +119,7 @@ class MapServer:
         if self._running is not None:
             raise ServerError("map server already started")
         with ExitStack() as stack:  # closes in reverse on an error, until pop_all()
-            store = open_store(self._db_url)
+            store = open_store(self._db_url, password=self._db_password)
             stack.callback(store.close)
             objects = ObjectMap(store)
             ingest: Ingest | None = None
@@ -154,12 +159,12 @@ class MapServer:
     @classmethod
     def from_config(
         cls, db_url: str, *, connect: Sequence[str] | None, config_path: str | None = None,
-        require_tokens: bool = True,
+        require_tokens: bool = True, db_password: str | None = None,
     ) -> MapServer:
         """The server ``wardmap server`` runs, with its mapping stage configured from a file.
 
         Args:
-            db_url, connect, require_tokens: as in the constructor.
+            db_url, connect, require_tokens, db_password: as in the constructor.
             config_path: TOML file with ``[pipeline]``, ``[perception]`` and ``[association]``
                 tables (defaults when None; ``deploy/server.toml``). With ``[pipeline]
                 enabled = false`` keyframes are stored but not mapped.
@@ -183,7 +188,7 @@ class MapServer:
         association_cfg = load_config(AssociationConfig, config_path, section="association")
         backend_cfg = load_config(BackendConfig, config_path, section="backend")
         if not pipeline_cfg.enabled:
-            return cls(db_url, connect=connect, require_tokens=require_tokens)
+            return cls(db_url, connect=connect, require_tokens=require_tokens, db_password=db_password)
         # Build the segmenter now: a missing or bad model is one clear error before anything starts.
         segmenter = make_segmenter(perception_cfg.segmenter, perception_cfg)
 
@@ -192,7 +197,8 @@ class MapServer:
                                association=association_cfg, segmenter=segmenter,
                                backend=BackendStage(store, backend_cfg))
 
-        return cls(db_url, connect=connect, pipeline_factory=make_pipeline, require_tokens=require_tokens)
+        return cls(db_url, connect=connect, pipeline_factory=make_pipeline, require_tokens=require_tokens,
+                   db_password=db_password)
 
     @property
     def services(self) -> Services | None:
@@ -288,12 +294,13 @@ def run_server(
     on_ready: Callable[[str], None] | None = None,
     config_path: str | None = None,
     insecure_loopback: bool = False,
+    db_password: str | None = None,
 ) -> None:
     """Serve until ``stop`` is set or SIGTERM/SIGINT (in the main thread).
 
     Args:
         connect: zenoh router endpoints ``tcp/HOST:PORT`` the ingest connects to.
-        db_url: keyframe store URL, ``sqlite:///PATH``.
+        db_url: keyframe store URL, ``sqlite:///PATH`` or ``postgresql://USER@HOST:PORT/DB``.
         http_host, http_port: where the REST API listens (port 0: any free port).
         stop: event that ends the server when set.
         on_ready: called once with the API's base URL ``http://HOST:PORT`` after the store
@@ -302,6 +309,7 @@ def run_server(
             tables (defaults when None; ``deploy/server.toml``).
         insecure_loopback: serve every route without a token; refused unless ``http_host``
             is a loopback address (the demo's mode).
+        db_password: the PostgreSQL password (see :class:`MapServer`).
 
     Raises:
         ConfigError: a bad zenoh endpoint.
@@ -324,8 +332,8 @@ def run_server(
 
     client_config(connect)  # validate the endpoints before anything starts
     server_root = MapServer.from_config(db_url, connect=connect, config_path=config_path,
-                                        require_tokens=not insecure_loopback)
-    open_store(db_url).close()  # validate URL and file here, so the error is one clear line
+                                        require_tokens=not insecure_loopback, db_password=db_password)
+    open_store(db_url, password=db_password).close()  # validate URL and file now: one clear line
     stop = stop if stop is not None else threading.Event()
     started = threading.Event()
     done = threading.Event()  # set by a signal, by `stop`, or when the HTTP thread ends

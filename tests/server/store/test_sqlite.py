@@ -213,3 +213,11 @@ def test_radius_queries_search_the_rtree(tmp_path: Path) -> None:
         rtree = [int(r[0]) for r in conn.execute("SELECT object_id FROM objects_rtree")]
     assert "VIRTUAL TABLE INDEX 2:" in plan  # rtree constraint search, not a scan
     assert rtree == [2]
+
+
+def test_postgres_url_without_psycopg_says_how_to_install(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Where psycopg is not installed, a postgresql:// URL is one StoreError naming the extra."""
+    monkeypatch.setitem(sys.modules, "psycopg", None)  # import psycopg raises ImportError
+    with pytest.raises(StoreError, match=r"pip install 'wardmap\[postgres\]'") as info:
+        open_store("postgresql://wardmap@127.0.0.1:5432/wardmap")
+    assert "\n" not in str(info.value)
