@@ -9,6 +9,7 @@ PostgreSQL 15 binaries are absent.
 from __future__ import annotations
 
 import threading
+import time
 from pathlib import Path
 
 import pgcluster
@@ -29,6 +30,8 @@ from wardmap.server.store.schema import LATEST, migrations
 from .conftest import keyframe
 
 pytest.importorskip("psycopg")
+
+RECOVERY_TIMEOUT_S = 30.0
 
 
 @pytest.fixture
@@ -73,7 +76,7 @@ def test_two_writers_store_each_keyframe_once(url: str) -> None:
 def test_a_stopped_server_is_unavailable_then_recovers(pg_cluster: pgcluster.Cluster, url: str) -> None:
     """With the database server stopped, an insert raises StoreUnavailableError (ingest acks
     ``retry``) and writable() is False with the reason; once it is back, both recover on the
-    same store object (the pool replaces its dead connections)."""
+    same store object within RECOVERY_TIMEOUT_S (the pool replaces its dead connections)."""
     msg, data = keyframe("r1", "s1", 0)
     with open_store(url) as store:
         assert store.writable() == (True, "ok")
@@ -85,6 +88,10 @@ def test_a_stopped_server_is_unavailable_then_recovers(pg_cluster: pgcluster.Clu
             assert not ok and "readiness probe failed" in why
         finally:
             pg_cluster.start()
+        # The pool reconnects in the background with exponential back-off (1 s, 2 s, ...).
+        deadline = time.monotonic() + RECOVERY_TIMEOUT_S
+        while not store.writable()[0] and time.monotonic() < deadline:
+            pass  # writable() itself waits up to PROBE_TIMEOUT_S for a connection
         assert store.writable() == (True, "ok")
         assert store.insert(msg, data, 1000.0) == "stored"
         assert store.payload("r1", "s1", 0) == data
