@@ -63,20 +63,12 @@ from types import TracebackType
 from typing import TYPE_CHECKING, Any, Final, NoReturn
 
 from wardmap.server.store import schema
-from wardmap.server.store.codec import (
-    pose_blob,
-)
 from wardmap.server.store.records import (
-    InsertResult,
     StoreDamagedError,
     StoreError,
     StoreUnavailableError,
 )
-from wardmap.server.store.rows import (
-    insert_args,
-)
 from wardmap.server.store.sqlbase import SqlMapStore
-from wardmap.shared.wire import KeyframeMsg
 
 if TYPE_CHECKING:
     import psycopg
@@ -286,42 +278,6 @@ class PostgresMapStore(SqlMapStore):
 
     # ------------------------------------------------------------------ keyframes
 
-    def insert(self, msg: KeyframeMsg, payload: bytes, received_s: float) -> InsertResult:
-        """See :meth:`~wardmap.server.store.protocol.KeyframeStore.insert` and the module
-        docstring (first copy wins, as :meth:`SqliteMapStore.insert` explains)."""
-        key, data, t = insert_args(msg, payload, received_s)
-        pose = pose_blob(msg.T_odom_camera)
-        with self._write("insert") as conn:
-            conn.execute("SELECT pg_advisory_xact_lock(?)", (INSERT_LOCK,))
-            row = conn.execute(
-                "SELECT payload = ? FROM keyframes WHERE robot_id = ? AND session_id = ? AND seq = ?",
-                (data, *key),
-            ).fetchone()
-            stored = row is None and conn.execute(
-                "INSERT INTO keyframes (robot_id, session_id, seq, stamp, received_s, pose_source, "
-                "payload_bytes, T_odom_camera, payload) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?) "
-                "ON CONFLICT (robot_id, session_id, seq) DO NOTHING",
-                (*key, float(msg.stamp), t, str(msg.pose_source), len(data), pose, data),
-            ).rowcount == 1
-            if not stored:
-                if row is not None and not row[0]:
-                    log.warning("keyframe %s/%s/%d arrived again with different bytes (%d bytes); "
-                                "keeping the first copy", *key, len(data))
-                return "duplicate"
-            conn.execute(
-                "INSERT INTO robots (robot_id, first_seen_s, last_seen_s) VALUES (?, ?, ?) "
-                "ON CONFLICT (robot_id) DO UPDATE SET "
-                "first_seen_s = LEAST(robots.first_seen_s, excluded.first_seen_s), "
-                "last_seen_s = GREATEST(robots.last_seen_s, excluded.last_seen_s)",
-                (msg.robot_id, t, t),
-            )
-            conn.execute(
-                "INSERT INTO sessions (robot_id, session_id, started_s) VALUES (?, ?, ?) "
-                "ON CONFLICT (robot_id, session_id) DO UPDATE SET "
-                "started_s = LEAST(sessions.started_s, excluded.started_s)",
-                (msg.robot_id, msg.session_id, t),
-            )
-        return "stored"
 
 
     def writable(self) -> tuple[bool, str]:
@@ -356,6 +312,10 @@ class PostgresMapStore(SqlMapStore):
         return True, "ok"
 
     # ------------------------------------------------------------------ dialect hooks (sqlbase.py)
+
+    def _serialise_inserts(self, conn: _Connection) -> None:
+        """Keyframe inserts take turns (see the module docstring): rowid order = commit order."""
+        conn.execute("SELECT pg_advisory_xact_lock(?)", (INSERT_LOCK,))
 
     _IN_IDS = "= ANY(?)"
 

@@ -12,6 +12,7 @@ backend subclass supplies the connections (:meth:`SqlMapStore._read`, ``_write``
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Sequence
 from contextlib import AbstractContextManager
@@ -37,6 +38,7 @@ from wardmap.server.store.records import (
     GraphChange,
     GraphEdgeRow,
     GraphNodeRow,
+    InsertResult,
     KeyframeKey,
     KeyframePage,
     KeyframeRef,
@@ -71,6 +73,7 @@ from wardmap.server.store.rows import (
     check_seq,
     check_str,
     find_sql,
+    insert_args,
     mapped_params,
     object_params,
     object_record,
@@ -79,6 +82,9 @@ from wardmap.server.store.rows import (
     token_from_row,
 )
 from wardmap.server.store.schema import Dialect
+from wardmap.shared.wire import KeyframeMsg
+
+log = logging.getLogger(__name__)
 
 _INSERT_MAPPED = (
     "INSERT INTO mapped_keyframes (robot_id, session_id, seq, T_map_camera, camera) VALUES (?, ?, ?, ?, ?) "
@@ -116,12 +122,77 @@ class SqlMapStore:
     def _schema_version(self, conn: Any) -> int:
         raise NotImplementedError
 
+    def _serialise_inserts(self, conn: Any) -> None:
+        """Make keyframe inserts take turns until the transaction ends (SQLite's ``BEGIN
+        IMMEDIATE`` does already), so a key is looked up and inserted by one writer at a time and
+        insertion order (``rowid``) equals commit order."""
+
     def _index_objects(self, conn: Any, rows: Sequence[dict[str, Any]]) -> None:
         """Keep the object index up to date for these :func:`~rows.object_params` rows (a
         backend whose index is a separate table writes it; PostgreSQL's is on the table)."""
 
     def _unindex_object(self, conn: Any, object_id: int) -> None:
         """Remove a deleted object from the object index (see :meth:`_index_objects`)."""
+
+    def insert(self, msg: KeyframeMsg, payload: bytes, received_s: float) -> InsertResult:
+        """Store one keyframe in one transaction, committed before this returns.
+
+        Args:
+            msg: the decoded, validated message.
+            payload: its wire bytes as received (stored verbatim; not re-checked against ``msg``).
+            received_s: server wall-clock seconds of its arrival.
+
+        Returns:
+            ``"stored"``, or ``"duplicate"`` when ``(robot_id, session_id, seq)`` is already
+            stored; then nothing changes. If the stored bytes differ from ``payload`` a
+            warning is logged and the first copy is kept anyway: it may already have been
+            acked and consumed by perception and the map, so replacing it would silently
+            rewrite history that others built on; the edge outbox never sends two payloads
+            under one key, so different bytes mean a robot bug (e.g. a reused session id)
+            that an operator should see, not data to trust over the first copy. Answering
+            ``"duplicate"`` (rather than rejecting) lets the robot drop it from its outbox.
+
+        Raises:
+            StoreError: bad arguments or a database failure (nothing was stored).
+        """
+        key, data, t = insert_args(msg, payload, received_s)
+        pose = pose_blob(msg.T_odom_camera)
+        with self._write("insert") as conn:
+            self._serialise_inserts(conn)
+            # Looked up first, so a key found stored takes no rowid (insertion order has no gaps);
+            # ON CONFLICT is the second guard.
+            row = conn.execute(
+                "SELECT payload = ? FROM keyframes WHERE robot_id = ? AND session_id = ? AND seq = ?",
+                (data, *key),
+            ).fetchone()
+            stored = row is None and conn.execute(
+                "INSERT INTO keyframes (robot_id, session_id, seq, stamp, received_s, pose_source, "
+                "payload_bytes, T_odom_camera, payload) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?) "
+                "ON CONFLICT (robot_id, session_id, seq) DO NOTHING",
+                (*key, float(msg.stamp), t, str(msg.pose_source), len(data), pose, data),
+            ).rowcount == 1
+            if not stored:
+                if row is not None and not row[0]:
+                    log.warning("keyframe %s/%s/%d arrived again with different bytes (%d bytes); "
+                                "keeping the first copy", *key, len(data))
+                return "duplicate"
+            conn.execute(
+                "INSERT INTO robots (robot_id, first_seen_s, last_seen_s) VALUES (?, ?, ?) "
+                "ON CONFLICT (robot_id) DO UPDATE SET "
+                "first_seen_s = CASE WHEN excluded.first_seen_s < robots.first_seen_s "
+                "THEN excluded.first_seen_s ELSE robots.first_seen_s END, "
+                "last_seen_s = CASE WHEN excluded.last_seen_s > robots.last_seen_s "
+                "THEN excluded.last_seen_s ELSE robots.last_seen_s END",
+                (msg.robot_id, t, t),
+            )
+            conn.execute(
+                "INSERT INTO sessions (robot_id, session_id, started_s) VALUES (?, ?, ?) "
+                "ON CONFLICT (robot_id, session_id) DO UPDATE SET "
+                "started_s = CASE WHEN excluded.started_s < sessions.started_s "
+                "THEN excluded.started_s ELSE sessions.started_s END",
+                (msg.robot_id, msg.session_id, t),
+            )
+        return "stored"
 
     def count_rejection(self, reason: str, n: int = 1) -> None:
         """Add ``n`` to the counter of ``reason`` in one transaction (committed before returning,

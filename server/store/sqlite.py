@@ -53,22 +53,14 @@ from typing import Any, Final, NoReturn
 from urllib.parse import unquote
 
 from wardmap.server.store import schema
-from wardmap.server.store.codec import (
-    pose_blob,
-)
 from wardmap.server.store.records import (
-    InsertResult,
     StoreDamagedError,
     StoreError,
     StoreUnavailableError,
 )
-from wardmap.server.store.rows import (
-    insert_args,
-)
 from wardmap.server.store.schema import Dialect
 from wardmap.server.store.sqlbase import SqlMapStore
 from wardmap.shared import sqlitedb
-from wardmap.shared.wire import KeyframeMsg
 
 log = logging.getLogger(__name__)
 
@@ -241,63 +233,6 @@ class SqliteMapStore(sqlitedb.GuardedAccess, SqlMapStore):
 
     # ------------------------------------------------------------------ writes
 
-    def insert(self, msg: KeyframeMsg, payload: bytes, received_s: float) -> InsertResult:
-        """Store one keyframe in one transaction, committed before this returns.
-
-        Args:
-            msg: the decoded, validated message.
-            payload: its wire bytes as received (stored verbatim; not re-checked against ``msg``).
-            received_s: server wall-clock seconds of its arrival.
-
-        Returns:
-            ``"stored"``, or ``"duplicate"`` when ``(robot_id, session_id, seq)`` is already
-            stored; then nothing changes. If the stored bytes differ from ``payload`` a
-            warning is logged and the first copy is kept anyway: it may already have been
-            acked and consumed by perception and the map, so replacing it would silently
-            rewrite history that others built on; the edge outbox never sends two payloads
-            under one key, so different bytes mean a robot bug (e.g. a reused session id)
-            that an operator should see, not data to trust over the first copy. Answering
-            ``"duplicate"`` (rather than rejecting) lets the robot drop it from its outbox.
-
-        Raises:
-            StoreError: bad arguments or a database failure (nothing was stored).
-        """
-        key, data, t = insert_args(msg, payload, received_s)
-        pose = pose_blob(msg.T_odom_camera)
-        with self._write("insert") as conn:
-            cur = conn.execute(
-                "INSERT INTO keyframes (robot_id, session_id, seq, stamp, received_s, pose_source, "
-                "payload_bytes, T_odom_camera, payload) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?) "
-                "ON CONFLICT (robot_id, session_id, seq) DO NOTHING",
-                (*key, float(msg.stamp), t, str(msg.pose_source), len(data), pose, data),
-            )
-            if cur.rowcount == 0:
-                (same,) = conn.execute(
-                    "SELECT payload = ? FROM keyframes WHERE robot_id = ? AND session_id = ? AND seq = ?",
-                    (data, *key),
-                ).fetchone()
-                if not same:
-                    log.warning(
-                        "keyframe %s/%s/%d arrived again with different bytes (%d bytes); "
-                        "keeping the first copy",
-                        *key,
-                        len(data),
-                    )
-                return "duplicate"
-            conn.execute(
-                "INSERT INTO robots (robot_id, first_seen_s, last_seen_s) VALUES (?, ?, ?) "
-                "ON CONFLICT (robot_id) DO UPDATE SET "
-                "first_seen_s = min(first_seen_s, excluded.first_seen_s), "
-                "last_seen_s = max(last_seen_s, excluded.last_seen_s)",
-                (msg.robot_id, t, t),
-            )
-            conn.execute(
-                "INSERT INTO sessions (robot_id, session_id, started_s) VALUES (?, ?, ?) "
-                "ON CONFLICT (robot_id, session_id) DO UPDATE SET "
-                "started_s = min(started_s, excluded.started_s)",
-                (msg.robot_id, msg.session_id, t),
-            )
-        return "stored"
 
     # ------------------------------------------------------------------ readiness
 
