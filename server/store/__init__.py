@@ -8,9 +8,10 @@ here. The store is the only owner of the database: the Protocols in ``protocol.p
 writes a query. :class:`SqliteMapStore` (``sqlite.py``, stdlib ``sqlite3``) is the embedded
 default; :class:`PostgresMapStore` (``postgres.py``, psycopg 3 with a connection pool, PostGIS
 for the object index where installed) serves several wards and servers. Both take their
-schema from one versioned step list (``schema.py``). Choose one with :func:`open_store` and a
-URL. Records are in ``records.py``, row conversions in ``rows.py``, blob encodings shared by
-backends in ``codec.py``.
+schema from one versioned step list (``schema.py``) and share every query but their
+connections, readiness probe and a few dialect hooks (``sqlbase.py``). Choose one with
+:func:`open_store` and a URL. Records are in ``records.py``, row conversions in ``rows.py``,
+blob encodings shared by backends in ``codec.py``.
 """
 
 from __future__ import annotations

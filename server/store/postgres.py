@@ -59,7 +59,6 @@ from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from types import TracebackType
 from typing import TYPE_CHECKING, Any, Final, NoReturn
 
 from wardmap.server.store import schema
@@ -267,18 +266,6 @@ class PostgresMapStore(SqlMapStore):
             return
         self._closed = True
         self._pool.close()
-
-    def __enter__(self) -> PostgresMapStore:
-        return self
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        self.close()
-
-    # ------------------------------------------------------------------ keyframes
-
-
 
     def writable(self) -> tuple[bool, str]:
         """Whether a write can commit now: ``(True, "ok")`` or ``(False, why)``; never raises.

@@ -16,7 +16,8 @@ import logging
 import math
 from collections.abc import Sequence
 from contextlib import AbstractContextManager
-from typing import Any, ClassVar
+from types import TracebackType
+from typing import Any, ClassVar, Self
 
 import numpy as np
 from numpy.typing import NDArray
@@ -102,6 +103,17 @@ class SqlMapStore:
     """Which SQL the object index speaks (``rows.find_sql``)."""
     _IN_IDS: ClassVar[str]
     """``"<column> {_IN_IDS}"`` keeps rows whose column is one of the ids given by :meth:`_ids`."""
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
 
     def _ids(self, ids: Sequence[int]) -> object:
         """The one parameter :data:`_IN_IDS` takes for ``ids``."""

@@ -48,7 +48,6 @@ from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from types import TracebackType
 from typing import Any, Final, NoReturn
 from urllib.parse import unquote
 
@@ -222,17 +221,6 @@ class SqliteMapStore(sqlitedb.GuardedAccess, SqlMapStore):
             conns, self._conns = self._conns, []
         for _, conn in conns:
             conn.close()
-
-    def __enter__(self) -> SqliteMapStore:
-        return self
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        self.close()
-
-    # ------------------------------------------------------------------ writes
-
 
     # ------------------------------------------------------------------ readiness
 
