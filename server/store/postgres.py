@@ -35,8 +35,10 @@ store options there too (:class:`PostgresOptions`: ``pool_size``, ``postgis``).
 
 Threads: every call borrows a pooled connection for its duration (autocommit; a write is one
 ``BEGIN`` .. ``COMMIT``; a read that must see one snapshot runs in a ``REPEATABLE READ, READ
-ONLY`` transaction). Pooled connections are checked before use, so a restarted server costs
-one failed call at most.
+ONLY`` transaction). Pooled connections are checked before use; after a database restart the
+pool reconnects in the background with back-off (1 s, 2 s, ... for :data:`RECONNECT_TIMEOUT_S`,
+then anew at the next call), and calls meanwhile fail as
+:class:`StoreUnavailableError` within :data:`POOL_TIMEOUT_S`.
 
 Storage: the schema is ``schema.py``'s step list in its PostgreSQL text; the one-row table
 ``wardmap_schema`` holds the application mark, the schema version and which object index
@@ -89,6 +91,9 @@ POOL_TIMEOUT_S: Final = 5.0
 """Longest a call waits for a pooled connection before it fails as :class:`StoreUnavailableError`."""
 CONNECT_TIMEOUT_S: Final = 10
 """libpq's ``connect_timeout`` unless the URL gives one."""
+RECONNECT_TIMEOUT_S: Final = 10.0
+"""How long the pool retries (with back-off) a connection it lost; then the next call starts anew,
+so a long database outage does not leave the pool waiting out a long back-off."""
 PROBE_TIMEOUT_S: Final = 1.0
 """Longest :meth:`PostgresMapStore.writable` waits for a connection or a lock."""
 DEFAULT_POOL_SIZE: Final = 8
@@ -239,7 +244,7 @@ class PostgresMapStore(SqlMapStore):
         try:
             with conn:
                 object_index = _migrate(conn, shown, postgis=options.postgis)
-                if str(_one(conn.execute("SHOW synchronous_commit"))[0]) in ("off", "local"):
+                if str(_one(conn.execute("SHOW synchronous_commit"))[0]) == "off":
                     log.warning("keyframe store %s: synchronous_commit is off: an acked keyframe may be "
                                 "lost if the database server crashes", shown)
         except psycopg.Error as exc:
@@ -248,7 +253,7 @@ class PostgresMapStore(SqlMapStore):
         pool = psycopg_pool.ConnectionPool(
             kwargs={**params, "autocommit": True}, min_size=1, max_size=options.pool_size, open=False,
             timeout=POOL_TIMEOUT_S, check=psycopg_pool.ConnectionPool.check_connection,
-            reconnect_timeout=60.0, name="wardmap-store",
+            reconnect_timeout=RECONNECT_TIMEOUT_S, name="wardmap-store",
         )
         try:
             pool.open(wait=True, timeout=CONNECT_TIMEOUT_S)
