@@ -1,10 +1,10 @@
 """Keyframe insert latency of the map store backends: the time ingest waits before it may ack.
 
-For each ``--writers`` count and ``--db`` URL (a SQLite file or PostgreSQL database, empty at first; the PostgreSQL password as
-for ``wardmap server``: ``WARDMAP_DB_PASSWORD`` or ``~/.pgpass``), ``--writers`` threads, each
-with its own store handle (as several ingest threads or servers), insert ``--keyframes``
-new keyframes (a 320x240 noise JPEG, 160x120 depth, 200 keypoints) each; every
-insert returns after its commit. Reports sustained inserts/s over all writers and the
+For each ``--writers`` count and ``--db`` URL (a SQLite file or PostgreSQL database, empty at
+first; the PostgreSQL password as for ``wardmap server``: ``WARDMAP_DB_PASSWORD`` or
+``~/.pgpass``), that many threads, each with its own store handle (as several ingest threads or
+servers), insert ``--keyframes`` new keyframes (a 320x240 noise JPEG, 160x120 depth, 200
+keypoints) each; every insert returns after its commit. Reports sustained inserts/s over all writers and the
 per-insert latency (p50, p99, max). A durable measurement needs the database's own durability
 on (SQLite: ``synchronous = FULL``, always; PostgreSQL: ``fsync`` and ``synchronous_commit``
 on, as a default server has them).
