@@ -110,7 +110,9 @@ def main() -> None:
         f"`python bench/store_insert.py --keyframes {args.keyframes} "
         f"--writers {' '.join(map(str, args.writers))} --db ...` at "
         f"{git_rev()}; {machine()}. Keyframes of {size_kb:.0f} KB; every insert committed before it returns; "
-        "PostgreSQL 15 on the same host over TCP loopback with fsync and synchronous_commit on.", "",
+        "PostgreSQL 15 on the same host over TCP loopback with fsync and synchronous_commit on. "
+        "Backends run one after the other in one process, so compare them within one table; on a shared "
+        "host the same table varies by up to 4x between runs.", "",
         "| backend | writers | inserts | inserts/s | p50 ms | p99 ms | max ms |",
         "|---|---:|---:|---:|---:|---:|---:|",
         *rows,
