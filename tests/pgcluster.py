@@ -94,8 +94,10 @@ class Cluster:
         """Run ``pg_ctl -D DATA ARGS`` (as the ``postgres`` user when root)."""
         _run([str(BIN / "pg_ctl"), "-D", str(self.data), "-l", str(self.log), "-w", *args], timeout)
 
-    def stop(self) -> None:
-        self.pg_ctl("stop", "-m", "fast")
+    def stop(self, mode: str = "fast") -> None:
+        """Stop the server: ``fast`` (clients disconnected, a shutdown checkpoint) or ``immediate``
+        (no checkpoint: for a cluster about to be deleted)."""
+        self.pg_ctl("stop", "-m", mode)
 
     def start(self) -> None:
         self.pg_ctl("start", "-o", f"-p {self.port} -c listen_addresses=127.0.0.1 "
@@ -139,6 +141,6 @@ def start_cluster() -> Iterator[Cluster]:
             yield cluster
         finally:
             with contextlib.suppress(RuntimeError):  # already stopped by a test
-                cluster.stop()
+                cluster.stop("immediate")
     finally:
         shutil.rmtree(folder, ignore_errors=True)
