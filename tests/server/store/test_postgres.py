@@ -18,18 +18,19 @@ import pytest
 from wardmap.server.store import (
     PASSWORD_ENV,
     PostgresMapStore,
+    StoreDamagedError,
     StoreError,
     StoreUnavailableError,
     open_store,
     read_password_file,
 )
-from wardmap.server.store.postgres import APPLICATION_ID
+from wardmap.server.store.postgres import APPLICATION_ID, classify_postgres_error
 from wardmap.server.store.rows import find_sql
 from wardmap.server.store.schema import LATEST, migrations
 
 from .conftest import keyframe
 
-pytest.importorskip("psycopg")
+psycopg = pytest.importorskip("psycopg")
 
 RECOVERY_TIMEOUT_S = 30.0
 
@@ -215,3 +216,21 @@ def test_radius_queries_use_the_object_index(pg_cluster: pgcluster.Cluster, quer
         sql = sql.replace(f":{name}", repr(value))
     plan = pg_cluster.psql(f"SET enable_seqscan = off; EXPLAIN {sql}", db)
     assert index in plan, plan
+
+
+@pytest.mark.parametrize(
+    ("error", "kind"),
+    [
+        ("DataCorrupted", StoreDamagedError), ("IndexCorrupted", StoreDamagedError),
+        ("ReadOnlySqlTransaction", StoreUnavailableError), ("DiskFull", StoreUnavailableError),
+        ("AdminShutdown", StoreUnavailableError), ("TooManyConnections", StoreUnavailableError),
+        ("SerializationFailure", StoreUnavailableError), ("LockNotAvailable", StoreUnavailableError),
+        ("QueryCanceled", StoreUnavailableError), ("UniqueViolation", StoreError),
+        ("SyntaxError", StoreError),
+    ],
+)
+def test_error_classification(error: str, kind: type[StoreError]) -> None:
+    """PostgreSQL's error states map to the store's kinds as SQLite's do: corruption is damage (no
+    retry heals it), "cannot now" states are unavailable (ingest acks retry), a bug is a StoreError."""
+    assert classify_postgres_error(getattr(psycopg.errors, error)("x")) is kind
+    assert classify_postgres_error(psycopg.OperationalError("connection lost")) is StoreUnavailableError
