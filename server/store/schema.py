@@ -41,14 +41,30 @@ is the bounds): the indexed expression, repeated verbatim by the radius query.""
 
 @dataclass(frozen=True, slots=True)
 class Only:
-    """A statement whose text differs per dialect; ``postgis`` defaults to ``postgres``."""
+    """A statement whose text differs per dialect; ``postgis`` defaults to ``postgres``; None: no
+    statement in that dialect."""
 
-    sqlite: str
-    postgres: str
+    sqlite: str | None
+    postgres: str | None
     postgis: str | None = None
 
 
 Statement: TypeAlias = str | Only
+_SQLITE_TYPES: Final = TYPES["sqlite"]
+
+
+def _graph_edges_table(name: str, kinds: tuple[str, ...]) -> str:
+    """``CREATE TABLE`` of the pose graph's factors, with type placeholders (v8; v10 widened ``kinds``)."""
+    allowed = ", ".join(f"'{k}'" for k in kinds)
+    return f"""CREATE TABLE {name} (
+            edge_id {{serial}},
+            kind TEXT NOT NULL CHECK (kind IN ({allowed})),
+            a_robot TEXT NOT NULL, a_session TEXT NOT NULL, a_seq {{int}} NOT NULL,
+            b_robot TEXT, b_session TEXT, b_seq {{int}},
+            T_a_b {{blob}} NOT NULL CHECK (length(T_a_b) = 128),
+            sigmas {{blob}} NOT NULL CHECK (length(sigmas) = 48),
+            robust {{int}} NOT NULL CHECK (robust IN (0, 1)),
+            inliers {{int}} NOT NULL)"""
 Step: TypeAlias = tuple[Statement, ...]
 
 STEPS: Final[tuple[Step, ...]] = (
@@ -197,15 +213,7 @@ STEPS: Final[tuple[Step, ...]] = (
             prior {blob} CHECK (prior IS NULL OR length(prior) = 128),
             codes {blob} NOT NULL,
             PRIMARY KEY (robot_id, session_id, seq)){without_rowid}""",
-        """CREATE TABLE graph_edges (
-            edge_id {serial},
-            kind TEXT NOT NULL CHECK (kind IN ('odometry', 'loop', 'prior')),
-            a_robot TEXT NOT NULL, a_session TEXT NOT NULL, a_seq {int} NOT NULL,
-            b_robot TEXT, b_session TEXT, b_seq {int},
-            T_a_b {blob} NOT NULL CHECK (length(T_a_b) = 128),
-            sigmas {blob} NOT NULL CHECK (length(sigmas) = 48),
-            robust {int} NOT NULL CHECK (robust IN (0, 1)),
-            inliers {int} NOT NULL)""",
+        _graph_edges_table("graph_edges", ("odometry", "loop", "prior")),
         """CREATE TABLE graph_sessions (
             robot_id TEXT NOT NULL,
             session_id TEXT NOT NULL,
@@ -226,6 +234,18 @@ STEPS: Final[tuple[Step, ...]] = (
             created_s {real} NOT NULL,
             revoked_s {real}){without_rowid}""",
     ),
+    # v10: ``bundle`` edges (consecutive keyframes' relative pose after a bundle adjustment).
+    # SQLite cannot alter a CHECK, so the table is copied; PostgreSQL replaces the constraint.
+    (
+        Only(sqlite=_graph_edges_table("graph_edges_v10", ("odometry", "loop", "prior", "bundle"))
+             .format(**_SQLITE_TYPES),
+             postgres="ALTER TABLE graph_edges DROP CONSTRAINT graph_edges_kind_check, "
+                      "ADD CONSTRAINT graph_edges_kind_check "
+                      "CHECK (kind IN ('odometry', 'loop', 'prior', 'bundle'))"),
+        Only(sqlite="INSERT INTO graph_edges_v10 SELECT * FROM graph_edges", postgres=None),
+        Only(sqlite="DROP TABLE graph_edges", postgres=None),
+        Only(sqlite="ALTER TABLE graph_edges_v10 RENAME TO graph_edges", postgres=None),
+    ),
 )
 
 
@@ -237,8 +257,10 @@ def migrations(dialect: Dialect) -> tuple[tuple[str, ...], ...]:
         texts: list[str] = []
         for s in step:
             if isinstance(s, Only):
-                texts.append(s.sqlite if dialect == "sqlite" else
-                             s.postgres if dialect == "postgres" else s.postgis or s.postgres)
+                text = s.sqlite if dialect == "sqlite" else (
+                    s.postgres if dialect == "postgres" else s.postgis or s.postgres)
+                if text is not None:
+                    texts.append(text)
             else:
                 texts.append(s.format(**types))
         out.append(tuple(texts))
