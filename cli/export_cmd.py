@@ -12,12 +12,14 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "export",
         help="write the object map and robot paths as GeoJSON",
-        description="Export a server database (sqlite:///PATH: objects and each robot's map "
-        "trajectory) or a `wardmap map` output (its folder or landmarks.json: the landmarks) to a "
-        "file. GeoJSON coordinates are map-frame metres, not longitude/latitude (docs/web.md). "
+        description="Export a server database (sqlite:///PATH or postgresql://...: objects and each "
+        "robot's map trajectory) or a `wardmap map` output (its folder or landmarks.json: the landmarks) "
+        "to a file. GeoJSON coordinates are map-frame metres, not longitude/latitude (docs/web.md). "
         "The last line on stdout is a JSON summary.",
     )
-    p.add_argument("source", metavar="SOURCE", help="sqlite:///PATH of a server, or a `wardmap map` output")
+    p.add_argument("source", metavar="SOURCE",
+                   help="a server's database (sqlite:///PATH, or postgresql://USER@HOST:PORT/DB with "
+                        "the password in $WARDMAP_DB_PASSWORD or ~/.pgpass), or a `wardmap map` output")
     p.add_argument(
         "--format", choices=("geojson", "ply", "rrd"), default="geojson",
         help="geojson (default): objects and map trajectories; ply: object boxes and the keyframes' "

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from wardmap.cli.db_options import add_password_option, db_password
 from wardmap.cli.logopts import add_log_format
 from wardmap.cli.zenoh_args import add_zenoh_args, zenoh_options
 from wardmap.shared.errors import ConfigError
@@ -19,8 +20,10 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="zenoh router endpoint to connect to (repeatable), e.g. tcp/127.0.0.1:7447",
     )
     p.add_argument(
-        "--db", default="sqlite:///wardmap.db", metavar="URL", help="keyframe store (default: %(default)s)"
+        "--db", default="sqlite:///wardmap.db", metavar="URL",
+        help="keyframe store: sqlite:///PATH or postgresql://USER@HOST:PORT/DB (default: %(default)s)",
     )
+    add_password_option(p)
     p.add_argument(
         "--http", default="127.0.0.1:8080", metavar="HOST:PORT",
         help="REST API address (default: %(default)s)",
@@ -62,7 +65,8 @@ def run(args: argparse.Namespace) -> int:
         start_watchdog(lambda: _answers(f"{url}/healthz"))  # WatchdogSec: the HTTP loop still serves
 
     run_server(args.connect, args.db, host, port, on_ready=ready, config_path=args.config,
-               insecure_loopback=args.insecure_loopback, zenoh_options=options)
+               insecure_loopback=args.insecure_loopback, zenoh_options=options,
+               db_password=db_password(args))
     return 0
 
 

@@ -10,6 +10,8 @@ from __future__ import annotations
 import argparse
 import time
 
+from wardmap.cli.db_options import add_password_option, db_password
+
 DEFAULT_DB = "sqlite:///wardmap.db"
 
 
@@ -27,6 +29,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     for q in (create, listing, revoke):
         q.add_argument("--db", default=DEFAULT_DB, metavar="URL",
                        help="the map server's store (default: %(default)s)")
+        add_password_option(q)
     p.set_defaults(func=run)
 
 
@@ -46,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
             raise TokenError(
                 f"no store at {path}: give the server's --db (it creates the file at its first start)"
             )
-    with open_store(args.db) as store:
+    with open_store(args.db, password=db_password(args)) as store:
         if args.action == "create":
             issued = create_token(store, args.scope, args.name)
             print(issued.text, flush=True)

@@ -19,6 +19,16 @@ if ! command -v chromium >/dev/null 2>&1; then
         echo "scripts/test.sh: no chromium and no root apt-get to install it; browser tests will skip" >&2
     fi
 fi
+# The store tests start their own PostgreSQL 15 cluster (tests/pgcluster.py) and test the object
+# index with and without PostGIS; install the server and PostGIS where they are missing.
+if [ ! -x /usr/lib/postgresql/15/bin/initdb ] || [ ! -f /usr/share/postgresql/15/extension/postgis.control ]; then
+    if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+        export DEBIAN_FRONTEND=noninteractive
+        apt-get update -q && apt-get install -y -q postgresql-15 postgresql-15-postgis-3 </dev/null
+    else
+        echo "scripts/test.sh: no PostgreSQL 15 + PostGIS and no root apt-get to install them; those tests will skip" >&2
+    fi
+fi
 "$VENV/bin/ruff" check .
 # mypy sees the source folders under their installed names (wardmap.shared, ...).
 TYPECHECK=build/typecheck

@@ -83,10 +83,12 @@ class MapServer:
         telemetry: ServerTelemetry | None = None,
         retry_until: threading.Event | None = None,
         zenoh_options: ZenohOptions | None = None,
+        db_password: str | None = None,
     ) -> None:
         """
         Args:
-            db_url: keyframe store URL, ``sqlite:///PATH`` (opened by ``start()``).
+            db_url: keyframe store URL, ``sqlite:///PATH`` or ``postgresql://USER@HOST:PORT/DB``
+                (opened by ``start()``; :func:`~wardmap.server.store.open_store`).
             connect: zenoh router endpoints ``tcp/HOST:PORT`` or ``tls/HOST:PORT`` (checked
                 now). The server opens one session to them for the ingest and the map
                 service. None: no Zenoh (REST API only; tests, benchmarks).
@@ -102,6 +104,8 @@ class MapServer:
                 (:data:`RETRY_FIRST_S` doubling to :data:`RETRY_MAX_S`, a warning each attempt)
                 until it succeeds or this event is set; None: fail at once.
             zenoh_options: TLS files and zenoh config file of the session (docs/security.md).
+            db_password: the PostgreSQL password (``--db-password-file``); None: the store's
+                own sources (``WARDMAP_DB_PASSWORD``, ``~/.pgpass``).
 
         Raises:
             ConfigError: a bad endpoint in ``connect``.
@@ -110,6 +114,7 @@ class MapServer:
             client_config(connect, options=zenoh_options)  # validates the endpoints now
         self._zenoh_options = zenoh_options
         self._db_url = db_url
+        self._db_password = db_password
         self._connect = None if connect is None else list(connect)
         self._pipeline_factory = pipeline_factory
         self._telemetry = telemetry if telemetry is not None else ServerTelemetry()
@@ -139,7 +144,8 @@ class MapServer:
             raise ServerError("map server already started")
         with ExitStack() as stack:  # closes in reverse on an error, until pop_all()
             store = self._retrying("the keyframe store", StoreUnavailableError,
-                                   functools.partial(open_store, self._db_url))
+                                   functools.partial(open_store, self._db_url,
+                                                     password=self._db_password))
             stack.callback(store.close)
             objects = ObjectMap(store)
             ingest: Ingest | None = None
@@ -201,12 +207,13 @@ class MapServer:
     def from_config(
         cls, db_url: str, *, connect: Sequence[str] | None, config_path: str | None = None,
         require_tokens: bool = True, retry_until: threading.Event | None = None,
-        zenoh_options: ZenohOptions | None = None,
+        zenoh_options: ZenohOptions | None = None, db_password: str | None = None,
     ) -> MapServer:
         """The server ``wardmap server`` runs, with its mapping stage configured from a file.
 
         Args:
-            db_url, connect, require_tokens, retry_until, zenoh_options: as in the constructor.
+            db_url, connect, require_tokens, retry_until, zenoh_options, db_password: as in the
+                constructor.
             config_path: TOML file with ``[pipeline]``, ``[perception]`` and ``[association]``
                 tables (defaults when None; ``deploy/server.toml``). With ``[pipeline]
                 enabled = false`` keyframes are stored but not mapped.
@@ -232,7 +239,7 @@ class MapServer:
         telemetry = ServerTelemetry()
         if not pipeline_cfg.enabled:
             return cls(db_url, connect=connect, require_tokens=require_tokens, telemetry=telemetry,
-                       retry_until=retry_until, zenoh_options=zenoh_options)
+                       retry_until=retry_until, zenoh_options=zenoh_options, db_password=db_password)
         # Build the segmenter now: a missing or bad model is one clear error before anything starts.
         segmenter = make_segmenter(perception_cfg.segmenter, perception_cfg)
 
@@ -243,7 +250,8 @@ class MapServer:
                                telemetry=telemetry)
 
         return cls(db_url, connect=connect, pipeline_factory=make_pipeline, require_tokens=require_tokens,
-                   telemetry=telemetry, retry_until=retry_until, zenoh_options=zenoh_options)
+                   telemetry=telemetry, retry_until=retry_until, zenoh_options=zenoh_options,
+                   db_password=db_password)
 
     @property
     def start_cancelled(self) -> bool:
@@ -346,13 +354,14 @@ def run_server(
     config_path: str | None = None,
     insecure_loopback: bool = False,
     zenoh_options: ZenohOptions | None = None,
+    db_password: str | None = None,
 ) -> None:
     """Serve until ``stop`` is set or SIGTERM/SIGINT (in the main thread).
 
     Args:
         connect: zenoh router endpoints ``tcp/HOST:PORT`` or ``tls/HOST:PORT`` the ingest
             connects to.
-        db_url: keyframe store URL, ``sqlite:///PATH``.
+        db_url: keyframe store URL, ``sqlite:///PATH`` or ``postgresql://USER@HOST:PORT/DB``.
         http_host, http_port: where the REST API listens (port 0: any free port).
         stop: event that ends the server when set.
         on_ready: called once with the API's base URL ``http://HOST:PORT`` after the store
@@ -362,6 +371,7 @@ def run_server(
         insecure_loopback: serve every route without a token; refused unless ``http_host``
             is a loopback address (the demo's mode).
         zenoh_options: TLS files and zenoh config file of the session (docs/security.md).
+        db_password: the PostgreSQL password (see :class:`MapServer`).
 
     Raises:
         ConfigError: a bad zenoh endpoint, zenoh config file or TLS file.
@@ -386,9 +396,9 @@ def run_server(
     stop = stop if stop is not None else threading.Event()
     server_root = MapServer.from_config(db_url, connect=connect, config_path=config_path,
                                         require_tokens=not insecure_loopback, retry_until=stop,
-                                        zenoh_options=zenoh_options)
+                                        zenoh_options=zenoh_options, db_password=db_password)
     try:
-        open_store(db_url).close()  # validate URL and file here, so the error is one clear line
+        open_store(db_url, password=db_password).close()  # validate URL and file now: one clear line
     except StoreUnavailableError as exc:  # may pass later: start() waits for it
         log.warning("keyframe store not available yet: %s", exc)
     started = threading.Event()

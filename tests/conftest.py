@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
+import pgcluster
 import pytest
 from factories import MeasurementFactory, measurement
 
@@ -11,3 +14,14 @@ def make_measurement() -> MeasurementFactory:
     """Factory: a measurement of a box seen from a camera, with optional position noise
     (:func:`factories.measurement`)."""
     return measurement
+
+
+@pytest.fixture(scope="session")
+def pg_cluster() -> Iterator[pgcluster.Cluster]:
+    """One real PostgreSQL 15 cluster for the whole session (tests/pgcluster.py), started on first
+    use; skipped with the reason where the server binaries are absent."""
+    why = pgcluster.missing()
+    if why is not None:
+        pytest.skip(why)
+    with pgcluster.start_cluster() as cluster:
+        yield cluster

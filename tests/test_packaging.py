@@ -94,6 +94,7 @@ TRAIN_MODULES = ("tools/training/training.py", "tools/training/logit_adjust.py")
 """The only files that may import the ``train`` extra's packages (they say so when missing)."""
 EXTRA_MODULES = {
     "train": TRAIN_MODULES, "export": ("tools/export.py",), "rerun": ("tools/export.py",),
+    "postgres": ("server/store/postgres.py",),
 }
 """Per optional extra, the only files that may import its packages (inside the function that
 needs them, saying so when missing)."""
@@ -128,8 +129,9 @@ def test_every_third_party_import_is_a_declared_dependency() -> None:
     """A plain ``pip install .`` must run every command: each third-party module the code
     imports (at the top or inside a function) comes from a core dependency or one of theirs;
     only the training modules may use the ``train`` extra, only ``tools/export.py`` the
-    ``export`` and ``rerun`` ones. (httpx, used by ``wardmap demo``, once sat in the ``dev``
-    extra only and the demo failed after a plain install.)"""
+    ``export`` and ``rerun`` ones, only the PostgreSQL store the ``postgres`` one. (httpx, used
+    by ``wardmap demo``, once sat in the ``dev`` extra only and the demo failed after a plain
+    install.)"""
     import ast
     import tomllib
     from importlib import metadata

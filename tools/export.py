@@ -305,6 +305,12 @@ def store_rrd(db_url: str, out: Path, *, include_unconfirmed: bool = False,
     return {"objects": len(records), "keyframes": len(anchored), "trajectories": paths}
 
 
+def _is_store(source: str) -> bool:
+    """Whether ``source`` is a server database URL (SQLite or PostgreSQL; the PostgreSQL password
+    comes from WARDMAP_DB_PASSWORD or ~/.pgpass)."""
+    return source.startswith((SQLITE_SCHEME, "postgresql://", "postgres://"))
+
+
 def _check_db(db_url: str) -> None:
     path = db_url[len(SQLITE_SCHEME):].partition("?")[0] if db_url.startswith(SQLITE_SCHEME) else None
     if path is not None and not Path(path).is_file():
@@ -325,8 +331,8 @@ def export(
     source: str, out: str | Path, *, fmt: str = "geojson", include_unconfirmed: bool = False,
     progress: Progress | None = None,
 ) -> dict[str, int]:
-    """Export ``source`` (``sqlite:///PATH``, or a ``wardmap map`` folder / landmarks.json) to
-    ``out`` in ``fmt``.
+    """Export ``source`` (``sqlite:///PATH``, ``postgresql://USER@HOST:PORT/DB``, or a ``wardmap map``
+    folder / landmarks.json) to ``out`` in ``fmt``.
 
     Returns:
         the counts written: ``{"objects", "trajectories"}`` (geojson), ``{"objects", "points",
@@ -340,12 +346,13 @@ def export(
     if fmt not in FORMATS:
         raise ExportError(f"unknown format {fmt!r}: expected one of {', '.join(FORMATS)}")
     if fmt in ("ply", "rrd"):
-        if not source.startswith(SQLITE_SCHEME):
-            raise ExportError(f"--format {fmt} needs a server database (sqlite:///PATH): "
+        if not _is_store(source):
+            raise ExportError(f"--format {fmt} needs a server database (sqlite:///PATH or "
+                              "postgresql://...): "
                               "a map output has no keyframes")
         writer = store_ply if fmt == "ply" else store_rrd
         return writer(source, Path(out), include_unconfirmed=include_unconfirmed, progress=progress)
-    if source.startswith(SQLITE_SCHEME):
+    if _is_store(source):
         doc = store_geojson(source, include_unconfirmed=include_unconfirmed)
     else:
         doc = landmarks_geojson(source)

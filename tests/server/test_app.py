@@ -168,7 +168,7 @@ def test_start_waits_for_a_store_that_is_unavailable(
     url = f"sqlite:///{tmp_path / 'm.db'}"
     calls: list[str] = []
 
-    def flaky(u: str) -> Any:
+    def flaky(u: str, password: str | None = None) -> Any:
         calls.append(u)
         if len(calls) <= 2:
             raise StoreUnavailableError("connection refused")
@@ -181,7 +181,7 @@ def test_start_waits_for_a_store_that_is_unavailable(
     waits = [r.getMessage() for r in caplog.records if "waiting for the keyframe store" in r.getMessage()]
     assert len(calls) == 3 and len(waits) == 2 and "attempt 2 failed: connection refused" in waits[1]
 
-    def bad(u: str) -> Any:
+    def bad(u: str, password: str | None = None) -> Any:
         raise StoreError("unknown store URL")
 
     monkeypatch.setattr(app_module, "open_store", bad)
@@ -189,7 +189,7 @@ def test_start_waits_for_a_store_that_is_unavailable(
         MapServer(url, retry_until=threading.Event()).start()
 
     gave_up = threading.Event()
-    monkeypatch.setattr(app_module, "open_store", lambda u: (gave_up.set(), flaky("x"))[1])
+    monkeypatch.setattr(app_module, "open_store", lambda u, password=None: (gave_up.set(), flaky("x"))[1])
     calls.clear()
     server = MapServer(url, retry_until=gave_up)
     with pytest.raises(ServerError, match="stopped while waiting for the keyframe store"):

@@ -25,11 +25,15 @@ def _load(path: Path) -> dict:
     return json.loads(text)
 
 
-def test_server_database_to_geojson(tmp_path: Path) -> None:
+@pytest.mark.parametrize("backend", ["sqlite", "postgres"])
+def test_server_database_to_geojson(tmp_path: Path, backend: str, request: pytest.FixtureRequest) -> None:
     """The ward's 5 objects become Points at their centres (by id); r1, anchored, gets its
     6-keyframe path as a LineString at the camera positions; r2, not anchored, has none and
-    is named; an unconfirmed object comes only when asked."""
+    is named; an unconfirmed object comes only when asked. The same from a PostgreSQL database."""
     url = f"sqlite:///{tmp_path / 'map.db'}"
+    if backend == "postgres":
+        cluster = request.getfixturevalue("pg_cluster")
+        url = cluster.url(cluster.new_database())
     webscene.fill_ward(url)
     with open_store(url) as store:
         ObjectMap(store).upsert([ObjectState(9, "cabinet", 0.5, yaw_transform(1, 1, 0, 1), np.ones(3),

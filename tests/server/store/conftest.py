@@ -15,6 +15,7 @@ from pathlib import Path
 
 import factories
 import numpy as np
+import pgcluster
 import pytest
 
 from wardmap.server.store import MapStore, open_store
@@ -22,8 +23,12 @@ from wardmap.shared import wire
 from wardmap.shared.se3 import make_transform
 from wardmap.shared.wire import KeyframeMsg
 
-BACKENDS = ("sqlite",)
-"""Store backends the Protocol tests run against."""
+BACKENDS = ("sqlite", "postgres", "postgis")
+"""Store backends the Protocol tests run against: "postgres" and "postgis" are a database of the
+session's cluster (tests/pgcluster.py; skipped where PostgreSQL is not installed), with the GiST box
+object index (``?postgis=off``) and with PostGIS's (skipped where PostGIS is not installed)."""
+_TEMPLATES: dict[tuple[int, str], str] = {}
+"""(cluster port, backend) -> a database holding the migrated, empty schema that tests copy."""
 
 W, H = 64, 48
 T0 = 1_714_557_600.0  # 2024-05-01 10:00 UTC
@@ -37,25 +42,49 @@ class Backend:
         url: the URL :func:`open_store` opens it with.
     """
 
-    def __init__(self, name: str, tmp_path: Path) -> None:
-        if name != "sqlite":
-            raise ValueError(f"unknown store backend {name!r}")
+    def __init__(self, name: str, tmp_path: Path, cluster: pgcluster.Cluster | None = None) -> None:
         self.name = name
         self.path = tmp_path / "map.db"
-        self.url = f"sqlite:///{self.path}"
+        self.cluster = cluster
+        if name == "sqlite":
+            self.url = f"sqlite:///{self.path}"
+        elif name in ("postgres", "postgis") and cluster is not None:
+            query = "?postgis=off" if name == "postgres" else ""
+            template = _TEMPLATES.get((cluster.port, name))
+            if template is None:  # migrate once per session; each test copies the result (fast)
+                template = cluster.new_database()
+                open_store(cluster.url(template) + query).close()
+                _TEMPLATES[(cluster.port, name)] = template
+            self.database = cluster.new_database(template)
+            self.url = cluster.url(self.database) + query
+        else:
+            raise ValueError(f"unknown store backend {name!r}")
 
     def open(self) -> MapStore:
         """A new handle on the test's database (a reopened store sees what was committed)."""
         return open_store(self.url)
 
     def integrity_ok(self) -> bool:
-        """Whether the backend's own consistency check passes."""
+        """Whether the backend's own consistency check passes (PostgreSQL: amcheck on every B-tree
+        index of the store's tables)."""
+        if self.cluster is not None:
+            self.cluster.psql("CREATE EXTENSION IF NOT EXISTS amcheck", self.database)
+            self.cluster.psql(
+                "SELECT bt_index_check(c.oid) FROM pg_index i JOIN pg_class c ON c.oid = i.indexrelid "
+                "JOIN pg_am a ON a.oid = c.relam WHERE a.amname = 'btree' AND c.relnamespace = "
+                "'public'::regnamespace", self.database)
+            return True  # bt_index_check raises (psql fails) on a damaged index
         with sqlite3.connect(self.path) as conn:
             return str(conn.execute("PRAGMA integrity_check").fetchone()[0]) == "ok"
 
 
 @pytest.fixture(params=BACKENDS)
 def backend(request: pytest.FixtureRequest, tmp_path: Path) -> Backend:
+    if request.param in ("postgres", "postgis"):
+        cluster: pgcluster.Cluster = request.getfixturevalue("pg_cluster")
+        if request.param == "postgis" and not cluster.postgis:
+            pytest.skip("PostGIS is not installed for PostgreSQL 15 (Debian: postgresql-15-postgis-3)")
+        return Backend(request.param, tmp_path, cluster)
     return Backend(request.param, tmp_path)
 
 

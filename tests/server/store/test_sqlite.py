@@ -30,6 +30,7 @@ from wardmap.server.store import (
     open_store,
 )
 from wardmap.server.store import sqlite as sqlite_backend
+from wardmap.server.store.rows import find_sql
 from wardmap.shared.se3 import yaw_transform
 
 from .conftest import T0, keyframe
@@ -157,7 +158,9 @@ def test_read_only_folder(tmp_path: Path) -> None:
 @pytest.mark.parametrize(
     ("url", "match"),
     [
-        ("postgresql://u:secret@host/db", "not available yet"),
+        ("postgresql://u:secret@host/db", "carries a password"),
+        ("postgres://u:secret@host/db?sslmode=require", "carries a password"),
+        ("postgresql+psycopg://u@host/db", "expected postgresql://"),
         ("mysql://host/db", "unknown store URL"),
         ("map.db", "unknown store URL"),
         ("sqlite:///", "no file path"),
@@ -232,8 +235,8 @@ def test_radius_queries_search_the_rtree(tmp_path: Path) -> None:
         om.upsert([_door(1, 0.0), _door(2, 0.5), _door(3, 10.0)])
         om.delete(1, merged_into=2)
         om.delete(3)
-    sql, params = sqlite_backend.find_sql(
-        category="door", near=(10.0, 10.0, 1.0), radius_m=3.0, min_confidence=None, robot=None,
+    sql, params = find_sql(
+        "sqlite", category="door", near=(10.0, 10.0, 1.0), radius_m=3.0, min_confidence=None, robot=None,
         include_unconfirmed=False, limit=10, offset=0,
     )
     with closing(sqlite3.connect(path)) as conn:
@@ -241,3 +244,11 @@ def test_radius_queries_search_the_rtree(tmp_path: Path) -> None:
         rtree = [int(r[0]) for r in conn.execute("SELECT object_id FROM objects_rtree")]
     assert "VIRTUAL TABLE INDEX 2:" in plan  # rtree constraint search, not a scan
     assert rtree == [2]
+
+
+def test_postgres_url_without_psycopg_says_how_to_install(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Where psycopg is not installed, a postgresql:// URL is one StoreError naming the extra."""
+    monkeypatch.setitem(sys.modules, "psycopg", None)  # import psycopg raises ImportError
+    with pytest.raises(StoreError, match=r"pip install 'wardmap\[postgres\]'") as info:
+        open_store("postgresql://wardmap@127.0.0.1:5432/wardmap")
+    assert "\n" not in str(info.value)
