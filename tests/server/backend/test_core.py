@@ -154,7 +154,7 @@ def test_a_loop_between_anchored_sessions_bundle_adjusts_them(drive: list[Keyfra
     and each consecutive pair gets one ``bundle`` edge; the edges survive a restore."""
     from wardmap.server.backend.graph import PoseGraph
 
-    core = BackendCore(BackendConfig(loop_gap=0, bundle_min_pairs=3))
+    core = BackendCore(BackendConfig(loop_gap=0, bundle_enabled=True, bundle_min_pairs=3))
     for m in drive:
         core.add(m)
     second = _as(drive, "r2", "day2", T=yaw_transform(np.radians(-20.0), 1.0, 0.5, 0.0), dt=86_400.0)
