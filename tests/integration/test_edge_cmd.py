@@ -40,7 +40,7 @@ OUTBOX_FILE = "outbox.sqlite"
 
 
 def _edge_cmd(*args: str) -> list[str]:
-    return wardmap_cmd("edge", *args)
+    return wardmap_cmd("edge", "--privacy", "off", *args)  # privacy: tests/edge/test_privacy.py
 
 
 @pytest.fixture(scope="module")
