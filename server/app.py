@@ -37,6 +37,7 @@ from wardmap.server.corrections import CorrectionPublisher
 from wardmap.server.ingest import Ingest
 from wardmap.server.mapserve import MapServe
 from wardmap.server.objectmap import ObjectMap
+from wardmap.server.retention import ImageRetention, RetentionConfig
 from wardmap.server.store import StoreUnavailableError, open_store
 from wardmap.server.telemetry import ServerTelemetry
 from wardmap.server.zenoh_session import ZenohSessionError, check_session_config, has_router, open_session
@@ -83,6 +84,7 @@ class MapServer:
         telemetry: ServerTelemetry | None = None,
         retry_until: threading.Event | None = None,
         zenoh_options: ZenohOptions | None = None,
+        retention: RetentionConfig | None = None,
     ) -> None:
         """
         Args:
@@ -102,6 +104,8 @@ class MapServer:
                 (:data:`RETRY_FIRST_S` doubling to :data:`RETRY_MAX_S`, a warning each attempt)
                 until it succeeds or this event is set; None: fail at once.
             zenoh_options: TLS files and zenoh config file of the session (docs/security.md).
+            retention: ``[store]`` image retention; the job runs when it sets one
+                (``server/retention.py``). None: images are kept.
 
         Raises:
             ConfigError: a bad endpoint in ``connect``.
@@ -109,6 +113,7 @@ class MapServer:
         if connect is not None:
             client_config(connect, options=zenoh_options)  # validates the endpoints now
         self._zenoh_options = zenoh_options
+        self._retention = retention
         self._db_url = db_url
         self._connect = None if connect is None else list(connect)
         self._pipeline_factory = pipeline_factory
@@ -141,6 +146,12 @@ class MapServer:
             store = self._retrying("the keyframe store", StoreUnavailableError,
                                    functools.partial(open_store, self._db_url))
             stack.callback(store.close)
+            retention_s = None if self._retention is None else self._retention.retention_s
+            if retention_s is not None and self._retention is not None:
+                job = ImageRetention(store, retention_s, self._retention.image_retention_check_s,
+                                     telemetry=self._telemetry)
+                job.start()
+                stack.callback(job.stop)
             objects = ObjectMap(store)
             ingest: Ingest | None = None
             corrections: CorrectionPublisher | None = None
@@ -229,10 +240,11 @@ class MapServer:
         perception_cfg = load_config(PerceptionConfig, config_path, section="perception")
         association_cfg = load_config(AssociationConfig, config_path, section="association")
         backend_cfg = load_config(BackendConfig, config_path, section="backend")
+        retention = load_config(RetentionConfig, config_path, section="store")
         telemetry = ServerTelemetry()
         if not pipeline_cfg.enabled:
             return cls(db_url, connect=connect, require_tokens=require_tokens, telemetry=telemetry,
-                       retry_until=retry_until, zenoh_options=zenoh_options)
+                       retry_until=retry_until, zenoh_options=zenoh_options, retention=retention)
         # Build the segmenter now: a missing or bad model is one clear error before anything starts.
         segmenter = make_segmenter(perception_cfg.segmenter, perception_cfg)
 
@@ -243,7 +255,8 @@ class MapServer:
                                telemetry=telemetry)
 
         return cls(db_url, connect=connect, pipeline_factory=make_pipeline, require_tokens=require_tokens,
-                   telemetry=telemetry, retry_until=retry_until, zenoh_options=zenoh_options)
+                   telemetry=telemetry, retry_until=retry_until, zenoh_options=zenoh_options,
+                   retention=retention)
 
     @property
     def start_cancelled(self) -> bool:

@@ -64,6 +64,7 @@ from wardmap.server.store.codec import (
     pose_from_blob,
     poses_from_blobs,
     unpack_measurement,
+    without_images,
 )
 from wardmap.server.store.records import (
     MAX_PAGE,
@@ -103,12 +104,15 @@ from wardmap.server.store.records import (
     Vec3,
 )
 from wardmap.shared import sqlitedb
+from wardmap.shared.errors import WireError
 from wardmap.shared.wire import KeyframeMsg
 
 log = logging.getLogger(__name__)
 
 APPLICATION_ID: Final = 0x77726D73  # "wrms": marks the SQLite file as a wardmap keyframe store
 BUSY_TIMEOUT_S: Final = 10.0
+ERASE_BATCH: Final = 64
+"""Keyframes whose images :meth:`SqliteMapStore.erase_images` rewrites per transaction."""
 
 
 
@@ -292,6 +296,11 @@ MIGRATIONS: Final[tuple[sqlitedb.Migration, ...]] = (
         "INSERT INTO graph_edges_v10 SELECT * FROM graph_edges",
         "DROP TABLE graph_edges",
         "ALTER TABLE graph_edges_v10 RENAME TO graph_edges",
+    ),
+    # v11: erased images (retention, ``wardmap images erase``): when the payload's colour image
+    # was replaced by a black one and its thermal raster dropped; NULL = images as received.
+    (
+        "ALTER TABLE keyframes ADD COLUMN images_erased_s REAL",
     ),
 )
 
@@ -705,15 +714,82 @@ class SqliteMapStore(sqlitedb.GuardedAccess):
 
     def payload(self, robot_id: str, session_id: str, seq: int) -> bytes | None:
         """The stored wire bytes of one keyframe (the first copy received), None if absent."""
+        value = self._keyframe_column("payload", robot_id, session_id, seq)
+        return None if value is None else bytes(value)
+
+    def images_erased_s(self, robot_id: str, session_id: str, seq: int) -> float | None:
+        """When the keyframe's images were erased (server wall-clock seconds), None if they were
+        not (or there is no such keyframe)."""
+        value = self._keyframe_column("images_erased_s", robot_id, session_id, seq)
+        return None if value is None else float(value)
+
+    def _keyframe_column(self, column: str, robot_id: str, session_id: str, seq: int) -> Any:
+        """One column (a name from this module, never from input) of one keyframe, None if absent."""
         _check_str(robot_id, "robot_id")
         _check_str(session_id, "session_id")
         _check_seq(seq)
-        with self._read("payload") as conn:
+        with self._read(column) as conn:
             row = conn.execute(
-                "SELECT payload FROM keyframes WHERE robot_id = ? AND session_id = ? AND seq = ?",
+                f"SELECT {column} FROM keyframes WHERE robot_id = ? AND session_id = ? AND seq = ?",
                 (robot_id, session_id, seq),
             ).fetchone()
-        return None if row is None else bytes(row[0])
+        return None if row is None else row[0]
+
+    def erase_images(
+        self, *, now_s: float, received_before_s: float | None = None, stamp_from: float | None = None,
+        stamp_to: float | None = None, robot_id: str | None = None,
+    ) -> int:
+        """Erase the images of the keyframes that match every given filter; how many were erased.
+
+        Each payload is rewritten by :func:`~wardmap.server.store.codec.without_images` (black
+        colour JPEG, no thermal; poses, keypoints and depth kept) and marked with ``now_s``;
+        keyframes already erased are skipped. Committed in batches of :data:`ERASE_BATCH`.
+
+        Args:
+            now_s: server wall-clock seconds recorded as the erasure time.
+            received_before_s: keyframes the server received before this (retention).
+            stamp_from, stamp_to: keyframes whose capture stamp lies in ``[from, to)`` (seconds).
+            robot_id: only this robot's keyframes.
+
+        Raises:
+            StoreError: no filter, bad arguments, or a database failure (earlier batches stay erased).
+        """
+        t = _check_seconds(now_s, "now_s")
+        where: list[str] = ["images_erased_s IS NULL"]
+        params: list[float | str] = []
+        if received_before_s is not None:
+            where.append("received_s < ?")
+            params.append(_check_seconds(received_before_s, "received_before_s"))
+        if stamp_from is not None:
+            where.append("stamp >= ?")
+            params.append(_check_seconds(stamp_from, "stamp_from", positive=False))
+        if stamp_to is not None:
+            where.append("stamp < ?")
+            params.append(_check_seconds(stamp_to, "stamp_to", positive=False))
+        if robot_id is not None:
+            where.append("robot_id = ?")
+            params.append(_check_str(robot_id, "robot_id"))
+        if len(where) == 1:
+            raise StoreError("erase_images: give at least one filter (received_before_s, stamps, robot_id)")
+        sql = (f"SELECT rowid, payload FROM keyframes WHERE {' AND '.join(where)} AND rowid > ? "
+               "ORDER BY rowid LIMIT ?")
+        erased, last = 0, 0
+        while True:
+            with self._write("erase images") as conn:
+                rows = conn.execute(sql, (*params, last, ERASE_BATCH)).fetchall()
+                for rowid, payload in rows:
+                    last = int(rowid)
+                    try:
+                        stripped = without_images(bytes(payload))
+                    except WireError as exc:  # validated at insert: only a damaged row gets here
+                        log.error("keyframe row %d cannot be decoded, its images are not erased: %s",
+                                  last, exc)
+                        continue
+                    conn.execute("UPDATE keyframes SET payload = ?, images_erased_s = ? WHERE rowid = ?",
+                                 (stripped, t, last))
+                    erased += 1
+            if len(rows) < ERASE_BATCH:
+                return erased
 
     def stats(self) -> StoreStats:
         """Totals over the whole store, from one consistent snapshot."""
