@@ -44,6 +44,13 @@ summary, ``dropped`` in the heartbeat), never queued without bound; any other re
 the tracker. :meth:`EdgeAgent.stop` closes the stream. Label source: ``none``, ``oracle`` or
 ``onnx:PATH`` (:mod:`wardmap.edge.labels`), exactly as ``wardmap track`` runs it.
 
+Privacy (:mod:`wardmap.edge.privacy`, docs/security.md): the label source's person mask of
+each keyframe, dilated by :attr:`AgentConfig.privacy_dilate_px`, is blanked or blurred in the
+colour image and blanked in the thermal raster (:attr:`AgentConfig.privacy`) before the message
+is encoded, so the outbox and the network only see redacted images; a redacting mode with labels
+``none`` is refused at construction (nobody could find the people). The summary counts
+``keyframes_with_people`` and ``keyframes_unlabelled`` (redacted whole).
+
 Keypoints: the tracker's own features of the keyframe, after dynamic-point removal (what
 its map was built from), the strongest :attr:`AgentConfig.max_keypoints` of them. A
 keyframe the tracker made without RGB features (rare) gets ORB extracted. The message is

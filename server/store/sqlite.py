@@ -743,7 +743,8 @@ class SqliteMapStore(sqlitedb.GuardedAccess):
 
         Each payload is rewritten by :func:`~wardmap.server.store.codec.without_images` (black
         colour JPEG, no thermal; poses, keypoints and depth kept) and marked with ``now_s``;
-        keyframes already erased are skipped. Committed in batches of :data:`ERASE_BATCH`.
+        keyframes already erased are skipped. Committed in batches of :data:`ERASE_BATCH`, with
+        ``secure_delete`` on, so the pages that held the images are zeroed when freed.
 
         Args:
             now_s: server wall-clock seconds recorded as the erasure time.
@@ -776,6 +777,7 @@ class SqliteMapStore(sqlitedb.GuardedAccess):
         erased, last = 0, 0
         while True:
             with self._write("erase images") as conn:
+                conn.execute("PRAGMA secure_delete = ON")  # the old images' pages are zeroed when freed
                 rows = conn.execute(sql, (*params, last, ERASE_BATCH)).fetchall()
                 for rowid, payload in rows:
                     last = int(rowid)

@@ -3,6 +3,7 @@ orders): the images go, everything else of the keyframe stays, on every backend.
 
 from __future__ import annotations
 
+import sqlite3
 from pathlib import Path
 
 import cv2
@@ -15,7 +16,7 @@ from wardmap.shared import wire
 from wardmap.shared.config import load_config
 from wardmap.shared.errors import ConfigError
 
-from .conftest import T0, keyframe
+from .conftest import T0, Backend, keyframe
 
 
 def _fill(store: MapStore) -> None:
@@ -100,3 +101,19 @@ def test_bad_retention_is_rejected(tmp_path: Path, text: str) -> None:
 def test_example_config_holds_the_defaults() -> None:
     path = Path(__file__).resolve().parents[3] / "deploy" / "server.toml"
     assert load_config(RetentionConfig, path, section="store") == RetentionConfig()
+
+
+def test_erased_images_leave_no_bytes_in_the_sqlite_file(backend: Backend) -> None:
+    """After erasing and a checkpoint, no piece of a stored JPEG's entropy-coded data is left
+    anywhere in the database file (secure_delete zeroes what the old payloads occupied)."""
+    if backend.name != "sqlite":
+        pytest.skip("a file-level check of the SQLite backend")
+    with backend.open() as store:
+        _fill(store)
+        msg, _ = keyframe("r1", "s1", 0)
+        piece = msg.rgb_jpeg[-60:-20]  # scan data, not the tables every JPEG shares
+        assert store.erase_images(now_s=T0 + 1000, robot_id="r1") == 6
+        assert store.erase_images(now_s=T0 + 1000, robot_id="r2") == 3
+    with sqlite3.connect(backend.path) as conn:
+        conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+    assert backend.path.read_bytes().count(piece) == 0
