@@ -48,7 +48,8 @@ Privacy (:mod:`wardmap.edge.privacy`, docs/security.md): the label source's pers
 each keyframe, dilated by :attr:`AgentConfig.privacy_dilate_px`, is blanked or blurred in the
 colour image and blanked in the thermal raster (:attr:`AgentConfig.privacy`) before the message
 is encoded, so the outbox and the network only see redacted images; a redacting mode with labels
-``none`` is refused at construction (nobody could find the people). The summary counts
+``none`` is refused at construction (nobody could find the people), and ``off`` is logged as a
+warning at every start. The summary counts
 ``keyframes_with_people`` and ``keyframes_unlabelled`` (redacted whole).
 
 Keypoints: the tracker's own features of the keyframe, after dynamic-point removal (what
@@ -362,6 +363,8 @@ class EdgeAgent:
         import zenoh  # the only zenoh user on the edge; imported here, not at module import
 
         source = self.source
+        if self.cfg.privacy == "off":
+            log.warning("privacy is off: keyframe images leave this robot with people unredacted")
         kg = KnowledgeGraph.load()
         labels = make_label_source(self.cfg.labels, dataset=source.dataset, kg=kg,
                                    threads=self.cfg.label_threads)

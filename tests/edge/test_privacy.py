@@ -145,3 +145,14 @@ def test_no_person_pixel_leaves_the_robot_unredacted(walking_staff: Path, tmp_pa
             assert summary["keyframes_with_people"] >= 1 and summary["keyframes_unlabelled"] == 0
     assert shares["blank"] < 0.01, shares
     assert shares["off"] > 0.5, shares
+
+
+def test_wardmap_edge_without_labels_is_one_line(tmp_path: Path) -> None:
+    """``wardmap edge`` on a simulated robot with no ``--labels``: refused in one line before
+    anything connects or an outbox is made."""
+    from procs import one_line_error, wardmap
+
+    p = wardmap("edge", "--robot", "r1", "--source", "sim:aisle_slow_1", "--connect", "tcp/127.0.0.1:9",
+                "--outbox", str(tmp_path / "ob"))
+    one_line_error(p, "needs a label source that finds people", "edge")
+    assert not (tmp_path / "ob").exists()
