@@ -218,7 +218,7 @@ def real_time(endpoint: str, sets: dict[str, Path], frames: int, work: Path, sit
                 edges[robot_id] = Proc(
                     ["edge", "--robot", robot_id, "--source", str(path), "--connect", endpoint,
                      "--outbox", str(work / "outbox" / robot_id), "--rate", "10",
-                     "--max-frames", str(frames), *site.flags(robot_id)],
+                     "--max-frames", str(frames), "--privacy", "off", *site.flags(robot_id)],
                     work / f"edge_{robot_id}.log",
                 )
             summaries = {}

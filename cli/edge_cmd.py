@@ -38,7 +38,11 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--drop-when-behind", action="store_true", default=None,
                    help="replay like a camera: drop (and count) frames tracking cannot keep up with")
     p.add_argument("--max-frames", type=int, metavar="K", help="stop after K frames")
-    p.add_argument("--labels", metavar="none|oracle|onnx:PATH", help="label source for dynamic-point removal")
+    p.add_argument("--labels", metavar="none|oracle|onnx:PATH",
+                   help="label source for dynamic-point removal and for finding people to redact")
+    p.add_argument("--privacy", choices=("blank", "blur", "off"),
+                   help="what is done to people in keyframe images before they leave the robot "
+                   "(default: [agent] privacy, blank); blank and blur need --labels")
     p.add_argument(
         "--map-pose", metavar="X,Y,YAW_DEG",
         help="the robot's start pose on the shared map (metres, degrees), e.g. its dock; "
@@ -77,6 +81,11 @@ def parse_map_pose(text: str) -> Any:
     return yaw_transform(x, y, math.radians(yaw_deg))
 
 
+def _privacy_words(mode: str) -> str:
+    """The ready line's privacy clause: loud when images leave unredacted."""
+    return {"off": "NOT REDACTED (privacy off)", "blank": "blanked", "blur": "blurred"}[mode]
+
+
 def run(args: argparse.Namespace) -> int:
     from wardmap.edge.agent import AgentConfig, EdgeAgent, run_agent
     from wardmap.edge.metrics import EdgeMetrics
@@ -97,6 +106,8 @@ def run(args: argparse.Namespace) -> int:
         overrides["drop_when_behind"] = True
     if args.labels is not None:
         overrides["labels"] = args.labels
+    if args.privacy is not None:
+        overrides["privacy"] = args.privacy
     agent_cfg = dataclasses.replace(agent_cfg, **overrides)  # re-validated by __post_init__
     T_map_odom = None if args.map_pose is None else parse_map_pose(args.map_pose)
     metrics = None if args.metrics_port is None else EdgeMetrics(args.robot)
@@ -115,7 +126,8 @@ def run(args: argparse.Namespace) -> int:
     def ready(session_id: str, pending: int) -> None:
         print(
             f"edge {args.robot} ready: session {session_id}, connected to {' '.join(args.connect)}, "
-            f"{pending} keyframes pending in {args.outbox / OUTBOX_FILE}",
+            f"{pending} keyframes pending in {args.outbox / OUTBOX_FILE}, "
+            f"people in images: {_privacy_words(agent_cfg.privacy)}",
             flush=True,
         )
         notify("READY=1")

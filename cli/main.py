@@ -19,6 +19,7 @@ from wardmap.cli import (
     edge_cmd,
     eval_cmd,
     export_cmd,
+    images_cmd,
     map_cmd,
     readout_cmd,
     router_cmd,
@@ -64,6 +65,7 @@ def build_parser() -> argparse.ArgumentParser:
     router_cmd.register(sub)
     server_cmd.register(sub)
     token_cmd.register(sub)
+    images_cmd.register(sub)
     certs_cmd.register(sub)
     edge_cmd.register(sub)
     demo_cmd.register(sub)

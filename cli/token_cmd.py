@@ -10,9 +10,8 @@ from __future__ import annotations
 import argparse
 import time
 
-from wardmap.cli.db_options import add_password_option, db_password
-
-DEFAULT_DB = "sqlite:///wardmap.db"
+from wardmap.cli.db_options import db_password
+from wardmap.cli.store_args import add_db_arg, check_existing_store
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -27,9 +26,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     revoke = actions.add_parser("revoke", help="revoke a token by its id")
     revoke.add_argument("token_id", metavar="ID", help="the id from `wardmap token list`")
     for q in (create, listing, revoke):
-        q.add_argument("--db", default=DEFAULT_DB, metavar="URL",
-                       help="the map server's store (default: %(default)s)")
-        add_password_option(q)
+        add_db_arg(q)
     p.set_defaults(func=run)
 
 
@@ -38,17 +35,10 @@ def _when(s: float | None) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
-    from wardmap.server.store import SQLITE_SCHEME, open_store
+    from wardmap.server.store import open_store
     from wardmap.server.tokens import TokenError, create_token, revoke_token
 
-    if args.db.startswith(SQLITE_SCHEME):  # a mistyped path would make a new store nobody serves
-        path = Path(args.db[len(SQLITE_SCHEME):].partition("?")[0])
-        if not path.is_file():
-            raise TokenError(
-                f"no store at {path}: give the server's --db (it creates the file at its first start)"
-            )
+    check_existing_store(args.db, TokenError)
     with open_store(args.db, password=db_password(args)) as store:
         if args.action == "create":
             issued = create_token(store, args.scope, args.name)

@@ -44,6 +44,14 @@ summary, ``dropped`` in the heartbeat), never queued without bound; any other re
 the tracker. :meth:`EdgeAgent.stop` closes the stream. Label source: ``none``, ``oracle`` or
 ``onnx:PATH`` (:mod:`wardmap.edge.labels`), exactly as ``wardmap track`` runs it.
 
+Privacy (:mod:`wardmap.edge.privacy`, docs/security.md): the label source's person mask of
+each keyframe, dilated by :attr:`AgentConfig.privacy_dilate_px`, is blanked or blurred in the
+colour image and blanked in the thermal raster (:attr:`AgentConfig.privacy`) before the message
+is encoded, so the outbox and the network only see redacted images; a redacting mode with labels
+``none`` is refused at construction (nobody could find the people), and ``off`` is logged as a
+warning at every start. The summary counts
+``keyframes_with_people`` and ``keyframes_unlabelled`` (redacted whole).
+
 Keypoints: the tracker's own features of the keyframe, after dynamic-point removal (what
 its map was built from), the strongest :attr:`AgentConfig.max_keypoints` of them. A
 keyframe the tracker made without RGB features (rare) gets ORB extracted. The message is
@@ -87,6 +95,7 @@ from wardmap.edge.keyframes import build_keyframe_msg, thermal_due
 from wardmap.edge.labels import LabelSource, make_label_source
 from wardmap.edge.metrics import EdgeMetrics
 from wardmap.edge.outbox import Outbox, OutboxFull, OutboxItem, SessionIds
+from wardmap.edge.privacy import PRIVACY_MODES, person_mask
 from wardmap.edge.stream import FrameSourceStream, FrameStream, StreamSource
 from wardmap.edge.tracker import Tracker, TrackerConfig, TrackInput
 from wardmap.shared.dataset import DatasetReader, Frame, FrameSource
@@ -156,6 +165,10 @@ class AgentConfig:
         thermal_unit_k: thermal quantum in kelvin (the sensor's NETD is ~0.05 K).
         labels: label source spec for dynamic-point removal (``none``, ``oracle``, ``onnx:PATH``).
         label_threads: CPU threads of the label network.
+        privacy: what is done to people in the keyframe images before they leave the robot
+            (:mod:`wardmap.edge.privacy`): ``blur``, ``blank`` or ``off``. A redacting mode needs
+            a label source that finds people: with ``labels = "none"`` the agent refuses to start.
+        privacy_dilate_px: margin in colour-image pixels the person mask is grown by.
         send_batch: outbox items read per send round.
         inbox_size: capacity of the sender's inbox (policy :data:`INBOX_POLICY`).
         poll_s: longest the sender sleeps without a wake-up (resend and heartbeat checks).
@@ -179,6 +192,8 @@ class AgentConfig:
     thermal_unit_k: float = 0.05
     labels: str = "none"
     label_threads: int = 1
+    privacy: str = "blank"
+    privacy_dilate_px: int = 12
     send_batch: int = 16
     inbox_size: int = 1024
     poll_s: float = 0.1
@@ -209,6 +224,11 @@ class AgentConfig:
             raise ConfigError("agent.thermal_every and agent.max_keypoints must be >= 0")
         if not (np.isfinite(self.thermal_unit_k) and 0 < self.thermal_unit_k <= 1):
             raise ConfigError(f"agent.thermal_unit_k must be in (0, 1] K, got {self.thermal_unit_k}")
+        if self.privacy not in PRIVACY_MODES:
+            raise ConfigError(f"agent.privacy must be one of {', '.join(PRIVACY_MODES)}, "
+                              f"got {self.privacy!r}")
+        if not 0 <= self.privacy_dilate_px <= 200:
+            raise ConfigError(f"agent.privacy_dilate_px must be in 0..200, got {self.privacy_dilate_px}")
         if self.label_threads < 1:
             raise ConfigError(f"agent.label_threads must be >= 1, got {self.label_threads}")
         for name in ("stream_capacity", "send_batch", "inbox_size", "outbox_max_items", "outbox_max_bytes"):
@@ -243,6 +263,8 @@ class _TrackStats:
     outbox_full_waits: int = 0
     payload_bytes: int = 0
     thermal_sent: int = 0
+    with_people: int = 0  # keyframes whose images had person pixels redacted
+    unlabelled: int = 0  # keyframes redacted whole: the label source gave no labels for them
 
 
 class EdgeAgent:
@@ -287,6 +309,12 @@ class EdgeAgent:
         self.source: StreamSource = FrameSourceStream(source) if hasattr(source, "frame") else source  # type: ignore[arg-type]
         self.outbox_path = Path(outbox_path)
         self.cfg = config or AgentConfig()
+        if self.cfg.privacy != "off" and self.cfg.labels == "none":
+            raise ConfigError(
+                f"agent.privacy = {self.cfg.privacy!r} needs a label source that finds people, but "
+                "agent.labels is 'none': set labels (oracle for simulated data, onnx:PATH) or, only "
+                "where the site's privacy officer allows unredacted images, privacy = 'off' (--privacy off)"
+            )
         self.tracker_cfg = tracker_config or TrackerConfig()
         self._metrics = metrics
         self._stop = threading.Event()  # set once: end tracking
@@ -335,10 +363,13 @@ class EdgeAgent:
         import zenoh  # the only zenoh user on the edge; imported here, not at module import
 
         source = self.source
+        if self.cfg.privacy == "off":
+            log.warning("privacy is off: keyframe images leave this robot with people unredacted")
         kg = KnowledgeGraph.load()
         labels = make_label_source(self.cfg.labels, dataset=source.dataset, kg=kg,
                                    threads=self.cfg.label_threads)
-        tracker = Tracker(source.calibration, self.tracker_cfg, kg.mobility_lut())
+        mobility_lut = kg.mobility_lut()
+        tracker = Tracker(source.calibration, self.tracker_cfg, mobility_lut)
         stream = FrameStream(source, capacity=self.cfg.stream_capacity, rate_hz=self.cfg.rate_hz,
                              drop_when_behind=self.cfg.drop_when_behind, max_frames=self.cfg.max_frames)
         zcfg = load_zenoh_config(client_config(self.connect, options=self.zenoh_options), self.zenoh_options)
@@ -373,7 +404,7 @@ class EdgeAgent:
                     if self._stop.is_set():
                         stream.close()
                     with stream:
-                        self._track_loop(stream, labels, tracker, outbox, ids, track)
+                        self._track_loop(stream, labels, mobility_lut, tracker, outbox, ids, track)
                     flushed = self._flush(outbox)
                 finally:
                     self._stop.set()
@@ -405,6 +436,9 @@ class EdgeAgent:
             "flushed": flushed,
             "bytes_per_keyframe": round(track.payload_bytes / track.keyframes) if track.keyframes else 0,
             "thermal_keyframes": track.thermal_sent,
+            "privacy": self.cfg.privacy,
+            "keyframes_with_people": track.with_people,
+            "keyframes_unlabelled": track.unlabelled,
             "latency_ms": _percentiles(lat),
             **self._corrections.summary(**self._pose_args()),  # the sender has stopped
             "seconds": round(time.monotonic() - t_start, 3),
@@ -416,6 +450,7 @@ class EdgeAgent:
         self,
         stream: FrameStream,
         labels: LabelSource,
+        mobility_lut: NDArray[np.uint8],
         tracker: Tracker,
         outbox: Outbox,
         ids: SessionIds,
@@ -428,6 +463,7 @@ class EdgeAgent:
                 break
             frame: Frame | None = item.frame
             T_odom_base = item.T_odom_base
+            person: NDArray[np.bool_] | None = None  # people in the frame (None: no labels)
             if frame is None:
                 inp = TrackInput(item.stamp, None, None, T_odom_base=T_odom_base,
                                  problem=item.problem or "cannot read frame")
@@ -437,17 +473,24 @@ class EdgeAgent:
                     item.stamp, frame.rgb, frame.depth_m, frame.thermal_k, T_odom_base,
                     class_image=None if lab is None else lab.class_image,
                 )
+                person = None if lab is None else person_mask(lab.class_image, mobility_lut)
             res = tracker.track(inp)
             track.frames += 1
             track.lost += int(res.lost)
             if self._metrics is not None:
                 self._metrics.frame(bool(res.lost))
             if res.keyframe and frame is not None:
+                if self.cfg.privacy != "off":
+                    track.with_people += int(person is not None and bool(person.any()))
+                    if person is None:
+                        track.unlabelled += 1
+                        log.warning("no labels for keyframe at %.6f: its images are redacted whole",
+                                    frame.stamp)
                 msg = build_keyframe_msg(
                     frame, res, tracker, T_odom_base=T_odom_base, intrinsics=intrinsics,
                     robot_id=self.robot_id, session_id=ids.session_id, seq=ids.next_seq, config=self.cfg,
                     with_thermal=thermal_due(res.source, track.keyframes, self.cfg.thermal_every),
-                    T_map_odom=self.T_map_odom,
+                    T_map_odom=self.T_map_odom, person=person,
                 )
                 track.thermal_sent += int(msg.thermal is not None)
                 if not self._put_with_backpressure(ids, msg, track):

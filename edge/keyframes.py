@@ -20,9 +20,11 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from wardmap.edge.privacy import dilate, mask_in_other_camera, redact_rgb, redact_thermal
 from wardmap.edge.tracker import Tracker, TrackResult
 from wardmap.shared.dataset import Frame
 from wardmap.shared.errors import WardmapError
+from wardmap.shared.se3 import inverse
 from wardmap.shared.wire import (
     Intrinsics,
     KeyframeMsg,
@@ -58,6 +60,7 @@ def build_keyframe_msg(
     config: AgentConfig,
     with_thermal: bool,
     T_map_odom: NDArray[np.float64] | None = None,
+    person: NDArray[np.bool_] | None = None,
 ) -> KeyframeMsg:
     """The wire message of keyframe ``seq`` of session ``(robot_id, session_id)``.
 
@@ -71,6 +74,11 @@ def build_keyframe_msg(
             ``depth_stride``, ``thermal_stride``, ``thermal_unit_k``.
         with_thermal: attach the thermal image (if the frame has one); see :func:`thermal_due`.
         T_map_odom: (4, 4) the session's odom frame in the map (a robot started at a known map pose).
+        person: bool (H, W) the frame's person pixels (:func:`wardmap.edge.privacy.person_mask`),
+            or None when the label source had no labels for it. Unless ``config.privacy`` is
+            ``off``, the images are redacted inside this mask grown by ``privacy_dilate_px``
+            (None: the whole image, since nobody can say where the people are); the keypoints
+            are the tracker's, computed on the raw frame.
 
     Raises:
         WardmapError: the colour image cannot be JPEG-encoded.
@@ -93,14 +101,27 @@ def build_keyframe_msg(
         depth_m=kp_depth,
         descriptors=np.ascontiguousarray(feats.descriptors, np.uint8),
     )
-    bgr = cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR)
+    rgb, thermal_k = frame.rgb, frame.thermal_k
+    if config.privacy != "off":
+        mask = (np.ones(depth.shape, bool) if person is None
+                else dilate(np.asarray(person, bool), config.privacy_dilate_px))
+        rgb = redact_rgb(rgb, mask, config.privacy)
+        if thermal_k is not None and with_thermal:
+            calib = tracker.calib
+            if person is None or calib.thermal is None or calib.T_rgb_thermal is None:
+                thermal_k = None  # cannot place the people in the thermal image: not sent
+            else:
+                mask_th = mask_in_other_camera(mask, depth, tracker.cam, calib.thermal,
+                                               inverse(calib.T_rgb_thermal), margin_px=0)
+                thermal_k = redact_thermal(thermal_k, mask_th)
+    bgr = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)
     ok, jpeg = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, config.jpeg_quality])
     if not ok:
         raise WardmapError(f"cannot JPEG-encode the colour image of frame {frame.index}")
     s = config.depth_stride if h % config.depth_stride == 0 and w % config.depth_stride == 0 else 1
     thermal = None
-    if frame.thermal_k is not None and with_thermal:
-        th = np.nan_to_num(frame.thermal_k, nan=0.0, posinf=0.0, neginf=0.0)
+    if thermal_k is not None and with_thermal:
+        th = np.nan_to_num(thermal_k, nan=0.0, posinf=0.0, neginf=0.0)
         ts = config.thermal_stride
         if th.shape[0] % ts or th.shape[1] % ts:
             ts = 1

@@ -37,6 +37,7 @@ from wardmap.server.corrections import CorrectionPublisher
 from wardmap.server.ingest import Ingest
 from wardmap.server.mapserve import MapServe
 from wardmap.server.objectmap import ObjectMap
+from wardmap.server.retention import ImageRetention, RetentionConfig
 from wardmap.server.store import StoreUnavailableError, open_store
 from wardmap.server.telemetry import ServerTelemetry
 from wardmap.server.zenoh_session import ZenohSessionError, check_session_config, has_router, open_session
@@ -84,6 +85,7 @@ class MapServer:
         retry_until: threading.Event | None = None,
         zenoh_options: ZenohOptions | None = None,
         db_password: str | None = None,
+        retention: RetentionConfig | None = None,
     ) -> None:
         """
         Args:
@@ -106,6 +108,8 @@ class MapServer:
             zenoh_options: TLS files and zenoh config file of the session (docs/security.md).
             db_password: the PostgreSQL password (``--db-password-file``); None: the store's
                 own sources (``WARDMAP_DB_PASSWORD``, ``~/.pgpass``).
+            retention: ``[store]`` image retention; the job runs when it sets one
+                (``server/retention.py``). None: images are kept.
 
         Raises:
             ConfigError: a bad endpoint in ``connect``.
@@ -113,6 +117,7 @@ class MapServer:
         if connect is not None:
             client_config(connect, options=zenoh_options)  # validates the endpoints now
         self._zenoh_options = zenoh_options
+        self._retention = retention
         self._db_url = db_url
         self._db_password = db_password
         self._connect = None if connect is None else list(connect)
@@ -147,6 +152,12 @@ class MapServer:
                                    functools.partial(open_store, self._db_url,
                                                      password=self._db_password))
             stack.callback(store.close)
+            retention_s = None if self._retention is None else self._retention.retention_s
+            if retention_s is not None and self._retention is not None:
+                job = ImageRetention(store, retention_s, self._retention.image_retention_check_s,
+                                     telemetry=self._telemetry)
+                job.start()
+                stack.callback(job.stop)
             objects = ObjectMap(store)
             ingest: Ingest | None = None
             corrections: CorrectionPublisher | None = None
@@ -236,10 +247,12 @@ class MapServer:
         perception_cfg = load_config(PerceptionConfig, config_path, section="perception")
         association_cfg = load_config(AssociationConfig, config_path, section="association")
         backend_cfg = load_config(BackendConfig, config_path, section="backend")
+        retention = load_config(RetentionConfig, config_path, section="store")
         telemetry = ServerTelemetry()
         if not pipeline_cfg.enabled:
             return cls(db_url, connect=connect, require_tokens=require_tokens, telemetry=telemetry,
-                       retry_until=retry_until, zenoh_options=zenoh_options, db_password=db_password)
+                       retry_until=retry_until, zenoh_options=zenoh_options, db_password=db_password,
+                       retention=retention)
         # Build the segmenter now: a missing or bad model is one clear error before anything starts.
         segmenter = make_segmenter(perception_cfg.segmenter, perception_cfg)
 
@@ -251,7 +264,7 @@ class MapServer:
 
         return cls(db_url, connect=connect, pipeline_factory=make_pipeline, require_tokens=require_tokens,
                    telemetry=telemetry, retry_until=retry_until, zenoh_options=zenoh_options,
-                   db_password=db_password)
+                   db_password=db_password, retention=retention)
 
     @property
     def start_cancelled(self) -> bool:

@@ -79,6 +79,12 @@ class ServerTelemetry:
         self.robot_keyframes = Counter(
             "wardmap_robot_keyframes", "Keyframes received from each robot, by the status they were acked.",
             ["robot", "result"], registry=None)
+        self.images_erased = Counter(
+            "wardmap_images_erased", "Keyframe images erased by the retention job ([store] image_retention).",
+            registry=None)
+        self.image_retention_failures = Counter(
+            "wardmap_image_retention_failures", "Runs of the image retention job the store failed.",
+            registry=None)
         self.build = Info("wardmap_build", "The running server: package version, git describe, python.",
                           registry=None)
 
@@ -86,7 +92,8 @@ class ServerTelemetry:
         """Put every metric on ``registry`` (once per registry) and fill the build info."""
         self.build.info(build_info())
         for metric in (self.ingest_seconds, self.ack_seconds, self.mapping_seconds, self.rest_seconds,
-                       self.robot_last_seen, self.robot_keyframes, self.build):
+                       self.robot_last_seen, self.robot_keyframes, self.images_erased,
+                       self.image_retention_failures, self.build):
             registry.register(metric)
 
     def keyframe(self, robot_id: str, result: str, unix_s: float) -> None:

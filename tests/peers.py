@@ -85,6 +85,7 @@ class Acker:
         self.status, self.reason = status, reason
         self.received: list[tuple[str, int]] = []  # owned by the worker; read under _lock
         self.poses: dict[tuple[str, int], tuple[Any, Any, Any]] = {}  # likewise
+        self.images: dict[tuple[str, int], tuple[float, bytes]] = {}  # likewise: (stamp, rgb_jpeg)
         self._lock = threading.Lock()
         self._changed = threading.Condition(self._lock)
         self._queue: queue.Queue[bytes | None] = queue.Queue(maxsize=256)
@@ -113,6 +114,7 @@ class Acker:
             with self._changed:
                 self.received.append((msg.session_id, msg.seq))
                 self.poses[(msg.session_id, msg.seq)] = (msg.T_odom_base, msg.T_odom_camera, msg.T_map_odom)
+                self.images[(msg.session_id, msg.seq)] = (msg.stamp, msg.rgb_jpeg)
                 self._changed.notify_all()
 
     def keys(self) -> set[tuple[str, int]]:

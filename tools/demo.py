@@ -676,7 +676,7 @@ def _run(opts: DemoOptions, work: Path, children: list[Child], wait: Callable[[]
     for p in plans:
         args = ["edge", "--robot", p.robot_id, "--source", p.source, "--connect", endpoint,
                 "--outbox", str(work / "outbox" / p.robot_id), "--rate", f"{CAMERA_RATE_HZ:g}",
-                "--max-frames", str(opts.frames)]
+                "--max-frames", str(opts.frames), "--labels", "oracle"]  # finds people to blank
         if opts.map_poses:
             args += ["--map-pose", map_pose(p)]
         edges[p.robot_id] = start(f"edge {p.robot_id}", args, lambda s: " ready: session " in s)

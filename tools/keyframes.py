@@ -20,6 +20,7 @@ checking it holds an exclusive lock on ``<folder>.lock`` beside it.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import fcntl
 import hashlib
 import json
@@ -36,6 +37,7 @@ from wardmap.edge.agent import AgentConfig
 from wardmap.edge.keyframes import build_keyframe_msg, thermal_due
 from wardmap.edge.labels import make_label_source
 from wardmap.edge.offline import odom_at
+from wardmap.edge.privacy import person_mask
 from wardmap.edge.tracker import Tracker, TrackerConfig, TrackInput
 from wardmap.shared.dataset import DatasetReader, pose_at
 from wardmap.shared.errors import DatasetError, WardmapError
@@ -91,7 +93,9 @@ def dataset_keyframes(
         start, stop: frame range (``stop`` None: to the end).
         labels: label source spec (``none``, ``oracle``, ``onnx:PATH``); None: :func:`auto_labels`.
         tracker_config, agent_config: as the daemon's (defaults: the defaults); of the agent
-            settings the message builder's are used (keypoints, JPEG, strides, thermal).
+            settings the message builder's are used (keypoints, JPEG, strides, thermal, privacy:
+            people are redacted as a robot would; with labels ``none``, where a robot refuses to
+            start unless privacy is ``off``, the images are kept whole).
         T_map_odom: (4, 4) the session's known map pose (``wardmap edge --map-pose``), or None.
         progress: called as ``progress(frames_done, frames_total)``.
 
@@ -103,8 +107,12 @@ def dataset_keyframes(
     cfg = agent_config or AgentConfig()
     kg = KnowledgeGraph.load()
     spec = auto_labels(reader) if labels is None else labels
+    if spec == "none" and cfg.privacy != "off":
+        # a robot refuses this; offline, the images are already on this machine: keep them whole
+        cfg = dataclasses.replace(cfg, privacy="off")
     source = make_label_source(spec, dataset=reader, kg=kg, threads=cfg.label_threads)
-    tracker = Tracker(reader.calibration, tracker_config, kg.mobility_lut())
+    mobility_lut = kg.mobility_lut()
+    tracker = Tracker(reader.calibration, tracker_config, mobility_lut)
     odo = reader.odometry()
     intrinsics = Intrinsics.from_camera(reader.calibration.rgb, reader.calibration.depth_scale)
     seq = 0
@@ -117,6 +125,7 @@ def dataset_keyframes(
             tracker.track(TrackInput(stamp, None, None, T_odom_base=T_odom_base, problem="cannot read frame"))
             continue
         lab = source.labels(frame)
+        person = None if lab is None else person_mask(lab.class_image, mobility_lut)
         res = tracker.track(
             TrackInput(stamp, frame.rgb, frame.depth_m, frame.thermal_k, T_odom_base,
                        class_image=None if lab is None else lab.class_image)
@@ -126,6 +135,7 @@ def dataset_keyframes(
                 frame, res, tracker, T_odom_base=T_odom_base, intrinsics=intrinsics, robot_id=robot_id,
                 session_id=session_id, seq=seq, config=cfg,
                 with_thermal=thermal_due(res.source, seq, cfg.thermal_every), T_map_odom=T_map_odom,
+                person=person,
             )
             seq += 1
         if progress is not None:

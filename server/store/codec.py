@@ -5,9 +5,11 @@ Backends share these, so a file written by one reads the same in another.
 
 from __future__ import annotations
 
+import functools
 import json
 from typing import Any, Final
 
+import cv2
 import msgpack
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -15,7 +17,7 @@ from numpy.typing import ArrayLike, NDArray
 from wardmap.server.perception.types import ObjectMeasurement
 from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.config import to_mapping
-from wardmap.shared.wire import array_to_wire
+from wardmap.shared.wire import array_to_wire, decode_keyframe, jpeg_size
 
 _POSE_DTYPE: Final = np.dtype("<f8")
 _ARRAYS: Final = ("box_xyxy", "points_camera", "T_camera_object", "T_world_camera", "T_world_object",
@@ -81,3 +83,33 @@ def camera_from_json(text: str) -> PinholeCamera:
     """Inverse of :func:`camera_to_json`."""
     d = json.loads(text)
     return PinholeCamera(**{**d, "distortion": tuple(d["distortion"])})
+
+
+def without_images(payload: bytes) -> bytes:
+    """A keyframe's wire bytes with its images erased (retention, ``wardmap images erase``).
+
+    The colour JPEG becomes a black one of the same size (the wire requires a colour image
+    matching the intrinsics) and the thermal raster is dropped; every other field keeps its
+    bytes (poses, keypoints, depth, intrinsics), so the back-end and the mapping stage decode
+    the keyframe as before, with the same features.
+
+    Raises:
+        WireError: ``payload`` is not a valid keyframe.
+    """
+    msg = decode_keyframe(payload)  # validates; the edit below is on the msgpack map itself
+    width, height, _ = jpeg_size(msg.rgb_jpeg)
+    tree = msgpack.unpackb(payload, raw=False)
+    tree["rgb_jpeg"] = _black_jpeg(width, height)
+    tree.pop("thermal", None)
+    out = bytes(msgpack.packb(tree, use_bin_type=True))
+    decode_keyframe(out)
+    return out
+
+
+@functools.lru_cache(maxsize=8)
+def _black_jpeg(width: int, height: int) -> bytes:
+    """A black colour JPEG of ``width`` x ``height`` pixels (a few KB)."""
+    ok, data = cv2.imencode(".jpg", np.zeros((height, width, 3), np.uint8), [cv2.IMWRITE_JPEG_QUALITY, 50])
+    if not ok:
+        raise ValueError(f"cannot JPEG-encode a {width}x{height} placeholder")
+    return bytes(data.tobytes())

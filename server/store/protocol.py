@@ -85,6 +85,23 @@ class KeyframeStore(Protocol):
         """The stored wire bytes of one keyframe, None if absent."""
         ...
 
+    def images_erased_s(self, robot_id: str, session_id: str, seq: int) -> float | None:
+        """When the keyframe's images were erased (server seconds), None if not (or no such keyframe)."""
+        ...
+
+    def erase_images(
+        self, *, now_s: float, received_before_s: float | None = None, stamp_from: float | None = None,
+        stamp_to: float | None = None, robot_id: str | None = None,
+    ) -> int:
+        """Erase the images of the keyframes matching every given filter (at least one); how many.
+
+        Received before ``received_before_s`` (retention), capture ``stamp`` in ``[stamp_from,
+        stamp_to)``, of ``robot_id``. Each payload becomes :func:`~wardmap.server.store.codec.
+        without_images` of itself and is marked erased at ``now_s``; already erased ones are
+        skipped. Poses, features, graph, measurements and objects are untouched.
+        """
+        ...
+
     def stats(self) -> StoreStats:
         """Totals over the whole store, from one consistent snapshot."""
         ...

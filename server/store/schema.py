@@ -246,6 +246,11 @@ STEPS: Final[tuple[Step, ...]] = (
         Only(sqlite="DROP TABLE graph_edges", postgres=None),
         Only(sqlite="ALTER TABLE graph_edges_v10 RENAME TO graph_edges", postgres=None),
     ),
+    # v11: erased images (retention, ``wardmap images erase``): when the payload's colour image
+    # was replaced by a black one and its thermal raster dropped; NULL = images as received.
+    (
+        "ALTER TABLE keyframes ADD COLUMN images_erased_s {real}",
+    ),
 )
 
 

@@ -30,6 +30,7 @@ from wardmap.server.store.codec import (
     pose_from_blob,
     poses_from_blobs,
     unpack_measurement,
+    without_images,
 )
 from wardmap.server.store.records import (
     AnchoredKeyframe,
@@ -83,9 +84,13 @@ from wardmap.server.store.rows import (
     token_from_row,
 )
 from wardmap.server.store.schema import Dialect
+from wardmap.shared.errors import WireError
 from wardmap.shared.wire import KeyframeMsg
 
 log = logging.getLogger(__name__)
+
+ERASE_BATCH = 64
+"""Keyframes whose images :meth:`SqlMapStore.erase_images` rewrites per transaction."""
 
 _INSERT_MAPPED = (
     "INSERT INTO mapped_keyframes (robot_id, session_id, seq, T_map_camera, camera) VALUES (?, ?, ?, ?, ?) "
@@ -318,15 +323,86 @@ class SqlMapStore:
 
     def payload(self, robot_id: str, session_id: str, seq: int) -> bytes | None:
         """The stored wire bytes of one keyframe (the first copy received), None if absent."""
+        value = self._keyframe_column("payload", robot_id, session_id, seq)
+        return None if value is None else bytes(value)
+
+    def images_erased_s(self, robot_id: str, session_id: str, seq: int) -> float | None:
+        """When the keyframe's images were erased (server wall-clock seconds), None if they were
+        not (or there is no such keyframe)."""
+        value = self._keyframe_column("images_erased_s", robot_id, session_id, seq)
+        return None if value is None else float(value)
+
+    def _keyframe_column(self, column: str, robot_id: str, session_id: str, seq: int) -> Any:
+        """One column (a name from this module, never from input) of one keyframe, None if absent."""
         check_str(robot_id, "robot_id")
         check_str(session_id, "session_id")
         check_seq(seq)
-        with self._read("payload") as conn:
+        with self._read(column) as conn:
             row = conn.execute(
-                "SELECT payload FROM keyframes WHERE robot_id = ? AND session_id = ? AND seq = ?",
+                f"SELECT {column} FROM keyframes WHERE robot_id = ? AND session_id = ? AND seq = ?",
                 (robot_id, session_id, seq),
             ).fetchone()
-        return None if row is None else bytes(row[0])
+        return None if row is None else row[0]
+
+    def erase_images(
+        self, *, now_s: float, received_before_s: float | None = None, stamp_from: float | None = None,
+        stamp_to: float | None = None, robot_id: str | None = None,
+    ) -> int:
+        """Erase the images of the keyframes that match every given filter; how many were erased.
+
+        Each payload is rewritten by :func:`~wardmap.server.store.codec.without_images` (black
+        colour JPEG, no thermal; poses, keypoints and depth kept) and marked with ``now_s``;
+        keyframes already erased are skipped. Committed in batches of :data:`ERASE_BATCH`
+        (SQLite with ``secure_delete`` on, so the pages that held the images are zeroed when
+        freed; PostgreSQL frees the old row versions at its next VACUUM).
+
+        Args:
+            now_s: server wall-clock seconds recorded as the erasure time.
+            received_before_s: keyframes the server received before this (retention).
+            stamp_from, stamp_to: keyframes whose capture stamp lies in ``[from, to)`` (seconds).
+            robot_id: only this robot's keyframes.
+
+        Raises:
+            StoreError: no filter, bad arguments, or a database failure (earlier batches stay erased).
+        """
+        t = check_seconds(now_s, "now_s")
+        where: list[str] = ["images_erased_s IS NULL"]
+        params: list[float | str] = []
+        if received_before_s is not None:
+            where.append("received_s < ?")
+            params.append(check_seconds(received_before_s, "received_before_s"))
+        if stamp_from is not None:
+            where.append("stamp >= ?")
+            params.append(check_seconds(stamp_from, "stamp_from", positive=False))
+        if stamp_to is not None:
+            where.append("stamp < ?")
+            params.append(check_seconds(stamp_to, "stamp_to", positive=False))
+        if robot_id is not None:
+            where.append("robot_id = ?")
+            params.append(check_str(robot_id, "robot_id"))
+        if len(where) == 1:
+            raise StoreError("erase_images: give at least one filter (received_before_s, stamps, robot_id)")
+        sql = (f"SELECT rowid, payload FROM keyframes WHERE {' AND '.join(where)} AND rowid > ? "
+               "ORDER BY rowid LIMIT ?")
+        erased, last = 0, 0
+        while True:
+            with self._write("erase images") as conn:
+                if self.dialect == "sqlite":
+                    conn.execute("PRAGMA secure_delete = ON")  # the old images' pages are zeroed when freed
+                rows = conn.execute(sql, (*params, last, ERASE_BATCH)).fetchall()
+                for rowid, payload in rows:
+                    last = int(rowid)
+                    try:
+                        stripped = without_images(bytes(payload))
+                    except WireError as exc:  # validated at insert: only a damaged row gets here
+                        log.error("keyframe row %d cannot be decoded, its images are not erased: %s",
+                                  last, exc)
+                        continue
+                    conn.execute("UPDATE keyframes SET payload = ?, images_erased_s = ? WHERE rowid = ?",
+                                 (stripped, t, last))
+                    erased += 1
+            if len(rows) < ERASE_BATCH:
+                return erased
 
     def stats(self) -> StoreStats:
         """Totals over the whole store, from one consistent snapshot."""

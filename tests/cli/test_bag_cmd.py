@@ -140,7 +140,7 @@ def test_edge_on_a_bag_sends_the_keyframes_the_folder_gives(sim: Path, tmp_path:
         for name, source in (("folder", str(sim)), ("bag", f"bag:{tmp_path / 'sim.mcap'}")):
             done = subprocess.run(
                 wardmap_cmd("edge", "--robot", "r1", "--source", source, "--connect", endpoint,
-                            "--outbox", str(tmp_path / name), "--config", str(config)),
+                            "--outbox", str(tmp_path / name), "--config", str(config), "--privacy", "off"),
                 capture_output=True, text=True, timeout=120, env=child_env())
             assert done.returncode == 0, done.stderr
             with Outbox.open(tmp_path / name / "outbox.sqlite") as outbox:

@@ -78,7 +78,7 @@ def test_rejected_keyframes_leave_the_outbox_and_are_counted_by_reason(tmp_path:
     from wardmap.sim.live import LiveRun
 
     path = tmp_path / "outbox.sqlite"
-    config = AgentConfig(max_frames=4, flush_timeout_s=20.0)
+    config = AgentConfig(max_frames=4, flush_timeout_s=20.0, privacy="off")
     with router_on_thread() as endpoint, Acker(endpoint, "rejected", "depth: corrupt") as acker:
         summary: dict[str, Any] = EdgeAgent("r1", LiveRun("aisle_slow_1", 0), [endpoint], path,
                                             config=config).run()

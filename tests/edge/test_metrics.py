@@ -53,7 +53,7 @@ def test_an_agent_run_records_frames_and_ack_latency(tmp_path: Path) -> None:
     from wardmap.sim.live import LiveRun
 
     metrics = EdgeMetrics("r1")
-    config = AgentConfig(max_frames=4, flush_timeout_s=20.0, heartbeat_period_s=0.05)
+    config = AgentConfig(max_frames=4, flush_timeout_s=20.0, heartbeat_period_s=0.05, privacy="off")
     with router_on_thread() as endpoint, Acker(endpoint, "stored") as _:
         summary = EdgeAgent("r1", LiveRun("aisle_slow_1", 0), [endpoint], tmp_path / "outbox.sqlite",
                             config=config, metrics=metrics).run()

@@ -54,7 +54,8 @@ def test_edge_applies_the_servers_correction_and_counts_bad_ones(tmp_path: Path)
     from wardmap.sim.live import LiveRun
 
     heartbeats: queue.Queue[bytes] = queue.Queue()
-    config = AgentConfig(max_frames=4, flush_timeout_s=20.0, heartbeat_period_s=0.2, correction_query_s=0.5)
+    config = AgentConfig(max_frames=4, flush_timeout_s=20.0, heartbeat_period_s=0.2, correction_query_s=0.5,
+                         privacy="off")
     with contextlib.ExitStack() as stack:
         endpoint = stack.enter_context(router_on_thread())
         acker = stack.enter_context(Acker(endpoint))
@@ -102,7 +103,8 @@ def test_an_edge_that_missed_the_put_learns_its_correction_by_query(tmp_path: Pa
     from wardmap.sim.live import LiveRun
 
     heartbeats: queue.Queue[bytes] = queue.Queue()
-    config = AgentConfig(max_frames=2, flush_timeout_s=20.0, heartbeat_period_s=0.2, correction_query_s=0.3)
+    config = AgentConfig(max_frames=2, flush_timeout_s=20.0, heartbeat_period_s=0.2, correction_query_s=0.3,
+                         privacy="off")
     with contextlib.ExitStack() as stack:
         endpoint = stack.enter_context(router_on_thread())
         stack.enter_context(Acker(endpoint))

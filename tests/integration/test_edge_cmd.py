@@ -40,7 +40,7 @@ OUTBOX_FILE = "outbox.sqlite"
 
 
 def _edge_cmd(*args: str) -> list[str]:
-    return wardmap_cmd("edge", *args)
+    return wardmap_cmd("edge", "--privacy", "off", *args)  # privacy: tests/edge/test_privacy.py
 
 
 @pytest.fixture(scope="module")
@@ -64,6 +64,7 @@ def _summary(stdout: str) -> dict[str, Any]:
     lines = stdout.strip().splitlines()
     assert len(lines) == 2, stdout  # the ready line and the summary line
     assert lines[0].startswith("edge ") and " ready: session " in lines[0]
+    assert lines[0].endswith("people in images: NOT REDACTED (privacy off)")  # said loudly
     summary: dict[str, Any] = json.loads(lines[1])
     return summary
 

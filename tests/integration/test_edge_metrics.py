@@ -33,7 +33,7 @@ def test_edge_serves_its_metrics_while_it_runs(router: str, tmp_path: Path) -> N
     url = f"http://127.0.0.1:{port}/metrics"
     cmd = wardmap_cmd("edge", "--robot", "r7", "--source", "sim:aisle_slow_1:0", "--connect", router,
                       "--outbox", str(tmp_path / "outbox"), "--rate", "5", "--metrics-port", str(port),
-                      "--metrics-host", "127.0.0.1")
+                      "--metrics-host", "127.0.0.1", "--privacy", "off")
     with Acker(router):
         edge = spawn_logged(cmd, tmp_path, "edge")
         try:

@@ -129,7 +129,8 @@ def _start_edge(robot: str, dataset: Path, stack: Stack, tmp_path: Path) -> tupl
     config.write_text(EDGE_CONFIG)
     outbox_dir = tmp_path / "outbox"
     cmd = wardmap_cmd("edge", "--robot", robot, "--source", str(dataset), "--connect", stack.endpoint,
-                      "--outbox", str(outbox_dir), "--rate", "10", "--config", str(config))
+                      "--outbox", str(outbox_dir), "--rate", "10", "--config", str(config),
+                      "--privacy", "off")
     proc = spawn_logged(cmd, tmp_path, "edge")
     assert proc.popen.stdout is not None
     ready = _read_line(proc.popen.stdout, READY_TIMEOUT_S)

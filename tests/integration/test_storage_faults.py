@@ -116,7 +116,8 @@ def _start_edge(endpoint: str, dataset: Path, tmp_path: Path) -> Proc:
     config = tmp_path / "edge.toml"
     config.write_text(EDGE_CONFIG)
     cmd = _wardmap("edge", "--robot", ROBOT, "--source", str(dataset), "--connect", endpoint,
-                   "--outbox", str(tmp_path / "outbox"), "--rate", "10", "--config", str(config))
+                   "--outbox", str(tmp_path / "outbox"), "--rate", "10", "--config", str(config),
+                   "--privacy", "off")
     return _start(cmd, lambda ln: " ready: session " in ln, tmp_path, "edge")
 
 

@@ -123,7 +123,8 @@ def test_edge_with_its_certificate_stores_keyframes_through_the_tls_router(
     """A simulated robot with robot_0's certificate: every keyframe is acked after the server
     stored it, the outbox ends empty, and the server lists them under robot_0."""
     cmd = wardmap_cmd("edge", "--robot", "robot_0", "--source", "sim:aisle_slow_1:0", "--max-frames", "12",
-                      "--connect", router, *_flags(site, "robot_0"), "--outbox", str(tmp_path / "outbox"))
+                      "--connect", router, *_flags(site, "robot_0"), "--outbox", str(tmp_path / "outbox"),
+                      "--privacy", "off")
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=RUN_TIMEOUT_S, env=child_env())
     assert done.returncode == 0, done.stderr
     summary = json.loads(done.stdout.strip().splitlines()[-1])
@@ -146,7 +147,8 @@ def test_without_a_certificate_of_the_site_nobody_connects(site: Path, router: s
         with pytest.raises(zenoh.ZError):
             _open(endpoint, options).close()
     cmd = wardmap_cmd("edge", "--robot", "robot_0", "--source", "sim:aisle_slow_1:0", "--max-frames", "1",
-                      "--connect", router, "--tls-ca", str(site / "ca.crt"), "--outbox", str(tmp_path / "o"))
+                      "--connect", router, "--tls-ca", str(site / "ca.crt"), "--outbox", str(tmp_path / "o"),
+                      "--privacy", "off")
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=RUN_TIMEOUT_S, env=child_env())
     one_line_error(done, "cannot connect to", "edge")
 

@@ -70,7 +70,8 @@ def keyframes(
     "/v1/keyframes/{robot_id}/{session_id}/{seq}/image",
     response_class=Response,
     responses={200: {"content": {"image/jpeg": {}}, "description": "the colour JPEG the robot sent"},
-               404: {"model": ErrorOut}},
+               404: {"model": ErrorOut},
+               410: {"model": ErrorOut, "description": "the image was erased (retention or an erase order)"}},
 )
 def keyframe_image(
     store: StoreDep,
@@ -78,10 +79,15 @@ def keyframe_image(
     session_id: Annotated[str, Path(min_length=1, max_length=64)],
     seq: Annotated[int, Path(ge=0)],
 ) -> Response:
-    """The keyframe's colour image as the robot sent it (JPEG; the web page's thumbnail)."""
+    """The keyframe's colour image as the robot sent it (JPEG; the web page's thumbnail);
+    410 once it was erased (``[store] image_retention``, ``wardmap images erase``)."""
     payload = store.payload(robot_id, session_id, seq)
     if payload is None:
         raise HTTPException(404, f"no keyframe {robot_id}/{session_id}/{seq}")
+    erased_s = store.images_erased_s(robot_id, session_id, seq)
+    if erased_s is not None:
+        raise HTTPException(410, f"the image of keyframe {robot_id}/{session_id}/{seq} was erased at "
+                                 f"{erased_s:.0f} (server seconds): retention or an erase order")
     try:
         msg = wire.decode_keyframe(payload)
     except WireError as exc:  # stored after validation: only a damaged row gets here

@@ -276,6 +276,39 @@ def test_replay_reads_no_keyframe_payload_and_backfills_old_stores(tmp_path: Pat
     assert run3.landmarks == run.landmarks
 
 
+def test_erased_images_keep_the_map_and_the_keyframes_still_map(tmp_path: Path, anchored: list) -> None:
+    """Retention past every keyframe of a mapped store: each image is erased, and a restart
+    (back-end and mapping replay) brings back the same objects from the same poses. A store
+    whose images were erased before mapping: the back-end puts every keyframe in its graph and
+    the mapping stage processes each without a failure."""
+    from wardmap.server.retention import ImageRetention
+
+    db = tmp_path / "map.db"
+    run = _run(db, anchored)
+    objects = _objects(db)
+    with SqliteMapStore.open(db) as store:
+        trajectory = store.trajectory("r1")
+        assert ImageRetention(store, 60.0, 3600.0).run_once(now_s=time.time() + 120.0) == len(FRAMES)
+        assert all(store.images_erased_s("r1", "s1", k) is not None for k in range(len(FRAMES)))
+        assert np.array_equal(store.trajectory("r1")[1], trajectory[1])
+    assert _objects(db) == objects
+    again = _run(db, [])
+    assert again.categories == run.categories and again.landmarks == run.landmarks
+    assert again.counters.failures == {} and again.counters.restarts == 0
+
+    early = tmp_path / "early.db"
+    with SqliteMapStore.open(early) as store:
+        for msg, payload in anchored:
+            store.insert(msg, payload, time.time())
+        assert ImageRetention(store, 60.0, 3600.0).run_once(now_s=time.time() + 120.0) == len(FRAMES)
+    blind = _run(early, [])
+    assert blind.counters.failures == {} and blind.counters.restarts == 0
+    assert blind.counters.processed == len(FRAMES)
+    with SqliteMapStore.open(early) as store:
+        nodes, _ = store.graph_records()
+        assert len(nodes) == len(FRAMES)
+
+
 def _session_observations(db: Path, session: str) -> tuple[int, int]:
     """(observations, anchored measurements within association's ``max_range_m``) of one session
     in the store ``db``; the farther ones are stored but never mapped."""

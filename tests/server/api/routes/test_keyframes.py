@@ -11,6 +11,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from wardmap.server.api import decode_cursor, encode_cursor
+from wardmap.server.store import open_store
 
 
 def test_keyframes_pagination_visits_each_once(keyframe_client: TestClient, keyframe_scene: Any) -> None:
@@ -82,3 +83,16 @@ def test_keyframe_image_is_the_stored_jpeg(keyframe_client: TestClient) -> None:
     assert keyframe_client.get("/v1/keyframes/r9/s1/0/image").json() == {"detail": "no keyframe r9/s1/0"}
     assert keyframe_client.get("/v1/keyframes/r1/s1/-1/image").status_code == 422
 
+
+
+def test_an_erased_image_is_gone(keyframe_scene: Any, keyframe_client: TestClient) -> None:
+    """After retention or an erase order the image route answers 410 with the reason, while the
+    keyframe stays listed with its pose."""
+    t0 = keyframe_scene.t0
+    with open_store(keyframe_scene.url) as store:
+        assert store.erase_images(now_s=t0 + 1000, stamp_from=t0 + 2, stamp_to=t0 + 3, robot_id="r1") == 1
+    r = keyframe_client.get("/v1/keyframes/r1/s1/2/image")
+    assert r.status_code == 410 and "was erased" in r.json()["detail"]
+    assert keyframe_client.get("/v1/keyframes/r1/s1/3/image").status_code == 200
+    listed = keyframe_client.get("/v1/keyframes", params={"robot": "r1"}).json()["keyframes"]
+    assert [k["seq"] for k in listed if k["session_id"] == "s1"] == list(range(5))

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import time
+from typing import Any
+
 from fastapi.testclient import TestClient
 
 
@@ -62,3 +65,20 @@ def test_metrics_time_each_route_by_its_template(keyframe_client: TestClient) ->
     assert "# TYPE wardmap_http_request_seconds histogram" in text
     build = next(name for name in samples if name.startswith("wardmap_build_info"))
     assert 'python="3.' in build and 'version="' in build and 'git="' in build
+
+
+def test_the_retention_job_runs_in_the_server_and_is_counted(keyframe_scene: Any, token_headers: Any) -> None:
+    """A server with ``[store] image_retention = "60s"`` over the keyframe scene (received in
+    2024): its job erases every image at start, and /metrics counts them."""
+    from wardmap.server.app import MapServer
+    from wardmap.server.retention import RetentionConfig
+
+    server = MapServer(keyframe_scene.url, retention=RetentionConfig(image_retention="60s"))
+    with TestClient(server.app, headers=token_headers(keyframe_scene.url)) as client:
+        deadline = time.monotonic() + 30.0
+        total = keyframe_scene.n_r1 + keyframe_scene.n_r2
+        while (erased := _samples(client.get("/metrics").text).get("wardmap_images_erased_total", 0)) < total:
+            assert time.monotonic() < deadline, f"{erased} of {total} images erased in 30 s"
+            time.sleep(0.05)
+        assert erased == total
+        assert client.get("/v1/keyframes/r2/s1/0/image").status_code == 410
