@@ -363,8 +363,6 @@ class EdgeAgent:
         import zenoh  # the only zenoh user on the edge; imported here, not at module import
 
         source = self.source
-        if self.cfg.privacy == "off":
-            log.warning("privacy is off: keyframe images leave this robot with people unredacted")
         kg = KnowledgeGraph.load()
         labels = make_label_source(self.cfg.labels, dataset=source.dataset, kg=kg,
                                    threads=self.cfg.label_threads)
@@ -398,6 +396,8 @@ class EdgeAgent:
                 )
                 sender.start()
                 try:
+                    if self.cfg.privacy == "off":  # once connected: a failed start stays one error line
+                        log.warning("privacy is off: keyframe images leave this robot with people unredacted")
                     if on_ready is not None:
                         on_ready(ids.session_id, len(outbox))
                     self._stream = stream
