@@ -331,13 +331,8 @@ class PostgresMapStore(SqlMapStore):
     def _raise_classified(self, what: str, exc: BaseException) -> NoReturn:
         kind = classify_postgres_error(exc)
         detail = f"keyframe store {self.url}: {what} failed: {_first_line(exc)}"
-        if kind is StoreDamagedError:
-            with self._health_lock:
-                first = self._damage is None
-                if first:
-                    self._damage = detail
-            if first:
-                log.error("%s: the database reports damaged data; restore it from a backup", detail)
+        if kind is StoreDamagedError and self._first_damage(detail):
+            log.error("%s: the database reports damaged data; restore it from a backup", detail)
         raise kind(detail) from exc
 
     @contextmanager

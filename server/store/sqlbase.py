@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 from collections.abc import Sequence
 from contextlib import AbstractContextManager
 from types import TracebackType
@@ -106,6 +107,10 @@ class SqlMapStore:
 
     dialect: Dialect
     """Which SQL the object index speaks (``rows.find_sql``)."""
+    _health_lock: threading.Lock
+    """Guards :attr:`_damage` (each backend sets both in its constructor)."""
+    _damage: str | None
+    """The first damage a statement reported; sticky until the database is repaired."""
     _IN_IDS: ClassVar[str]
     """``"<column> {_IN_IDS}"`` keeps rows whose column is one of the ids given by :meth:`_ids`."""
 
@@ -119,6 +124,15 @@ class SqlMapStore:
         self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None:
         self.close()
+
+    def _first_damage(self, detail: str) -> bool:
+        """Record ``detail`` as the store's damage unless one is recorded; True when it was the
+        first (the caller logs it once)."""
+        with self._health_lock:
+            first = self._damage is None
+            if first:
+                self._damage = detail
+        return first
 
     def _ids(self, ids: Sequence[int]) -> object:
         """The one parameter :data:`_IN_IDS` takes for ``ids``."""

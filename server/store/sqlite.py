@@ -341,11 +341,7 @@ class SqliteMapStore(sqlitedb.GuardedAccess, SqlMapStore):
         kind = classify_sqlite_error(exc)
         detail = f"keyframe store {self.path}: {what} failed: {exc}"
         if kind is StoreDamagedError:
-            with self._health_lock:
-                first = self._damage is None
-                if first:
-                    self._damage = detail
-            if first:
+            if self._first_damage(detail):
                 log.error("%s: the database file is damaged; %s", detail, REPAIR_HINT)
             raise StoreDamagedError(f"{detail}: the database file is damaged; {REPAIR_HINT}") from exc
         raise kind(detail) from exc
