@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from wardmap.server.backend.bundle import BundleConfig, BundleFrame, bundle_adjust
+from wardmap.server.backend.bundle import BundleConfig, BundleFrame, _pairs, bundle_adjust
 from wardmap.server.backend.verify import KeyframeFeatures
 from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.errors import GeometryError
@@ -101,6 +101,9 @@ def test_frames_of_other_chains_only_pair_as_revisits() -> None:
     rng = np.random.default_rng(5)
     truth, pts, desc = _scene(rng, n_frames=8)
     frames = [BundleFrame(i, G, _features(rng, G, pts, desc), chain=i // 4) for i, G in enumerate(truth)]
+    # the sequence window never crosses chains; close cameras of another chain pair as revisits
+    assert all(j // 4 == i // 4 for j, i in _pairs(frames, BundleConfig(revisit_radius_m=0.01)))
+    assert any(j // 4 != i // 4 for j, i in _pairs(frames, BundleConfig(revisit_radius_m=1.0)))
     res = bundle_adjust(frames, BundleConfig(revisit_radius_m=0.01))
     # no revisits, windows within a chain: two problems (the second held by the weak priors)
     assert res.landmarks > 0
