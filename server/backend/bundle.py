@@ -76,6 +76,11 @@ class BundleConfig:
     """ORB pyramid scale between octaves (sigma grows by it per octave)."""
     iterations: int = 30
     """Levenberg-Marquardt iterations per solve."""
+    level_sigmas: tuple[float, float] | None = (0.5, 0.02)
+    """Prior of a frame with ``up`` set (a ground robot's): sigmas of its tilt about the
+    horizontal axes (degrees) and of its height along ``up`` (metres) about its initial pose,
+    which the edge's floor levelling made good (decision 0026); None: no prior. Without it
+    the adjustment drifts in pitch and height like the unlevelled frontend (decision 0036)."""
 
     def __post_init__(self) -> None:
         if self.window < 1:
@@ -94,12 +99,15 @@ class BundleFrame:
         features: keypoints (pixels, depth in metres, ORB descriptors, octaves) and camera.
         chain: the keyframe stream it belongs to (the back-end: its session); the sequence
             window pairs only frames of one chain, revisits pair any.
+        up: (3,) unit vector, the map's up direction, for a frame of a robot on a level floor
+            (adds the level prior, :attr:`BundleConfig.level_sigmas`), or None.
     """
 
     key: Hashable
     T_map_camera: F64
     features: KeyframeFeatures
     chain: Hashable = None
+    up: F64 | None = None
 
 
 @dataclass(frozen=True)
@@ -186,6 +194,24 @@ def _prepare(frame: BundleFrame, cfg: BundleConfig) -> _Prepared:
     pts[d <= 0] = np.nan
     octave = np.zeros(len(uv)) if f.octave is None else np.maximum(np.asarray(f.octave, np.float64), 0)
     return _Prepared(uv, d, pts, cfg.pixel_sigma * cfg.scale_factor ** octave)
+
+
+def _level_noise(frame: BundleFrame, sigmas: tuple[float, float]) -> gtsam.noiseModel.Base:
+    """Noise of a prior that holds the camera's tilt and height (along ``frame.up``), free in
+    the other three directions; in gtsam's Pose3 tangent order (rotation, translation), camera frame."""
+    up_c = np.asarray(frame.T_map_camera, np.float64)[:3, :3].T @ np.asarray(frame.up, np.float64)
+    up_c /= np.linalg.norm(up_c)
+    a = np.array([1.0, 0.0, 0.0]) if abs(up_c[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(a, up_c)
+    x /= np.linalg.norm(x)
+    R_lc = np.stack([x, np.cross(up_c, x), up_c])  # rows: the level frame's axes in the camera
+    tilt, height = np.radians(sigmas[0]), sigmas[1]
+    free = 1e-6
+    info_l = np.diag([1 / tilt**2, 1 / tilt**2, free, free, free, 1 / height**2])
+    A = np.zeros((6, 6))
+    A[:3, :3] = R_lc
+    A[3:, 3:] = R_lc
+    return gtsam.noiseModel.Gaussian.Information(A.T @ info_l @ A)
 
 
 def _project(T_map_camera: F64, f: KeyframeFeatures, points: F64) -> tuple[F64, F64]:
@@ -280,6 +306,8 @@ def bundle_adjust(frames: Sequence[BundleFrame], config: BundleConfig | None = N
     for k in range(1, len(frames)):  # keeps a frame without tracks solvable; negligible otherwise
         initial = gtsam.Pose3(np.asarray(frames[k].T_map_camera, np.float64))
         gauge.append(gtsam.PriorFactorPose3(k, initial, weak))
+        if frames[k].up is not None and cfg.level_sigmas is not None:
+            gauge.append(gtsam.PriorFactorPose3(k, initial, _level_noise(frames[k], cfg.level_sigmas)))
     k_stereo = gtsam.Cal3_S2Stereo(cam.fx, cam.fy, 0.0, cam.cx, cam.cy, cfg.bf / cam.fx)
     k_mono = gtsam.Cal3_S2(cam.fx, cam.fy, 0.0, cam.cx, cam.cy)
     huber3 = gtsam.noiseModel.mEstimator.Huber.Create(float(np.sqrt(_CHI2_3DOF)))

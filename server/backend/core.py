@@ -104,10 +104,9 @@ class BackendConfig:
         loop_gap: keyframes of a session not searched for loops after one of its loop edges
             entered the graph (0: search every keyframe).
         bundle_enabled: after a loop edge between anchored keyframes, bundle-adjust the
-            sessions it joins (``bundle``) and tie their consecutive keyframes by ``bundle``
-            edges (ORB-SLAM2's global bundle adjustment after loop closure); off by default:
-            it lowers the error of four evaluation scenarios but raises ward_chairs'
-            (decision 0035) ...
+            sessions it joins (``bundle``; ground robots' keyframes with a level prior) and tie
+            their consecutive keyframes by ``bundle`` edges (ORB-SLAM2's global bundle
+            adjustment after loop closure; decisions 0035, 0036) ...
         bundle_min_pairs: ... when at least this many of their consecutive keyframe pairs have
             no ``bundle`` edge yet ...
         bundle_context: ... over those pairs' keyframes and this many more on each side of
@@ -138,7 +137,7 @@ class BackendConfig:
     check_deg: float = 30.0
     rebuild_move_m: float = 0.02
     loop_gap: int = 10
-    bundle_enabled: bool = False
+    bundle_enabled: bool = True
     bundle: BundleConfig = field(default_factory=BundleConfig)
     bundle_min_pairs: int = 30
     bundle_context: int = 10
@@ -236,6 +235,7 @@ class _Vote:
 
 
 FeatureLoader = Callable[[NodeKey], KeyframeFeatures | None]
+_UP = np.array([0.0, 0.0, 1.0])
 NO_CODE = 0xFF
 """The block code of a keyframe without place recognition (equal to no real code: 0..15)."""
 MAX_VOTES = 64
@@ -417,7 +417,9 @@ class BackendCore:
             est = self.graph.estimate(k)
             feats = None if est is None else self._features_of(k)
             if est is not None and feats is not None:
-                frames.append(BundleFrame(k, est, feats, chain=s))
+                node = self._nodes[self._row[k]]
+                up = est[:3, :3] @ node.T_odom_camera[:3, :3].T @ _UP if self._on_floor(s) else None
+                frames.append(BundleFrame(k, est, feats, chain=s, up=up))
         if len(frames) < 2:
             return None
         try:
@@ -430,6 +432,14 @@ class BackendCore:
                  "%.0f ms", len(frames), result.landmarks, result.observations, result.dropped, added,
                  result.ms)
         return result
+
+    def _on_floor(self, session: Session) -> bool:
+        """Whether ``session``'s odom frame is a ground robot's, z up (REP 103): its first
+        keyframe's camera looks within 60 deg of level, down axis down. The tracker's frame is
+        the first camera frame when it lacks odometry or the camera's mounting, and there the
+        first keyframe's pose is the identity (down axis along y): never taken for a floor."""
+        first = self._nodes[self._session_rows[self._sessions[session]][0]]
+        return bool(first.T_odom_camera[2, 1] < -0.5)
 
     def _remember(self, key: NodeKey, stamp: float, T_odom_camera: F64, codes: NDArray[np.uint8],
                   features: KeyframeFeatures | None) -> int:

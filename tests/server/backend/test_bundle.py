@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import gtsam
 import numpy as np
 import pytest
 
-from wardmap.server.backend.bundle import BundleConfig, BundleFrame, _pairs, bundle_adjust
+from wardmap.server.backend.bundle import BundleConfig, BundleFrame, _level_noise, _pairs, bundle_adjust
 from wardmap.server.backend.verify import KeyframeFeatures
 from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.errors import GeometryError
@@ -73,6 +74,51 @@ def test_bundle_adjustment_removes_drift() -> None:
     assert np.array_equal(res.poses[0], init[0])  # the gauge is held
     assert res.landmarks > 500 and res.observations > 3000
     assert res.error_after < res.error_before
+
+
+def test_level_prior_holds_tilt_and_height_only() -> None:
+    """A ground robot's camera pitched 30 deg down in a z-up map: the prior does not resist a
+    move along the floor or a turn about the vertical, and costs one sigma for 2 cm up or
+    0.5 deg of tilt about either horizontal axis."""
+    pitch_down = so3_exp([-np.pi / 2 - np.radians(30.0), 0.0, 0.0])  # camera z forward and 30 deg down
+    T0 = make_transform(so3_exp([0.0, 0.0, 0.7]) @ pitch_down, [2.0, 1.0, 1.1])
+    rng = np.random.default_rng(2)
+    truth, pts, desc = _scene(rng, n_frames=1)
+    frame = BundleFrame(0, T0, _features(rng, truth[0], pts, desc), up=np.array([0.0, 0.0, 1.0]))
+    factor = gtsam.PriorFactorPose3(0, gtsam.Pose3(T0), _level_noise(frame, (0.5, 0.02)))
+
+    def cost(T: np.ndarray) -> float:
+        values = gtsam.Values()
+        values.insert(0, gtsam.Pose3(T))
+        return float(factor.error(values))
+
+    slide_and_turn = make_transform(so3_exp([0.0, 0.0, np.radians(5.0)]), [0.3, -0.2, 0.0]) @ T0
+    assert cost(slide_and_turn) < 1e-3
+    assert cost(make_transform(np.eye(3), [0.0, 0.0, 0.02]) @ T0) == pytest.approx(0.5, rel=0.02)
+    for axis in ([1.0, 0.0, 0.0], [0.0, 1.0, 0.0]):
+        tilt = make_transform(so3_exp(np.radians(0.5) * np.array(axis)), [0.0, 0.0, 0.0])
+        T = tilt @ T0
+        T[:3, 3] = T0[:3, 3]  # about the camera's own centre
+        assert cost(T) == pytest.approx(0.5, rel=0.02)
+
+
+def test_level_prior_lets_the_adjustment_remove_drift_along_the_floor() -> None:
+    """Up is -y in the wall scene; a drift in heading and along the path is still removed."""
+    rng = np.random.default_rng(11)
+    truth, pts, desc = _scene(rng)
+    drift = make_transform(so3_exp([0.0, np.radians(0.03), 0.0]), [0.0015, 0.0, 0.0005])
+    init, acc = [], np.eye(4)
+    for G in truth:
+        init.append(G @ acc)
+        acc = acc @ drift
+    up = np.array([0.0, -1.0, 0.0])
+    frames = [BundleFrame(i, T, _features(rng, G, pts, desc), chain="s", up=up)
+              for i, (T, G) in enumerate(zip(init, truth, strict=True))]
+    before = _errors(init, truth)
+    res = bundle_adjust(frames, BundleConfig())
+    after = _errors([res.poses[i] for i in range(len(frames))], truth)
+    assert before[0] > 0.03 and before[1] > 0.6
+    assert after[0] < 0.01 and after[1] < 0.15, (before, after)
 
 
 def test_wrong_depths_are_dropped_not_followed() -> None:

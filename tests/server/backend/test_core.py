@@ -181,3 +181,17 @@ def test_a_loop_between_anchored_sessions_bundle_adjusts_them(drive: list[Keyfra
         est, got = core.estimate(n.key), restored.estimate(n.key)
         assert est is not None and got is not None
         np.testing.assert_allclose(got[:3, 3], est[:3, 3], atol=2e-3)
+
+
+def test_ground_robot_sessions_are_told_from_handheld_ones(drive: list[KeyframeMsg]) -> None:
+    """The level prior of the bundle adjustment goes to sessions whose odom frame is z up (the
+    simulated robot's); the same keyframes in their first camera's frame (a tracker without
+    odometry, e.g. TUM's handheld camera) get none."""
+    core = BackendCore(BackendConfig(enabled=False))
+    T0_inv = np.linalg.inv(drive[0].T_odom_camera)
+    handheld = [replace(m, robot_id="hand", T_odom_camera=T0_inv @ m.T_odom_camera, T_odom_base=None)
+                for m in drive[:3]]
+    for m in [*drive[:3], *handheld]:
+        core.add(m)
+    assert core._on_floor((drive[0].robot_id, drive[0].session_id))
+    assert not core._on_floor(("hand", drive[0].session_id))
