@@ -39,9 +39,10 @@ log = logging.getLogger(__name__)
 __all__ = ["DEFAULT_MAX_BYTES", "DecodedCache", "DecodedCounters", "DecodedKeyframe", "KeyframeImages",
            "decode_images", "keyframe_key"]
 
-DEFAULT_MAX_BYTES: Final = 256 * 2**20
-"""Bytes the cache holds (256 MiB: about 120 keyframes of 640x480 with their rasters, the
-back-end's and mapping stage's usual lag behind ingest many times over)."""
+DEFAULT_MAX_BYTES: Final = 128 * 2**20
+"""Bytes the cache holds (128 MiB: about 100 keyframes of 640x480 with their colour and depth
+decoded, many times the mapping stage's usual lag behind ingest; kept well inside the server's
+600 MiB bound under hostile input, docs/deploy.md)."""
 
 
 def keyframe_key(msg: KeyframeMsg) -> str:
