@@ -15,6 +15,10 @@ decodes the stored payload itself, and that is counted (``from_store``), so the 
 how often a keyframe was decoded twice. ``max_bytes = 0`` keeps nothing: every stage decodes
 from the store (the behaviour before this cache; ``bench/decode_once.py`` compares the two).
 
+Not through this cache: the back-end's loop checks read the keypoints of *older* keyframes
+(fern candidates and their neighbours) from the store, with a small cache of their features
+of its own (``backend/stage.py``, ``FEATURE_CACHE``).
+
 Thread safety: every method may be called from any thread; one lock guards the entries and
 counters, and no decoding happens under it.
 """
