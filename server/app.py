@@ -159,6 +159,9 @@ class MapServer:
                 job.start()
                 stack.callback(job.stop)
             objects = ObjectMap(store)
+            # Built before ingest, which hands it each keyframe decoded (``pipeline.decoded``);
+            # started after the session's parts.
+            pipeline = None if self._pipeline_factory is None else self._pipeline_factory(store, objects)
             ingest: Ingest | None = None
             corrections: CorrectionPublisher | None = None
             router_connected: Callable[[], bool] | None = None
@@ -167,7 +170,8 @@ class MapServer:
                                          functools.partial(open_session, self._connect, self._zenoh_options))
                 stack.callback(session.close)  # after ingest and map service undeclared theirs
                 router_connected = functools.partial(has_router, session)
-                ingest = Ingest(session, store, telemetry=self._telemetry)
+                ingest = Ingest(session, store, telemetry=self._telemetry,
+                                decoded=None if pipeline is None else pipeline.decoded)
                 ingest.start()
                 stack.callback(ingest.stop)
                 mapserve = MapServe(session, objects)
@@ -177,9 +181,7 @@ class MapServer:
                 corrections.load(store.session_anchors())
                 stack.callback(corrections.close)
                 log.info("zenoh session via %s: ingest and map service", ", ".join(self._connect))
-            pipeline = None
-            if self._pipeline_factory is not None:
-                pipeline = self._pipeline_factory(store, objects)
+            if pipeline is not None:
                 if corrections is not None:
                     pipeline.backend.set_publish(corrections.publish_anchor)
                 pipeline.start()

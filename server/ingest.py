@@ -15,7 +15,9 @@ a little over the wire's 4 MiB) is dropped by zenoh before it is reassembled, so
 ``max_bytes`` holds at most ``max_bytes`` plus one such message.
 
 For each sample the worker decodes the keyframe, checks that the robot id in the key equals
-the message's ``robot_id``, stores it and only *after* the insert committed publishes an
+the message's ``robot_id``, stores it and only *after* the insert committed hands the decoded
+message of a newly stored keyframe to the stages (:class:`~wardmap.server.decoded.DecodedCache`:
+a keyframe is decoded once per process) and publishes an
 :class:`~wardmap.shared.wire.AckMsg` (``stored`` or ``duplicate``) on
 :func:`~wardmap.shared.zenoh_config.ack_key`. Bad input never stops the worker: a message that
 can never be stored (a :class:`~wardmap.shared.errors.WireError`, a robot id mismatch) is
@@ -43,6 +45,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, Final
 
+from wardmap.server.decoded import DecodedCache, keyframe_key
 from wardmap.server.store import KeyframeStore, StoreDamagedError, StoreError
 from wardmap.server.telemetry import ServerTelemetry
 from wardmap.server.zenoh_session import first_line
@@ -179,6 +182,7 @@ class Ingest:
         max_bytes: int = DEFAULT_MAX_BYTES,
         clock: Any = time.time,
         telemetry: ServerTelemetry | None = None,
+        decoded: DecodedCache | None = None,
     ) -> None:
         """
         Args:
@@ -190,6 +194,9 @@ class Ingest:
             clock: wall-clock seconds for ``received_s`` (``time.time``).
             telemetry: where ingest and ack latencies and per-robot series go (a private one
                 when None).
+            decoded: where each newly stored keyframe's decoded message goes, so the back-end
+                and the mapping stage do not decode it again (``server/decoded.py``); None:
+                nowhere (no stage runs in this process).
         """
         if isinstance(capacity, bool) or not isinstance(capacity, int) or capacity < 1:
             raise ConfigError(f"ingest capacity must be an int >= 1, got {capacity!r}")
@@ -201,6 +208,7 @@ class Ingest:
         self._max_bytes = max_bytes
         self._clock = clock
         self._telemetry = telemetry if telemetry is not None else ServerTelemetry()
+        self._decoded = decoded
         self._lock = threading.Lock()
         self._counts = {"received": 0, "stored": 0, "duplicates": 0, "rejected": 0, "ack_failures": 0,
                         "retry_later": 0}
@@ -355,6 +363,8 @@ class Ingest:
             # The server's own failure, never the message's: the robot keeps it and resends.
             self._retry_later(msg, exc)
             return
+        if result == "stored" and self._decoded is not None:
+            self._decoded.put(keyframe_key(msg), msg, len(payload))
         self._telemetry.ingest_seconds.observe(time.perf_counter() - started)
         self._telemetry.keyframe(msg.robot_id, result, time.time())
         if self._store_fault is not None:

@@ -20,6 +20,7 @@ from prometheus_client.exposition import generate_latest
 from prometheus_client.registry import Collector
 
 from wardmap.server.backend.stage import BackendCounters
+from wardmap.server.decoded import DecodedCounters
 from wardmap.server.ingest import Ingest, IngestCounters
 from wardmap.server.mapping import MapPipeline, PipelineCounters
 from wardmap.server.objectmap import ObjectMap
@@ -129,6 +130,21 @@ def pipeline_metrics(c: PipelineCounters) -> list[Metric]:
     ]
 
 
+def decoded_metrics(c: DecodedCounters) -> list[Metric]:
+    """The decoded-keyframe cache between ingest and the stages (``server/decoded.py``)."""
+    return [
+        _counter("wardmap_decoded_cache_hits_total",
+                 "Keyframe messages a stage took as ingest decoded them.", c.hits),
+        _counter("wardmap_decoded_from_store_total",
+                 "Keyframe messages a stage decoded again from the store (after a restart or an eviction).",
+                 c.from_store),
+        _counter("wardmap_decoded_cache_evicted_total",
+                 "Decoded keyframes dropped for the cache's byte bound before the mapping stage was done.",
+                 c.evicted),
+        _gauge("wardmap_decoded_cache_bytes", "Bytes the decoded-keyframe cache holds.", c.nbytes),
+    ]
+
+
 def backend_metrics(c: BackendCounters) -> list[Metric]:
     """The SLAM back-end's counters."""
     return [
@@ -171,6 +187,7 @@ class ServerCollector(Collector):
         if self._pipeline is not None:
             yield from pipeline_metrics(self._pipeline.counters())
             yield from backend_metrics(self._pipeline.backend.counters())
+            yield from decoded_metrics(self._pipeline.decoded.counters())
 
 
 def metrics_registry(collector: Collector) -> CollectorRegistry:

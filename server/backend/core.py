@@ -59,8 +59,9 @@ from wardmap.server.backend.bundle import BundleConfig, BundleFrame, BundleResul
 from wardmap.server.backend.graph import EdgeRecord, GraphConfig, GraphUpdate, NodeRecord, PoseGraph
 from wardmap.server.backend.places import FernConfig, FernEncoder, FernIndex
 from wardmap.server.backend.verify import KeyframeFeatures, Verified, VerifyConfig, verify_pair
+from wardmap.server.decoded import KeyframeImages, decode_images
 from wardmap.shared.errors import ConfigError, GeometryError, WardmapError
-from wardmap.shared.wire import KeyframeMsg, decode_depth
+from wardmap.shared.wire import KeyframeMsg
 
 log = logging.getLogger(__name__)
 
@@ -290,8 +291,10 @@ class BackendCore:
 
     # ------------------------------------------------------------------ adding keyframes
 
-    def add(self, msg: KeyframeMsg) -> KeyframeResult:
-        """Process one keyframe (see the module docstring), in arrival order."""
+    def add(self, msg: KeyframeMsg, images: KeyframeImages | None = None) -> KeyframeResult:
+        """Process one keyframe (see the module docstring), in arrival order; ``images``: its
+        rasters already decoded (:func:`~wardmap.server.decoded.decode_images`), or None to
+        decode them here."""
         ms: dict[str, float] = {}
         t0 = time.perf_counter()
         key: NodeKey = (msg.robot_id, msg.session_id, msg.seq)
@@ -299,7 +302,7 @@ class BackendCore:
         camera = msg.camera
         features: KeyframeFeatures | None = None
         try:
-            codes = self.encode(msg)
+            codes = self.encode(msg, images)
             if camera is not None:
                 features = KeyframeFeatures.from_keypoints(msg.keypoints, camera)
         except (WardmapError, ValueError, cv2.error) as exc:
@@ -352,13 +355,15 @@ class BackendCore:
         return KeyframeResult(key, codes.tobytes(), n_cand, bool(searched), closures, rejected, update,
                               rebuild, ms, bundle)
 
-    def encode(self, msg: KeyframeMsg) -> NDArray[np.uint8]:
-        """The keyframe's fern code (decodes its JPEG colour and depth)."""
-        bgr = cv2.imdecode(np.frombuffer(msg.rgb_jpeg, np.uint8), cv2.IMREAD_COLOR)
-        if bgr is None:
-            raise ValueError("colour image does not decode")
-        depth = decode_depth(msg.depth.data, msg.depth.meta)
-        return self.encoder.encode(np.asarray(bgr, np.uint8), depth)
+    def encode(self, msg: KeyframeMsg, images: KeyframeImages | None = None) -> NDArray[np.uint8]:
+        """The keyframe's fern code, from ``images`` (decoded from ``msg`` when None).
+
+        Raises:
+            WireError: the colour image or the depth does not decode.
+        """
+        if images is None:
+            images = decode_images(msg)
+        return self.encoder.encode(images.bgr, images.depth_m)
 
     # ------------------------------------------------------------------ reading
 

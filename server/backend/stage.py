@@ -37,6 +37,7 @@ from numpy.typing import NDArray
 from wardmap.server.backend.core import BackendConfig, BackendCore, KeyframeResult, NodeKey
 from wardmap.server.backend.graph import EdgeRecord, NodeRecord, PoseGraph
 from wardmap.server.backend.verify import KeyframeFeatures
+from wardmap.server.decoded import DecodedCache, DecodedKeyframe
 from wardmap.server.store import GraphChange, GraphEdgeRow, GraphNodeRow, MapStore, SessionAnchor
 from wardmap.server.telemetry import ServerTelemetry
 from wardmap.shared.errors import WardmapError, WireError
@@ -95,13 +96,18 @@ class BackendStage:
         retry_s, max_retry_s, max_attempts: recovery from unexpected errors.
         clock: wall-clock seconds (anchoring times).
         telemetry: where each keyframe's time in the back-end goes (stage ``backend``), or None.
+        decoded: the keyframes ingest decoded (``server/decoded.py``), shared with the mapping
+            stage; None: a private one (every keyframe is then decoded from the store).
     """
 
     def __init__(self, store: MapStore, config: BackendConfig | None = None, *,
                  publish: Publish | None = None, poll_s: float = 0.1, batch: int = 16, retry_s: float = 1.0,
                  max_retry_s: float = 60.0, max_attempts: int = 3,
-                 clock: Callable[[], float] = time.time, telemetry: ServerTelemetry | None = None) -> None:
+                 clock: Callable[[], float] = time.time, telemetry: ServerTelemetry | None = None,
+                 decoded: DecodedCache | None = None) -> None:
         self.store = store
+        self.decoded = decoded if decoded is not None else DecodedCache()
+        """Decoded keyframes from ingest; this stage reads them, the mapping stage discards them."""
         self._telemetry = telemetry
         self.cfg = config or BackendConfig()
         self._publish = publish
@@ -210,14 +216,14 @@ class BackendStage:
             if self._stop.is_set():
                 break
             try:
-                msg = decode_keyframe(kf.payload)
+                decoded = self.decoded.decoded(kf.key, kf.payload)
             except WireError as exc:
                 log.warning("keyframe %s: not in the graph: %s", kf.key, exc)
                 with self._lock:
                     self._failures["WireError"] += 1
                 self.store.commit_graph(CURSOR_NAME, kf.rowid, GraphChange())
                 continue
-            self._add(kf.rowid, msg)
+            self._add(kf.rowid, decoded)
         with self._lock:
             self._backlog = self.store.count_keyframes_after(self.cursor())
         return len(rows)
@@ -231,9 +237,14 @@ class BackendStage:
             with self._lock:
                 self._failures[reason] += 1
 
-    def _add(self, rowid: int, msg: KeyframeMsg) -> None:
+    def _add(self, rowid: int, decoded: DecodedKeyframe) -> None:
         started = time.perf_counter()
-        res = self.core.add(msg)
+        msg = decoded.msg
+        try:
+            images = self.decoded.images(decoded)
+        except WireError:
+            images = None  # the core finds the same and counts the keyframe as unreadable
+        res = self.core.add(msg, images)
         change, changed = self._change(msg, res)
         self.store.commit_graph(CURSOR_NAME, rowid, change)
         if self._telemetry is not None:

@@ -4,7 +4,9 @@ Ingest stores a keyframe and acks it (``server/ingest.py``); this stage runs beh
 own thread and never delays an ack. It reads keyframes from the store in insertion order
 (their ``rowid``), and for each one:
 
-1. decodes the payload (JPEG colour, depth upsampled to the colour size, intrinsics);
+1. takes the keyframe as ingest and the back-end decoded it (``server/decoded.py``: message,
+   JPEG colour, depth; decoded from the stored payload after a restart or an eviction), the
+   depth upsampled to the colour size;
 2. runs the segmenter (``server/perception/models.py``: the trained network by default) and
    measures every non-``moving`` instance in 3D (paper 000 Eq. 1, ``measure.py``);
 3. commits the measurements, the keyframe's map pose and camera, and its cursor in one
@@ -57,6 +59,7 @@ from numpy.typing import NDArray
 
 from wardmap.server.association.associator import AssociationConfig, Associator
 from wardmap.server.backend.stage import BackendStage
+from wardmap.server.decoded import DecodedCache, KeyframeImages
 from wardmap.server.mapping.checkpoint import checkpoint_key, decode_state, encode_state
 from wardmap.server.mapping.writer import MappedKeyframe, MapWriter, WriterState
 from wardmap.server.objectmap import ObjectMap
@@ -234,6 +237,9 @@ class MapPipeline:
         self.store = store
         self._telemetry = telemetry if telemetry is not None else ServerTelemetry()
         self.backend = backend if backend is not None else BackendStage(store)
+        self.decoded: DecodedCache = self.backend.decoded
+        """The keyframes ingest decoded (the back-end's; ``server/decoded.py``): hand it to the
+        ingest of this process. This stage discards each keyframe once it is processed."""
         self.objects = objects
         self.cfg = config or PipelineConfig()
         self.perception = perception or PerceptionConfig()
@@ -415,8 +421,9 @@ class MapPipeline:
     def _process(self, rowid: int, key: str, payload: bytes) -> None:
         try:
             started = time.perf_counter()
-            msg = decode_keyframe(payload)
-            measurements = self._measure(msg, key)
+            decoded = self.decoded.decoded(key, payload)
+            msg = decoded.msg
+            measurements = self._measure(msg, key, self.decoded.images(decoded))
             self._telemetry.mapping("perception", time.perf_counter() - started)
         except (WardmapError, WireError, cv2.error, ValueError) as exc:
             reason = f"{type(exc).__name__}: {exc}"[:MAX_FAILURE_REASON]
@@ -424,8 +431,10 @@ class MapPipeline:
             with self._lock:
                 self._counts.failures[type(exc).__name__] += 1
             self._commit(rowid, key, msg=None, measurements=[])
+            self.decoded.discard(key)
             return
         self._commit(rowid, key, msg, measurements)
+        self.decoded.discard(key)  # this stage reads a keyframe last
         with self._lock:
             self._counts.processed += 1
             self._counts.measurements += len(measurements)
@@ -439,12 +448,12 @@ class MapPipeline:
         stream = f"{msg.robot_id}/{msg.session_id}"
         self.associate([MappedKeyframe(stream, T_map_camera, keyframe_camera(msg), moved)])
 
-    def _measure(self, msg: KeyframeMsg, key: str) -> list[ObjectMeasurement]:
-        """The keyframe's object measurements in the map frame (:func:`measure_keyframe_msg`);
-        what perception left out is counted."""
+    def _measure(self, msg: KeyframeMsg, key: str, images: KeyframeImages) -> list[ObjectMeasurement]:
+        """The keyframe's object measurements in the map frame (:func:`measure_keyframe_msg`, on
+        its decoded ``images``); what perception left out is counted."""
         assert self._segmenter is not None
         result = measure_keyframe_msg(msg, key, segmenter=self._segmenter, config=self.perception,
-                                      moving=self._moving)
+                                      moving=self._moving, images=images)
         left = result.left_out
         if any(left):
             log.debug("keyframe %s: %d instance(s) float above the floor, %d lie on a taller surface, "

@@ -37,10 +37,10 @@ from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass
 from typing import Final
 
-import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from wardmap.server.decoded import KeyframeImages, decode_images
 from wardmap.server.perception.config import PerceptionConfig, measure_config_for
 from wardmap.server.perception.floor import LeftOut, drop_misplaced
 from wardmap.server.perception.instances import attach_gt_instances, split_instances
@@ -49,7 +49,7 @@ from wardmap.server.perception.types import Instance, ObjectMeasurement
 from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.errors import GeometryError, WireError
 from wardmap.shared.se3 import check_transform
-from wardmap.shared.wire import KeyframeMsg, decode_depth
+from wardmap.shared.wire import KeyframeMsg
 
 __all__ = [
     "ORACLE",
@@ -199,8 +199,10 @@ def keyframe_camera(msg: KeyframeMsg) -> PinholeCamera:
     return PinholeCamera(i.width, i.height, i.fx, i.fy, i.cx, i.cy, tuple(i.distortion))  # type: ignore[arg-type]
 
 
-def decode_keyframe_images(msg: KeyframeMsg) -> tuple[U8, F32, PinholeCamera]:
-    """``(bgr (H, W, 3) uint8, depth (H, W) float32 metres at colour size, camera)``.
+def decode_keyframe_images(msg: KeyframeMsg,
+                           images: KeyframeImages | None = None) -> tuple[U8, F32, PinholeCamera]:
+    """``(bgr (H, W, 3) uint8, depth (H, W) float32 metres at colour size, camera)``, from
+    ``images`` (``msg``'s rasters already decoded) or decoded from ``msg`` when None.
 
     Depth sent at 1/s resolution is upsampled by repetition: colour pixel (y, x) takes depth
     pixel (y // s, x // s) (docs/wire.md, ``depth``).
@@ -210,10 +212,11 @@ def decode_keyframe_images(msg: KeyframeMsg) -> tuple[U8, F32, PinholeCamera]:
             does not decode; ``calib_ref`` instead of intrinsics.
     """
     camera = keyframe_camera(msg)
-    bgr = cv2.imdecode(np.frombuffer(msg.rgb_jpeg, np.uint8), cv2.IMREAD_COLOR)
-    if bgr is None or bgr.shape[:2] != (camera.height, camera.width):
+    if images is None:
+        images = decode_images(msg)
+    bgr, depth = images.bgr, images.depth_m
+    if bgr.shape[:2] != (camera.height, camera.width):
         raise WireError("rgb_jpeg", "cannot decode the colour image at the intrinsics' size")
-    depth = decode_depth(msg.depth.data, msg.depth.meta)
     s = camera.height // depth.shape[0]
     if s > 1:
         depth = np.repeat(np.repeat(depth, s, axis=0), s, axis=1)
@@ -249,16 +252,18 @@ def measure_keyframe_msg(
     segmenter: FindInstances,
     config: PerceptionConfig,
     moving: Collection[str],
+    images: KeyframeImages | None = None,
 ) -> KeyframePerception:
     """:func:`measure_keyframe` of a decoded keyframe message, in the map frame
     (:func:`keyframe_map_pose`, floor from :func:`keyframe_floor_z`), with ``config.segmenter``
-    as the source of ``segmenter``'s instances; ``key`` goes into each measurement.
+    as the source of ``segmenter``'s instances; ``key`` goes into each measurement; ``images``:
+    its rasters already decoded, or None (decoded here).
 
     Raises:
         WireError: images that do not decode, or no intrinsics (:func:`decode_keyframe_images`).
         GeometryError: images or pose of the wrong shape.
     """
-    bgr, depth, camera = decode_keyframe_images(msg)
+    bgr, depth, camera = decode_keyframe_images(msg, images)
     return measure_keyframe(bgr, depth, camera, keyframe_map_pose(msg), keyframe=key, stamp=msg.stamp,
                             floor_z_m=keyframe_floor_z(msg), instances=segmenter, config=config,
                             moving=moving)

@@ -20,6 +20,7 @@ zenoh = pytest.importorskip("zenoh")
 
 import wardmap.server.app as app_module  # noqa: E402  (after the importorskip guard)
 from wardmap.server.app import MapServer, ServerError  # noqa: E402
+from wardmap.server.decoded import DecodedCache  # noqa: E402
 from wardmap.server.ingest import Ingest  # noqa: E402
 from wardmap.server.mapserve import MapServe  # noqa: E402
 from wardmap.server.router import run_router  # noqa: E402
@@ -101,6 +102,7 @@ class _Pipeline:
     def __init__(self, events: list[str], fail: bool = False) -> None:
         self.events, self.fail = events, fail
         self.backend = _Backend(events)
+        self.decoded = DecodedCache()  # what ingest hands on
 
     def start(self) -> None:
         if self.fail:

@@ -13,6 +13,7 @@ from prometheus_client import REGISTRY
 from wardmap.server.api.prometheus import (
     ServerCollector,
     backend_metrics,
+    decoded_metrics,
     exposition,
     ingest_metrics,
     map_metrics,
@@ -20,6 +21,7 @@ from wardmap.server.api.prometheus import (
     pipeline_metrics,
 )
 from wardmap.server.backend.stage import BackendCounters
+from wardmap.server.decoded import DecodedCounters
 from wardmap.server.ingest import IngestCounters
 from wardmap.server.mapping import PipelineCounters
 from wardmap.server.perception.measure import SKIP_KINDS
@@ -59,6 +61,10 @@ CONTRACT = {
     "wardmap_backend_failures_total": ("counter", ("reason",)),
     "wardmap_backend_restarts_total": ("counter", ()),
     "wardmap_backend_index_bytes": ("gauge", ()),
+    "wardmap_decoded_cache_hits_total": ("counter", ()),
+    "wardmap_decoded_from_store_total": ("counter", ()),
+    "wardmap_decoded_cache_evicted_total": ("counter", ()),
+    "wardmap_decoded_cache_bytes": ("gauge", ()),
 }
 """Every metric of /metrics: its type and label names, in exposition order."""
 
@@ -100,7 +106,7 @@ def test_names_types_and_labels_are_the_contract() -> None:
     """Every metric keeps its name, type and labels, in the documented order."""
     families = (ingest_metrics(IngestCounters(1, 2, 3, 4, 5, 6), {"store": 1}, 2) + map_metrics(3, 1)
                 + pipeline_metrics(_pipeline(skipped={"little_depth": 1}))
-                + backend_metrics(_backend()))
+                + backend_metrics(_backend()) + decoded_metrics(DecodedCounters(1, 2, 3, 4, 5, 6, 7, 8)))
     text = exposition(families)
     types, samples = _parse(text)
     assert list(types.items()) == [(name, kind) for name, (kind, _) in CONTRACT.items()]
