@@ -747,6 +747,8 @@ def main() -> int:
     ap.add_argument("--no-scale", action="store_true", help="skip the scaled run")
     ap.add_argument("--scale-only", action="store_true", help="only the scaled run (its own section)")
     ap.add_argument("--objects", action="store_true", help="also compare object maps (slower)")
+    ap.add_argument("--bundle", action="store_true",
+                    help="bundle-adjust after loops (BackendConfig.bundle_enabled; off by default)")
     ap.add_argument("--write", type=Path, help="update this markdown file's backend section")
     ap.add_argument("--plot", type=Path, metavar="DIR",
                     help="also write, per scenario and seed, a PNG of the map's first session: frontend, "
@@ -758,7 +760,7 @@ def main() -> int:
     seeds = list(TUNE_SEEDS) if args.tune else args.seeds
     names = [] if args.scale_only else [n for n in args.only or SCENARIOS if n != "tum"]
     with_tum = not args.scale_only and (args.only is None or "tum" in args.only)
-    config = BackendConfig()
+    config = BackendConfig(bundle_enabled=args.bundle)
     scores: list[RunScore] = []
     objects: list[ObjectScore] = []
     for scenario in names:
@@ -794,6 +796,7 @@ def main() -> int:
         "python bench/backend.py" + (" --tune" if args.tune else f" --seeds {' '.join(map(str, seeds))}")
         + (f" --only {' '.join(args.only)}" if args.only else "")
         + (" --objects" if args.objects else "")
+        + (" --bundle" if args.bundle else "")
         + " --write BENCHMARKS.md"
     )
     body = "\n".join([
