@@ -215,6 +215,7 @@ class Tracker:
         self.cfg = config or TrackerConfig()
         self.calib = calibration
         self.cam: PinholeCamera = calibration.rgb
+        self.readout = calibration.readout  # rolling-shutter readout time and where it came from
         self.orb = OrbExtractor(self.cfg.orb)
         self.mobility_lut = mobility_lut
         self.map = MapPoints()
@@ -307,7 +308,7 @@ class Tracker:
             )
 
         kp_depth = _depth_at(depth, feats.uv)
-        readout = self.calib.rgb_readout_s
+        readout = self.readout.readout_s
         if readout > 0 and self._prev_dt > 0:
             # Rolling shutter: keypoints moved to the middle row's instant (motion model's spin).
             omega = so3_log(self._velocity[:3, :3]) / self._prev_dt

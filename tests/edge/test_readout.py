@@ -109,7 +109,8 @@ def test_tum_readout_estimate_and_what_it_buys() -> None:
     gt = reader.groundtruth()
     assert gt is not None
     ates = []
-    for calib in (reader.calibration, replace(reader.calibration, rgb_readout_s=est.readout_s)):
+    global_shutter = replace(reader.calibration, rgb_readout_s=0.0)
+    for calib in (global_shutter, replace(reader.calibration, rgb_readout_s=est.readout_s)):
         tracker = Tracker(calib)
         stamps, poses = [], []
         for i in range(len(reader)):
