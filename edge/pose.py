@@ -552,6 +552,15 @@ class RollingShutterResult(NamedTuple):
     ok: bool
 
 
+def _hat_rows(v: F64) -> F64:
+    """Skew matrices (N, 3, 3) of vectors (N, 3): ``_hat_rows(v)[i] @ u == cross(v[i], u)``."""
+    out = np.zeros((*v.shape[:-1], 3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out
+
+
 def refine_pose_rolling_shutter(
     points_world: ArrayLike,
     uv: ArrayLike,
@@ -622,41 +631,55 @@ def refine_pose_rolling_shutter(
     stereo = izm > 0
     fx, fy = camera.fx, camera.fy
 
-    def residuals(x: F64) -> F64:
-        T = se3_exp(x[:6]) @ T0
+    def residuals_and_jacobian(T: F64, shear: F64) -> tuple[F64, F64]:
+        """Whitened residuals (2N + N_stereo + 3,) and their Jacobian in (rho, omega, shear),
+        the pose perturbed on the left (``exp(xi) T``)."""
         X = P @ T[:3, :3].T + T[:3, 3]
-        X = X - tau[:, None] * np.cross(x[6:], X)
-        iz = 1.0 / np.maximum(X[:, 2], _MIN_DEPTH)
-        ru = w * fx * (X[:, 0] * iz - xy[:, 0])
-        rv = w * fy * (X[:, 1] * iz - xy[:, 1])
-        rr = w[stereo] * (fx * (X[stereo, 0] * iz[stereo] - xy[stereo, 0]) - bf * (iz[stereo] - izm[stereo]))
-        return np.concatenate([ru, rv, rr, (x[6:] - s0) / shear_sigma_rad])
+        Y = X - tau[:, None] * np.cross(shear, X)  # the point in the row's camera frame
+        iz = 1.0 / np.maximum(Y[:, 2], _MIN_DEPTH)
+        a, b = Y[:, 0] * iz, Y[:, 1] * iz
+        ru = w * fx * (a - xy[:, 0])
+        rv = w * fy * (b - xy[:, 1])
+        rr = w[stereo] * (fx * (a[stereo] - xy[stereo, 0]) - bf * (iz[stereo] - izm[stereo]))
+        # dY/dX = I - tau [s]x; dX/d(rho, omega) = [I | -[X]x]; dY/ds = tau [X]x.
+        m = len(X)
+        eye = np.broadcast_to(np.eye(3), (m, 3, 3))
+        dY_dX = eye - tau[:, None, None] * _hat_rows(np.broadcast_to(shear, (m, 3)))
+        dX_dxi = np.concatenate([eye, -_hat_rows(X)], axis=2)
+        dY = np.concatenate([dY_dX @ dX_dxi, tau[:, None, None] * _hat_rows(X)], axis=2)  # (m, 3, 9)
+        da = (dY[:, 0] - a[:, None] * dY[:, 2]) * iz[:, None]
+        db = (dY[:, 1] - b[:, None] * dY[:, 2]) * iz[:, None]
+        diz = -(iz * iz)[:, None] * dY[:, 2]
+        J = np.concatenate([
+            (w * fx)[:, None] * da,
+            (w * fy)[:, None] * db,
+            w[stereo, None] * (fx * da[stereo] - bf * diz[stereo]),
+            np.hstack([np.zeros((3, 6)), np.eye(3) / shear_sigma_rad]),
+        ])
+        r = np.concatenate([ru, rv, rr, (shear - s0) / shear_sigma_rad])
+        return r, J
 
-    # Gauss-Newton with Huber weights (iteratively reweighted), forward-difference Jacobian:
-    # 9 unknowns, so each step is a 9 x 9 solve.
-    x = np.concatenate([np.zeros(6), s0])
-    eps = 1e-6
+    # Gauss-Newton with Huber weights (iteratively reweighted): 9 unknowns, a 9 x 9 solve per
+    # step; the pose is re-linearised at each step.
+    T, shear = T0, s0.copy()
     for _ in range(iterations):
-        r = residuals(x)
-        J = np.empty((r.size, 9))
-        for k in range(9):
-            dx = x.copy()
-            dx[k] += eps
-            J[:, k] = (residuals(dx) - r) / eps
-        a = np.abs(r)
-        wt = np.where(a <= huber_px, 1.0, huber_px / np.maximum(a, 1e-12))
+        r, J = residuals_and_jacobian(T, shear)
+        a_r = np.abs(r)
+        wt = np.where(a_r <= huber_px, 1.0, huber_px / np.maximum(a_r, 1e-12))
         wt[-3:] = 1.0  # the prior is Gaussian
         H = J.T @ (wt[:, None] * J)
         try:
             step = np.linalg.solve(H, -(J.T @ (wt * r)))
         except np.linalg.LinAlgError:
             return RollingShutterResult(T0, s0, False)
-        x = x + step
-        if not np.all(np.isfinite(x)):
+        if not np.all(np.isfinite(step)):
             return RollingShutterResult(T0, s0, False)
+        T = se3_exp(step[:6]) @ T
+        shear = shear + step[6:]
         if float(np.abs(step).max()) < 1e-7:
             break
-    return RollingShutterResult(se3_exp(x[:6]) @ T0, x[6:].copy(), True)
+    return RollingShutterResult(T, shear, True)
+
 
 
 __all__ = [

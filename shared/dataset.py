@@ -803,7 +803,7 @@ class DatasetReader:
     ``associations`` when given, else the first of :data:`ASSOCIATION_FILES` in the folder,
     otherwise by nearest stamp within ``max_depth_dt_s`` (TUM associate.py rule). An
     association file may list depth before rgb (``associate.py depth.txt rgb.txt``): the
-    columns are swapped when its first files are depth.txt's.
+    columns are swapped when its rgb column names depth.txt's files.
     Thermal images pair with frames the same way within ``max_thermal_dt_s``; labels by
     equal stamp.
 
@@ -811,6 +811,7 @@ class DatasetReader:
         root: the folder.
         calibration: the sensor calibration.
         stamps: (N,) rgb stamps in seconds of the associated frames (read-only).
+        associations: the association file read, or None (paired by nearest stamps).
     """
 
     def __init__(self, root: str | Path, *, max_depth_dt_s: float = MAX_DEPTH_DT_S,
