@@ -12,7 +12,7 @@ trajectory (and ATE) is the same every time, while a shared host's speed is not;
 ms/frame columns pool the per-frame times of all repeats, and each repeat's own median is
 listed too.
 
-    python bench/tracking.py [--data out/bench_data] [--seeds 0 ...] [--repeats 3] [--write BENCHMARKS.md]
+    python bench/tracking.py [--data out/bench_data] [--seeds 2001 ...] [--repeats 3] [--write BENCHMARKS.md]
                              [--only NAME ...] [--detector ../shared/models/yolox_nano.onnx]
 """
 
@@ -34,7 +34,7 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _report import git_rev, machine, write_section
+from _report import add_seed_arguments, git_rev, machine, write_section
 
 from wardmap.edge.offline import track_dataset
 from wardmap.edge.tracker import TrackResult
@@ -124,8 +124,7 @@ def _row(label: str, seed: str, kind: str, r: dict, ratio: str, goal: str) -> st
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", type=Path, default=ROOT / "out" / "bench_data")
-    ap.add_argument("--seeds", type=int, nargs="+", default=[0], help="world seeds (default 0)")
+    add_seed_arguments(ap, ROOT / "out" / "bench_data")
     ap.add_argument("--only", nargs="*", help="scenario names (default: all, plus tum)")
     ap.add_argument("--detector", type=Path, default=DETECTOR, help="YOLOX ONNX model for onnx labels")
     ap.add_argument("--seg-model", type=Path, default=SEG_MODEL, help="wardmap segmentation network "
