@@ -94,7 +94,6 @@ def run(args: argparse.Namespace) -> int:
     from wardmap.shared.sdnotify import notify
 
     source = open_source(args.source, args, args.config)
-    print(f"edge {args.robot} {readout_line(source.calibration)}", file=sys.stderr, flush=True)
     tracker_cfg = load_config(TrackerConfig, args.config, section="tracker")
     agent_cfg = load_config(AgentConfig, args.config, section="agent")
     options = zenoh_options(args, args.config)
@@ -131,6 +130,7 @@ def run(args: argparse.Namespace) -> int:
             f"people in images: {_privacy_words(agent_cfg.privacy)}",
             flush=True,
         )
+        print(f"edge {args.robot} {readout_line(source.calibration)}", file=sys.stderr, flush=True)
         notify("READY=1")
 
     with contextlib.ExitStack() as stack:

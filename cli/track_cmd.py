@@ -45,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("give the data set as DATASET or --source (one of them)")
     config = load_config(TrackerConfig, args.config, section="tracker")
     source = open_source(args.dataset or args.source, args, args.config)
-    print(readout_line(source.calibration), file=sys.stderr, flush=True)
+    readout = readout_line(source.calibration)
     with Progress("frames") as bar:
         summary = track_source(
             source,
@@ -54,7 +54,13 @@ def run(args: argparse.Namespace) -> int:
             labels=args.labels,
             max_frames=args.max_frames,
             label_threads=args.label_threads,
-            progress=lambda i, n, _result: bar.update("track", i, n),
+            progress=lambda i, n, _result: _progress(bar, readout, i, n),
         )
     print(json.dumps(summary))
     return 0
+
+
+def _progress(bar: Progress, readout: str, i: int, n: int) -> None:
+    if i == 1:  # once tracking runs: a command that fails before says one line only
+        print(readout, file=sys.stderr, flush=True)
+    bar.update("track", i, n)
