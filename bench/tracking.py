@@ -1,15 +1,18 @@
-"""Tracking frontend benchmark: ATE (evo, SE3 alignment) and speed on every scenario.
+"""Tracking frontend benchmark: ATE (evo, SE3 alignment), RPE and speed on every scenario.
 
-Generates the simulator's scenarios (cached under --data), runs ``wardmap track``'s
-library function on each, and scores the trajectory against ground truth. Also runs
-the real TUM sample from ../shared when present. One core (numba/OpenCV threads = 1).
+Generates the simulator's scenarios (cached under --data) for each world seed, runs
+``wardmap track``'s library function on each, and scores the trajectory against ground
+truth (ATE; RPE: translation error per frame). Also runs the real TUM sample from ../shared
+when present, out of the box (the readout model its folder gives) and as a global shutter.
+With several seeds a second table gives each scenario's mean and worst over the seeds.
+One core (numba/OpenCV threads = 1).
 
 Each sequence is tracked ``--repeats`` times (default 3): tracking is deterministic, so the
 trajectory (and ATE) is the same every time, while a shared host's speed is not; the
 ms/frame columns pool the per-frame times of all repeats, and each repeat's own median is
 listed too.
 
-    python bench/tracking.py [--data out/bench_data] [--seed 0] [--repeats 3] [--write BENCHMARKS.md]
+    python bench/tracking.py [--data out/bench_data] [--seeds 2001 ...] [--repeats 3] [--write BENCHMARKS.md]
                              [--only NAME ...] [--detector ../shared/models/yolox_nano.onnx]
 """
 
@@ -31,13 +34,12 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _report import git_rev, machine, write_section
+from _report import add_seed_arguments, git_rev, machine, write_section
 
 from wardmap.edge.offline import track_dataset
-from wardmap.edge.readout import estimate_readout
 from wardmap.edge.tracker import TrackResult
 from wardmap.shared.dataset import Calibration, DatasetReader
-from wardmap.shared.metrics import ate
+from wardmap.shared.metrics import ate, rpe
 from wardmap.shared.se3 import transform_from_tum
 from wardmap.sim.runner import generate
 from wardmap.sim.scenarios import SCENARIOS, build_scene
@@ -50,7 +52,7 @@ GOALS = {
     "aisle": "ATE <= 3 cm",
     "ward_chairs": "ATE <= 3 cm",
     "dark_corridor": "no lost frames, ATE <= 5 cm",
-    "tum": "no lost frames, ATE <= 3 cm",
+    "tum": "ATE <= 1.5 cm, RPE <= 0.9 cm/frame",
 }
 
 
@@ -93,6 +95,8 @@ def run_one(folder: Path, labels: str, tmp: Path, calibration: Calibration | Non
     lab = first["labels_ms"]
     return {
         "ate_cm": 100 * res.rmse,
+        "rpe_cm": 100 * rpe(st, T, gt[0], gt[1]).rmse,
+        "readout": first["readout"],
         "frames": first["frames"],
         "lost": first["lost_frames"],
         "kf": first["keyframes"],
@@ -105,14 +109,28 @@ def run_one(folder: Path, labels: str, tmp: Path, calibration: Calibration | Non
     }
 
 
+def _row(label: str, seed: str, kind: str, r: dict, ratio: str, goal: str) -> str:
+    """One row of the per-sequence table."""
+    ro = r["readout"]
+    readout = f"{1e3 * ro['readout_s']:.1f} ms{' (guess)' if ro['assumed'] else ''}"
+    src = ", ".join(f"{k} {v}" for k, v in sorted(r["sources"].items()))
+    runs = " / ".join(f"{m:.1f}" for m in r["runs"])
+    return (
+        f"| {label} | {seed} | {kind} | {readout} | {r['frames']} | {r['kf']} | {r['lost']} "
+        f"| {r['ate_cm']:.2f} | {r['rpe_cm']:.2f} | {ratio} | {goal} | {r['med']:.1f} | {runs} "
+        f"| {r['p95']:.1f} | {r['cpu']:.1f} | {r['labels']} | {src} |"
+    )
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", type=Path, default=ROOT / "out" / "bench_data")
-    ap.add_argument("--seed", type=int, default=0)
+    add_seed_arguments(ap, ROOT / "out" / "bench_data")
     ap.add_argument("--only", nargs="*", help="scenario names (default: all, plus tum)")
     ap.add_argument("--detector", type=Path, default=DETECTOR, help="YOLOX ONNX model for onnx labels")
     ap.add_argument("--seg-model", type=Path, default=SEG_MODEL, help="wardmap segmentation network "
                     "for onnx labels (default: the packaged one)")
+    ap.add_argument("--no-generate", action="store_true",
+                    help="skip (and list) scenarios without data under --data instead of rendering them")
     ap.add_argument("--repeats", type=int, default=3, help="times each sequence is tracked (default 3)")
     ap.add_argument("--write", type=Path, help="update this markdown file's tracking section")
     args = ap.parse_args()
@@ -121,93 +139,104 @@ def main() -> int:
     cv2.setNumThreads(1)
     names = args.only or [*SCENARIOS, "tum"]
     rows = []
-    notes = []
+    skipped: list[str] = []  # --no-generate: scenarios without data
+    per_seed: dict[str, list[tuple[int, dict]]] = {}  # sequence label -> (seed, result) of each seed
     with tempfile.TemporaryDirectory() as tmpd:
         tmp = Path(tmpd)
-        for name in names:
-            if name == "tum":
-                if not TUM.is_dir():
-                    print(f"skip tum: {TUM} absent", file=sys.stderr)
-                    continue
-                folders = [("tum_fr1_rpy_s3_first100", TUM)]
-            else:
-                out = args.data / f"{name}_s{args.seed}"
-                runs = [p.parent for p in sorted(out.glob("*/sim.json"))]  # a multi-robot scenario
-                if not (out / "sim.json").exists() and len(runs) < len(build_scene(name, args.seed).robots):
-                    print(f"generating {name} ...", file=sys.stderr)
-                    generate(name, args.seed, out, overwrite=True)
-                    runs = [p.parent for p in sorted(out.glob("*/sim.json"))]
-                folders = [(f"{name}/{p.name}", p) for p in runs] if runs else [(name, out)]
-            for label, folder in folders:
-                label_specs = ["none"]
-                if name == "walking_staff":
-                    models = [m for m in (args.seg_model, args.detector) if m.is_file()]
-                    label_specs += ["oracle"] + [f"onnx:{m}" for m in models]
-                runs: list[tuple[str, str, Calibration | None]] = [(label, s, None) for s in label_specs]
+        for seed in args.seeds:
+            for name in names:
                 if name == "tum":
-                    # The Kinect's colour camera has a rolling shutter; its readout time is
-                    # estimated from the images alone (no ground truth), as a user would.
-                    print("estimating the TUM camera's readout time ...", file=sys.stderr)
-                    reader = DatasetReader(folder)
-                    est = estimate_readout(reader)
-                    ms_est = 1e3 * est.readout_s
-                    notes.append(
-                        f"TUM readout time estimated with `wardmap calibrate-readout` ({est.frames} "
-                        f"frames, candidates 0-40 ms every 2.5 ms, no ground truth): **{ms_est:.1f} ms**, "
-                        f"{100 * est.gain:+.0f} % inliers over 0 ms (3 % needed to count) "
-                        "(mean inliers per frame by candidate: "
-                        + ", ".join(
-                            f"{1e3 * c:g}: {x:.0f}"
-                            for c, x in zip(est.candidates_s, est.inliers_per_frame, strict=True)
-                        )
-                        + ")."
-                    )
-                    runs = [
-                        (f"{label}, readout 0 (global shutter)", "none", None),
-                        (f"{label}, readout {ms_est:.1f} ms (estimated)", "none",
-                         replace(reader.calibration, rgb_readout_s=est.readout_s)),
-                    ]
-                base = None
-                for label, spec, calib in runs:
-                    print(f"tracking {label} labels={spec.split(':')[0]} ...", file=sys.stderr)
-                    r = run_one(folder, spec, tmp, calib, args.repeats)
-                    ratio = "" if base is None else f"{100 * r['ate_cm'] / base:.0f}% of none"
-                    base = r["ate_cm"] if base is None else base
-                    src = ", ".join(f"{k} {v}" for k, v in sorted(r["sources"].items()))
-                    goal = next((g for k, g in GOALS.items() if label.startswith(k)), "")
-                    if name == "walking_staff" and spec != "none":
-                        goal = "<= 25% of none"
+                    if seed != args.seeds[0]:
+                        continue  # real data: one run, whatever the seeds
+                    if not TUM.is_dir():
+                        print(f"skip tum: {TUM} absent", file=sys.stderr)
+                        continue
+                    folders = [("tum_fr1_rpy_s3_first100", TUM)]
+                else:
+                    out = args.data / f"{name}_s{seed}"
+                    runs = [p.parent for p in sorted(out.glob("*/sim.json"))]  # a multi-robot scenario
+                    if not (out / "sim.json").exists() and len(runs) < len(build_scene(name, seed).robots):
+                        if args.no_generate:
+                            skipped.append(f"{name} seed {seed}")
+                            continue
+                        print(f"generating {name} seed {seed} ...", file=sys.stderr)
+                        generate(name, seed, out, overwrite=True)
+                        runs = [p.parent for p in sorted(out.glob("*/sim.json"))]
+                    folders = [(f"{name}/{p.name}", p) for p in runs] if runs else [(name, out)]
+                for label, folder in folders:
+                    label_specs = ["none"]
+                    if name == "walking_staff":
+                        models = [m for m in (args.seg_model, args.detector) if m.is_file()]
+                        label_specs += ["oracle"] + [f"onnx:{m}" for m in models]
+                    runs: list[tuple[str, str, Calibration | None]] = [(label, s, None) for s in label_specs]
                     if name == "tum":
-                        ratio = ""
-                        goal = GOALS["tum"] if calib is not None else ""
-                    kind = spec if ":" not in spec else f"onnx {Path(spec.split(':', 1)[1]).stem}"
-                    rows.append(
-                        f"| {label} | {kind} | {r['frames']} | {r['kf']} | {r['lost']} "
-                        f"| {r['ate_cm']:.2f} | {ratio} | {goal} | {r['med']:.1f} "
-                        f"| {' / '.join(f'{m:.1f}' for m in r['runs'])} | {r['p95']:.1f} | {r['cpu']:.1f} "
-                        f"| {r['labels']} | {src} |"
-                    )
-                    print(rows[-1])
+                        # Out of the box (the readout model the folder gives: the Kinect's default),
+                        # and as a global shutter for comparison.
+                        reader = DatasetReader(folder)
+                        runs = [
+                            (f"{label}, out of the box", "none", None),
+                            (f"{label}, readout 0 (global shutter)", "none",
+                             replace(reader.calibration, rgb_readout_s=0.0)),
+                        ]
+                    base = None
+                    for label, spec, calib in runs:
+                        print(f"tracking {label} seed {seed} labels={spec.split(':')[0]}", file=sys.stderr)
+                        r = run_one(folder, spec, tmp, calib, args.repeats)
+                        ratio = "" if base is None else f"{100 * r['ate_cm'] / base:.0f}% of none"
+                        base = r["ate_cm"] if base is None else base
+                        goal = next((g for k, g in GOALS.items() if label.startswith(k)), "")
+                        if name == "walking_staff" and spec != "none":
+                            goal = "<= 25% of none"
+                        if name == "tum":
+                            ratio = ""
+                            goal = GOALS["tum"] if calib is None else ""
+                        kind = spec if ":" not in spec else f"onnx {Path(spec.split(':', 1)[1]).stem}"
+                        rows.append(_row(label, "-" if name == "tum" else str(seed), kind, r, ratio, goal))
+                        print(rows[-1])
+                        per_seed.setdefault(f"{label} | {kind}", []).append((seed, r))
     table = "\n".join(
         [
-            "| sequence | labels | frames | keyframes | lost | ATE RMSE cm | vs none | goal "
-            "| ms/frame median | median of each run | ms/frame p95 | CPU ms/frame median | label ms median "
-            "| pose sources |",
-            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+            "| sequence | seed | labels | readout | frames | keyframes | lost | ATE RMSE cm | RPE cm/frame "
+            "| vs none | goal | ms/frame median | median of each run | ms/frame p95 | CPU ms/frame median "
+            "| label ms median | pose sources |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
             *rows,
         ]
     )
+    summary = [
+        f"| {key} | {len(rs)} | {np.mean([r['ate_cm'] for _, r in rs]):.2f} "
+        f"| {max(r['ate_cm'] for _, r in rs):.2f} (seed {max(rs, key=lambda x: x[1]['ate_cm'])[0]}) "
+        f"| {np.mean([r['rpe_cm'] for _, r in rs]):.2f} | {max(r['rpe_cm'] for _, r in rs):.2f} "
+        f"| {sum(r['ate_cm'] <= 1.5 for _, r in rs)}/{len(rs)} |"
+        for key, rs in per_seed.items()
+        if len(rs) > 1
+    ]
+    if summary:
+        table += "\n\nOver the seeds:\n\n" + "\n".join(
+            [
+                "| sequence | labels | seeds | ATE mean cm | ATE worst cm | RPE mean cm/frame "
+                "| RPE worst cm/frame | seeds with ATE <= 1.5 cm |",
+                "|---|---|---|---|---|---|---|---|",
+                *summary,
+            ]
+        )
+    if skipped:
+        table += "\n\nNot run (no data, --no-generate): " + ", ".join(skipped) + "."
+    only = f" --only {' '.join(args.only)}" if args.only else ""
     body = (
-        "## Tracking frontend (issue 3)\n\n"
-        f"Command: `python bench/tracking.py --seed {args.seed} --repeats {args.repeats} "
-        "--write BENCHMARKS.md`  \n"
+        "## Tracking frontend (issues 3, 41)\n\n"
+        f"Command: `python bench/tracking.py --seeds {' '.join(map(str, args.seeds))}{only}"
+        f"{' --no-generate' if args.no_generate else ''} "
+        f"--repeats {args.repeats} --write BENCHMARKS.md`  \n"
         f"Machine: {machine()}; one core (numba/OpenCV threads = 1); commit {git_rev()}.\n"
-        "ATE: evo, SE3 (Umeyama) alignment, translation RMSE. ms/frame: the whole frontend, "
-        "label inference excluded (its own column); wall clock, and the tracking thread's CPU time "
-        "(`time.thread_time`), which time taken by other processes on a shared host does not inflate. "
-        f"Each sequence was tracked {args.repeats} times (same trajectory each time); the medians "
-        "and p95 pool the frames of all runs, and each run's own median is listed."
-        "\n\n" + table + "".join(f"\n\n{n}" for n in notes)
+        "ATE: evo, SE3 (Umeyama) alignment, translation RMSE. RPE: evo, translation error of each "
+        "frame-to-frame step, RMSE. readout: the rolling-shutter readout time the recording's own "
+        "calibration or sensor gives (no calibration command run first). ms/frame: the whole "
+        "frontend, label inference excluded (its own column); wall clock, and the tracking thread's "
+        "CPU time (`time.thread_time`), which time taken by other processes on a shared host does not "
+        f"inflate. Each sequence was tracked {args.repeats} times (same trajectory each time); the "
+        "medians and p95 pool the frames of all runs, and each run's own median is listed."
+        "\n\n" + table
     )
     print(body)
     if args.write:

@@ -6,7 +6,7 @@ import argparse
 import json
 
 from wardmap.cli.progress import Progress
-from wardmap.cli.sources import add_bag_options, bag_config
+from wardmap.cli.sources import add_associations_option, add_bag_options, bag_config
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -21,6 +21,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     info.add_argument("path", metavar="DIR", help="data-set folder (ours or a real TUM folder)")
     info.add_argument("--json", action="store_true", help="print the summary as one JSON object")
     info.add_argument("--check-images", action="store_true", help="also decode every image")
+    add_associations_option(info)
     info.set_defaults(func=run_info)
 
     fb = dsub.add_parser("from-bag", help="convert a ROS 1/ROS 2/MCAP recording to a data-set folder",
@@ -55,7 +56,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 def run_info(args: argparse.Namespace) -> int:
     from wardmap.shared.dataset import DatasetReader
 
-    reader = DatasetReader(args.path)
+    reader = DatasetReader(args.path, associations=args.associations)
     if args.check_images:
         for i in range(len(reader)):
             reader.frame(i)
@@ -70,6 +71,9 @@ def run_info(args: argparse.Namespace) -> int:
         "rgb_camera": (
             f"{cam.width}x{cam.height} fx={cam.fx:.1f} fy={cam.fy:.1f} cx={cam.cx:.1f} cy={cam.cy:.1f}"
         ),
+        "associations": str(reader.associations) if reader.associations else "nearest stamps",
+        "rgb_readout_s": reader.calibration.readout.readout_s,
+        "rgb_readout_source": reader.calibration.readout.source,
         "thermal": reader.has_thermal,
         "labels": reader.has_labels,
         "groundtruth_poses": 0 if gt is None else len(gt[0]),

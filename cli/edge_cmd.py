@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from wardmap.cli.logopts import add_log_format
-from wardmap.cli.sources import SOURCE_HELP, SOURCE_METAVAR, add_bag_options, open_source
+from wardmap.cli.sources import SOURCE_HELP, SOURCE_METAVAR, add_source_options, open_source, readout_line
 from wardmap.cli.zenoh_args import add_zenoh_args, zenoh_options
 
 OUTBOX_FILE = "outbox.sqlite"
@@ -59,7 +59,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="address of --metrics-port (default: %(default)s, for a Prometheus off the robot)",
     )
     add_log_format(p)
-    add_bag_options(p)
+    add_source_options(p)
     add_zenoh_args(p)
     p.set_defaults(func=run)
 
@@ -130,6 +130,7 @@ def run(args: argparse.Namespace) -> int:
             f"people in images: {_privacy_words(agent_cfg.privacy)}",
             flush=True,
         )
+        print(f"edge {args.robot} {readout_line(source.calibration)}", file=sys.stderr, flush=True)
         notify("READY=1")
 
     with contextlib.ExitStack() as stack:

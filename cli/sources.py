@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from wardmap.edge.bag import BagSourceConfig
     from wardmap.edge.stream import StreamSource
+    from wardmap.shared.dataset import Calibration
 
 SOURCE_METAVAR = "DATASET|bag:PATH|sim:SCENARIO[:SEED[:ROBOT]]"
 SOURCE_HELP = ("data-set folder, a ROS 1/ROS 2/MCAP recording (bag:PATH; topics by the options below "
@@ -35,6 +36,27 @@ def add_bag_options(p: argparse.ArgumentParser) -> None:
     for name, text in _FLAGS.items():
         metavar = "TOPIC" if "topic" in name else "FILE"
         g.add_argument("--" + name.replace("_", "-"), dest=name, metavar=metavar, help=text)
+
+
+def add_associations_option(p: argparse.ArgumentParser) -> None:
+    """``--associations FILE``: the rgb/depth association file of a data-set folder."""
+    p.add_argument(
+        "--associations", metavar="FILE",
+        help="rgb/depth association file of a data-set folder (TUM associate.py output; default: the "
+        "folder's associations.txt, rgbd_assoc.txt or assoc.txt, else nearest stamps)",
+    )
+
+
+def add_source_options(p: argparse.ArgumentParser) -> None:
+    """The options of a command that opens a source: ``--associations`` and the bag options."""
+    add_associations_option(p)
+    add_bag_options(p)
+
+
+def readout_line(calibration: Calibration) -> str:
+    """One line saying which rolling-shutter readout time tracking uses, and why."""
+    model = calibration.readout
+    return f"rolling-shutter readout: {1e3 * model.readout_s:.1f} ms ({model.source})"
 
 
 def bag_config(args: argparse.Namespace, config_path: str | None) -> BagSourceConfig:
@@ -59,6 +81,9 @@ def open_source(spec: str, args: argparse.Namespace, config_path: str | None) ->
     from wardmap.shared.dataset import DatasetReader
     from wardmap.shared.errors import DatasetError
 
+    associations = getattr(args, "associations", None)
+    if associations is not None and (spec.startswith("sim:") or is_bag_source(spec)):
+        raise DatasetError("--associations is for a data-set folder, not a recording or a simulated robot")
     if spec.startswith("sim:"):
         from wardmap.sim.live import LiveRun, SimSource
 
@@ -72,4 +97,4 @@ def open_source(spec: str, args: argparse.Namespace, config_path: str | None) ->
     if not Path(spec).is_dir():
         raise DatasetError(f"data set {spec!r} is not a folder (a recording is bag:PATH, a simulated "
                            "robot sim:SCENARIO)")
-    return FrameSourceStream(DatasetReader(spec))
+    return FrameSourceStream(DatasetReader(spec, associations=associations))

@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 
 from wardmap.cli.progress import Progress
-from wardmap.cli.sources import SOURCE_HELP, SOURCE_METAVAR, add_bag_options, open_source
+from wardmap.cli.sources import SOURCE_HELP, SOURCE_METAVAR, add_source_options, open_source, readout_line
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -15,7 +16,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="run the tracking frontend on a data set, write a TUM trajectory",
         description="Track every frame of a data-set folder (ours or a real TUM folder), a ROS "
         "recording (bag:PATH) or a simulated robot (sim:SCENARIO) and write the camera trajectory in "
-        "TUM format. The last line on stdout is a JSON summary.",
+        "TUM format. Says on stderr which rolling-shutter readout time it uses and why. The last line on "
+        "stdout is a JSON summary.",
     )
     p.add_argument("dataset", nargs="?", metavar="DATASET", help="data-set folder (or use --source)")
     p.add_argument("--source", metavar=SOURCE_METAVAR, help=SOURCE_HELP)
@@ -29,7 +31,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     p.add_argument("--label-threads", type=int, default=1, metavar="N", help="threads for label inference")
     p.add_argument("--max-frames", type=int, metavar="K", help="stop after K frames")
-    add_bag_options(p)
+    add_source_options(p)
     p.set_defaults(func=run)
 
 
@@ -43,6 +45,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("give the data set as DATASET or --source (one of them)")
     config = load_config(TrackerConfig, args.config, section="tracker")
     source = open_source(args.dataset or args.source, args, args.config)
+    readout = readout_line(source.calibration)
     with Progress("frames") as bar:
         summary = track_source(
             source,
@@ -51,7 +54,13 @@ def run(args: argparse.Namespace) -> int:
             labels=args.labels,
             max_frames=args.max_frames,
             label_threads=args.label_threads,
-            progress=lambda i, n, _result: bar.update("track", i, n),
+            progress=lambda i, n, _result: _progress(bar, readout, i, n),
         )
     print(json.dumps(summary))
     return 0
+
+
+def _progress(bar: Progress, readout: str, i: int, n: int) -> None:
+    if i == 1:  # once tracking runs: a command that fails before says one line only
+        print(readout, file=sys.stderr, flush=True)
+    bar.update("track", i, n)

@@ -51,7 +51,8 @@ def track_source(
     :func:`wardmap.edge.readout.estimate_readout`).
 
     The summary has frames, keyframes, lost frames (with the reasons), pose sources, the
-    stream's counters (``stream``: received, dropped, late) and milliseconds per frame (median
+    stream's counters (``stream``: received, dropped, late), the rolling-shutter model
+    (``readout``: seconds, where it came from, whether it is a guess) and milliseconds per frame (median
     and p95) for each stage and in total; label inference is timed apart (``labels_ms``) and is
     not part of ``total``.
     """
@@ -65,6 +66,8 @@ def track_source(
     kg = KnowledgeGraph.load()
     label_source = make_label_source(labels, dataset=source.dataset, kg=kg, threads=label_threads)
     tracker = Tracker(calibration or source.calibration, config, kg.mobility_lut())
+    readout = tracker.readout
+    log.debug("%s: rolling-shutter readout %.1f ms: %s", source.name, 1e3 * readout.readout_s, readout.source)
     n = source.frame_count or 0  # for progress only: 0 when unknown
     if max_frames is not None and n:
         n = min(n, max_frames)
@@ -93,7 +96,11 @@ def track_source(
     if not results:
         raise DatasetError(f"{source.name}: no frame to track")
     _write_tum(out, results)
-    return {**summarize(results, label_ms), "stream": stream.counters()}
+    return {
+        **summarize(results, label_ms),
+        "stream": stream.counters(),
+        "readout": {"readout_s": readout.readout_s, "source": readout.source, "assumed": readout.assumed},
+    }
 
 
 def odom_at(odo: tuple[np.ndarray, np.ndarray] | None, stamp: float) -> np.ndarray | None:

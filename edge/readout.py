@@ -4,7 +4,9 @@ Most RGB-D colour cameras (the Kinect among them) expose the image row by row: w
 the camera turning at 100 deg/s and a 20 ms readout, the last row sees the scene 2 deg
 later than the first, which a global-shutter pose estimate partly absorbs as a
 translation of several centimetres. The tracker undoes this when the calibration gives
-the readout time (``[rgb] readout_s``, :func:`wardmap.edge.tracker.unroll_keypoints`).
+the readout time (``[rgb] readout_s``, or its ``[rgb] sensor``'s default:
+:mod:`wardmap.shared.sensors`), fitting each frame's own spin with its pose
+(:func:`wardmap.edge.pose.refine_pose_rolling_shutter`). This estimate is an offline check.
 
 The readout time is seldom published. :func:`estimate_readout` finds it from a recording
 with some rotation in it: it tracks the frames once per candidate time and keeps the one

@@ -38,7 +38,7 @@ from wardmap.edge.features import (
 )
 from wardmap.edge.icp import DepthPyramid, IcpConfig, icp
 from wardmap.edge.mapstore import Keyframe, MapPoints
-from wardmap.edge.pose import refine_pose_huber, solve_pnp_ransac
+from wardmap.edge.pose import refine_pose_huber, refine_pose_rolling_shutter, solve_pnp_ransac
 from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.dataset import Calibration
 from wardmap.shared.errors import ConfigError
@@ -113,6 +113,10 @@ class TrackerConfig:
             and height toward those of a level base on the floor (the odom frame's z = 0
             plane); visual drift in tilt and height is slow, the base's wobble fast. Each
             frame moves ``1 - exp(-dt / tau)`` of the way. 0 disables it (e.g. ramps).
+        rs_shear_sigma_rad: rolling shutter (a calibration with ``readout_s > 0``): each
+            frame's own spin over one readout is fitted with its pose
+            (:func:`wardmap.edge.pose.refine_pose_rolling_shutter`); this is the standard
+            deviation (radians) of its prior, the motion model's spin times the readout.
     """
 
     orb: OrbConfig = field(default_factory=OrbConfig)
@@ -142,6 +146,7 @@ class TrackerConfig:
     rgbd_bf: float = 40.0
     rgbd_max_depth_m: float = 3.1
     floor_level_tau_s: float = 2.0
+    rs_shear_sigma_rad: float = 0.02
 
     def __post_init__(self) -> None:
         if self.min_inliers < 6:
@@ -150,6 +155,8 @@ class TrackerConfig:
             raise ConfigError("tracker: need 0 < min_depth_m < max_depth_m")
         if self.match_radius_px <= 0 or self.match_radius_lost_px < self.match_radius_px:
             raise ConfigError("tracker: need 0 < match_radius_px <= match_radius_lost_px")
+        if not (np.isfinite(self.rs_shear_sigma_rad) and self.rs_shear_sigma_rad > 0):
+            raise ConfigError(f"tracker.rs_shear_sigma_rad must be > 0, got {self.rs_shear_sigma_rad}")
         if not (np.isfinite(self.floor_level_tau_s) and self.floor_level_tau_s >= 0):
             raise ConfigError(
                 f"tracker.floor_level_tau_s must be >= 0 (0 = off), got {self.floor_level_tau_s}"
@@ -215,6 +222,7 @@ class Tracker:
         self.cfg = config or TrackerConfig()
         self.calib = calibration
         self.cam: PinholeCamera = calibration.rgb
+        self.readout = calibration.readout  # rolling-shutter readout time and where it came from
         self.orb = OrbExtractor(self.cfg.orb)
         self.mobility_lut = mobility_lut
         self.map = MapPoints()
@@ -307,7 +315,8 @@ class Tracker:
             )
 
         kp_depth = _depth_at(depth, feats.uv)
-        readout = self.calib.rgb_readout_s
+        feats_raw, kp_depth_raw = feats, kp_depth
+        readout = self.readout.readout_s
         if readout > 0 and self._prev_dt > 0:
             # Rolling shutter: keypoints moved to the middle row's instant (motion model's spin).
             omega = so3_log(self._velocity[:3, :3]) / self._prev_dt
@@ -381,6 +390,13 @@ class Tracker:
                 if int(inl2.sum()) >= self.cfg.min_inliers:
                     T_cw, inl, m_idx, f_idx = T2, inl2, m2, f2
             timings["refine"] = _ms(t0)
+        if readout > 0:
+            # Rolling shutter: this frame's own spin, fitted with its pose (the prior's lags).
+            t0 = time.perf_counter()
+            fit = self._rolling_shutter_refit(T_cw, m_idx, f_idx, inl, feats_raw, kp_depth_raw)
+            if fit is not None:
+                T_cw, inl, feats, kp_depth = fit
+            timings["rolling_shutter"] = _ms(t0)
         T = self._level(inverse(T_cw), inp.stamp)
         T_cw = inverse(T)
         n_inl = int(inl.sum())
@@ -453,6 +469,40 @@ class Tracker:
             max_stereo_depth_m=self.cfg.rgbd_max_depth_m,
         )
         return T, inl
+
+    def _rolling_shutter_refit(
+        self, T_cw: F64, m_idx: NDArray[np.intp], f_idx: NDArray[np.intp], inl: NDArray[np.bool_],
+        feats_raw: Features, depth_raw: NDArray[np.float64],
+    ) -> tuple[F64, NDArray[np.bool_], Features, NDArray[np.float64]] | None:
+        """The pose and this frame's own rolling-shutter spin, fitted together on the inliers.
+
+        The spin comes from the image's shear (:func:`refine_pose_rolling_shutter`), with the
+        motion model's spin times the readout as a weak prior; the previous step's spin alone
+        lags the motion (a hand-held camera reverses within a few frames). The keypoints as
+        measured (``feats_raw`` / ``depth_raw``) are unrolled with the fitted spin and the
+        pose refined once more on all matches, which re-classifies the inliers.
+        Returns (T_cw, inliers, unrolled features, their depth), or None when the fit fails
+        or keeps too few inliers.
+        """
+        m_in, f_in = m_idx[inl], f_idx[inl]
+        sigma = np.power(self.cfg.orb.scale_factor, feats_raw.octave.astype(np.float64))
+        omega_prev = so3_log(self._velocity[:3, :3]) / self._prev_dt if self._prev_dt > 0 else np.zeros(3)
+        fit = refine_pose_rolling_shutter(
+            self.map.pos_world[m_in], feats_raw.uv[f_in].astype(np.float64), self.cam, T_cw,
+            self.readout.readout_s * omega_prev, sigma_px=sigma[f_in],
+            shear_sigma_rad=self.cfg.rs_shear_sigma_rad,
+            depth_m=depth_raw[f_in], bf=self.cfg.rgbd_bf, max_stereo_depth_m=self.cfg.rgbd_max_depth_m,
+        )
+        if not fit.ok:
+            return None
+        feats_u, z_u = unroll_keypoints(self.cam, 1.0, fit.shear_rad, feats_raw, depth_raw)
+        T2, inl2 = self._refine(
+            self.map.pos_world[m_idx], feats_u.uv[f_idx].astype(np.float64), fit.T_cam_world,
+            sigma[f_idx], z_u[f_idx],
+        )
+        if int(inl2.sum()) < self.cfg.min_inliers:
+            return None
+        return T2, inl2, feats_u, z_u
 
     def _pose_from_matches(
         self,

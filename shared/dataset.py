@@ -23,6 +23,7 @@ import json
 import logging
 import math
 import operator
+import os
 import re
 import shutil
 from collections.abc import Iterator, Mapping
@@ -45,6 +46,7 @@ from wardmap.shared.se3 import (
     transform_from_tum,
     transform_to_tum,
 )
+from wardmap.shared.sensors import SENSORS, TUM_SENSOR, ReadoutModel, readout_model
 
 log = logging.getLogger(__name__)
 
@@ -100,8 +102,12 @@ _ENCODERS_HEADER: Final = (
     "# timestamp left_ticks right_ticks gyro_z_rad_s\n"
 )
 
+ASSOCIATION_FILES: Final = ("associations.txt", "rgbd_assoc.txt", "assoc.txt")
+"""rgb/depth association files read when present, in this order (TUM associate.py's output under
+the names TUM users give it)."""
+
 _LAYOUT_FILES: Final = (
-    "rgb.txt", "depth.txt", "thermal.txt", "labels.txt", "associations.txt",
+    "rgb.txt", "depth.txt", "thermal.txt", "labels.txt", *ASSOCIATION_FILES,
     "groundtruth.txt", "odometry.txt", "encoders.txt", "calibration.toml", "objects.json",
 )
 _LAYOUT_DIRS: Final = ("rgb", "depth", "thermal", "labels")
@@ -138,8 +144,12 @@ class Calibration:
             ``encoders.txt`` (wheel radius, distance between wheels, encoder ticks per mm of
             wheel travel); they need ``T_base_rgb`` (they live in the ``[base]`` table).
         rgb_readout_s: rolling-shutter readout time of the colour camera, seconds from the
-            first row to the last (``[rgb] readout_s``); 0 = global shutter (the simulator).
+            first row to the last (``[rgb] readout_s``); 0 = global shutter (the simulator);
+            None = not given (then ``rgb_sensor``'s default, see :attr:`readout`).
             ``wardmap calibrate-readout`` estimates it from a recording.
+        rgb_sensor: the colour camera's model (``[rgb] sensor``, a
+            :data:`wardmap.shared.sensors.SENSORS` key; TUM folders: ``kinect_v1``), "" = not
+            named.
 
     Matrices are stored as read-only float64 copies. Equality compares every field exactly.
     """
@@ -153,7 +163,8 @@ class Calibration:
     wheel_radius_m: float | None = None
     wheel_base_m: float | None = None
     ticks_per_mm: float | None = None
-    rgb_readout_s: float = 0.0
+    rgb_readout_s: float | None = None
+    rgb_sensor: str = ""
 
     def __post_init__(self) -> None:
         if not isinstance(self.rgb, PinholeCamera):
@@ -164,7 +175,14 @@ class Calibration:
             )
         _positive_finite(self.depth_scale, "Calibration.depth_scale")
         _positive_finite(self.thermal_scale, "Calibration.thermal_scale")
-        if not (math.isfinite(self.rgb_readout_s) and 0.0 <= self.rgb_readout_s <= MAX_READOUT_S):
+        if self.rgb_sensor and self.rgb_sensor not in SENSORS:
+            raise DatasetError(
+                f"Calibration.rgb_sensor ([rgb] sensor) {self.rgb_sensor!r} is not a known sensor; "
+                f"known: {', '.join(SENSORS)} (or give [rgb] readout_s)"
+            )
+        if self.rgb_readout_s is not None and not (
+            math.isfinite(self.rgb_readout_s) and 0.0 <= self.rgb_readout_s <= MAX_READOUT_S
+        ):
             raise DatasetError(
                 f"Calibration.rgb_readout_s ([rgb] readout_s) must be in [0, {MAX_READOUT_S}] seconds, "
                 f"got {self.rgb_readout_s!r}"
@@ -195,17 +213,27 @@ class Calibration:
             if (a is None) != (b is None) or (a is not None and not np.array_equal(a, b)):
                 return False
         return (self.rgb, self.depth_scale, self.thermal, self.thermal_scale,
-                self.wheel_radius_m, self.wheel_base_m, self.ticks_per_mm, self.rgb_readout_s) == (
+                self.wheel_radius_m, self.wheel_base_m, self.ticks_per_mm, self.rgb_readout_s,
+                self.rgb_sensor) == (
                 other.rgb, other.depth_scale, other.thermal, other.thermal_scale,
-                other.wheel_radius_m, other.wheel_base_m, other.ticks_per_mm, other.rgb_readout_s)
+                other.wheel_radius_m, other.wheel_base_m, other.ticks_per_mm, other.rgb_readout_s,
+                other.rgb_sensor)
 
     __hash__ = None  # type: ignore[assignment]  # holds arrays: equality is by value
+
+    @property
+    def readout(self) -> ReadoutModel:
+        """The readout time tracking uses and where it comes from
+        (:func:`wardmap.shared.sensors.readout_model`)."""
+        return readout_model(self.rgb_readout_s, self.rgb_sensor)
 
     def to_toml_dict(self) -> dict[str, Any]:
         """The ``calibration.toml`` tables as plain Python values (None fields left out)."""
         out: dict[str, Any] = {"rgb": {**_camera_dict(self.rgb), "depth_scale": self.depth_scale}}
-        if self.rgb_readout_s > 0:
+        if self.rgb_readout_s is not None:
             out["rgb"]["readout_s"] = self.rgb_readout_s
+        if self.rgb_sensor:
+            out["rgb"]["sensor"] = self.rgb_sensor
         if self.thermal is not None and self.T_rgb_thermal is not None:
             out["thermal"] = {
                 **_camera_dict(self.thermal),
@@ -237,12 +265,18 @@ class Calibration:
             raise DatasetError(f"{source}: expected a TOML document (tables), got {type(d)}")
         _check_keys(d, source, "", required=("rgb",), optional=("thermal", "base"))
         rgb_t = _table(d, "rgb", source)
-        _check_keys(rgb_t, source, "rgb", required=_CAMERA_KEYS, optional=("depth_scale", "readout_s"))
+        _check_keys(rgb_t, source, "rgb", required=_CAMERA_KEYS,
+                    optional=("depth_scale", "readout_s", "sensor"))
         kwargs: dict[str, Any] = {
             "rgb": _camera_from(rgb_t, source, "rgb"),
             "depth_scale": _number(rgb_t, "depth_scale", source, "rgb", DEFAULT_DEPTH_SCALE),
-            "rgb_readout_s": _number(rgb_t, "readout_s", source, "rgb", 0.0),
+            "rgb_readout_s": _number(rgb_t, "readout_s", source, "rgb") if "readout_s" in rgb_t else None,
         }
+        if "sensor" in rgb_t:
+            if not isinstance(rgb_t["sensor"], str):
+                raise DatasetError(f"{source}: {_where('rgb', 'sensor')}: expected a string, "
+                                   f"got {rgb_t['sensor']!r}")
+            kwargs["rgb_sensor"] = rgb_t["sensor"]
         if "thermal" in d:
             th_t = _table(d, "thermal", source)
             _check_keys(th_t, source, "thermal", required=(*_CAMERA_KEYS, "T_rgb_thermal"),
@@ -765,8 +799,11 @@ class DatasetReader:
     every referenced image file exists, ``calibration.toml`` is valid (or the folder name
     names a TUM camera). Images are loaded on demand by :meth:`frame`.
 
-    Frames are rgb images paired with a depth image: from ``associations.txt`` when
-    present, otherwise by nearest stamp within ``max_depth_dt_s`` (TUM associate.py rule).
+    Frames are rgb images paired with a depth image: from the association file
+    ``associations`` when given, else the first of :data:`ASSOCIATION_FILES` in the folder,
+    otherwise by nearest stamp within ``max_depth_dt_s`` (TUM associate.py rule). An
+    association file may list depth before rgb (``associate.py depth.txt rgb.txt``): the
+    columns are swapped when its rgb column names depth.txt's files.
     Thermal images pair with frames the same way within ``max_thermal_dt_s``; labels by
     equal stamp.
 
@@ -774,10 +811,12 @@ class DatasetReader:
         root: the folder.
         calibration: the sensor calibration.
         stamps: (N,) rgb stamps in seconds of the associated frames (read-only).
+        associations: the association file read, or None (paired by nearest stamps).
     """
 
     def __init__(self, root: str | Path, *, max_depth_dt_s: float = MAX_DEPTH_DT_S,
-                 max_thermal_dt_s: float = MAX_THERMAL_DT_S) -> None:
+                 max_thermal_dt_s: float = MAX_THERMAL_DT_S,
+                 associations: str | Path | None = None) -> None:
         self.root = Path(root)
         if not self.root.exists():
             raise DatasetError(f"data-set folder not found: {self.root}")
@@ -792,12 +831,15 @@ class DatasetReader:
         depth = _read_list(self.root / "depth.txt")
         listed = [rgb, depth]
 
-        assoc_file = self.root / "associations.txt"
-        if assoc_file.is_file():
+        assoc_file = self._association_file(associations)
+        self.associations: Path | None = assoc_file
+        if assoc_file is not None:
             rgb_f, depth_f = _read_associations(assoc_file)
+            if set(rgb_f.files) <= set(depth.files) and not set(rgb_f.files) <= set(rgb.files):
+                rgb_f, depth_f = depth_f, rgb_f  # written as "depth rgb"
             listed.append(rgb_f)
             listed.append(depth_f)
-            how = "associations.txt"
+            how = str(assoc_file)
         else:
             pairs = associate_stamps(rgb.stamps, depth.stamps, max_depth_dt_s)
             ri = [i for i, _ in pairs]
@@ -848,20 +890,38 @@ class DatasetReader:
         log.debug("%s: %d frames (%s), thermal %s, labels %s, ground truth %s", self.root, n,
                   how, self.has_thermal, self.has_labels, self._gt is not None)
 
+    def _association_file(self, given: str | Path | None) -> Path | None:
+        if given is not None:
+            path = Path(given)
+            if not path.is_absolute() and not path.exists() and (self.root / path).exists():
+                path = self.root / path  # a name inside the folder
+            if not path.is_file():
+                raise DatasetError(f"association file not found: {given}")
+            return path
+        found = [self.root / n for n in ASSOCIATION_FILES if (self.root / n).is_file()]
+        if len(found) > 1:
+            log.info("%s: %d association files; reading %s", self.root, len(found), found[0].name)
+        return found[0] if found else None
+
     def _load_calibration(self) -> Calibration:
         path = self.root / "calibration.toml"
         if path.is_file():
             return load_calibration(path)
-        name = self.root.resolve().name
-        cam = tum_camera_for_folder(name)
-        if cam is None:
-            raise DatasetError(
-                f"{self.root}: no calibration.toml, and the folder name {name!r} does not say "
-                "which TUM camera took it; add a calibration.toml (docs/dataset.md) or, for a "
-                "TUM RGB-D sequence, keep 'freiburg1', 'freiburg2' or 'freiburg3' (or 'fr1', "
-                "'fr2', 'fr3') in the folder name"
-            )
-        return Calibration(rgb=cam, depth_scale=DEFAULT_DEPTH_SCALE)
+        # The folder's own name (a link named after its sequence says which camera), then the
+        # name of the folder a link points to.
+        own = Path(os.path.abspath(self.root)).name
+        target = self.root.resolve().name
+        for name in dict.fromkeys((own, target)):
+            tum = tum_camera_for_folder(name)
+            if tum is not None:
+                return Calibration(rgb=tum, depth_scale=DEFAULT_DEPTH_SCALE, rgb_sensor=TUM_SENSOR)
+        names = repr(own) if own == target else f"{own!r} (a link to {target!r})"
+        raise DatasetError(
+            f"{self.root}: no calibration.toml, and the folder name {names} does not say "
+            "which TUM camera took it; add a calibration.toml (docs/dataset.md) or, for a "
+            "TUM RGB-D sequence, keep 'freiburg1', 'freiburg2' or 'freiburg3' (or 'fr1', "
+            "'fr2', 'fr3') in the folder name"
+        )
 
     def _check_files_exist(self, lists: list[_ListFile]) -> None:
         missing: list[str] = []

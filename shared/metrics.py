@@ -1,14 +1,16 @@
-"""Trajectory metrics (evo): absolute trajectory error after alignment.
+"""Trajectory metrics (evo): absolute trajectory error after alignment, relative pose error.
 
 Thin wrappers around evo's ``core`` (pure math), so every tool in wardmap scores
 trajectories the same way: associate by stamp, align (SE3 by default, Umeyama/Horn),
-then the RMSE of translation differences (metres).
+then the RMSE of translation differences (metres). The relative pose error (RPE) is the
+frame-to-frame drift: the translation of ``inv(inv(Q_i) Q_{i+1}) inv(P_i) P_{i+1}`` (Sturm
+et al. 2012, Eq. 1), which needs no alignment.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -20,7 +22,7 @@ F64 = NDArray[np.float64]
 
 @dataclass(frozen=True)
 class AteResult:
-    """Absolute trajectory error (metres) over ``n`` associated poses."""
+    """Translation error statistics (metres) over ``n`` associated poses (ATE) or pose pairs (RPE)."""
 
     rmse: float
     mean: float
@@ -77,7 +79,29 @@ def ate_series(
     max_diff_s: float = 0.02,
 ) -> tuple[AteResult, AteSeries]:
     """:func:`ate` and the poses and errors it came from (same arguments, same errors)."""
-    from evo.core import metrics, sync
+    from evo.core import metrics
+
+    ref_s, est_s = _associated(stamps_est, T_est, stamps_ref, T_ref, max_diff_s)
+    if align != "none":
+        est_s.align(ref_s, correct_scale=(align == "sim3"))
+    ape = metrics.APE(metrics.PoseRelation.translation_part)
+    ape.process_data((ref_s, est_s))
+    s = ape.get_all_statistics()
+    result = AteResult(
+        float(s["rmse"]), float(s["mean"]), float(s["median"]), float(s["max"]), int(ref_s.num_poses)
+    )
+    series = AteSeries(
+        np.asarray(ref_s.timestamps, np.float64), np.asarray(ref_s.positions_xyz, np.float64),
+        np.asarray(est_s.positions_xyz, np.float64), np.asarray(ape.error, np.float64),
+    )
+    return result, series
+
+
+def _associated(
+    stamps_est: ArrayLike, T_est: ArrayLike, stamps_ref: ArrayLike, T_ref: ArrayLike, max_diff_s: float
+) -> tuple[Any, Any]:
+    """evo trajectories (reference, estimate) associated by nearest stamp within ``max_diff_s``."""
+    from evo.core import sync
     from evo.core.trajectory import PoseTrajectory3D
 
     est = PoseTrajectory3D(
@@ -92,16 +116,29 @@ def ate_series(
         raise DatasetError(f"cannot associate trajectories: {exc}") from exc
     if ref_s.num_poses < 3:
         raise DatasetError(f"only {ref_s.num_poses} poses associate within {max_diff_s} s")
-    if align != "none":
-        est_s.align(ref_s, correct_scale=(align == "sim3"))
-    ape = metrics.APE(metrics.PoseRelation.translation_part)
-    ape.process_data((ref_s, est_s))
-    s = ape.get_all_statistics()
-    result = AteResult(
-        float(s["rmse"]), float(s["mean"]), float(s["median"]), float(s["max"]), int(ref_s.num_poses)
-    )
-    series = AteSeries(
-        np.asarray(ref_s.timestamps, np.float64), np.asarray(ref_s.positions_xyz, np.float64),
-        np.asarray(est_s.positions_xyz, np.float64), np.asarray(ape.error, np.float64),
-    )
-    return result, series
+    return ref_s, est_s
+
+
+def rpe(
+    stamps_est: ArrayLike,
+    T_est: ArrayLike,
+    stamps_ref: ArrayLike,
+    T_ref: ArrayLike,
+    *,
+    max_diff_s: float = 0.02,
+) -> AteResult:
+    """Frame-to-frame relative pose error, translation part (metres per frame).
+
+    Poses (N, 4, 4) and (M, 4, 4) ``T_world_camera`` are associated as in :func:`ate`;
+    each pair of consecutive associated poses gives one error (evo's RPE, delta 1 frame).
+
+    Raises:
+        DatasetError: fewer than 3 associated poses.
+    """
+    from evo.core import metrics
+
+    ref_s, est_s = _associated(stamps_est, T_est, stamps_ref, T_ref, max_diff_s)
+    r = metrics.RPE(metrics.PoseRelation.translation_part, delta=1, delta_unit=metrics.Unit.frames)
+    r.process_data((ref_s, est_s))
+    s = r.get_all_statistics()
+    return AteResult(float(s["rmse"]), float(s["mean"]), float(s["median"]), float(s["max"]), len(r.error))

@@ -101,6 +101,7 @@ def calibration_of(rig: SensorRig, geometry: BaseGeometry) -> Calibration:
         wheel_radius_m=geometry.wheel_radius_m,
         wheel_base_m=geometry.wheel_base_m,
         ticks_per_mm=geometry.ticks_per_mm,
+        rgb_readout_s=0.0,  # the renderer exposes every row at once
     )
 
 

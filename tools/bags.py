@@ -232,7 +232,7 @@ def dataset_to_bag(dataset: str | Path, out: str | Path, *, rgb_format: RgbForma
     if n <= 0:
         raise DatasetError(f"--max-frames must be positive, got {max_frames}")
     calib = reader.calibration
-    if calib.rgb_readout_s > 0 or calib.thermal is not None:
+    if calib.readout.readout_s > 0 or calib.thermal is not None:
         log.info("%s: readout time and thermal camera are not written to the recording", dataset)
     odo = reader.odometry()
     last = float(reader.stamps[n - 1])

@@ -62,6 +62,8 @@ def test_sim_then_dataset_info(tmp_path: Path) -> None:
     summary = json.loads(info.stdout)
     assert summary["frames"] == 2 and summary["thermal"] and summary["labels"]
     assert summary["groundtruth_poses"] == 2 and summary["objects"] > 10
+    # The simulator renders a global shutter and says so in its calibration.
+    assert summary["rgb_readout_s"] == 0.0 and "[rgb] readout_s" in summary["rgb_readout_source"]
 
 
 @pytest.mark.parametrize(
@@ -99,6 +101,30 @@ def test_dataset_info_on_real_tum_folder() -> None:
     assert p.returncode == 0, p.stderr
     summary = json.loads(p.stdout)
     assert summary["frames"] == 100 and "fx=517.3" in summary["rgb_camera"]
+    assert summary["associations"].endswith("associations.txt")
+    assert summary["rgb_readout_s"] > 0 and "Kinect v1" in summary["rgb_readout_source"]
+
+
+@pytest.mark.skipif(not TUM.is_dir(), reason="../shared/data/tum_fr1_rpy_s3_first100 not present")
+def test_track_names_its_readout_model_and_reads_association_files(tmp_path: Path) -> None:
+    """Scenario: ``track`` on a link to the TUM sample named after no camera, with the sample's
+    association file given by ``--associations``: it says which readout time it uses and why
+    (the Kinect default, from the link's target name). ``--associations`` on a simulated robot
+    is a one-line error."""
+    link = tmp_path / "mine"
+    link.symlink_to(TUM, target_is_directory=True)
+    assoc = tmp_path / "pairs.txt"
+    assoc.write_text("".join((TUM / "associations.txt").read_text().splitlines(keepends=True)[:5]))
+    out = tmp_path / "traj.txt"
+    p = wardmap("track", str(link), "--associations", str(assoc), "--out", str(out), "--max-frames", "3")
+    assert p.returncode == 0, p.stderr
+    assert "rolling-shutter readout: 26.6 ms (default for Kinect v1" in p.stderr
+    summary = json.loads(p.stdout.splitlines()[-1])
+    assert summary["frames"] == 3 and not summary["readout"]["assumed"]
+    one_line_error(
+        wardmap("track", "--source", "sim:aisle_slow_1", "--associations", str(assoc), "--out", str(out)),
+        "--associations is for a data-set folder",
+    )
 
 
 TRAJ = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "tum_trajectories"

@@ -278,3 +278,56 @@ def test_rgbd_term_pins_the_distance_to_a_small_patch() -> None:
         errs[bf] = float(np.median(e))
     assert errs[40.0] < 0.006
     assert errs[40.0] < 0.7 * errs[0.0]
+
+
+def _rolling_shutter_scene(shear_rad: F64, seed: int) -> tuple[F64, F64, F64]:
+    """(points_world (n, 3), observed uv (n, 2), depth (n,)) for T_TRUE at the middle row, seen by a
+    rolling shutter that turns ``shear_rad`` (camera frame) from the first row to the last:
+    row v sees the scene rotated by ``tau shear`` with ``tau = (v - cy) / height`` (exact rotation,
+    found by fixed-point iteration on the row each point lands in), with 0.3 px noise."""
+    from wardmap.shared.se3 import so3_exp
+
+    rng = np.random.default_rng(seed)
+    n = 300
+    uv_mid = np.column_stack([rng.uniform(40, 600, n), rng.uniform(40, 440, n)])
+    X_mid = PINHOLE.unproject(uv_mid, rng.uniform(1.0, 4.0, n))
+    P = transform_points(inverse(T_TRUE), X_mid)
+    uv = uv_mid
+    for _ in range(8):
+        tau = (uv[:, 1] - PINHOLE.cy) / PINHOLE.height
+        X = np.stack([so3_exp(t * shear_rad).T @ x for t, x in zip(tau, X_mid, strict=True)])
+        uv, _ = PINHOLE.project(X)
+    return P, uv + rng.normal(0, 0.3, uv.shape), X[:, 2]
+
+
+@pytest.mark.parametrize("shear_deg", [(-1.5, 2.0, 0.8), (0.0, 0.0, 0.0)], ids=["rolling", "global"])
+def test_rolling_shutter_fit_recovers_pose_and_spin(shear_deg: tuple[float, float, float]) -> None:
+    """Scenario: a rolling-shutter frame (the camera turns ~2.6 deg over the readout) from a
+    perturbed start and a zero-spin prior: the joint fit finds the spin within 0.1 deg and the
+    middle row's pose within 0.05 deg and 3 mm; the global-shutter refinement on the same
+    frame is several times worse. A global-shutter frame gives a spin of ~0."""
+    from wardmap.edge.pose import refine_pose_rolling_shutter
+
+    shear = np.radians(shear_deg)
+    P, uv, z = _rolling_shutter_scene(shear, seed=5)
+    start = se3_exp([0.01, -0.01, 0.02, 0.01, 0.005, -0.01]) @ T_TRUE
+    fit = refine_pose_rolling_shutter(P, uv, PINHOLE, start, np.zeros(3), shear_sigma_rad=0.1,
+                                      depth_m=z, bf=40.0)
+    assert fit.ok
+    assert np.degrees(np.abs(fit.shear_rad - shear)).max() < 0.1, np.degrees(fit.shear_rad)
+    err = inverse(T_TRUE) @ fit.T_cam_world
+    assert np.degrees(rotation_angle(err[:3, :3])) < 0.05 and np.linalg.norm(err[:3, 3]) < 0.003
+    if np.any(shear):
+        gs = refine_pose_huber(P, uv, PINHOLE, start, depth_m=z, bf=40.0).T_cam_world
+        gs_err = inverse(T_TRUE) @ gs
+        assert np.linalg.norm(gs_err[:3, 3]) > 3 * max(np.linalg.norm(err[:3, 3]), 1e-3)
+
+
+def test_rolling_shutter_fit_needs_points() -> None:
+    """Scenario: fewer than 6 usable correspondences give the inputs back, not a guess."""
+    from wardmap.edge.pose import refine_pose_rolling_shutter
+
+    P, uv, _ = _rolling_shutter_scene(np.zeros(3), seed=1)
+    uv[5:] = np.nan
+    fit = refine_pose_rolling_shutter(P, uv, PINHOLE, T_TRUE, np.ones(3) * 0.01)
+    assert not fit.ok and np.array_equal(fit.T_cam_world, T_TRUE) and np.allclose(fit.shear_rad, 0.01)

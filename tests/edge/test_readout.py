@@ -20,7 +20,7 @@ from wardmap.edge.tracker import Tracker, TrackInput, unroll_keypoints
 from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.dataset import DatasetReader, load_calibration
 from wardmap.shared.errors import WardmapError
-from wardmap.shared.metrics import ate
+from wardmap.shared.metrics import ate, rpe
 from wardmap.shared.se3 import so3_exp
 
 TUM = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "tum_fr1_rpy_s3_first100"
@@ -101,15 +101,18 @@ def test_a_global_shutter_recording_gives_no_readout_time(tmp_path: Path) -> Non
 @needs_tum
 def test_tum_readout_estimate_and_what_it_buys() -> None:
     """On the Kinect sequence the self-calibrated readout lands in 10-30 ms, without ground
-    truth, and tracking with it meets the 3 cm ATE goal that a global-shutter model misses."""
+    truth, and tracking with it meets the 3 cm ATE goal that a global-shutter model misses,
+    and lowers the frame-to-frame error (RPE under 80 % of the global shutter's; unrolling with
+    the last step's spin gave 95 % at this readout, issue 41)."""
     reader = DatasetReader(TUM)
     est = estimate_readout(reader, candidates_s=(0.0, 0.01, 0.02, 0.03), max_frames=40)
     assert est.decisive and 0.01 <= est.readout_s <= 0.03
     assert est.inliers_per_frame[0] < max(est.inliers_per_frame)
     gt = reader.groundtruth()
     assert gt is not None
-    ates = []
-    for calib in (reader.calibration, replace(reader.calibration, rgb_readout_s=est.readout_s)):
+    ates, rpes = [], []
+    global_shutter = replace(reader.calibration, rgb_readout_s=0.0)
+    for calib in (global_shutter, replace(reader.calibration, rgb_readout_s=est.readout_s)):
         tracker = Tracker(calib)
         stamps, poses = [], []
         for i in range(len(reader)):
@@ -119,7 +122,9 @@ def test_tum_readout_estimate_and_what_it_buys() -> None:
             stamps.append(f.stamp)
             poses.append(res.T_world_camera)
         ates.append(ate(stamps, poses, gt[0], gt[1]).rmse)
+        rpes.append(rpe(stamps, poses, gt[0], gt[1]).rmse)
     assert ates[1] <= 0.03 < ates[0], ates
+    assert rpes[1] < 0.8 * rpes[0], (est.readout_s, rpes)
 
 
 @needs_tum

@@ -88,6 +88,8 @@ def test_edge_sends_every_keyframe_and_outbox_ends_empty(dataset: Path, router: 
         )
         assert done.returncode == 0, done.stderr
         assert "Traceback" not in done.stderr
+        # The simulated data set says it is a global shutter, and the edge says which model it uses.
+        assert "edge r1 rolling-shutter readout: 0.0 ms (the calibration's [rgb] readout_s)" in done.stderr
         summary = _summary(done.stdout)
         session = summary["session_id"]
         expected = {(session, seq) for seq in range(summary["keyframes"])}

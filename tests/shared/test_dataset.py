@@ -587,3 +587,99 @@ def test_calibration_validates_direct_construction() -> None:
         Calibration(rgb=cam, T_base_rgb=np.zeros((4, 4)))
     c = Calibration(rgb=cam, T_base_rgb=np.eye(4))
     assert c.T_base_rgb is not None and not c.T_base_rgb.flags.writeable
+
+
+# ------------------------------------------------------------------ association files, camera by name
+
+
+def _no_calibration(root: Path) -> None:
+    for name in ("calibration.toml", "thermal.txt", "associations.txt"):
+        (root / name).unlink(missing_ok=True)
+
+
+def _associations_text(root: Path, rows: list[int], *, depth_first: bool = False) -> str:
+    def rows_of(name: str) -> list[list[str]]:
+        return [line.split() for line in (root / name).read_text().splitlines() if not line.startswith("#")]
+
+    rgb, depth = rows_of("rgb.txt"), rows_of("depth.txt")
+    pairs = [(depth[i] + rgb[i]) if depth_first else (rgb[i] + depth[i]) for i in rows]
+    return "".join(" ".join(p) + "\n" for p in pairs)
+
+
+@pytest.mark.parametrize("name", ["associations.txt", "rgbd_assoc.txt", "assoc.txt"])
+def test_tum_association_file_names(synthetic: tuple[Path, dict[str, Any]], name: str) -> None:
+    """Scenario: an association file under each of TUM users' usual names pairs only the
+    frames it lists (frames 0 and 2 of 3), where nearest stamps would pair all three."""
+    root, data = synthetic
+    (root / "associations.txt").unlink(missing_ok=True)
+    assert len(DatasetReader(root)) == 3 and DatasetReader(root).associations is None
+    (root / name).write_text("# rgb depth\n" + _associations_text(root, [0, 2]))
+    r = DatasetReader(root)
+    assert r.associations == root / name
+    np.testing.assert_array_equal(r.stamps, data["stamps"][[0, 2]])
+    np.testing.assert_array_equal(r.frame(1).rgb, data["rgb"][2])
+
+
+def test_associations_option_file_and_column_order(synthetic: tuple[Path, dict[str, Any]],
+                                                   tmp_path: Path) -> None:
+    """Scenario: ``associations=FILE`` outside the folder wins over the folder's own file; a
+    file written depth-first (``associate.py depth.txt rgb.txt``) is read the right way round;
+    a missing file is a one-line error naming it."""
+    root, data = synthetic
+    (root / "associations.txt").write_text(_associations_text(root, [0, 1, 2]))
+    outside = tmp_path / "mine.txt"
+    outside.write_text(_associations_text(root, [1], depth_first=True))
+    r = DatasetReader(root, associations=outside)
+    assert r.associations == outside and len(r) == 1
+    assert r.stamps[0] == pytest.approx(data["stamps"][1])
+    np.testing.assert_allclose(r.frame(0).depth_m, data["depth"][1], atol=1e-3)
+    with pytest.raises(DatasetError, match=r"association file not found: .*nope\.txt"):
+        DatasetReader(root, associations=tmp_path / "nope.txt")
+
+
+def test_camera_from_the_folders_own_name_not_a_links_target(synthetic: tuple[Path, dict[str, Any]]) -> None:
+    """Scenario: a link named after a TUM sequence (fr2) pointing at a folder named after
+    another (fr1) opens with the link's camera; a link whose name names no camera falls back
+    to its target's; the folder itself keeps its own."""
+    root, _ = synthetic
+    _no_calibration(root)
+    target = root.rename(root.parent / "rgbd_dataset_freiburg1_copy")
+    link = root.parent / "rgbd_dataset_freiburg2_desk"
+    link.symlink_to(target, target_is_directory=True)
+    plain = root.parent / "latest"
+    plain.symlink_to(target, target_is_directory=True)
+    assert DatasetReader(link).calibration.rgb == TUM_CAMERAS["freiburg2"]
+    assert DatasetReader(plain).calibration.rgb == TUM_CAMERAS["freiburg1"]
+    assert DatasetReader(target).calibration.rgb == TUM_CAMERAS["freiburg1"]
+
+
+def test_readout_model_says_where_it_comes_from(synthetic: tuple[Path, dict[str, Any]]) -> None:
+    """Scenario: the readout time comes from ``[rgb] readout_s`` when given (0 included), else
+    from the named sensor's default (a TUM folder: the Kinect), else it is a guess of 0 that
+    says so; an unknown sensor name is an error listing the known ones."""
+    root, _ = synthetic
+    _no_calibration(root)
+    tum = DatasetReader(root.rename(root.parent / "rgbd_dataset_freiburg1_rpy")).calibration
+    assert tum.rgb_sensor == "kinect_v1" and tum.rgb_readout_s is None
+    assert tum.readout.readout_s > 0 and "Kinect" in tum.readout.source and not tum.readout.assumed
+    cam = TUM_CAMERAS["freiburg1"]
+    given = Calibration(rgb=cam, rgb_readout_s=0.0, rgb_sensor="kinect_v1").readout
+    assert given.readout_s == 0.0 and "readout_s" in given.source and not given.assumed
+    nothing = Calibration(rgb=cam).readout
+    assert nothing.readout_s == 0.0 and nothing.assumed and "calibrate-readout" in nothing.source
+    unknown_time = Calibration(rgb=cam, rgb_sensor="azure_kinect").readout
+    assert unknown_time.assumed and "rolling shutter" in unknown_time.source
+    with pytest.raises(DatasetError, match="'kinect9' is not a known sensor; known: kinect_v1"):
+        Calibration(rgb=cam, rgb_sensor="kinect9")
+
+
+def test_calibration_toml_sensor_round_trip(tmp_path: Path) -> None:
+    """Scenario: ``[rgb] sensor`` and an explicit ``readout_s = 0`` survive a save and load; a
+    non-string sensor is an error naming the key."""
+    calib = Calibration(rgb=TUM_CAMERAS["freiburg1"], rgb_readout_s=0.0, rgb_sensor="realsense_d455")
+    save_calibration(tmp_path / "c.toml", calib)
+    assert load_calibration(tmp_path / "c.toml") == calib
+    text = (tmp_path / "c.toml").read_text().replace('sensor = "realsense_d455"', "sensor = 3")
+    (tmp_path / "c.toml").write_text(text)
+    with pytest.raises(DatasetError, match=r"\[rgb\] sensor: expected a string"):
+        load_calibration(tmp_path / "c.toml")

@@ -9,7 +9,7 @@ import pytest
 
 from wardmap.shared import se3
 from wardmap.shared.errors import DatasetError
-from wardmap.shared.metrics import ate
+from wardmap.shared.metrics import ate, rpe
 
 TRAJ = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "tum_trajectories"
 
@@ -84,3 +84,19 @@ def test_ate_series_holds_the_errors_behind_the_statistics() -> None:
     assert series.errors_m.max() == pytest.approx(res.max)
     assert np.allclose(np.linalg.norm(series.positions_est - series.positions_ref, axis=1), series.errors_m)
     assert np.allclose(series.stamps, stamps) and ate(stamps, noisy, stamps, T) == res
+
+
+def test_rpe_is_the_frame_to_frame_error_and_ignores_a_rigid_offset() -> None:
+    """Scenario: a straight reference moving 10 cm per frame; an estimate moved rigidly far
+    away has zero RPE (no alignment needed), and one whose odd frames sit 1 cm ahead (jitter)
+    has every step 1 cm off: RPE RMSE and max 1 cm."""
+    n = 21
+    stamps = np.arange(n) * 0.1
+    T = np.stack([se3.make_transform(np.eye(3), [0.1 * i, 0.0, 0.0]) for i in range(n)])
+    moved = np.stack([se3.se3_exp([5.0, -2.0, 1.0, 0.3, 0.2, -0.1]) @ t for t in T])
+    assert rpe(stamps, moved, stamps, T).rmse < 1e-9
+    jitter = T.copy()
+    jitter[:, 0, 3] += 0.01 * (np.arange(n) % 2)
+    r = rpe(stamps, jitter, stamps, T)
+    assert r.n == n - 1
+    assert r.rmse == pytest.approx(0.01, rel=1e-6) and r.max == pytest.approx(0.01, rel=1e-6)
