@@ -90,6 +90,8 @@ from wardmap.shared.wire import KeyframeMsg
 
 log = logging.getLogger(__name__)
 
+MAX_HOLDER_LEN = 40
+"""Longest writer-lease holder name (PostgreSQL shows it in a 63-byte ``application_name``)."""
 ERASE_BATCH = 64
 """Keyframes whose images :meth:`SqlMapStore.erase_images` rewrites per transaction."""
 
@@ -98,6 +100,16 @@ _INSERT_MAPPED = (
     "ON CONFLICT (robot_id, session_id, seq) DO UPDATE SET T_map_camera = excluded.T_map_camera, "
     "camera = excluded.camera"
 )
+
+
+def check_lease_holder(holder: object) -> str:
+    """``holder`` if it is a valid writer-lease holder name (1-:data:`MAX_HOLDER_LEN` printable
+    ASCII characters), else StoreError naming what came."""
+    if not (isinstance(holder, str) and 0 < len(holder) <= MAX_HOLDER_LEN and holder.isascii()
+            and holder.isprintable()):
+        raise StoreError(f"a writer lease holder must be 1-{MAX_HOLDER_LEN} printable ASCII characters, "
+                         f"got {holder!r:.60}")
+    return holder
 
 
 class SqlMapStore:
