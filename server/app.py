@@ -26,6 +26,7 @@ from __future__ import annotations
 import functools
 import ipaddress
 import logging
+import os
 import socket
 import threading
 from collections.abc import Callable, Iterator, Sequence
@@ -35,24 +36,27 @@ from typing import TYPE_CHECKING, Any, TypeVar
 from wardmap.server.api import Services, create_app
 from wardmap.server.corrections import CorrectionPublisher
 from wardmap.server.ingest import Ingest
+from wardmap.server.mapping.role import MappingRole
 from wardmap.server.mapserve import MapServe
 from wardmap.server.objectmap import ObjectMap
 from wardmap.server.retention import ImageRetention, RetentionConfig
-from wardmap.server.store import StoreUnavailableError, open_store
+from wardmap.server.store import StoreError, StoreUnavailableError, open_store
+from wardmap.server.store.sqlbase import MAX_HOLDER_LEN, check_lease_holder
 from wardmap.server.telemetry import ServerTelemetry
 from wardmap.server.zenoh_session import ZenohSessionError, check_session_config, has_router, open_session
-from wardmap.shared.errors import WardmapError
+from wardmap.shared.errors import ConfigError, WardmapError
 from wardmap.shared.signals import on_stop_signals
 from wardmap.shared.zenoh_config import ZenohOptions, client_config
 
 if TYPE_CHECKING:
     from fastapi import FastAPI
 
-    from wardmap.server.mapping import PipelineFactory
+    from wardmap.server.mapping import MapPipeline, PipelineFactory
+    from wardmap.server.store import MapStore
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MapServer", "ServerError", "is_loopback", "run_server"]
+__all__ = ["MapServer", "ServerError", "default_name", "is_loopback", "run_server"]
 
 SHUTDOWN_TIMEOUT_S = 15.0
 RETRY_FIRST_S = 1.0
@@ -86,6 +90,7 @@ class MapServer:
         zenoh_options: ZenohOptions | None = None,
         db_password: str | None = None,
         retention: RetentionConfig | None = None,
+        name: str | None = None,
     ) -> None:
         """
         Args:
@@ -110,6 +115,9 @@ class MapServer:
                 own sources (``WARDMAP_DB_PASSWORD``, ``~/.pgpass``).
             retention: ``[store]`` image retention; the job runs when it sets one
                 (``server/retention.py``). None: images are kept.
+            name: this server's name in the store's writer lease (several servers on one
+                database: the holder runs the mapping stage, ``server/mapping/role.py``);
+                None: :func:`default_name`.
 
         Raises:
             ConfigError: a bad endpoint in ``connect``.
@@ -118,6 +126,12 @@ class MapServer:
             client_config(connect, options=zenoh_options)  # validates the endpoints now
         self._zenoh_options = zenoh_options
         self._retention = retention
+        self.name = name if name is not None else default_name()
+        """This server's name in the writer lease (``/readyz``, ``/metrics``)."""
+        try:
+            check_lease_holder(self.name)
+        except StoreError as exc:
+            raise ConfigError(f"bad server name: {exc}") from exc
         self._db_url = db_url
         self._db_password = db_password
         self._connect = None if connect is None else list(connect)
@@ -177,17 +191,26 @@ class MapServer:
                 corrections.load(store.session_anchors())
                 stack.callback(corrections.close)
                 log.info("zenoh session via %s: ingest and map service", ", ".join(self._connect))
-            pipeline = None
+            mapping = None
             if self._pipeline_factory is not None:
-                pipeline = self._pipeline_factory(store, objects)
-                if corrections is not None:
-                    pipeline.backend.set_publish(corrections.publish_anchor)
-                pipeline.start()
-                stack.callback(pipeline.stop)
+                mapping = MappingRole(store.writer_lease(self.name),
+                                      functools.partial(self._make_pipeline, store, objects, corrections))
+                mapping.start()
+                stack.callback(mapping.stop)
             self._running = stack.pop_all()
-        self._services = Services(store=store, objects=objects, ingest=ingest, pipeline=pipeline,
+        self._services = Services(store=store, objects=objects, ingest=ingest, mapping=mapping,
                                   router_connected=router_connected, telemetry=self._telemetry)
         return self._services
+
+    def _make_pipeline(self, store: MapStore, objects: ObjectMap,
+                       corrections: CorrectionPublisher | None) -> MapPipeline:
+        """A new mapping stage (the writer lease's holder runs it) publishing corrections."""
+        if self._pipeline_factory is None:
+            raise ServerError("this server has no mapping stage")
+        pipeline = self._pipeline_factory(store, objects)
+        if corrections is not None:
+            pipeline.backend.set_publish(corrections.publish_anchor)
+        return pipeline
 
     def _retrying(self, what: str, transient: type[Exception], attempt: Callable[[], T]) -> T:
         """``attempt()``; while it raises ``transient`` and ``retry_until`` is given and not set,
@@ -219,12 +242,13 @@ class MapServer:
         cls, db_url: str, *, connect: Sequence[str] | None, config_path: str | None = None,
         require_tokens: bool = True, retry_until: threading.Event | None = None,
         zenoh_options: ZenohOptions | None = None, db_password: str | None = None,
+        name: str | None = None,
     ) -> MapServer:
         """The server ``wardmap server`` runs, with its mapping stage configured from a file.
 
         Args:
-            db_url, connect, require_tokens, retry_until, zenoh_options, db_password: as in the
-                constructor.
+            db_url, connect, require_tokens, retry_until, zenoh_options, db_password, name: as in
+                the constructor.
             config_path: TOML file with ``[pipeline]``, ``[perception]`` and ``[association]``
                 tables (defaults when None; ``deploy/server.toml``). With ``[pipeline]
                 enabled = false`` keyframes are stored but not mapped.
@@ -240,7 +264,6 @@ class MapServer:
         from wardmap.server.mapping import MapPipeline, PipelineConfig
         from wardmap.server.perception.config import PerceptionConfig
         from wardmap.server.perception.models import make_segmenter
-        from wardmap.server.store import MapStore
         from wardmap.shared.config import load_config
 
         pipeline_cfg = load_config(PipelineConfig, config_path, section="pipeline")
@@ -252,7 +275,7 @@ class MapServer:
         if not pipeline_cfg.enabled:
             return cls(db_url, connect=connect, require_tokens=require_tokens, telemetry=telemetry,
                        retry_until=retry_until, zenoh_options=zenoh_options, db_password=db_password,
-                       retention=retention)
+                       retention=retention, name=name)
         # Build the segmenter now: a missing or bad model is one clear error before anything starts.
         segmenter = make_segmenter(perception_cfg.segmenter, perception_cfg)
 
@@ -264,7 +287,7 @@ class MapServer:
 
         return cls(db_url, connect=connect, pipeline_factory=make_pipeline, require_tokens=require_tokens,
                    telemetry=telemetry, retry_until=retry_until, zenoh_options=zenoh_options,
-                   db_password=db_password, retention=retention)
+                   db_password=db_password, retention=retention, name=name)
 
     @property
     def start_cancelled(self) -> bool:
@@ -282,6 +305,12 @@ class MapServer:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
+
+
+def default_name() -> str:
+    """``HOST-PID``: this machine's name (printable ASCII, shortened) and this process's id."""
+    host = "".join(c for c in socket.gethostname() if c.isascii() and c.isprintable() and c != " ")
+    return f"{host[:MAX_HOLDER_LEN - 12] or 'server'}-{os.getpid()}"
 
 
 def is_loopback(host: str) -> bool:
@@ -368,6 +397,7 @@ def run_server(
     insecure_loopback: bool = False,
     zenoh_options: ZenohOptions | None = None,
     db_password: str | None = None,
+    name: str | None = None,
 ) -> None:
     """Serve until ``stop`` is set or SIGTERM/SIGINT (in the main thread).
 
@@ -385,6 +415,7 @@ def run_server(
             is a loopback address (the demo's mode).
         zenoh_options: TLS files and zenoh config file of the session (docs/security.md).
         db_password: the PostgreSQL password (see :class:`MapServer`).
+        name: this server's name in the writer lease (see :class:`MapServer`).
 
     Raises:
         ConfigError: a bad zenoh endpoint, zenoh config file or TLS file.
@@ -409,7 +440,8 @@ def run_server(
     stop = stop if stop is not None else threading.Event()
     server_root = MapServer.from_config(db_url, connect=connect, config_path=config_path,
                                         require_tokens=not insecure_loopback, retry_until=stop,
-                                        zenoh_options=zenoh_options, db_password=db_password)
+                                        zenoh_options=zenoh_options, db_password=db_password,
+                                        name=name)
     try:
         open_store(db_url, password=db_password).close()  # validate URL and file now: one clear line
     except StoreUnavailableError as exc:  # may pass later: start() waits for it
