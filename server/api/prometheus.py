@@ -143,6 +143,12 @@ def pipeline_metrics(c: PipelineCounters) -> list[Metric]:
         _counter("wardmap_mapping_rebuilds_total",
                  "Object-map rebuilds after the back-end moved keyframes (loop closure, anchoring).",
                  c.rebuilds),
+        _gauge("wardmap_mapping_map_epoch",
+               "The map epoch (back-end moves of keyframes) whose object map is complete; -1 before start.",
+               c.map_epoch),
+        _gauge("wardmap_mapping_settled_rowid",
+               "Keyframes up to this insertion number are associated and on the object map; -1 before start.",
+               c.settled),
     ]
 
 
