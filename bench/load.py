@@ -82,7 +82,7 @@ def _writer(urls: list[str]) -> str:
 
 
 def run_once(db: str, servers: int, robots: int, rate: float, seconds: float,
-             messages: list[list[bytes]]) -> dict[str, Any]:
+             messages: list[list[bytes]], config: Path | None = None) -> dict[str, Any]:
     """One run; its figures (see the module docstring)."""
     import zenoh
 
@@ -94,7 +94,9 @@ def run_once(db: str, servers: int, robots: int, rate: float, seconds: float,
             port = free_port()
             url = f"http://127.0.0.1:{port}"
             procs.append(start(["server", "--connect", endpoint, "--db", db, "--http", f"127.0.0.1:{port}",
-                                 "--insecure-loopback", "--name", f"load-{i}"], f"server ready: {url}"))
+                                 "--insecure-loopback", "--name", f"load-{i}",
+                                 *(["--config", str(config)] if config is not None else [])],
+                                f"server ready: {url}"))
             urls.append(url)
         writer = _writer(urls)
         sent: dict[tuple[str, int], float] = {}
@@ -161,6 +163,8 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=20.0)
     ap.add_argument("--frames", type=int, default=60, help="simulated frames recorded once")
     ap.add_argument("--postgres", metavar="URL", help="a database to create the runs' databases from")
+    ap.add_argument("--no-mapping", action="store_true",
+                    help="servers only store (``[pipeline] enabled = false``): ingest alone")
     ap.add_argument("--write", type=Path, default=None, help="write the table into this markdown file")
     args = ap.parse_args()
     base = recorded(args.frames)
@@ -172,29 +176,37 @@ def main() -> None:
         messages = payloads(base, robots, int(args.seconds * args.rate))
         for kind, servers in runs:
             with tempfile.TemporaryDirectory() as tmp:
+                config = None
+                if args.no_mapping:
+                    config = Path(tmp) / "server.toml"
+                    config.write_text("[pipeline]\nenabled = false\n")
                 name = f"wardmap_load_{os.getpid()}_{servers}"
                 db = f"sqlite:///{tmp}/map.db" if kind == "sqlite" else _postgres_db(args.postgres, name)
                 try:
                     print(f"{robots} robots, {kind}, {servers} server(s) ...", file=sys.stderr)
-                    r = run_once(db, servers, robots, args.rate, args.seconds, messages)
+                    r = run_once(db, servers, robots, args.rate, args.seconds, messages, config)
                 finally:
                     if kind == "postgres":
                         _postgres_db(args.postgres, name, drop=True)
             rows.append(f"| {kind} | {servers} | {robots} x {args.rate:g}/s | {r['offered']:.1f} | "
                         f"{r['acked']}/{r['sent']} | {r['acked_rate']:.1f} | {r['p50']:.0f} | "
-                        f"{r['p99']:.0f} | {r['mapping_rate']:.2f} | "
-                        f"{r['backlog'][0]:.0f} -> {r['backlog'][1]:.0f} |")
+                        f"{r['p99']:.0f} | "
+                        + ("off | off |" if args.no_mapping else
+                           f"{r['mapping_rate']:.2f} | {r['backlog'][0]:.0f} -> {r['backlog'][1]:.0f} |"))
             print(rows[-1], file=sys.stderr)
     cmd = (f"python bench/load.py --robots {' '.join(map(str, args.robots))} --rate {args.rate:g} "
            f"--seconds {args.seconds:g}"
-           + (" --postgres URL" if args.postgres else "") + " --write BENCHMARKS.md")
+           + (" --postgres URL" if args.postgres else "") + (" --no-mapping" if args.no_mapping else "")
+           + " --write BENCHMARKS.md")
     body = "\n".join([
-        "## Ingest load: robots into one and two servers (issue 43)",
+        "## Ingest load: robots into one and two servers" + (", mapping off" if args.no_mapping else "")
+        + " (issue 43)",
         "",
         f"Command: `{cmd}`  ",
         f"Machine: {machine()}; commit {git_rev()}. Real `wardmap router` and `wardmap server` (default "
-        "settings, mapping stage on) on loopback; recorded keyframes of hospital_loop (about 100 KB "
-        "each) put on a fixed schedule; an ack comes after the commit. A shared 2-core host: upper bounds.",
+        f"settings, mapping stage {'off: ingest alone' if args.no_mapping else 'on'}) on loopback; "
+        "recorded keyframes of hospital_loop (about 100 KB each) put on a fixed schedule; an ack "
+        "comes after the commit. A shared 2-core host: upper bounds.",
         "",
         "| store | servers | robots | offered kf/s | acked | acked kf/s | ack p50 ms | ack p99 ms | "
         "writer mapping kf/s | writer backlog start -> end |",
@@ -205,7 +217,7 @@ def main() -> None:
         "backlog; two perception workers >= 1.8x one (perception is not shared out between servers "
         "yet: only the writer maps); the association writer alone >= 60 kf/s (not measured here).",
     ])
-    publish(body, args.write, "load")
+    publish(body, args.write, "load-ingest" if args.no_mapping else "load")
 
 
 if __name__ == "__main__":
