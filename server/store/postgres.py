@@ -357,6 +357,7 @@ class PostgresMapStore(SqlMapStore):
         conn.execute("SELECT pg_advisory_xact_lock(?)", (INSERT_LOCK,))
 
     _IN_IDS = "= ANY(?)"
+    _FENCE_READ = "SELECT epoch FROM writer_fence WHERE id = 1 FOR SHARE"
 
     def _ids(self, ids: Sequence[int]) -> object:
         return [int(i) for i in ids]
@@ -540,7 +541,9 @@ class AdvisoryLease:
     session advisory lock :data:`WRITER_LEASE` held on a connection of its own whose
     ``application_name`` names the holder. The database releases it when that connection ends:
     the holder's process exits or is killed (its socket closes at once), or the network goes
-    silent (TCP keepalive and user timeout, :data:`LEASE_KEEPALIVE`: about 5 s). Thread safe."""
+    silent (TCP keepalive and user timeout, :data:`LEASE_KEEPALIVE`: about 5 s). Taking it also
+    takes the writer fence (:meth:`SqlMapStore.take_writer_fence`), so a former holder still
+    running cannot write the map after this one started. Thread safe."""
 
     def __init__(self, holder: str, store: PostgresMapStore) -> None:
         self.holder = holder
@@ -562,7 +565,14 @@ class AdvisoryLease:
                 return False
             if not got:
                 self._drop()  # a standby keeps no connection open between attempts
-            return got
+                return False
+            try:
+                self._store.take_writer_fence()  # waits for the former holder's write in flight
+            except StoreError as exc:
+                log.warning("writer lease: taken but not fenced, so given back: %s", exc)
+                self._drop()
+                return False
+            return True
 
     def held(self) -> bool:
         with self._lock:

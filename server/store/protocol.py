@@ -322,7 +322,10 @@ class WriterLease(Protocol):
 
     The lease lives as long as its holder's hold on the database does (PostgreSQL: a session
     advisory lock on a connection of its own, released by the database when that connection
-    closes or its process dies); SQLite serves one server, which always holds it. Thread safe.
+    closes or its process dies); SQLite serves one server, which always holds it. Taking it
+    bumps the store's writer fence: from then on the map writes (graph, measurements, cursors,
+    checkpoint, objects) of a store whose lease was taken before are refused (StoreError), so a
+    holder that lost the lease cannot write after its successor started. Thread safe.
 
     Attributes:
         holder: the name this handle holds the lease under (shown by :meth:`current_holder`).

@@ -398,8 +398,8 @@ class SqliteMapStore(sqlitedb.GuardedAccess, SqlMapStore):
 
 class SoleLease:
     """The writer lease of an SQLite store (:class:`~wardmap.server.store.protocol.WriterLease`):
-    one server owns the file, so the lease is granted at once and held until released or the
-    store is closed."""
+    one server owns the file, so the lease is granted at once (taking the writer fence, as on
+    PostgreSQL) and held until released or the store is closed."""
 
     def __init__(self, holder: str, store: SqliteMapStore) -> None:
         self.holder = holder
@@ -407,8 +407,14 @@ class SoleLease:
         self._held = False
 
     def acquire(self) -> bool:
-        self._held = not self._store._closed
-        return self._held
+        if not self._held and not self._store._closed:
+            try:
+                self._store.take_writer_fence()
+            except StoreError as exc:  # acquire never raises: not granted now
+                log.warning("writer lease: cannot take the writer fence: %s", exc)
+                return False
+            self._held = True
+        return self.held()
 
     def held(self) -> bool:
         return self._held and not self._store._closed

@@ -19,6 +19,7 @@ import pytest
 
 from wardmap.server.store import (
     PASSWORD_ENV,
+    GraphChange,
     PostgresMapStore,
     StoreDamagedError,
     StoreError,
@@ -290,3 +291,28 @@ def test_the_writer_lease_moves_when_its_holder_is_killed(pg_cluster: pgcluster.
     finally:
         proc.kill()
         proc.wait(timeout=30)
+
+
+def test_a_former_writer_cannot_write_the_map(pg_cluster: pgcluster.Cluster, url: str) -> None:
+    """The writer fence: server A holds the lease and writes; its lease connection ends (the
+    database released the lock) and B takes the lease; A's next map writes (graph, cursor,
+    checkpoint) are refused and change nothing, while B writes. A store that never held the
+    lease is not fenced."""
+    with open_store(url) as a_store, open_store(url) as b_store:
+        a = a_store.writer_lease("server-a")
+        assert a.acquire()
+        a_store.commit_graph("backend", 1, GraphChange(bump_epoch=True))
+        pg_cluster.psql("SELECT pg_terminate_backend(pid) FROM pg_stat_activity "
+                        "WHERE application_name = 'wardmap writer lease: server-a'")
+        assert b_store.writer_lease("server-b").acquire()
+        with pytest.raises(StoreError, match="writer lease moved"):
+            a_store.commit_graph("backend", 2, GraphChange(bump_epoch=True))
+        with pytest.raises(StoreError, match="writer lease moved"):
+            a_store.close_sessions([("r1", "s1")], 2)
+        assert a_store.cursor("backend") == 1 and a_store.graph_epoch() == 1
+        assert a_store.closed_sessions() == []
+        b_store.commit_graph("backend", 2, GraphChange(bump_epoch=True))
+        assert b_store.graph_epoch() == 2
+        with open_store(url) as unfenced:
+            unfenced.close_sessions([("r1", "s1")], 2)
+            assert len(unfenced.closed_sessions()) == 1
