@@ -11,10 +11,13 @@ the rows they cover, so nothing is lost or done twice).
 
 One thread checks the lease every ``poll_s`` seconds: a standby tries to take it; the holder
 asks the database whether it still holds it and stops its stage as soon as it does not (its
-lease connection died). Takeover time: the holder's process dies -> the database ends its
-lease connection at once (a killed process's socket closes; a silent host or network: TCP
-keepalive, about 5 s, ``store/postgres.py``) -> a standby takes the lease within ``poll_s``
-and starts its stage (restore + replay after the checkpoint). SQLite serves one server, whose
+lease connection died). A holder whose stage stopped running (its thread died) gives the
+lease back, so that a standby, or a new stage here, maps instead.
+
+Takeover time: the holder's process dies -> the database ends its lease connection at once (a
+killed process's socket closes; a silent host or network: TCP keepalive, about 5 s,
+``store/postgres.py``) -> a standby takes the lease within ``poll_s`` and starts its stage
+(restore + replay after the checkpoint). SQLite serves one server, whose
 lease is always granted: the stage starts with the server, as it always has.
 
 A standby stores keyframes and answers REST and Zenoh queries from the shared store like the
@@ -129,13 +132,19 @@ class MappingRole:
                 log.exception("writer lease: unexpected error; checking again in %.1f s", self._poll_s)
 
     def _check(self) -> None:
-        if self.pipeline is not None:
-            if self._lease.held():
+        pipeline = self.pipeline
+        if pipeline is not None:
+            if not pipeline.running():  # its thread died: let another server (or a new stage) map
+                log.error("mapping stage stopped running: giving the writer lease back")
+                self._stop_pipeline()
+                self._lease.release()
+            elif self._lease.held():
                 return
-            log.warning("writer lease lost (its database connection ended): stopping the mapping stage; "
-                        "another server takes over")
-            self._stop_pipeline()
-            self._lease.release()
+            else:
+                log.warning("writer lease lost (its database connection ended): stopping the mapping stage; "
+                            "another server takes over")
+                self._stop_pipeline()
+                self._lease.release()
         if self._lease.acquire():
             log.info("writer lease taken by %s: starting the mapping stage", self._lease.holder)
             try:

@@ -110,6 +110,9 @@ class _Pipeline:
     def stop(self) -> None:
         self.events.append("pipeline stopped")
 
+    def running(self) -> bool:
+        return True
+
 
 def test_one_session_shared_and_closed_last(router: str, tmp_path: Path, events: list[str]) -> None:
     """Ingest and map service run on one session; stop undeclares (pipeline, map service,

@@ -53,6 +53,11 @@ class _Pipeline:
         self._events.append("stop")
         self._stopped.set()
 
+    alive = True
+
+    def running(self) -> bool:
+        return self.alive
+
 
 def _role(lease: _Lease, events: list[str], fail: bool = False) -> tuple[MappingRole, threading.Event,
                                                                       threading.Event]:
@@ -108,3 +113,20 @@ def test_a_stage_that_cannot_start_gives_the_lease_back() -> None:
     with pytest.raises(ConfigError, match="no model"):
         role.start()
     assert not lease.mine and events == []
+
+
+def test_a_holder_whose_stage_died_gives_the_lease_back() -> None:
+    """The stage's thread died on the holder: the role stops it and releases the lease, so a
+    standby (here: the same role, next round) starts a new stage."""
+    lease, events = _Lease(free=True), []
+    role, started, stopped = _role(lease, events)
+    role.start()
+    try:
+        first = role.pipeline
+        assert isinstance(first, _Pipeline)
+        started.clear()
+        first.alive = False
+        assert stopped.wait(EVENT_TIMEOUT_S) and started.wait(EVENT_TIMEOUT_S)
+        assert role.pipeline is not first and events[:3] == ["start", "stop", "start"]
+    finally:
+        role.stop()
