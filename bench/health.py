@@ -13,10 +13,7 @@ probe). Times are wall clock on this machine, polling included (so at most 5 ms 
 from __future__ import annotations
 
 import argparse
-import os
 import signal
-import socket
-import subprocess
 import sys
 import tempfile
 import time
@@ -26,38 +23,10 @@ import httpx
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _procs import free_port, start, stop
 from _report import git_rev, machine, publish
 
 POLL_S = 0.005
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def _start(args: list[str], expect: str) -> subprocess.Popen[str]:
-    """Start ``wardmap ARGS`` and wait for its ready line ``expect`` (exit on any other line)."""
-    env = {k: v for k, v in os.environ.items() if k != "RUST_LOG"}
-    proc = subprocess.Popen([sys.executable, "-m", "wardmap.cli", *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.DEVNULL, text=True, env=env)
-    assert proc.stdout is not None
-    line = proc.stdout.readline()
-    if line.strip() != expect:
-        proc.kill()
-        raise SystemExit(f"{' '.join(args)}: not ready ({line!r})")
-    return proc
-
-
-def _stop(proc: subprocess.Popen[str]) -> None:
-    if proc.poll() is None:
-        proc.terminate()
-        try:
-            proc.wait(15)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(5)
 
 
 def _until(http: httpx.Client, status: int, timeout_s: float = 30.0) -> float:
@@ -74,13 +43,13 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=10)
     ap.add_argument("--write", type=Path, default=None, help="write the table into this markdown file")
     args = ap.parse_args()
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
-    port = _free_port()
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    port = free_port()
     url = f"http://127.0.0.1:{port}"
     down, up = [], []
     with tempfile.TemporaryDirectory() as tmp:
-        router = _start(["router", "--listen", endpoint], f"router listening on {endpoint}")
-        server = _start(["server", "--connect", endpoint, "--db", f"sqlite:///{tmp}/map.db", "--http",
+        router = start(["router", "--listen", endpoint], f"router listening on {endpoint}")
+        server = start(["server", "--connect", endpoint, "--db", f"sqlite:///{tmp}/map.db", "--http",
                          f"127.0.0.1:{port}"], f"server ready: {url}")
         try:
             with httpx.Client(base_url=url, timeout=5) as http:
@@ -90,12 +59,12 @@ def main() -> None:
                     killed = time.monotonic()
                     router.wait(10)
                     down.append(_until(http, 503) - killed)
-                    router = _start(["router", "--listen", endpoint], f"router listening on {endpoint}")
+                    router = start(["router", "--listen", endpoint], f"router listening on {endpoint}")
                     listening = time.monotonic()
                     up.append(_until(http, 200) - listening)
         finally:
-            _stop(server)
-            _stop(router)
+            stop(server)
+            stop(router)
     rows = []
     for name, values in (("router SIGKILLed -> first 503", down), ("router listening -> first 200", up)):
         ms = np.asarray(values) * 1e3

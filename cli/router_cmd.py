@@ -23,6 +23,14 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "tls/0.0.0.0:7447",
     )
     p.add_argument(
+        "--connect",
+        action="append",
+        default=[],
+        metavar="tcp|tls|quic/HOST:PORT",
+        help="another router to join into one mesh (repeatable; retried until it answers), so robots "
+        "and servers on either router reach each other",
+    )
+    p.add_argument(
         "--check",
         metavar="tcp/HOST:PORT",
         help="health check: exit 0 if a zenoh router answers at this endpoint, else 1 (runs no router)",
@@ -40,8 +48,8 @@ def run(args: argparse.Namespace) -> int:
     from wardmap.shared.sdnotify import notify
 
     if args.check is not None:
-        if args.listen:
-            raise ConfigError("--check runs no router: give it without --listen")
+        if args.listen or args.connect:
+            raise ConfigError("--check runs no router: give it without --listen or --connect")
         print(f"zenoh router {check_router(args.check, zenoh_options(args))} at {args.check}", flush=True)
         return 0
     if not args.listen:
@@ -51,5 +59,5 @@ def run(args: argparse.Namespace) -> int:
         print(f"router listening on {' '.join(endpoints)}", flush=True)
         notify("READY=1")
 
-    run_router(args.listen, options=zenoh_options(args), on_ready=ready)
+    run_router(args.listen, options=zenoh_options(args), on_ready=ready, connect=args.connect)
     return 0

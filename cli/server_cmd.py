@@ -38,6 +38,11 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="serve the REST API without tokens; refused unless --http is a loopback address "
              "(demo and tests; create tokens with `wardmap token create`)",
     )
+    p.add_argument(
+        "--name", metavar="NAME",
+        help="this server's name among several on one database (the writer lease's holder runs the "
+             "mapping stage; /readyz and /metrics show it); default: HOST-PID",
+    )
     add_log_format(p)
     add_zenoh_args(p)
     p.set_defaults(func=run)
@@ -66,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
 
     run_server(args.connect, args.db, host, port, on_ready=ready, config_path=args.config,
                insecure_loopback=args.insecure_loopback, zenoh_options=options,
-               db_password=db_password(args))
+               db_password=db_password(args), name=args.name)
     return 0
 
 

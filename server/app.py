@@ -26,6 +26,7 @@ from __future__ import annotations
 import functools
 import ipaddress
 import logging
+import os
 import socket
 import threading
 from collections.abc import Callable, Iterator, Sequence
@@ -34,25 +35,29 @@ from typing import TYPE_CHECKING, Any, TypeVar
 
 from wardmap.server.api import Services, create_app
 from wardmap.server.corrections import CorrectionPublisher
+from wardmap.server.decoded import DecodedCache
 from wardmap.server.ingest import Ingest
+from wardmap.server.mapping.role import MappingRole
 from wardmap.server.mapserve import MapServe
 from wardmap.server.objectmap import ObjectMap
 from wardmap.server.retention import ImageRetention, RetentionConfig
-from wardmap.server.store import StoreUnavailableError, open_store
+from wardmap.server.store import StoreError, StoreUnavailableError, open_store
+from wardmap.server.store.sqlbase import MAX_HOLDER_LEN, check_lease_holder
 from wardmap.server.telemetry import ServerTelemetry
 from wardmap.server.zenoh_session import ZenohSessionError, check_session_config, has_router, open_session
-from wardmap.shared.errors import WardmapError
+from wardmap.shared.errors import ConfigError, WardmapError
 from wardmap.shared.signals import on_stop_signals
 from wardmap.shared.zenoh_config import ZenohOptions, client_config
 
 if TYPE_CHECKING:
     from fastapi import FastAPI
 
-    from wardmap.server.mapping import PipelineFactory
+    from wardmap.server.mapping import MapPipeline, PipelineFactory
+    from wardmap.server.store import MapStore
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MapServer", "ServerError", "is_loopback", "run_server"]
+__all__ = ["MapServer", "ServerError", "default_name", "is_loopback", "run_server"]
 
 SHUTDOWN_TIMEOUT_S = 15.0
 RETRY_FIRST_S = 1.0
@@ -86,6 +91,7 @@ class MapServer:
         zenoh_options: ZenohOptions | None = None,
         db_password: str | None = None,
         retention: RetentionConfig | None = None,
+        name: str | None = None,
     ) -> None:
         """
         Args:
@@ -94,9 +100,9 @@ class MapServer:
             connect: zenoh router endpoints ``tcp/HOST:PORT`` or ``tls/HOST:PORT`` (checked
                 now). The server opens one session to them for the ingest and the map
                 service. None: no Zenoh (REST API only; tests, benchmarks).
-            pipeline_factory: builds the mapping stage (``server/pipeline.py``) from the
-                store and the object map; started last, stopped first. None: keyframes are
-                stored but not mapped.
+            pipeline_factory: builds the mapping stage (``server/mapping/stage.py``) from the
+                store, the object map and the keyframes ingest decoded; the writer-lease role
+                runs it (``server/mapping/role.py``). None: keyframes are stored but not mapped.
             require_tokens: the REST API's data routes need a bearer token (``server/tokens.py``);
                 False only for insecure-loopback mode (:func:`run_server` checks the address).
             telemetry: the histograms and per-robot series of this process (the pipeline
@@ -110,6 +116,9 @@ class MapServer:
                 own sources (``WARDMAP_DB_PASSWORD``, ``~/.pgpass``).
             retention: ``[store]`` image retention; the job runs when it sets one
                 (``server/retention.py``). None: images are kept.
+            name: this server's name in the store's writer lease (several servers on one
+                database: the holder runs the mapping stage, ``server/mapping/role.py``);
+                None: :func:`default_name`.
 
         Raises:
             ConfigError: a bad endpoint in ``connect``.
@@ -118,6 +127,12 @@ class MapServer:
             client_config(connect, options=zenoh_options)  # validates the endpoints now
         self._zenoh_options = zenoh_options
         self._retention = retention
+        self.name = name if name is not None else default_name()
+        """This server's name in the writer lease (``/readyz``, ``/metrics``)."""
+        try:
+            check_lease_holder(self.name)
+        except StoreError as exc:
+            raise ConfigError(f"bad server name: {exc}") from exc
         self._db_url = db_url
         self._db_password = db_password
         self._connect = None if connect is None else list(connect)
@@ -159,9 +174,9 @@ class MapServer:
                 job.start()
                 stack.callback(job.stop)
             objects = ObjectMap(store)
-            # Built before ingest, which hands it each keyframe decoded (``pipeline.decoded``);
-            # started after the session's parts.
-            pipeline = None if self._pipeline_factory is None else self._pipeline_factory(store, objects)
+            # Ingest hands each keyframe it stored, decoded, to the mapping stage that runs here
+            # (``server/decoded.py``); on a standby the cache only fills to its bound.
+            decoded = None if self._pipeline_factory is None else DecodedCache()
             ingest: Ingest | None = None
             corrections: CorrectionPublisher | None = None
             router_connected: Callable[[], bool] | None = None
@@ -170,8 +185,7 @@ class MapServer:
                                          functools.partial(open_session, self._connect, self._zenoh_options))
                 stack.callback(session.close)  # after ingest and map service undeclared theirs
                 router_connected = functools.partial(has_router, session)
-                ingest = Ingest(session, store, telemetry=self._telemetry,
-                                decoded=None if pipeline is None else pipeline.decoded)
+                ingest = Ingest(session, store, telemetry=self._telemetry, decoded=decoded)
                 ingest.start()
                 stack.callback(ingest.stop)
                 mapserve = MapServe(session, objects)
@@ -181,15 +195,27 @@ class MapServer:
                 corrections.load(store.session_anchors())
                 stack.callback(corrections.close)
                 log.info("zenoh session via %s: ingest and map service", ", ".join(self._connect))
-            if pipeline is not None:
-                if corrections is not None:
-                    pipeline.backend.set_publish(corrections.publish_anchor)
-                pipeline.start()
-                stack.callback(pipeline.stop)
+            mapping = None
+            if decoded is not None:
+                build = functools.partial(self._make_pipeline, store, objects, decoded, corrections)
+                mapping = MappingRole(store.writer_lease(self.name), build)
+                mapping.start()
+                stack.callback(mapping.stop)
             self._running = stack.pop_all()
-        self._services = Services(store=store, objects=objects, ingest=ingest, pipeline=pipeline,
+        self._services = Services(store=store, objects=objects, ingest=ingest, mapping=mapping,
                                   router_connected=router_connected, telemetry=self._telemetry)
         return self._services
+
+    def _make_pipeline(self, store: MapStore, objects: ObjectMap, decoded: DecodedCache,
+                       corrections: CorrectionPublisher | None) -> MapPipeline:
+        """A new mapping stage (the writer lease's holder runs it) taking ingest's decoded
+        keyframes and publishing corrections."""
+        if self._pipeline_factory is None:
+            raise ServerError("this server has no mapping stage")
+        pipeline = self._pipeline_factory(store, objects, decoded)
+        if corrections is not None:
+            pipeline.backend.set_publish(corrections.publish_anchor)
+        return pipeline
 
     def _retrying(self, what: str, transient: type[Exception], attempt: Callable[[], T]) -> T:
         """``attempt()``; while it raises ``transient`` and ``retry_until`` is given and not set,
@@ -221,12 +247,13 @@ class MapServer:
         cls, db_url: str, *, connect: Sequence[str] | None, config_path: str | None = None,
         require_tokens: bool = True, retry_until: threading.Event | None = None,
         zenoh_options: ZenohOptions | None = None, db_password: str | None = None,
+        name: str | None = None,
     ) -> MapServer:
         """The server ``wardmap server`` runs, with its mapping stage configured from a file.
 
         Args:
-            db_url, connect, require_tokens, retry_until, zenoh_options, db_password: as in the
-                constructor.
+            db_url, connect, require_tokens, retry_until, zenoh_options, db_password, name: as in
+                the constructor.
             config_path: TOML file with ``[pipeline]``, ``[perception]`` and ``[association]``
                 tables (defaults when None; ``deploy/server.toml``). With ``[pipeline]
                 enabled = false`` keyframes are stored but not mapped.
@@ -242,7 +269,6 @@ class MapServer:
         from wardmap.server.mapping import MapPipeline, PipelineConfig
         from wardmap.server.perception.config import PerceptionConfig
         from wardmap.server.perception.models import make_segmenter
-        from wardmap.server.store import MapStore
         from wardmap.shared.config import load_config
 
         pipeline_cfg = load_config(PipelineConfig, config_path, section="pipeline")
@@ -254,19 +280,19 @@ class MapServer:
         if not pipeline_cfg.enabled:
             return cls(db_url, connect=connect, require_tokens=require_tokens, telemetry=telemetry,
                        retry_until=retry_until, zenoh_options=zenoh_options, db_password=db_password,
-                       retention=retention)
+                       retention=retention, name=name)
         # Build the segmenter now: a missing or bad model is one clear error before anything starts.
         segmenter = make_segmenter(perception_cfg.segmenter, perception_cfg)
 
-        def make_pipeline(store: MapStore, objects: ObjectMap) -> MapPipeline:
+        def make_pipeline(store: MapStore, objects: ObjectMap, decoded: DecodedCache) -> MapPipeline:
             return MapPipeline(store, objects, config=pipeline_cfg, perception=perception_cfg,
                                association=association_cfg, segmenter=segmenter,
-                               backend=BackendStage(store, backend_cfg, telemetry=telemetry),
+                               backend=BackendStage(store, backend_cfg, telemetry=telemetry, decoded=decoded),
                                telemetry=telemetry)
 
         return cls(db_url, connect=connect, pipeline_factory=make_pipeline, require_tokens=require_tokens,
                    telemetry=telemetry, retry_until=retry_until, zenoh_options=zenoh_options,
-                   db_password=db_password, retention=retention)
+                   db_password=db_password, retention=retention, name=name)
 
     @property
     def start_cancelled(self) -> bool:
@@ -284,6 +310,12 @@ class MapServer:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
+
+
+def default_name() -> str:
+    """``HOST-PID``: this machine's name (printable ASCII, shortened) and this process's id."""
+    host = "".join(c for c in socket.gethostname() if c.isascii() and c.isprintable() and c != " ")
+    return f"{host[:MAX_HOLDER_LEN - 12] or 'server'}-{os.getpid()}"
 
 
 def is_loopback(host: str) -> bool:
@@ -370,6 +402,7 @@ def run_server(
     insecure_loopback: bool = False,
     zenoh_options: ZenohOptions | None = None,
     db_password: str | None = None,
+    name: str | None = None,
 ) -> None:
     """Serve until ``stop`` is set or SIGTERM/SIGINT (in the main thread).
 
@@ -387,6 +420,7 @@ def run_server(
             is a loopback address (the demo's mode).
         zenoh_options: TLS files and zenoh config file of the session (docs/security.md).
         db_password: the PostgreSQL password (see :class:`MapServer`).
+        name: this server's name in the writer lease (see :class:`MapServer`).
 
     Raises:
         ConfigError: a bad zenoh endpoint, zenoh config file or TLS file.
@@ -411,7 +445,8 @@ def run_server(
     stop = stop if stop is not None else threading.Event()
     server_root = MapServer.from_config(db_url, connect=connect, config_path=config_path,
                                         require_tokens=not insecure_loopback, retry_until=stop,
-                                        zenoh_options=zenoh_options, db_password=db_password)
+                                        zenoh_options=zenoh_options, db_password=db_password,
+                                        name=name)
     try:
         open_store(db_url, password=db_password).close()  # validate URL and file now: one clear line
     except StoreUnavailableError as exc:  # may pass later: start() waits for it

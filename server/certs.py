@@ -247,15 +247,22 @@ def issue(
 
 def fleet(out: str | Path) -> tuple[tuple[str, ...], tuple[str, ...]]:
     """``(robots, servers)``: common names of the robot and server certificates in ``out``
-    that the site CA signed (sorted). Routers' certificates are not in the ACL.
+    that the site CA signed (sorted).
 
     Raises:
         CertError: no CA in ``out``, or a ``*.crt`` that cannot be read.
     """
+    robots, servers, _ = _fleet(out)
+    return robots, servers
+
+
+def _fleet(out: str | Path) -> tuple[tuple[str, ...], tuple[str, ...], tuple[str, ...]]:
+    """``(robots, servers, routers)`` of :func:`fleet`, routers' common names too."""
     out = Path(out)
     ca_cert, _ = _load_ca(out)
     robots: list[str] = []
     servers: list[str] = []
+    routers: list[str] = []
     for path in sorted(out.glob("*.crt")):
         if path.name == CA_CERT:
             continue
@@ -271,19 +278,24 @@ def fleet(out: str | Path) -> tuple[tuple[str, ...], tuple[str, ...]]:
             robots.append(str(cn[0]))
         elif role == "server":
             servers.append(str(cn[0]))
-    return tuple(robots), tuple(servers)
+        elif role == "router":
+            routers.append(str(cn[0]))
+    return tuple(robots), tuple(servers), tuple(routers)
 
 
 def write_acl(out: str | Path) -> Path:
-    """Rewrite ``out/acl.json5`` from the fleet in ``out``; returns its path.
+    """Rewrite ``out/acl.json5`` from the fleet in ``out`` (routers' certificates with the servers'
+    rights: a mesh of routers passes everything); returns its path.
 
     Raises:
         CertError: no CA, an unreadable certificate, or an empty fleet.
     """
     out = Path(out)
-    robots, servers = fleet(out)
+    robots, servers, routers = _fleet(out)
     try:
-        acl = access_control(robots, servers)
+        # A router joined to another one (`wardmap router --connect`) forwards every robot's and
+        # server's messages, so it has the servers' rights on the other router.
+        acl = access_control(robots, tuple(sorted(servers + routers)))
     except ConfigError as exc:
         raise CertError(f"{out}: {exc}") from exc
     path = out / ACL_FILE

@@ -35,11 +35,13 @@ def run_router(
     options: ZenohOptions | None = None,
     stop: threading.Event | None = None,
     on_ready: Callable[[list[str]], None] | None = None,
+    connect: Sequence[str] = (),
 ) -> None:
     """Run a Zenoh router listening on ``listen`` until ``stop`` is set or SIGTERM/SIGINT.
 
     Args:
         listen: endpoints ``tcp/``, ``tls/`` or ``quic/HOST:PORT`` to listen on (at least one).
+        connect: other routers' endpoints to join into one mesh (retried until they answer).
         options: TLS files (the router's certificate and key; with a CA, mutual TLS) and an
             optional zenoh JSON5/JSON/YAML config file laid under wardmap's values.
         stop: event that ends the router when set; signals set it too when this runs in
@@ -54,7 +56,7 @@ def run_router(
     import zenoh
 
     stop = stop if stop is not None else threading.Event()
-    conf = load_zenoh_config(router_config(listen, options=options), options)
+    conf = load_zenoh_config(router_config(listen, options=options, connect=connect), options)
     endpoints = list(listen)
     with on_stop_signals(stop.set, "the router"):
         try:
@@ -65,7 +67,8 @@ def run_router(
                 raise RouterError(f"cannot listen on {', '.join(endpoints)}: address already in use") from exc
             raise RouterError(f"cannot start zenoh router on {', '.join(endpoints)}: {msg}") from exc
         with session:
-            log.info("zenoh router %s listening on %s", session.info.zid(), ", ".join(endpoints))
+            log.info("zenoh router %s listening on %s%s", session.info.zid(), ", ".join(endpoints),
+                     f", joining {', '.join(connect)}" if connect else "")
             if on_ready is not None:
                 on_ready(endpoints)
             stop.wait()

@@ -199,22 +199,31 @@ def router_config(
     multicast_scouting: bool = False,
     options: ZenohOptions | None = None,
     extra: Mapping[str, Any] | None = None,
+    connect: Sequence[str] = (),
 ) -> dict[str, Any]:
     """Config dict of a Zenoh router listening on ``listen`` (``tcp/`` or ``tls/HOST:PORT`` each).
 
     Shared memory and multicast scouting are off unless asked for: robots reach their
-    router by explicit endpoints (docs/ARCHITECTURE.md, "Scale"). ``options`` adds the
-    listen side's TLS files (:meth:`ZenohOptions.tls`). ``extra`` is merged in recursively
-    (e.g. ``{"adminspace": {"enabled": True}}``) but may not change ``mode`` or ``listen``.
+    router by explicit endpoints (docs/ARCHITECTURE.md, "Scale"). ``connect``: other routers
+    to join into one mesh (zenoh retries them until they answer, and after they go away).
+    ``options`` adds the listen side's TLS files (:meth:`ZenohOptions.tls`), and with
+    ``connect`` the same files as this router's client side towards the other routers (the
+    certificate must allow client authentication, as ``wardmap certs`` makes it). ``extra`` is
+    merged in recursively (e.g. ``{"adminspace": {"enabled": True}}``) but may not change
+    ``mode``, ``listen`` or ``connect``.
     """
     tls = options.tls("listen") if options is not None else None
+    if connect and options is not None:
+        tls = {**(tls or {}), **options.tls("connect")}
     cfg: dict[str, Any] = {
         "mode": "router",
         "listen": {"endpoints": _validate_endpoints(listen, "router listen")},
         **_common(shm, multicast_scouting, tls),
     }
+    if connect:
+        cfg["connect"] = {"endpoints": _validate_endpoints(connect, "router connect")}
     if extra:
-        for fixed in ("mode", "listen"):
+        for fixed in ("mode", "listen", "connect"):
             if fixed in extra:
                 raise ConfigError(f"router extra config may not set {fixed!r}; it is fixed by the arguments")
         cfg = _deep_merge(cfg, extra)

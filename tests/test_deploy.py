@@ -194,12 +194,15 @@ def test_compose_services() -> None:
     router = services["router"]
     assert router["healthcheck"]["test"][1:4] == ["wardmap", "router", "--check"]
     _parses(router["healthcheck"]["test"][2:])
+    names = set()
     for name in ("server_a", "server_b"):
         cmd = services[name]["command"]
         db = cmd[cmd.index("--db") + 1]
         assert db.startswith("postgresql://") and "@postgres:" in db
         assert ":" not in db.split("//")[1].split("@")[0], "password in the URL"
         assert services[name]["profiles"] == ["two-servers"]
+        names.add(cmd[cmd.index("--name") + 1])
+    assert len(names) == 2, "the servers sharing a database need distinct --name (the writer lease's holder)"
 
 
 def _has_option(command: str, option: str) -> bool:

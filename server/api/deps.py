@@ -19,6 +19,7 @@ from prometheus_client import CollectorRegistry
 from wardmap.server.api.readiness import ReadinessLog
 from wardmap.server.ingest import Ingest
 from wardmap.server.mapping import MapPipeline
+from wardmap.server.mapping.role import MappingRole
 from wardmap.server.objectmap import ObjectMap
 from wardmap.server.store import MapStore
 from wardmap.server.telemetry import ServerTelemetry
@@ -42,7 +43,10 @@ class Services:
         store: the open keyframe store.
         objects: the object map on it.
         ingest: the keyframe ingest, or None when the server has no Zenoh (API only).
-        pipeline: the mapping stage, or None when keyframes are stored but not mapped.
+        pipeline: a mapping stage that always runs in this process (tests); see ``mapping``.
+        mapping: the writer-lease role that runs the mapping stage here only while this server
+            holds the store's writer lease (what the server builds; ``server/mapping/role.py``),
+            or None. Neither: keyframes are stored but not mapped.
         readiness: logs why ``/readyz`` says not ready, once per change.
         router_connected: whether the server's Zenoh session has a router now (thread safe,
             fast), or None when the server has no Zenoh.
@@ -53,9 +57,15 @@ class Services:
     objects: ObjectMap
     ingest: Ingest | None = None
     pipeline: MapPipeline | None = None
+    mapping: MappingRole | None = None
     readiness: ReadinessLog = field(default_factory=ReadinessLog)
     router_connected: Callable[[], bool] | None = None
     telemetry: ServerTelemetry = field(default_factory=ServerTelemetry)
+
+    def running_pipeline(self) -> MapPipeline | None:
+        """The mapping stage running in this process now: the role's while this server holds the
+        writer lease (None while a standby), else :attr:`pipeline`."""
+        return self.mapping.pipeline if self.mapping is not None else self.pipeline
 
 
 class ServerLifecycle(Protocol):
@@ -95,7 +105,7 @@ async def get_ingest(services: ServicesDep) -> Ingest | None:
 
 
 async def get_pipeline(services: ServicesDep) -> MapPipeline | None:
-    return services.pipeline
+    return services.running_pipeline()
 
 
 async def get_metrics(request: Request) -> CollectorRegistry:

@@ -79,7 +79,8 @@ def create_app(server: ServerLifecycle, *, require_tokens: bool = True) -> FastA
                             "created with `wardmap token create --scope read --db URL`")
             app.state.services = services
             app.state.metrics = metrics_registry(
-                ServerCollector(services.store, services.objects, services.ingest, services.pipeline)
+                ServerCollector(services.store, services.objects, services.ingest, services.pipeline,
+                                services.mapping)
             )
             services.telemetry.register(app.state.metrics)
             yield

@@ -15,7 +15,7 @@ from __future__ import annotations
 from collections.abc import Iterable, Iterator, Mapping
 
 from prometheus_client import CollectorRegistry
-from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, InfoMetricFamily, Metric
 from prometheus_client.exposition import generate_latest
 from prometheus_client.registry import Collector
 
@@ -23,6 +23,7 @@ from wardmap.server.backend.stage import BackendCounters
 from wardmap.server.decoded import DecodedCounters
 from wardmap.server.ingest import Ingest, IngestCounters
 from wardmap.server.mapping import MapPipeline, PipelineCounters
+from wardmap.server.mapping.role import LeaseState, MappingRole
 from wardmap.server.objectmap import ObjectMap
 from wardmap.server.perception.measure import SKIP_KINDS
 from wardmap.server.store import KeyframeStore
@@ -32,6 +33,7 @@ __all__ = [
     "ServerCollector",
     "exposition",
     "ingest_metrics",
+    "lease_metrics",
     "map_metrics",
     "metrics_registry",
     "pipeline_metrics",
@@ -88,6 +90,21 @@ def map_metrics(confirmed: int, unconfirmed: int) -> list[Metric]:
                 [("true", confirmed), ("false", unconfirmed)])]
 
 
+def lease_metrics(lease: LeaseState) -> list[Metric]:
+    """Whether this server holds the writer lease (runs the mapping stage), and who does."""
+    holder = InfoMetricFamily("wardmap_mapping_writer",
+                              "The server holding the writer lease (runs the mapping stage), as this "
+                              "server last saw it; absent when nobody holds it.", labels=["server"])
+    if lease.holder is not None:
+        holder.add_metric([lease.name], {"holder": lease.holder})
+    return [
+        _gauge("wardmap_mapping_lease_held",
+               "1 when this server holds the writer lease and runs the mapping stage, 0 on a standby.",
+               int(lease.held)),
+        holder,
+    ]
+
+
 def pipeline_metrics(c: PipelineCounters) -> list[Metric]:
     """The mapping stage's counters."""
     return [
@@ -127,6 +144,12 @@ def pipeline_metrics(c: PipelineCounters) -> list[Metric]:
         _counter("wardmap_mapping_rebuilds_total",
                  "Object-map rebuilds after the back-end moved keyframes (loop closure, anchoring).",
                  c.rebuilds),
+        _gauge("wardmap_mapping_map_epoch",
+               "The map epoch (back-end moves of keyframes) whose object map is complete; -1 before start.",
+               c.map_epoch),
+        _gauge("wardmap_mapping_settled_rowid",
+               "Keyframes up to this insertion number are associated and on the object map; -1 before start.",
+               c.settled),
     ]
 
 
@@ -172,22 +195,30 @@ class ServerCollector(Collector):
     """Yields the server's metrics at scrape time from the parts that count them."""
 
     def __init__(
-        self, store: KeyframeStore, objects: ObjectMap, ingest: Ingest | None, pipeline: MapPipeline | None
+        self, store: KeyframeStore, objects: ObjectMap, ingest: Ingest | None, pipeline: MapPipeline | None,
+        mapping: MappingRole | None = None,
     ) -> None:
+        """``pipeline``: a mapping stage that always runs here; ``mapping``: the writer-lease role
+        whose stage runs here only while it holds the lease (its metrics then, and the lease's)."""
         self._store = store
         self._objects = objects
         self._ingest = ingest
         self._pipeline = pipeline
+        self._mapping = mapping
 
     def collect(self) -> Iterator[Metric]:
         counters = self._ingest.counters() if self._ingest is not None else None
         rejections = self._ingest.rejections() if self._ingest is not None else self._store.rejections()
         yield from ingest_metrics(counters, rejections, self._store.stats().robots)
         yield from map_metrics(self._objects.count(unconfirmed=False), self._objects.count(unconfirmed=True))
-        if self._pipeline is not None:
-            yield from pipeline_metrics(self._pipeline.counters())
-            yield from backend_metrics(self._pipeline.backend.counters())
-            yield from decoded_metrics(self._pipeline.decoded.counters())
+        pipeline = self._pipeline
+        if self._mapping is not None:
+            yield from lease_metrics(self._mapping.state())
+            pipeline = self._mapping.pipeline
+        if pipeline is not None:
+            yield from pipeline_metrics(pipeline.counters())
+            yield from backend_metrics(pipeline.backend.counters())
+            yield from decoded_metrics(pipeline.decoded.counters())
 
 
 def metrics_registry(collector: Collector) -> CollectorRegistry:

@@ -3,7 +3,8 @@
 :func:`check` is ``/readyz``'s rule: ready when the Zenoh session has a router, keyframes can
 be stored (the ingest runs and the store can write), and the mapping stage runs with no more
 than ``[pipeline] ready_max_backlog`` stored keyframes waiting for it; each part the server
-runs without (no Zenoh, no mapping stage) is left out.
+runs without (no Zenoh, no mapping stage) is left out. A standby (another server holds the
+writer lease and maps, ``server/mapping/role.py``) is ready: it stores keyframes and serves.
 
 ``/readyz`` is public (orchestrators call it without credentials), so its 503 body names only
 a fixed category (:func:`public_reason`), never the store's own text, which can hold the
@@ -59,7 +60,9 @@ def check(services: Services) -> tuple[bool, str]:
         ok, why = services.store.writable()
     if not ok:
         return False, why
-    pipeline = services.pipeline
+    if services.mapping is not None and not services.mapping.running():
+        return False, "mapping stage is not running (its writer-lease thread stopped; see the server log)"
+    pipeline = services.running_pipeline()  # None on a standby: it serves, another server maps
     if pipeline is not None:
         if not pipeline.running():
             return False, "mapping stage is not running (see the server log)"

@@ -43,9 +43,13 @@ class Health(BaseModel):
 
 
 class Readiness(BaseModel):
-    """``ok``, or why keyframes cannot be stored now."""
+    """``ok``, or why keyframes cannot be stored now; with a mapping stage, whether this server
+    runs it (``writer``: it holds the store's writer lease) or not (``standby``), and who does
+    (None: nobody, or the database could not tell)."""
 
     status: str
+    mapping: Literal["writer", "standby"] | None = None
+    writer: str | None = None
 
 
 class RobotOut(BaseModel):

@@ -163,6 +163,11 @@ class PipelineCounters:
             ``AssociationConfig.max_range_m`` from their camera.
         skipped: instances perception found but could not measure, by kind
             (:data:`~wardmap.server.perception.measure.SKIP_KINDS`).
+        rebuilds: object-map rebuilds after the back-end moved keyframes.
+        map_epoch: the map epoch (the back-end's, ``graph_epoch``) whose object map is complete;
+            -1 before the stage started.
+        settled: the insertion ``rowid`` up to which keyframes are associated and on the object
+            map (the cursor moves just before association); -1 before the stage started.
     """
 
     processed: int
@@ -182,6 +187,8 @@ class PipelineCounters:
     wall_pieces: int = 0
     floor_pieces: int = 0
     rebuilds: int = 0
+    map_epoch: int = -1
+    settled: int = -1
 
 
 @dataclass
@@ -295,7 +302,8 @@ class MapPipeline:
             return PipelineCounters(c.processed, c.measurements, c.mapped, c.unanchored, c.replayed,
                                     self._backlog, dict(c.failures), len(self._writer.landmarks()),
                                     c.restarts, c.last_error, c.closed_idle, c.floating, c.beyond_range,
-                                    dict(c.skipped), c.wall_pieces, c.floor_pieces, c.rebuilds)
+                                    dict(c.skipped), c.wall_pieces, c.floor_pieces, c.rebuilds,
+                                    self._done_epoch, self._settled)
 
     def running(self) -> bool:
         """Whether this stage's thread and the back-end's run (started, not stopped, not died)."""
@@ -693,4 +701,4 @@ def on_map(measurements: Sequence[ObjectMeasurement], T_measured_camera: F64 | N
             for m in measurements]
 
 
-PipelineFactory = Callable[[MapStore, ObjectMap], MapPipeline]
+PipelineFactory = Callable[[MapStore, ObjectMap, DecodedCache], MapPipeline]

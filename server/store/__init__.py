@@ -24,10 +24,12 @@ from wardmap.server.store.postgres import PASSWORD_ENV, PostgresMapStore, read_p
 from wardmap.server.store.protocol import (
     GraphStore,
     KeyframeStore,
+    LeaseStore,
     MappingStore,
     MapStore,
     ObjectStore,
     TokenStore,
+    WriterLease,
 )
 from wardmap.server.store.records import (
     MAX_PAGE,
@@ -99,6 +101,7 @@ __all__ = [
     "KeyframeRef",
     "KeyframeRow",
     "KeyframeStore",
+    "LeaseStore",
     "MapStore",
     "MappedPose",
     "MappingStore",
@@ -128,6 +131,7 @@ __all__ = [
     "TokenStore",
     "Trajectory",
     "UnknownObjectError",
+    "WriterLease",
     "classify_sqlite_error",
     "open_store",
     "pose_blob",

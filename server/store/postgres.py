@@ -69,7 +69,7 @@ from wardmap.server.store.records import (
     StoreError,
     StoreUnavailableError,
 )
-from wardmap.server.store.sqlbase import SqlMapStore
+from wardmap.server.store.sqlbase import SqlMapStore, check_lease_holder
 
 if TYPE_CHECKING:
     import psycopg
@@ -81,6 +81,16 @@ SCHEMES: Final = ("postgresql://", "postgres://")
 APPLICATION_ID: Final = 0x77726D73  # "wrms", as the SQLite file's application_id
 INSERT_LOCK: Final = APPLICATION_ID
 """The advisory lock key keyframe inserts take (``pg_advisory_xact_lock``), see the module docstring."""
+WRITER_LEASE: Final = (APPLICATION_ID, 1)
+"""The session advisory lock (``pg_try_advisory_lock(int, int)``) that is the writer lease."""
+LEASE_APP_PREFIX: Final = "wardmap writer lease: "
+"""The lease connection's ``application_name`` is this and the holder's name (how others see it)."""
+LEASE_TIMEOUT_S: Final = 2.0
+"""Longest a lease statement waits (statement timeout) before the lease counts as lost."""
+LEASE_KEEPALIVE: Final = {"keepalives": 1, "keepalives_idle": 2, "keepalives_interval": 1,
+                          "keepalives_count": 3, "tcp_user_timeout": 5000}
+"""libpq TCP settings of the lease connection: a silent network is found dead in about 5 s
+(the database side uses the same values, set per session, to release the lock)."""
 PASSWORD_ENV: Final = "WARDMAP_DB_PASSWORD"
 INSTALL_HINT: Final = "the PostgreSQL store needs psycopg 3 and psycopg-pool: pip install 'wardmap[postgres]'"
 PASSWORD_SOURCES: Final = (
@@ -201,10 +211,12 @@ class PostgresMapStore(SqlMapStore):
     """
 
     def __init__(
-        self, pool: ConnectionPool[psycopg.Connection[Any]], url: str, object_index: schema.Dialect
+        self, pool: ConnectionPool[psycopg.Connection[Any]], url: str, object_index: schema.Dialect,
+        params: dict[str, Any] | None = None,
     ) -> None:
-        """Internal: use :meth:`open`."""
+        """Internal: use :meth:`open` (``params``: libpq's, for the writer lease's own connection)."""
         self._pool = pool
+        self._params = dict(params or {})
         self.url = url
         self.object_index = object_index
         self.dialect = object_index
@@ -263,7 +275,7 @@ class PostgresMapStore(SqlMapStore):
                 f"keyframe store {shown}: the connection pool could not start"
             ) from exc
         log.info("keyframe store %s open (object index: %s)", shown, object_index)
-        return cls(pool, shown, object_index)
+        return cls(pool, shown, object_index, params)
 
     def close(self) -> None:
         """Close the pool (idempotent); calls after it raise StoreError."""
@@ -303,6 +315,41 @@ class PostgresMapStore(SqlMapStore):
             return False, f"last write failed: {faults[0]}"
         return True, "ok"
 
+    # ------------------------------------------------------------------ the writer lease
+
+    def writer_lease(self, holder: str) -> AdvisoryLease:
+        """A handle on the writer lease for ``holder`` (:class:`AdvisoryLease`), not acquired."""
+        return AdvisoryLease(check_lease_holder(holder), self)
+
+    def lease_holder(self) -> str | None:
+        """Who holds the writer lease (its ``application_name`` without the prefix), None when
+        nobody does. Raises StoreError when the database cannot tell."""
+        with self._read("writer lease holder") as conn:
+            row = conn.execute(
+                "SELECT a.application_name FROM pg_locks l JOIN pg_stat_activity a ON a.pid = l.pid "
+                "WHERE l.locktype = 'advisory' AND l.database = (SELECT oid FROM pg_database WHERE "
+                "datname = current_database()) AND l.classid = ? AND l.objid = ? AND l.objsubid = 2 "
+                "AND l.granted", WRITER_LEASE).fetchone()
+        if row is None:
+            return None
+        name = str(row[0] or "")
+        return name.removeprefix(LEASE_APP_PREFIX) if name.startswith(LEASE_APP_PREFIX) else name or "unknown"
+
+    def _lease_connection(self, holder: str) -> psycopg.Connection[Any]:
+        """A new connection of its own for the writer lease (not pooled: the lock is its session's)."""
+        psycopg, _ = _import()
+        if self._closed:
+            raise StoreError(f"keyframe store {self.url} is closed")
+        params = {**self._params, **LEASE_KEEPALIVE, "application_name": LEASE_APP_PREFIX + holder}
+        with self._db_errors("writer lease connection"):
+            conn = psycopg.connect(**params, autocommit=True)
+            timeout_ms = int(LEASE_TIMEOUT_S * 1000)
+            conn.execute(f"SET statement_timeout = {timeout_ms}")
+            for name, value in (("tcp_keepalives_idle", 2), ("tcp_keepalives_interval", 1),
+                                ("tcp_keepalives_count", 3), ("tcp_user_timeout", 5000)):
+                conn.execute(f"SET {name} = {value}")
+        return conn
+
     # ------------------------------------------------------------------ dialect hooks (sqlbase.py)
 
     def _serialise_inserts(self, conn: _Connection) -> None:
@@ -310,6 +357,7 @@ class PostgresMapStore(SqlMapStore):
         conn.execute("SELECT pg_advisory_xact_lock(?)", (INSERT_LOCK,))
 
     _IN_IDS = "= ANY(?)"
+    _FENCE_READ = "SELECT epoch FROM writer_fence WHERE id = 1 FOR SHARE"
 
     def _ids(self, ids: Sequence[int]) -> object:
         return [int(i) for i in ids]
@@ -488,3 +536,81 @@ class _Connection:
         return cursor
 
 
+class AdvisoryLease:
+    """The writer lease on PostgreSQL (:class:`~wardmap.server.store.protocol.WriterLease`): the
+    session advisory lock :data:`WRITER_LEASE` held on a connection of its own whose
+    ``application_name`` names the holder. The database releases it when that connection ends:
+    the holder's process exits or is killed (its socket closes at once), or the network goes
+    silent (TCP keepalive and user timeout, :data:`LEASE_KEEPALIVE`: about 5 s). Taking it also
+    takes the writer fence (:meth:`SqlMapStore.take_writer_fence`), so a former holder still
+    running cannot write the map after this one started. Thread safe."""
+
+    def __init__(self, holder: str, store: PostgresMapStore) -> None:
+        self.holder = holder
+        self._store = store
+        self._lock = threading.Lock()  # guards _conn (one statement at a time on it)
+        self._conn: psycopg.Connection[Any] | None = None  # open while the lock is held or tried
+
+    def acquire(self) -> bool:
+        with self._lock:
+            if self._conn is not None and self._holds():
+                return True
+            self._drop()
+            try:
+                self._conn = self._store._lease_connection(self.holder)
+                got = bool(_one(self._conn.execute("SELECT pg_try_advisory_lock(%s, %s)", WRITER_LEASE))[0])
+            except Exception as exc:  # any failure means "not acquired" (logged)
+                log.debug("writer lease: not acquired: %s", _first_line(exc))
+                self._drop()
+                return False
+            if not got:
+                self._drop()  # a standby keeps no connection open between attempts
+                return False
+            try:
+                self._store.take_writer_fence()  # waits for the former holder's write in flight
+            except StoreError as exc:
+                log.warning("writer lease: taken but not fenced, so given back: %s", exc)
+                self._drop()
+                return False
+            return True
+
+    def held(self) -> bool:
+        with self._lock:
+            if self._conn is None:
+                return False
+            if self._holds():
+                return True
+            self._drop()
+            return False
+
+    def current_holder(self) -> str | None:
+        try:
+            return self._store.lease_holder()
+        except StoreError:
+            return None
+
+    def release(self) -> None:
+        with self._lock:
+            self._drop()
+
+    def _holds(self) -> bool:
+        """Whether this connection's session holds the lock (False on any error)."""
+        if self._conn is None:
+            return False
+        try:
+            row = self._conn.execute(
+                "SELECT count(*) FROM pg_locks WHERE locktype = 'advisory' AND pid = pg_backend_pid() "
+                "AND classid = %s AND objid = %s AND objsubid = 2 AND granted", WRITER_LEASE).fetchone()
+        except Exception as exc:  # a lost connection is a lost lease
+            log.warning("writer lease: its connection failed: %s", _first_line(exc))
+            return False
+        return row is not None and int(row[0]) == 1
+
+    def _drop(self) -> None:
+        """Close the lease connection (which releases the lock), ignoring errors."""
+        conn, self._conn = self._conn, None
+        if conn is not None:
+            try:
+                conn.close()
+            except Exception as exc:  # closing a broken connection: nothing more to do
+                log.debug("writer lease: closing its connection: %s", _first_line(exc))

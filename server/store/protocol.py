@@ -315,7 +315,54 @@ class TokenStore(Protocol):
         ...
 
 
-class MapStore(KeyframeStore, ObjectStore, MappingStore, GraphStore, TokenStore, Protocol):
+class WriterLease(Protocol):
+    """A handle on the store's one writer lease: whoever holds it runs the mapping stage and the
+    back-end (the only writers of cursors, measurements, the pose graph and the object map), so
+    several servers on one database have one writer at a time. Not acquired when made.
+
+    The lease lives as long as its holder's hold on the database does (PostgreSQL: a session
+    advisory lock on a connection of its own, released by the database when that connection
+    closes or its process dies); SQLite serves one server, which always holds it. Taking it
+    bumps the store's writer fence: from then on the map writes (graph, measurements, cursors,
+    checkpoint, objects) of a store whose lease was taken before are refused (StoreError), so a
+    holder that lost the lease cannot write after its successor started. Thread safe.
+
+    Attributes:
+        holder: the name this handle holds the lease under (shown by :meth:`current_holder`).
+    """
+
+    holder: str
+
+    def acquire(self) -> bool:
+        """Take the lease if nobody holds it; True when this handle holds it now. Never raises
+        (a database it cannot reach is False)."""
+        ...
+
+    def held(self) -> bool:
+        """Whether this handle still holds the lease (asks the database); never raises. False
+        once the hold is lost (connection gone): the holder must stop writing."""
+        ...
+
+    def current_holder(self) -> str | None:
+        """The holder's name as any server sees it, None when nobody holds the lease or the
+        database cannot tell now; never raises."""
+        ...
+
+    def release(self) -> None:
+        """Give the lease back (idempotent)."""
+        ...
+
+
+class LeaseStore(Protocol):
+    """The writer lease of several servers on one store (:class:`WriterLease`)."""
+
+    def writer_lease(self, holder: str) -> WriterLease:
+        """A new handle on the writer lease for ``holder`` (1-40 printable ASCII characters),
+        not acquired; StoreError for a bad name."""
+        ...
+
+
+class MapStore(KeyframeStore, ObjectStore, MappingStore, GraphStore, TokenStore, LeaseStore, Protocol):
     """The server's whole database: what a backend implements (see the module docstring)."""
 
     def __enter__(self) -> MapStore: ...

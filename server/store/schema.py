@@ -251,6 +251,13 @@ STEPS: Final[tuple[Step, ...]] = (
     (
         "ALTER TABLE keyframes ADD COLUMN images_erased_s {real}",
     ),
+    # v12: the writer fence (several servers on one database, docs/deploy.md): whoever takes the
+    # writer lease bumps the epoch, and each map write of the lease's holder checks it is still
+    # its own, so a holder that lost the lease writes nothing once its successor has started.
+    (
+        "CREATE TABLE writer_fence (id {int} PRIMARY KEY CHECK (id = 1), epoch {int} NOT NULL)",
+        "INSERT INTO writer_fence (id, epoch) VALUES (1, 0)",
+    ),
 )
 
 

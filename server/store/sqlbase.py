@@ -90,6 +90,8 @@ from wardmap.shared.wire import KeyframeMsg
 
 log = logging.getLogger(__name__)
 
+MAX_HOLDER_LEN = 40
+"""Longest writer-lease holder name (PostgreSQL shows it in a 63-byte ``application_name``)."""
 ERASE_BATCH = 64
 """Keyframes whose images :meth:`SqlMapStore.erase_images` rewrites per transaction."""
 
@@ -98,6 +100,16 @@ _INSERT_MAPPED = (
     "ON CONFLICT (robot_id, session_id, seq) DO UPDATE SET T_map_camera = excluded.T_map_camera, "
     "camera = excluded.camera"
 )
+
+
+def check_lease_holder(holder: object) -> str:
+    """``holder`` if it is a valid writer-lease holder name (1-:data:`MAX_HOLDER_LEN` printable
+    ASCII characters), else StoreError naming what came."""
+    if not (isinstance(holder, str) and 0 < len(holder) <= MAX_HOLDER_LEN and holder.isascii()
+            and holder.isprintable()):
+        raise StoreError(f"a writer lease holder must be 1-{MAX_HOLDER_LEN} printable ASCII characters, "
+                         f"got {holder!r:.60}")
+    return holder
 
 
 class SqlMapStore:
@@ -113,6 +125,12 @@ class SqlMapStore:
     """The first damage a statement reported; sticky until the database is repaired."""
     _IN_IDS: ClassVar[str]
     """``"<column> {_IN_IDS}"`` keeps rows whose column is one of the ids given by :meth:`_ids`."""
+    _FENCE_READ: ClassVar[str] = "SELECT epoch FROM writer_fence WHERE id = 1"
+    """How a map write reads the writer fence (PostgreSQL: ``FOR SHARE``, so a new holder's bump
+    waits for the old holder's write in flight)."""
+    _fence_epoch: int | None = None
+    """The writer-fence epoch this store's writer lease took (None: it never held one, and its
+    map writes are not fenced: tools, tests, a standby's admin edits)."""
 
     def close(self) -> None:
         raise NotImplementedError
@@ -124,6 +142,26 @@ class SqlMapStore:
         self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None:
         self.close()
+
+    def take_writer_fence(self) -> int:
+        """Bump the writer fence's epoch and fence this store's map writes with it (the writer
+        lease calls it when taken; a former holder's writes are refused from now on)."""
+        with self._write("writer lease: fence") as conn:
+            epoch = int(conn.execute("UPDATE writer_fence SET epoch = epoch + 1 WHERE id = 1 RETURNING epoch")
+                        .fetchone()[0])
+        self._fence_epoch = epoch
+        return epoch
+
+    def _fence(self, conn: Any) -> None:
+        """Inside a map write (the writer's: measurements, cursors, graph, checkpoint, objects):
+        StoreError when this store took the writer fence and another holder has since."""
+        held = self._fence_epoch
+        if held is None:
+            return
+        now = int(conn.execute(self._FENCE_READ).fetchone()[0])
+        if now != held:
+            raise StoreError(f"the writer lease moved to another server (fence epoch {held}, now {now}): "
+                             "this server's map writes are refused")
 
     def _first_damage(self, detail: str) -> bool:
         """Record ``detail`` as the store's damage unless one is recorded; True when it was the
@@ -440,6 +478,7 @@ class SqlMapStore:
         obs_rows = [observation_params(o, now_s) for o in observations]
         ids = [o.object_id for o in objects]
         with self._write("object map upsert") as conn:
+            self._fence(conn)
             existing = self._existing(conn, ids)
             conn.executemany(
                 "INSERT INTO objects (object_id, category, confidence, T_world_object, x, y, z, yaw, "
@@ -506,6 +545,7 @@ class SqlMapStore:
         """See :meth:`~wardmap.server.store.protocol.ObjectStore.delete_object`."""
         oid, target = object_id, merged_into
         with self._write("object map delete") as conn:
+            self._fence(conn)
             before = self._records(conn, [oid])
             if oid not in before:
                 raise UnknownObjectError(f"unknown object {oid}")
@@ -643,6 +683,7 @@ class SqlMapStore:
         rows = [(pose.robot_id, pose.session_id, pose.seq, int(anchored), pack_measurement(m))
                 for m in measurements]
         with self._write("mapping: store measurements") as conn:
+            self._fence(conn)
             conn.executemany(
                 "INSERT INTO measurements (robot_id, session_id, seq, anchored, payload) "
                 "VALUES (?, ?, ?, ?, ?)",
@@ -669,6 +710,7 @@ class SqlMapStore:
     def record_mapped(self, poses: Sequence[MappedPose]) -> None:
         """See :meth:`~wardmap.server.store.protocol.MappingStore.record_mapped`."""
         with self._write("mapping: backfill mapped keyframes") as conn:
+            self._fence(conn)
             conn.executemany(_INSERT_MAPPED, [mapped_params(p) for p in poses])
 
     def anchored_keyframes(self, after: int, upto: int, limit: int) -> list[AnchoredKeyframe]:
@@ -709,6 +751,7 @@ class SqlMapStore:
     def close_sessions(self, sessions: Sequence[tuple[str, str]], at_rowid: int) -> None:
         """See :meth:`~wardmap.server.store.protocol.MappingStore.close_sessions`."""
         with self._write("mapping: close idle sessions") as conn:
+            self._fence(conn)
             conn.executemany(
                 "INSERT INTO closed_sessions (robot_id, session_id, at_rowid) VALUES (?, ?, ?) "
                 "ON CONFLICT DO NOTHING",
@@ -738,6 +781,7 @@ class SqlMapStore:
         """See :meth:`~wardmap.server.store.protocol.MappingStore.save_checkpoint`."""
         c = checkpoint
         with self._write("mapping: association checkpoint") as conn:
+            self._fence(conn)
             conn.execute(
                 "INSERT INTO association_checkpoint (id, last_rowid, config_key, state, written_s) "
                 "VALUES (1, ?, ?, ?, ?) ON CONFLICT(id) DO UPDATE SET "
@@ -748,6 +792,7 @@ class SqlMapStore:
     def commit_graph(self, cursor: str, rowid: int, change: GraphChange) -> None:
         """See :meth:`~wardmap.server.store.protocol.GraphStore.commit_graph`."""
         with self._write("back-end: store the pose graph") as conn:
+            self._fence(conn)
             if change.nodes:
                 first = int(conn.execute("SELECT COALESCE(MAX(node_order), 0) FROM graph_nodes")
                             .fetchone()[0])

@@ -58,7 +58,7 @@ from wardmap.server.store.records import (
     StoreUnavailableError,
 )
 from wardmap.server.store.schema import Dialect
-from wardmap.server.store.sqlbase import SqlMapStore
+from wardmap.server.store.sqlbase import SqlMapStore, check_lease_holder
 from wardmap.shared import sqlitedb
 
 log = logging.getLogger(__name__)
@@ -279,6 +279,10 @@ class SqliteMapStore(sqlitedb.GuardedAccess, SqlMapStore):
             return False, f"last write failed: {faults[0]}"
         return True, "ok"
 
+    def writer_lease(self, holder: str) -> SoleLease:
+        """The writer lease of a store only one server uses: always granted (see :class:`SoleLease`)."""
+        return SoleLease(check_lease_holder(holder), self)
+
     def _space_left_pages(self, conn: sqlite3.Connection) -> int:
         """Free pages the file may still use: under ``max_page_count`` and on its disk."""
         page_size, pages, free, cap = (
@@ -390,3 +394,33 @@ class SqliteMapStore(sqlitedb.GuardedAccess, SqlMapStore):
             self._conns = alive
         self._local.conn = conn
         return conn
+
+
+class SoleLease:
+    """The writer lease of an SQLite store (:class:`~wardmap.server.store.protocol.WriterLease`):
+    one server owns the file, so the lease is granted at once (taking the writer fence, as on
+    PostgreSQL) and held until released or the store is closed."""
+
+    def __init__(self, holder: str, store: SqliteMapStore) -> None:
+        self.holder = holder
+        self._store = store
+        self._held = False
+
+    def acquire(self) -> bool:
+        if not self._held and not self._store._closed:
+            try:
+                self._store.take_writer_fence()
+            except StoreError as exc:  # acquire never raises: not granted now
+                log.warning("writer lease: cannot take the writer fence: %s", exc)
+                return False
+            self._held = True
+        return self.held()
+
+    def held(self) -> bool:
+        return self._held and not self._store._closed
+
+    def current_holder(self) -> str | None:
+        return self.holder if self.held() else None
+
+    def release(self) -> None:
+        self._held = False

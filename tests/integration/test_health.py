@@ -67,9 +67,12 @@ def _until(check: Callable[[], bool], timeout_s: float) -> float:
     return time.monotonic() - t0
 
 
-def _ready(http: httpx.Client) -> tuple[int, dict[str, str]]:
+def _ready(http: httpx.Client) -> tuple[int, str]:
+    """``(HTTP status, the body's status)``; the body also says this lone server is the writer."""
     r = http.get("/readyz")
-    return r.status_code, r.json()
+    body = r.json()
+    assert body["mapping"] == "writer", body
+    return r.status_code, body["status"]
 
 
 @pytest.fixture
@@ -104,11 +107,11 @@ def test_readyz_follows_the_router(server_proc: tuple[subprocess.Popen[str], str
         router.wait(timeout=10)
         took = _until(lambda: _ready(http)[0] == 503, 5)
         assert took < 2.0, took
-        assert _ready(http) == (503, {"status": "zenoh router not connected"})
+        assert _ready(http) == (503, "zenoh router not connected")
         assert http.get("/healthz").status_code == 200
         again = _router(endpoint)
         try:
-            _until(lambda: _ready(http) == (200, {"status": "ok"}), 10)
+            _until(lambda: _ready(http) == (200, "ok"), 10)
             acks: queue.Queue[AckMsg] = queue.Queue()
             with (
                 open_client(endpoint) as session,

@@ -51,11 +51,12 @@ RUN_TIMEOUT_S = 90.0
 
 @pytest.fixture(scope="module")
 def site(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A site folder: CA, router (127.0.0.1), server, robot_0, robot_1 and their ACL; beside
-    it ``other/``, a second CA with its own robot_0."""
+    """A site folder: CA, router and router_b (127.0.0.1), server, robot_0, robot_1 and their
+    ACL; beside it ``other/``, a second CA with its own robot_0."""
     root = tmp_path_factory.mktemp("tls")
     init_ca(root / "site")
     issue(root / "site", "router", "router", hosts=["127.0.0.1"])
+    issue(root / "site", "router_b", "router", hosts=["127.0.0.1"])
     for name, role in (("server", "server"), ("robot_0", "robot"), ("robot_1", "robot")):
         issue(root / "site", name, role)  # type: ignore[arg-type]
     init_ca(root / "other")
@@ -180,9 +181,9 @@ class _Inbox:
     def on_sample(self, sample: Any) -> None:
         self.add(str(sample.key_expr), sample.payload.to_bytes())
 
-    def wait_for(self, ok: Any) -> bool:
+    def wait_for(self, ok: Any, timeout_s: float = EVENT_TIMEOUT_S) -> bool:
         with self._changed:
-            return self._changed.wait_for(lambda: any(ok(k, p) for k, p in self.items), EVENT_TIMEOUT_S)
+            return self._changed.wait_for(lambda: any(ok(k, p) for k, p in self.items), timeout_s)
 
 
 PROBE = b"probe"
@@ -266,3 +267,32 @@ def test_a_robot_certificate_cannot_impersonate_forge_or_eavesdrop(
     assert correction in [p for _, p in r1_corrections.items]
     robot_1 = _robots(server)["robot_1"]
     assert (robot_1["keyframes"], robot_1["sessions"]) == (1, 1)  # "genuine" only, not "forged"
+
+
+def test_a_second_router_joins_the_mesh_over_mutual_tls(site: Path, router: str) -> None:
+    """router_b (its own certificate, the fleet's ACL) joins the fixture's router with
+    ``--connect``: a keyframe robot_0 puts through router_b reaches a server-certificate
+    subscriber on the first router (the ACL admits router certificates as it admits servers)."""
+    endpoint = f"tls/127.0.0.1:{free_port()}"
+    proc = start(wardmap_cmd("router", "--listen", endpoint, "--connect", router, *_flags(site, "router_b"),
+                             "--zenoh-config", str(site / ACL_FILE)),
+                 f"router listening on {endpoint}", READY_TIMEOUT_S)
+    inbox = _Inbox()
+    try:
+        with (_open(router, _options(site, "server")) as trusted,
+              _open(endpoint, _options(site, "robot_0")) as robot):
+            key = keyframe_key("robot_0")
+            sub = trusted.declare_subscriber(key, inbox.on_sample)
+            try:
+                _subscribed(trusted, key, inbox)
+                # router_b joins and learns the route a moment after it listens: put until one arrives
+                for _ in range(int(EVENT_TIMEOUT_S / 0.5)):
+                    robot.put(key, b"through the mesh")
+                    if inbox.wait_for(lambda _k, p: p == b"through the mesh", 0.5):
+                        break
+                else:
+                    pytest.fail("nothing crossed from router_b to the router")
+            finally:
+                sub.undeclare()
+    finally:
+        stop(proc)

@@ -112,12 +112,15 @@ class _Pipeline:
     def stop(self) -> None:
         self.events.append("pipeline stopped")
 
+    def running(self) -> bool:
+        return True
+
 
 def test_one_session_shared_and_closed_last(router: str, tmp_path: Path, events: list[str]) -> None:
     """Ingest and map service run on one session; stop undeclares (pipeline, map service,
     ingest) before the session closes; a robot's query is answered meanwhile."""
     server = MapServer(f"sqlite:///{tmp_path / 'm.db'}", connect=[router],
-                       pipeline_factory=lambda store, objects: _Pipeline(events))  # type: ignore[arg-type,return-value]
+                       pipeline_factory=lambda store, objects, decoded: _Pipeline(events))  # type: ignore[arg-type,return-value]
     services = server.start()
     assert services.ingest is not None and server.services is services
     assert events == ["session opened", "corrections wired", "pipeline started"]
@@ -135,7 +138,7 @@ def test_failed_start_stops_what_started(router: str, tmp_path: Path, events: li
     closed, the error propagates, and the server can be started again."""
     fail = [True]
     server = MapServer(f"sqlite:///{tmp_path / 'm.db'}", connect=[router],
-                       pipeline_factory=lambda store, objects: _Pipeline(events, fail[0]))  # type: ignore[arg-type,return-value]
+                       pipeline_factory=lambda store, objects, decoded: _Pipeline(events, fail[0]))  # type: ignore[arg-type,return-value]
     with pytest.raises(ConfigError, match="pipeline cannot start"):
         server.start()
     assert events == ["session opened", "corrections wired", "mapserve stopped", "ingest stopped",

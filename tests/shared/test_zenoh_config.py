@@ -41,6 +41,18 @@ def test_router_config_defaults_off() -> None:
     assert json.loads(json.dumps(cfg)) == cfg  # JSON (hence JSON5) serialisable
 
 
+def test_router_config_joins_other_routers() -> None:
+    """``connect`` makes a mesh: the other routers' endpoints, checked like listen's; extra may
+    not change them; without it the router connects to nothing."""
+    cfg = router_config(["tcp/127.0.0.1:7447"], connect=["tcp/10.0.0.2:7447"])
+    assert cfg["connect"] == {"endpoints": ["tcp/10.0.0.2:7447"]}
+    assert "connect" not in router_config(["tcp/127.0.0.1:7447"])
+    with pytest.raises(ConfigError, match="router connect"):
+        router_config(["tcp/127.0.0.1:7447"], connect=["tcp/a:1", "tcp/a:1"])
+    with pytest.raises(ConfigError, match="connect"):
+        router_config(["tcp/127.0.0.1:7447"], extra={"connect": {"endpoints": []}})
+
+
 def test_router_config_flags_and_extra_merge() -> None:
     """Flags switch shm/scouting on; extra merges recursively without losing siblings."""
     cfg = router_config(

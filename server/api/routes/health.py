@@ -1,7 +1,8 @@
 """``GET /healthz``: the liveness probe (the process answers); ``GET /readyz``: the readiness
 probe (503 while no router is connected, keyframes cannot be stored, or the mapping stage is
 stopped or too far behind; the body names a fixed category, the server logs the full reason:
-``server/api/readiness.py``)."""
+``server/api/readiness.py``; with a mapping stage it also says whether this server is the
+writer or a standby, and the writer's name)."""
 
 from __future__ import annotations
 
@@ -26,4 +27,8 @@ def readyz(services: ServicesDep) -> JSONResponse:
     about 1 s on a locked database, off the event loop."""
     ok, why = check(services)
     services.readiness.note(ok, why)
-    return JSONResponse({"status": "ok" if ok else public_reason(why)}, status_code=200 if ok else 503)
+    body: dict[str, str | None] = {"status": "ok" if ok else public_reason(why)}
+    if services.mapping is not None:
+        lease = services.mapping.state()
+        body.update(mapping="writer" if lease.held else "standby", writer=lease.holder)
+    return JSONResponse(body, status_code=200 if ok else 503)

@@ -16,6 +16,7 @@ from wardmap.server.api.prometheus import (
     decoded_metrics,
     exposition,
     ingest_metrics,
+    lease_metrics,
     map_metrics,
     metrics_registry,
     pipeline_metrics,
@@ -24,6 +25,7 @@ from wardmap.server.backend.stage import BackendCounters
 from wardmap.server.decoded import DecodedCounters
 from wardmap.server.ingest import IngestCounters
 from wardmap.server.mapping import PipelineCounters
+from wardmap.server.mapping.role import LeaseState
 from wardmap.server.perception.measure import SKIP_KINDS
 
 CONTRACT = {
@@ -36,6 +38,8 @@ CONTRACT = {
     "wardmap_keyframes_retry_later_total": ("counter", ()),
     "wardmap_robots": ("gauge", ()),
     "wardmap_map_objects": ("gauge", ("confirmed",)),
+    "wardmap_mapping_lease_held": ("gauge", ()),
+    "wardmap_mapping_writer_info": ("gauge", ("holder", "server")),
     "wardmap_mapping_backlog": ("gauge", ()),
     "wardmap_mapping_keyframes_total": ("counter", ()),
     "wardmap_mapping_measurements_total": ("counter", ()),
@@ -51,6 +55,8 @@ CONTRACT = {
     "wardmap_mapping_beyond_range_total": ("counter", ()),
     "wardmap_mapping_instances_skipped_total": ("counter", ("kind",)),
     "wardmap_mapping_rebuilds_total": ("counter", ()),
+    "wardmap_mapping_map_epoch": ("gauge", ()),
+    "wardmap_mapping_settled_rowid": ("gauge", ()),
     "wardmap_backend_backlog": ("gauge", ()),
     "wardmap_backend_keyframes_total": ("counter", ()),
     "wardmap_backend_graph_nodes": ("gauge", ()),
@@ -76,6 +82,18 @@ def _pipeline(**kw: Any) -> PipelineCounters:
 def _backend() -> BackendCounters:
     return BackendCounters(12, 40, 2, 1, 30, {"few matches": 25, "anchor vote": 2}, {"WireError": 1}, 0, 3,
                            20_000)
+
+
+def test_lease_metrics_say_who_writes() -> None:
+    """The writer: held 1 and itself as holder; a standby: held 0 and the writer's name; nobody
+    holding the lease: no holder sample."""
+    _, writer = _parse(exposition(lease_metrics(LeaseState(True, "a", "a"))))
+    held = "wardmap_mapping_lease_held"
+    assert writer == {held: 1, 'wardmap_mapping_writer_info{holder="a",server="a"}': 1}
+    _, standby = _parse(exposition(lease_metrics(LeaseState(False, "a", "b"))))
+    assert standby == {held: 0, 'wardmap_mapping_writer_info{holder="a",server="b"}': 1}
+    _, nobody = _parse(exposition(lease_metrics(LeaseState(False, None, "b"))))
+    assert nobody == {held: 0}
 
 
 def test_backend_counters() -> None:
@@ -105,6 +123,7 @@ def _parse(text: str) -> tuple[dict[str, str], dict[str, float]]:
 def test_names_types_and_labels_are_the_contract() -> None:
     """Every metric keeps its name, type and labels, in the documented order."""
     families = (ingest_metrics(IngestCounters(1, 2, 3, 4, 5, 6), {"store": 1}, 2) + map_metrics(3, 1)
+                + lease_metrics(LeaseState(True, "server-a", "server-a"))
                 + pipeline_metrics(_pipeline(skipped={"little_depth": 1}))
                 + backend_metrics(_backend()) + decoded_metrics(DecodedCounters(1, 2, 3, 4, 5, 6, 7, 8)))
     text = exposition(families)

@@ -8,6 +8,8 @@ PostgreSQL 15 binaries are absent.
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -17,6 +19,7 @@ import pytest
 
 from wardmap.server.store import (
     PASSWORD_ENV,
+    GraphChange,
     PostgresMapStore,
     StoreDamagedError,
     StoreError,
@@ -33,6 +36,7 @@ from .conftest import keyframe
 psycopg = pytest.importorskip("psycopg")
 
 RECOVERY_TIMEOUT_S = 30.0
+LEASE_MOVE_S = 5.0
 
 
 @pytest.fixture
@@ -234,3 +238,81 @@ def test_error_classification(error: str, kind: type[StoreError]) -> None:
     retry heals it), "cannot now" states are unavailable (ingest acks retry), a bug is a StoreError."""
     assert classify_postgres_error(getattr(psycopg.errors, error)("x")) is kind
     assert classify_postgres_error(psycopg.OperationalError("connection lost")) is StoreUnavailableError
+
+
+def test_one_server_holds_the_writer_lease_at_a_time(url: str) -> None:
+    """Two stores on one database (as two servers): the first to ask gets the writer lease, the
+    second does not, both name the same holder; once the holder gives it back the second gets
+    it; a bad holder name is refused."""
+    with open_store(url) as a_store, open_store(url) as b_store:
+        a, b = a_store.writer_lease("server-a"), b_store.writer_lease("server-b")
+        assert a_store.writer_lease("server-a").current_holder() is None
+        assert a.acquire() and a.acquire()  # asking again while holding it keeps it
+        assert not b.acquire()
+        assert a.held() and not b.held()
+        assert a.current_holder() == b.current_holder() == "server-a"
+        a.release()
+        assert not a.held()
+        assert b.acquire() and b.held()
+        assert a.current_holder() == "server-b"
+        assert not a.acquire()
+        b.release()
+        with pytest.raises(StoreError, match="printable ASCII"):
+            a_store.writer_lease("")
+        with pytest.raises(StoreError, match="printable ASCII"):
+            a_store.writer_lease("x" * 41)
+
+
+def test_the_writer_lease_moves_when_its_holder_is_killed(pg_cluster: pgcluster.Cluster, url: str) -> None:
+    """A process holding the writer lease is SIGKILLed: the database releases it with the dead
+    process's connection and a standby store acquires it within LEASE_MOVE_S; a holder whose
+    lease connection the database ends (``pg_terminate_backend``) sees ``held()`` False."""
+    code = ("import sys, time; from wardmap.server.store import open_store\n"
+            "s = open_store(sys.argv[1]); l = s.writer_lease('doomed')\n"
+            "print('held' if l.acquire() else 'refused', flush=True); time.sleep(600)\n")
+    proc = subprocess.Popen([sys.executable, "-c", code, url], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None and proc.stdout.readline().strip() == "held"
+        with open_store(url) as store:
+            lease = store.writer_lease("standby")
+            assert not lease.acquire()
+            assert lease.current_holder() == "doomed"
+            proc.kill()
+            killed = time.monotonic()
+            while not lease.acquire():
+                assert time.monotonic() - killed < LEASE_MOVE_S, "the lease did not move"
+                time.sleep(0.05)  # polling the database, bounded by LEASE_MOVE_S
+            assert lease.current_holder() == "standby"
+            pg_cluster.psql("SELECT pg_terminate_backend(pid) FROM pg_stat_activity "
+                            "WHERE application_name = 'wardmap writer lease: standby'")
+            assert not lease.held()
+            assert lease.current_holder() is None
+            assert lease.acquire()  # a new connection takes it again
+    finally:
+        proc.kill()
+        proc.wait(timeout=30)
+
+
+def test_a_former_writer_cannot_write_the_map(pg_cluster: pgcluster.Cluster, url: str) -> None:
+    """The writer fence: server A holds the lease and writes; its lease connection ends (the
+    database released the lock) and B takes the lease; A's next map writes (graph, cursor,
+    checkpoint) are refused and change nothing, while B writes. A store that never held the
+    lease is not fenced."""
+    with open_store(url) as a_store, open_store(url) as b_store:
+        a = a_store.writer_lease("server-a")
+        assert a.acquire()
+        a_store.commit_graph("backend", 1, GraphChange(bump_epoch=True))
+        pg_cluster.psql("SELECT pg_terminate_backend(pid) FROM pg_stat_activity "
+                        "WHERE application_name = 'wardmap writer lease: server-a'")
+        assert b_store.writer_lease("server-b").acquire()
+        with pytest.raises(StoreError, match="writer lease moved"):
+            a_store.commit_graph("backend", 2, GraphChange(bump_epoch=True))
+        with pytest.raises(StoreError, match="writer lease moved"):
+            a_store.close_sessions([("r1", "s1")], 2)
+        assert a_store.cursor("backend") == 1 and a_store.graph_epoch() == 1
+        assert a_store.closed_sessions() == []
+        b_store.commit_graph("backend", 2, GraphChange(bump_epoch=True))
+        assert b_store.graph_epoch() == 2
+        with open_store(url) as unfenced:
+            unfenced.close_sessions([("r1", "s1")], 2)
+            assert len(unfenced.closed_sessions()) == 1

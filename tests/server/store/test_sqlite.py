@@ -252,3 +252,19 @@ def test_postgres_url_without_psycopg_says_how_to_install(monkeypatch: pytest.Mo
     with pytest.raises(StoreError, match=r"pip install 'wardmap\[postgres\]'") as info:
         open_store("postgresql://wardmap@127.0.0.1:5432/wardmap")
     assert "\n" not in str(info.value)
+
+
+def test_the_writer_lease_of_a_sqlite_store_is_its_one_servers(tmp_path: Path) -> None:
+    """SQLite serves one server: its writer lease is granted at once, names that server, and is
+    no longer held once given back or once the store is closed."""
+    store = SqliteMapStore.open(tmp_path / "map.db")
+    lease = store.writer_lease("solo")
+    assert not lease.held() and lease.current_holder() is None
+    assert lease.acquire() and lease.held() and lease.current_holder() == "solo"
+    lease.release()
+    assert not lease.held()
+    assert lease.acquire()
+    store.close()
+    assert not lease.held() and not lease.acquire()
+    with pytest.raises(StoreError, match="printable ASCII"):
+        store.writer_lease("two\nlines")

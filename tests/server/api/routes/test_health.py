@@ -108,3 +108,29 @@ def test_readiness_needs_the_router_and_a_mapping_stage_keeping_up(
         ok, why = check(services)
     assert ok == (public == "ok")
     assert (why if ok else public_reason(why)) == public
+
+
+class _Standby:
+    """A writer-lease role of a server whose lease another server holds (no stage here)."""
+
+    pipeline = None
+
+    def __init__(self, running: bool) -> None:
+        self._running = running
+
+    def running(self) -> bool:
+        return self._running
+
+
+@pytest.mark.parametrize(("running", "public"), [(True, "ok"), (False, "mapping stage not running")])
+def test_a_standby_is_ready_while_its_lease_thread_runs(
+    keyframe_scene: Any, running: bool, public: str
+) -> None:
+    """A standby (another server holds the writer lease and maps) stores keyframes and serves, so
+    it is ready with no mapping stage of its own; not ready once its lease thread stopped (it
+    could never take over)."""
+    with open_store(keyframe_scene.url) as store:
+        services = Services(store=store, objects=ObjectMap(store), mapping=_Standby(running),  # type: ignore[arg-type]
+                            router_connected=lambda: True)
+        ok, why = check(services)
+    assert (why if ok else public_reason(why)) == public
