@@ -25,7 +25,7 @@ CPU time. Not a test: nothing asserts a figure.
 Needs Debian's libgl1 libegl1 libopengl0 libsm6 libice6 (the wheel's viewer links them).
 
     python bench/orbslam3.py [--repeats 2] [--seed 2001] [--scenarios aisle_slow_2 aisle_quick_3]
-                             [--vocab out/orbslam3/voc_sim.txt] [--write BENCHMARKS.md]
+                             [--vocab-depth 6] [--vocab FILE] [--write BENCHMARKS.md]
 """
 
 from __future__ import annotations
@@ -264,10 +264,11 @@ def main() -> int:
     ap.add_argument("--data", type=Path, default=ROOT / "out" / "bench_data",
                     help="cached simulated data sets")
     ap.add_argument("--venv", type=Path, default=ROOT / "out" / "orbslam3-venv", help="pyorbslam3's venv")
-    ap.add_argument("--vocab", type=Path, default=ROOT / "out" / "orbslam3" / "voc_sim.txt",
-                    help="DBoW2 text vocabulary; trained on simulated training worlds when absent")
+    ap.add_argument("--vocab", type=Path, help="DBoW2 text vocabulary (default "
+                    "out/orbslam3/voc_sim_kK_LL.txt, trained on simulated training worlds when absent)")
     ap.add_argument("--vocab-k", type=int, default=10)
-    ap.add_argument("--vocab-depth", type=int, default=4)
+    ap.add_argument("--vocab-depth", type=int, default=6,
+                    help="levels (default 6, as ORB-SLAM's own: it matches within the nodes 4 levels up)")
     ap.add_argument("--train-seeds", type=int, nargs="+", default=[1], help="vocabulary's worlds (< 1000)")
     ap.add_argument("--seed", type=int, default=EVAL_SEEDS[0], help="evaluation world of the scenarios")
     ap.add_argument("--scenarios", nargs="+", default=["aisle_slow_2", "aisle_quick_3"])
@@ -284,12 +285,14 @@ def main() -> int:
     cv2.setNumThreads(1)
     check_debian_libs()
     py = ensure_venv(args.venv)
+    shape = f"k{args.vocab_k}_L{args.vocab_depth}"
+    args.vocab = args.vocab or ROOT / "out" / "orbslam3" / f"voc_sim_{shape}.txt"
     sim_note = ensure_vocabulary(args.vocab, training_recordings(args.data, args.train_seeds),
                                  args.vocab_k, args.vocab_depth)
     notes = [f"Vocabulary `sim` (every ORB-SLAM3 row unless marked): {sim_note} (simulated training worlds, "
              "none of the recordings below)."]
     recordings = [(f"{s} seed {args.seed}", sim_recording(args.data, s, args.seed)) for s in args.scenarios]
-    tum_vocab = args.vocab.with_name("voc_tum_excerpt.txt")
+    tum_vocab = args.vocab.with_name(f"voc_tum_excerpt_{shape}.txt")
     if not args.no_tum:
         if TUM.is_dir():
             recordings.insert(0, ("TUM fr1 rpy excerpt", TUM))
@@ -334,7 +337,7 @@ def main() -> int:
     body = (
         "## Reference: ORB-SLAM3 RGB-D vs wardmap (issue 41)\n\n"
         f"Command: `python bench/orbslam3.py --repeats {args.repeats} --seed {args.seed} --scenarios "
-        f"{' '.join(args.scenarios)} --write BENCHMARKS.md`  \n"
+        f"{' '.join(args.scenarios)} --vocab-depth {args.vocab_depth} --write BENCHMARKS.md`  \n"
         f"Machine: {machine()}; shared with other jobs, so times are upper bounds and wall clock is "
         f"inflated most; commit {git_rev()}.  \n"
         f"ORB-SLAM3: {PYORBSLAM3} (GPL, in its own venv, never a wardmap dependency), RGB-D, "

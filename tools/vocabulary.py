@@ -15,6 +15,11 @@ in node-id order (node 0 is the root and has no line): ``parent_id is_leaf d0 d1
 weight``, the descriptor as 32 byte values. A node's parent always comes before it; words
 are numbered in the order their lines appear.
 
+Use ORB-SLAM's shape, ``k = 10`` and ``L = 6``, for ORB-SLAM: it matches the features of two
+frames only within the same node 4 levels above the words (its ``FeatureVector``, level
+``L - 4``, at least 1); with ``L = 4`` that is one of only 10 nodes, and its ratio test then
+rejects most matches (bench/orbslam3.py lost track on the aisles with it).
+
 Training runs on images we own (simulated frames, our recordings): ORB-SLAM's published
 vocabulary is neither shipped with wardmap nor downloadable where it runs.
 """
@@ -22,7 +27,6 @@ vocabulary is neither shipped with wardmap nor downloadable where it runs.
 from __future__ import annotations
 
 import logging
-import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -251,7 +255,7 @@ def train_vocabulary(
     images: Sequence[U8],
     *,
     k: int = 10,
-    depth: int = 4,
+    depth: int = 6,
     seed: int = 0,
     max_iter: int = 10,
     progress: Callable[[int, int], None] | None = None,
@@ -361,7 +365,3 @@ def _check_descriptors(d: object, what: str) -> U8:
                            f"{a.shape} {a.dtype}")
     return np.ascontiguousarray(a)
 
-
-def expected_words(k: int, depth: int) -> int:
-    """The most words a tree of branching ``k`` and ``depth`` levels can have."""
-    return int(math.pow(k, depth))
