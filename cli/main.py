@@ -29,6 +29,7 @@ from wardmap.cli import (
     token_cmd,
     track_cmd,
     train_seg_cmd,
+    vocab_cmd,
 )
 from wardmap.shared.errors import WardmapError
 from wardmap.shared.logsetup import configure_logging
@@ -70,6 +71,7 @@ def build_parser() -> argparse.ArgumentParser:
     edge_cmd.register(sub)
     demo_cmd.register(sub)
     export_cmd.register(sub)
+    vocab_cmd.register(sub)
     return parser
 
 
