@@ -7,7 +7,9 @@ happens at construction (the calibration must be known before the stream starts,
 that cannot see its camera at start says so and exits). When the inner source raises
 :class:`SourceLostError` (unplugged, no frames for a while) it logs one warning, retries the connector
 with a capped exponential backoff (:data:`BACKOFF_FIRST_S` doubling to :data:`BACKOFF_MAX_S`),
-logs one line when the source is back and counts it in ``reconnects``. Failed retries are logged
+and logs one line when events flow again (connected is not enough: a ROS 2 subscription always
+"connects") and counts it in ``reconnects``. A connection that gives nothing before it is lost
+is a failed try. Failed retries are logged
 at debug level only: one line per state change. A camera that comes back with another
 calibration (another camera in the same port) is an error: the tracker's map and the intrinsics
 it was built with would disagree.
@@ -112,6 +114,7 @@ class ReconnectingSource:
         lost_at = 0.0
         while not self._stop.is_set():
             source = self._current
+            self._current = None
             if source is None:
                 try:
                     source = self._connect(self._stop)
@@ -124,15 +127,16 @@ class ReconnectingSource:
                     _close(source)
                     raise DatasetError(f"{self.name} came back with another calibration (another "
                                        "camera?); restart the edge to track with it")
-                self.reconnects += 1
-                self.up = True
-                delay = first
-                log.warning("%s: back after %.1f s (reconnect %d)", self.name,
-                            time.monotonic() - lost_at, self.reconnects)
-            self._current = None
             events = source.events()
+            flowing = False  # back (or up at start) once the first event came, not at connect
             try:
                 for event in events:
+                    if not self.up:
+                        self.reconnects += 1
+                        self.up = True
+                        log.warning("%s: back after %.1f s (reconnect %d)", self.name,
+                                    time.monotonic() - lost_at, self.reconnects)
+                    flowing = True
                     yield event
                     if self._stop.is_set():
                         return
@@ -140,9 +144,17 @@ class ReconnectingSource:
                     return
                 raise SourceLostError("its stream ended")
             except SourceLostError as exc:
-                self.up = False
-                lost_at = time.monotonic()
-                log.warning("%s: lost (%s); reconnecting", self.name, exc)
+                if self.up:
+                    self.up = False
+                    lost_at = time.monotonic()
+                    log.warning("%s: lost (%s); reconnecting", self.name, exc)
+                else:
+                    log.debug("%s: still away (%s); next try in %.1f s", self.name, exc, delay)
+                if flowing:
+                    delay = first
+                else:  # connected but nothing came: a failed try, backed off like one
+                    self._stop.wait(delay)
+                    delay = min(2 * delay, cap)
             finally:
                 _close(events)  # a generator: runs the inner source's own clean-up
 

@@ -7,12 +7,11 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Iterator
-from typing import Any
 
 import cv2
 import numpy as np
 import pytest
-from peers import open_client, router_on_thread
+from peers import router_on_thread
 
 from wardmap.edge.bag import BagSourceConfig
 from wardmap.edge.live import SourceLostError
@@ -25,17 +24,16 @@ from wardmap.edge.ros2live import (
     topic_key,
 )
 from wardmap.edge.stream import OdometrySample
+from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.dataset import Frame
 from wardmap.shared.errors import ConfigError
-from wardmap.shared.se3 import transform_to_tum, yaw_transform
+from wardmap.shared.se3 import yaw_transform
 
 rosbags = pytest.importorskip("rosbags", reason="the ros extra (rosbags) is not installed")
-from rosbags.typesys import Stores, get_typestore  # noqa: E402
+from ros2robot import Robot, T, camera_info, header, image, odometry  # noqa: E402
 
-TS = get_typestore(Stores.ROS2_HUMBLE)
-T = TS.types
-HASH = "RIHS01_" + "0" * 64  # the subscriber matches any type hash
 W, H = 32, 24
+CAMERA = PinholeCamera(W, H, 30.0, 30.0, 16.0, 12.0)
 
 
 def test_keys_follow_rmw_zenoh_and_the_dds_bridge() -> None:
@@ -57,62 +55,6 @@ def test_the_domain_comes_from_the_config_else_ros_domain_id(monkeypatch: pytest
     monkeypatch.setenv("ROS_DOMAIN_ID", "x")
     with pytest.raises(ConfigError, match="ROS_DOMAIN_ID"):
         parse_spec("ros2:", BagSourceConfig())
-
-
-def _header(stamp: float, frame: str = "camera_color_optical_frame") -> Any:
-    ns = round(stamp * 1e6) * 1000
-    time_msg = T["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9)
-    return T["std_msgs/msg/Header"](stamp=time_msg, frame_id=frame)
-
-
-def _image(stamp: float, pixels: np.ndarray, encoding: str) -> Any:
-    data = np.ascontiguousarray(pixels).view(np.uint8).reshape(-1)
-    return T["sensor_msgs/msg/Image"](header=_header(stamp), height=H, width=W, encoding=encoding,
-                                      is_bigendian=0, step=data.size // H, data=data)
-
-
-def _camera_info() -> Any:
-    roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
-    K = np.array([30.0, 0, 16, 0, 30.0, 12, 0, 0, 1])
-    return T["sensor_msgs/msg/CameraInfo"](
-        header=_header(0.5), height=H, width=W, distortion_model="plumb_bob", d=np.zeros(5), k=K,
-        r=np.eye(3).reshape(-1), p=np.zeros(12), binning_x=0, binning_y=0, roi=roi)
-
-
-def _odometry(stamp: float, pose: np.ndarray) -> Any:
-    v = transform_to_tum(pose)
-    p = T["geometry_msgs/msg/Pose"](
-        position=T["geometry_msgs/msg/Point"](x=v[0], y=v[1], z=v[2]),
-        orientation=T["geometry_msgs/msg/Quaternion"](x=v[3], y=v[4], z=v[5], w=v[6]))
-    zero = T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
-    return T["nav_msgs/msg/Odometry"](
-        header=_header(stamp, "odom"), child_frame_id="base_link",
-        pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=p, covariance=np.zeros(36)),
-        twist=T["geometry_msgs/msg/TwistWithCovariance"](
-            twist=T["geometry_msgs/msg/Twist"](linear=zero, angular=zero), covariance=np.zeros(36)))
-
-
-class Robot:
-    """A ROS 2 robot as rmw_zenoh puts it on Zenoh: ``put(topic, msg)`` publishes the CDR bytes on
-    ``<domain>/<topic>/<dds type>/<hash>``."""
-
-    def __init__(self, endpoint: str, domain: int = 0) -> None:
-        self.session = open_client(endpoint)
-        self.domain = domain
-
-    def put(self, topic: str, msg: Any) -> None:
-        msgtype = msg.__msgtype__
-        key = f"{self.domain}/{topic.strip('/')}/{dds_type_name(msgtype)}/{HASH}"
-        self.session.put(key, bytes(TS.serialize_cdr(msg, msgtype)))
-
-    def keep_putting(self, topic: str, msg: Any, until: threading.Event) -> threading.Thread:
-        """Put ``msg`` every 50 ms until ``until`` is set (a camera driver's CameraInfo)."""
-        def run() -> None:
-            while not until.wait(0.05):
-                self.put(topic, msg)
-        t = threading.Thread(target=run, daemon=True)
-        t.start()
-        return t
 
 
 @pytest.fixture
@@ -137,7 +79,7 @@ def test_frames_and_odometry_come_from_the_robots_topics(robot: tuple[str, Robot
     cfg = BagSourceConfig(rgb_topic="/camera/color/image_raw/compressed" if compressed else
                           "/camera/color/image_raw", ros_stall_s=3.0)
     stop, connected = threading.Event(), threading.Event()
-    info = bot.keep_putting(cfg.camera_info_topic, _camera_info(), connected)
+    info = bot.keep_putting(cfg.camera_info_topic, camera_info(CAMERA), connected)
     source = Ros2Source(cfg, parse_spec(f"ros2:{endpoint}", cfg), stop)  # waits for the CameraInfo
     connected.set()
     info.join()
@@ -146,20 +88,20 @@ def test_frames_and_odometry_come_from_the_robots_topics(robot: tuple[str, Robot
     assert source.live and source.has_odometry
     frames = _frames(8)
     for k, (stamp, rgb, depth) in enumerate(frames):
-        bot.put("/odom", _odometry(stamp - 0.01, yaw_transform(0.1 * k, 0.0, 0.0)))
+        bot.put("/odom", odometry(stamp - 0.01, yaw_transform(0.1 * k, 0.0, 0.0)))
         if compressed:
             ok, jpeg = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
             assert ok
             bot.put(cfg.rgb_topic, T["sensor_msgs/msg/CompressedImage"](
-                header=_header(stamp), format="png", data=np.asarray(jpeg, np.uint8).reshape(-1)))
+                header=header(stamp), format="png", data=np.asarray(jpeg, np.uint8).reshape(-1)))
         else:
-            bot.put(cfg.rgb_topic, _image(stamp, rgb, "rgb8"))
-        bot.put(cfg.depth_topic, _image(stamp, depth, "32FC1"))
+            bot.put(cfg.rgb_topic, image(stamp, rgb, "rgb8"))
+        bot.put(cfg.depth_topic, image(stamp, depth, "32FC1"))
     got: list[Frame] = []
-    odometry: list[OdometrySample] = []
+    odo: list[OdometrySample] = []
     for ev in source.events():
         if isinstance(ev, OdometrySample):
-            odometry.append(ev)
+            odo.append(ev)
         elif isinstance(ev, Frame):
             got.append(ev)
         if len(got) == len(frames) - 1:  # the last waits for a later depth image to settle its pair
@@ -169,15 +111,15 @@ def test_frames_and_odometry_come_from_the_robots_topics(robot: tuple[str, Robot
     for frame, (_, rgb, depth) in zip(got, frames, strict=False):
         np.testing.assert_array_equal(frame.rgb, rgb)  # rgb8 and PNG are exact
         np.testing.assert_array_equal(frame.depth_m, depth)
-    assert len(odometry) >= len(got)
-    np.testing.assert_allclose(odometry[3].T_odom_base, yaw_transform(0.3, 0.0, 0.0), atol=1e-9)
+    assert len(odo) >= len(got)
+    np.testing.assert_allclose(odo[3].T_odom_base, yaw_transform(0.3, 0.0, 0.0), atol=1e-9)
 
 
 def test_no_images_for_a_while_is_a_lost_source(robot: tuple[str, Robot]) -> None:
     endpoint, bot = robot
     cfg = BagSourceConfig(ros_stall_s=0.5, odom_topic="")
     stop, connected = threading.Event(), threading.Event()
-    info = bot.keep_putting(cfg.camera_info_topic, _camera_info(), connected)
+    info = bot.keep_putting(cfg.camera_info_topic, camera_info(CAMERA), connected)
     source = Ros2Source(cfg, parse_spec(f"ros2:{endpoint}", cfg), stop)
     connected.set()
     info.join()
