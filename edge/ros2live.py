@@ -67,6 +67,9 @@ DEFAULT_ENDPOINT: Final = "tcp/127.0.0.1:7447"
 KEY_FORMATS: Final = ("rmw_zenoh", "ros2dds")
 QUEUE_SIZE: Final = 256
 """Messages waiting for the producer thread at most (about 2 s of a 30 Hz camera and 50 Hz odometry)."""
+MAX_MESSAGE_BYTES: Final = 64 << 20
+"""Largest ROS message the session takes (a 4K ``32FC1`` depth image is 33 MB); wardmap's own
+sessions keep the wire's 4 MiB limit."""
 POLL_S: Final = 0.2
 """Longest single wait for a message (a stop request is seen this soon)."""
 
@@ -187,7 +190,9 @@ class Ros2Source:
             import zenoh
         except ImportError as exc:  # a dependency of wardmap; only a broken install lacks it
             raise ConfigError("the ros2: source needs eclipse-zenoh") from exc
-        cfg = zenoh.Config.from_json5(json.dumps(client_config([self.options.endpoint])))
+        ours = client_config([self.options.endpoint])
+        ours["transport"]["link"]["rx"]["max_message_size"] = MAX_MESSAGE_BYTES  # images, not keyframes
+        cfg = zenoh.Config.from_json5(json.dumps(ours))
         try:
             self._session = zenoh.open(cfg)
         except zenoh.ZError as exc:
