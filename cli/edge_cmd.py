@@ -21,10 +21,13 @@ OUTBOX_FILE = "outbox.sqlite"
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "edge",
-        help="run one robot: track a data set or a simulated robot and send keyframes to the map server",
-        description="Track a data-set folder (or a robot the simulator renders live) with the edge "
+        help="run one robot: track a camera, ROS 2 topics, a recording or a simulated robot and send "
+        "keyframes to the map server",
+        description="Track a live source (a RealSense camera, a ROS 2 robot's topics over Zenoh), a "
+        "data-set folder, a recording or a robot the simulator renders live with the edge "
         "frontend and send every keyframe over "
-        "Zenoh through a durable outbox (re-sent until the server acks it). Prints one ready line, "
+        "Zenoh through a durable outbox (re-sent until the server acks it). A live source runs until "
+        "stopped and reconnects when it goes away. Prints one ready line, "
         "then a JSON summary line at the end. SIGTERM/Ctrl-C stop tracking and flush.",
     )
     p.add_argument("--robot", required=True, metavar="ID", help="robot id, 1-64 of [A-Za-z0-9_.-]")
@@ -38,6 +41,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--drop-when-behind", action="store_true", default=None,
                    help="replay like a camera: drop (and count) frames tracking cannot keep up with")
     p.add_argument("--max-frames", type=int, metavar="K", help="stop after K frames")
+    p.add_argument("--record", type=Path, metavar="DIR",
+                   help="also write every frame and odometry sample the source gives to this new "
+                   "data-set folder (replay it with wardmap track DIR)")
     p.add_argument("--labels", metavar="none|oracle|onnx:PATH",
                    help="label source for dynamic-point removal and for finding people to redact")
     p.add_argument("--privacy", choices=("blank", "blur", "off"),
@@ -87,13 +93,34 @@ def _privacy_words(mode: str) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    source = open_source(args.source, args, args.config)
+    with contextlib.ExitStack() as stack:
+        stack.callback(_close, source)
+        return _run(args, source, stack)
+
+
+def _close(source: Any) -> None:
+    """Release a live source's device or session even if it was never streamed (idempotent)."""
+    close = getattr(source, "close", None)
+    if callable(close):
+        close()
+
+
+def _labels_words(labels: str) -> str:
+    """The ready line's label clause: loud when nothing finds people and moving things."""
+    if labels == "none":
+        return "labels: NONE (points on people stay in the map)"
+    return f"labels: {labels}"
+
+
+def _run(args: argparse.Namespace, source: Any, stack: contextlib.ExitStack) -> int:
     from wardmap.edge.agent import AgentConfig, EdgeAgent, run_agent
+    from wardmap.edge.live import RecordingSource
     from wardmap.edge.metrics import EdgeMetrics
     from wardmap.edge.tracker import TrackerConfig
     from wardmap.shared.config import load_config
     from wardmap.shared.sdnotify import notify
 
-    source = open_source(args.source, args, args.config)
     tracker_cfg = load_config(TrackerConfig, args.config, section="tracker")
     agent_cfg = load_config(AgentConfig, args.config, section="agent")
     options = zenoh_options(args, args.config)
@@ -109,6 +136,8 @@ def run(args: argparse.Namespace) -> int:
     if args.privacy is not None:
         overrides["privacy"] = args.privacy
     agent_cfg = dataclasses.replace(agent_cfg, **overrides)  # re-validated by __post_init__
+    if args.record is not None:
+        source = RecordingSource(source, args.record)
     T_map_odom = None if args.map_pose is None else parse_map_pose(args.map_pose)
     metrics = None if args.metrics_port is None else EdgeMetrics(args.robot)
     agent = EdgeAgent(
@@ -127,16 +156,22 @@ def run(args: argparse.Namespace) -> int:
         print(
             f"edge {args.robot} ready: session {session_id}, connected to {' '.join(args.connect)}, "
             f"{pending} keyframes pending in {args.outbox / OUTBOX_FILE}, "
+            f"source {source.name}, {_labels_words(agent_cfg.labels)}, "
             f"people in images: {_privacy_words(agent_cfg.privacy)}",
             flush=True,
         )
         print(f"edge {args.robot} {readout_line(source.calibration)}", file=sys.stderr, flush=True)
+        if agent_cfg.labels == "none":
+            print(f"edge {args.robot} warning: no label source (--labels): points on people and other "
+                  "moving things go into the map", file=sys.stderr, flush=True)
         notify("READY=1")
 
-    with contextlib.ExitStack() as stack:
-        if metrics is not None:
-            url = stack.enter_context(metrics.serve(args.metrics_port, args.metrics_host))
-            print(f"edge {args.robot} metrics: {url}/metrics", file=sys.stderr, flush=True)
-        summary = run_agent(agent, ready)
+    if metrics is not None:
+        url = stack.enter_context(metrics.serve(args.metrics_port, args.metrics_host))
+        print(f"edge {args.robot} metrics: {url}/metrics", file=sys.stderr, flush=True)
+    summary = run_agent(agent, ready)
+    if isinstance(source, RecordingSource):
+        summary["recorded"] = {"folder": str(source.out), "frames": source.recorded,
+                               "skipped": source.skipped}
     print(json.dumps(summary), flush=True)
     return 0

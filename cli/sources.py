@@ -1,4 +1,7 @@
-"""Frame sources named on the command line: a data-set folder, ``bag:PATH`` or ``sim:SCENARIO``.
+"""Frame sources named on the command line: a data-set folder, ``bag:PATH``, ``sim:SCENARIO``,
+a camera (``realsense[:SERIAL]``) or live ROS 2 topics (``ros2:[ENDPOINT]``), optionally with a
+UVC thermal camera (``--thermal INDEX``). Cameras and ROS 2 topics are live: they reconnect when
+they go away (:class:`~wardmap.edge.live.ReconnectingSource`).
 
 The composition root of sources (``wardmap track`` and ``wardmap edge`` share it): the
 simulator's live run is built here because the edge never imports the simulator.
@@ -16,26 +19,36 @@ if TYPE_CHECKING:
     from wardmap.edge.stream import StreamSource
     from wardmap.shared.dataset import Calibration
 
-SOURCE_METAVAR = "DATASET|bag:PATH|sim:SCENARIO[:SEED[:ROBOT]]"
+SOURCE_METAVAR = "DATASET|bag:PATH|sim:SCENARIO[:SEED[:ROBOT]]|realsense[:SERIAL]|ros2:[ENDPOINT]"
 SOURCE_HELP = ("data-set folder, a ROS 1/ROS 2/MCAP recording (bag:PATH; topics by the options below "
-               "or the config's [source] table), or a simulated robot rendered live "
-               "(e.g. sim:aisle_slow_1, sim:two_robots:0:robot_1)")
+               "or the config's [source] table), a simulated robot rendered live "
+               "(e.g. sim:aisle_slow_1, sim:two_robots:0:robot_1), a RealSense camera "
+               "(realsense, realsense:SERIAL; extra 'realsense') or a ROS 2 robot's live topics over "
+               "Zenoh (ros2: for rmw_zenoh's router at tcp/127.0.0.1:7447, ros2:tcp/HOST:PORT)")
+NOT_AVAILABLE = {  # --source prefix -> (library, extra)
+    "orbbec": ("pyorbbecsdk", "orbbec"),
+    "k4a": ("pyk4a", "k4a"),
+}
 
 _FLAGS = {  # option -> BagSourceConfig field
     "rgb_topic": "colour Image or CompressedImage topic",
     "depth_topic": "depth Image topic registered to the colour camera (16UC1 mm or 32FC1 m)",
     "camera_info_topic": "the colour camera's CameraInfo topic",
     "odom_topic": "nav_msgs/Odometry topic ('' for none; default /odom when recorded)",
-    "calibration": "calibration.toml replacing the recording's CameraInfo and tf",
+    "calibration": "calibration.toml replacing the recording's CameraInfo and tf (a camera: "
+                   "its [base] mount and [thermal] camera)",
 }
 
 
 def add_bag_options(p: argparse.ArgumentParser) -> None:
     """The ``bag:PATH`` options (each overrides the config's ``[source]`` table)."""
-    g = p.add_argument_group("ROS recordings (bag:PATH)")
+    g = p.add_argument_group("ROS recordings and topics (bag:PATH, ros2:), cameras")
     for name, text in _FLAGS.items():
         metavar = "TOPIC" if "topic" in name else "FILE"
         g.add_argument("--" + name.replace("_", "-"), dest=name, metavar=metavar, help=text)
+    g.add_argument("--thermal", type=int, metavar="INDEX",
+                   help="a UVC thermal camera (/dev/videoINDEX, 16-bit Y16, e.g. a Lepton on a "
+                   "PureThermal board) beside the colour camera; needs --calibration with [thermal]")
 
 
 def add_associations_option(p: argparse.ArgumentParser) -> None:
@@ -79,22 +92,68 @@ def open_source(spec: str, args: argparse.Namespace, config_path: str | None) ->
     from wardmap.edge.bag import BagSource, is_bag_source
     from wardmap.edge.stream import FrameSourceStream
     from wardmap.shared.dataset import DatasetReader
-    from wardmap.shared.errors import DatasetError
+    from wardmap.shared.errors import ConfigError, DatasetError
 
     associations = getattr(args, "associations", None)
-    if associations is not None and (spec.startswith("sim:") or is_bag_source(spec)):
-        raise DatasetError("--associations is for a data-set folder, not a recording or a simulated robot")
-    if spec.startswith("sim:"):
+    kind = spec.split(":", 1)[0]
+    if associations is not None and (kind in (*NOT_AVAILABLE, "realsense", "ros2", "sim")
+                                     or is_bag_source(spec)):
+        raise DatasetError("--associations is for a data-set folder, not a recording, a camera or a "
+                           "simulated robot")
+    source: StreamSource
+    if kind in NOT_AVAILABLE:
+        lib, extra = NOT_AVAILABLE[kind]
+        raise ConfigError(f"--source {kind} is not available: this build has no {lib} source "
+                          f"(extra {extra!r} is not offered); use realsense or ros2:")
+    if kind in ("realsense", "ros2"):
+        source = _live_source(kind, spec, args, config_path)
+    elif spec.startswith("sim:"):
         from wardmap.sim.live import LiveRun, SimSource
 
         sim = SimSource.parse(spec)
-        return FrameSourceStream(LiveRun(sim.scenario, sim.seed, sim.robot))
-    if is_bag_source(spec):
+        source = FrameSourceStream(LiveRun(sim.scenario, sim.seed, sim.robot))
+    elif is_bag_source(spec):
         path = spec.removeprefix("bag:")
         if not path:
             raise DatasetError("bag: needs a path, e.g. bag:recording.mcap or bag:rosbag2_folder")
-        return BagSource(path, bag_config(args, config_path))
-    if not Path(spec).is_dir():
+        source = BagSource(path, bag_config(args, config_path))
+    elif not Path(spec).is_dir():
         raise DatasetError(f"data set {spec!r} is not a folder (a recording is bag:PATH, a simulated "
-                           "robot sim:SCENARIO)")
-    return FrameSourceStream(DatasetReader(spec, associations=associations))
+                           "robot sim:SCENARIO, a camera realsense[:SERIAL], ROS 2 topics ros2:)")
+    else:
+        source = FrameSourceStream(DatasetReader(spec, associations=associations))
+    if getattr(args, "thermal", None) is not None:
+        source = _with_thermal(source, args.thermal, bag_config(args, config_path).calibration)
+    return source
+
+
+def _live_source(kind: str, spec: str, args: argparse.Namespace, config_path: str | None) -> StreamSource:
+    """A camera or ROS 2 topics behind the reconnect loop (first connect now: errors are one line)."""
+    from wardmap.edge.live import ReconnectingSource
+    from wardmap.shared.dataset import load_calibration
+
+    cfg = bag_config(args, config_path)
+    if kind == "realsense":
+        from wardmap.edge.realsense import parse_spec, realsense_connector
+
+        calib = load_calibration(cfg.calibration) if cfg.calibration else None
+        return ReconnectingSource(realsense_connector(parse_spec(spec), calibration=calib))
+    from wardmap.edge import ros2live
+
+    return ReconnectingSource(ros2live.ros2_connector(cfg, ros2live.parse_spec(spec, cfg)))
+
+
+def _with_thermal(source: StreamSource, index: int, calibration_path: str) -> StreamSource:
+    from wardmap.edge.thermal import ThermalCapture, WithThermal
+    from wardmap.shared.dataset import load_calibration
+    from wardmap.shared.errors import ConfigError
+
+    if not calibration_path:
+        raise ConfigError("--thermal needs --calibration FILE with a [thermal] table (the thermal camera "
+                          "and T_rgb_thermal)")
+    calib = load_calibration(calibration_path)
+    if calib.thermal is None:
+        raise ConfigError(f"--thermal: {calibration_path} has no [thermal] table (the thermal camera and "
+                          "T_rgb_thermal)")
+    capture = ThermalCapture(index, (calib.thermal.width, calib.thermal.height))
+    return WithThermal(source, capture, calib)

@@ -41,7 +41,10 @@ runs the source on its own *frame-stream* thread and hands the tracking thread e
 with its odometry pose; when tracking falls behind a live source (or a replay with
 :attr:`AgentConfig.drop_when_behind`), frames are dropped and counted (``frames_dropped`` in the
 summary, ``dropped`` in the heartbeat), never queued without bound; any other replay waits for
-the tracker. :meth:`EdgeAgent.stop` closes the stream. Label source: ``none``, ``oracle`` or
+the tracker. A live source (a camera, ROS 2 topics: :class:`~wardmap.edge.live.ReconnectingSource`)
+reconnects by itself; the heartbeat reports its ``reconnects`` and ``source_up``, frames
+``received``/``tracked``/``dropped`` and the latest frame's odometry-frame pose ``odom_*``.
+:meth:`EdgeAgent.stop` closes the stream. Label source: ``none``, ``oracle`` or
 ``onnx:PATH`` (:mod:`wardmap.edge.labels`), exactly as ``wardmap track`` runs it.
 
 Privacy (:mod:`wardmap.edge.privacy`, docs/security.md): the label source's person mask of
@@ -78,6 +81,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import queue
 import threading
 import time
@@ -325,6 +329,7 @@ class EdgeAgent:
         self._inbox_dropped = 0  # guarded by _dropped_lock (enqueuers run on several threads)
         self._dropped_lock = threading.Lock()
         self._progress: tuple[int, int, int] = (0, 0, 0)  # (frames, keyframes, lost): atomic swap
+        self._frame_pose: NDArray[np.float64] | None = None  # T_odom_camera of the latest frame: swapped
         self._sender_stats = _SenderStats()
         self._corrections = Corrections(self.robot_id, T_map_odom_prior=self.T_map_odom)  # sender's
         self._query_correction = threading.Event()  # set when a correction was dropped: ask again
@@ -423,6 +428,7 @@ class EdgeAgent:
             "keyframes": track.keyframes,
             "lost_frames": track.lost,
             **{f"frames_{k}": v for k, v in stream.counters().items()},
+            "reconnects": int(getattr(source, "reconnects", 0)),
             "sent": s.sent,
             "resent": s.resent,
             "acked": s.acked,
@@ -475,6 +481,7 @@ class EdgeAgent:
                 )
                 person = None if lab is None else person_mask(lab.class_image, mobility_lut)
             res = tracker.track(inp)
+            self._frame_pose = res.T_world_camera
             track.frames += 1
             track.lost += int(res.lost)
             if self._metrics is not None:
@@ -717,12 +724,25 @@ class EdgeAgent:
         pub.put(encode(msg))
         stats.heartbeats += 1
 
-    def _stream_stats(self) -> dict[str, int]:
-        """Frames the source gave and those dropped because tracking was behind (heartbeat)."""
+    def _stream_stats(self) -> dict[str, int | float]:
+        """The heartbeat's source numbers: frames the source gave (``received``), those dropped
+        because tracking was behind or came out of order (``dropped``), frames with a measured pose
+        (``tracked``), the live source's ``reconnects`` and ``source_up`` (0 while it is lost), and
+        the latest frame's camera pose in the odometry frame ``odom_x odom_y odom_z`` (m) and
+        ``odom_yaw_deg`` (heading of its optical axis about z) once a frame was tracked."""
+        frames, _, lost = self._progress
+        out: dict[str, int | float] = {"received": 0, "dropped": 0, "tracked": frames - lost,
+                                       "reconnects": int(getattr(self.source, "reconnects", 0)),
+                                       "source_up": int(bool(getattr(self.source, "up", True)))}
         stream = self._stream
-        if stream is None:
-            return {"received": 0, "dropped": 0}
-        return {"received": stream.received, "dropped": stream.dropped + stream.late}
+        if stream is not None:
+            out.update(received=stream.received, dropped=stream.dropped + stream.late)
+        T = self._frame_pose
+        if T is not None:
+            x, y, z = (round(float(v), 3) for v in T[:3, 3])
+            yaw = round(math.degrees(math.atan2(float(T[1, 2]), float(T[0, 2]))), 2)
+            out.update(odom_x=x, odom_y=y, odom_z=z, odom_yaw_deg=yaw)
+        return out
 
     def _pose_args(self) -> dict[str, NDArray[np.float64] | None]:
         """The latest keyframe's odom-frame poses as keyword arguments of the map-pose methods."""

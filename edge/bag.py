@@ -87,6 +87,10 @@ class BagSourceConfig:
         calibration: a ``calibration.toml`` replacing CameraInfo and tf (``""``: none).
         depth_unit_m: metres per unit of ``16UC1`` depth (ROS: 0.001).
         max_depth_dt_s: largest |colour stamp - depth stamp| of a pair, seconds.
+        ros_domain_id: live ``ros2:`` topics: the ROS domain (None: ``ROS_DOMAIN_ID``, else 0).
+        ros_key_format: live ``ros2:`` topics: ``rmw_zenoh`` keys, or ``ros2dds``
+            (zenoh-bridge-ros2dds); see :mod:`wardmap.edge.ros2live`.
+        ros_stall_s: live ``ros2:`` topics: no colour image for this long (seconds) = lost.
     """
 
     rgb_topic: str = "/camera/color/image_raw"
@@ -98,6 +102,9 @@ class BagSourceConfig:
     calibration: str = ""
     depth_unit_m: float = 0.001
     max_depth_dt_s: float = MAX_DEPTH_DT_S
+    ros_domain_id: int | None = None
+    ros_key_format: str = "rmw_zenoh"
+    ros_stall_s: float = 5.0
 
     def __post_init__(self) -> None:
         for name in ("rgb_topic", "depth_topic"):
@@ -114,7 +121,7 @@ def is_bag_source(spec: str | Path) -> bool:
     return isinstance(spec, str) and spec.startswith(SOURCE_PREFIX)
 
 
-def _rosbags() -> Any:
+def import_rosbags() -> Any:
     """The rosbags modules the reader needs, or a ConfigError with the install hint."""
     try:
         from rosbags import highlevel, typesys
@@ -272,7 +279,7 @@ class BagSource:
         self.dataset: FrameSource | None = None
         self.frame_count: int | None = None
         self.skipped: Counter[str] = Counter()
-        highlevel, typesys = _rosbags()
+        highlevel, typesys = import_rosbags()
         self._highlevel = highlevel
         self._typestore = typesys.get_typestore(typesys.Stores.ROS2_HUMBLE)
         if not self.path.exists():
@@ -378,9 +385,8 @@ class BagSource:
         """Frames (colour paired with depth) and odometry, in the recording's order."""
         cfg = self.cfg
         topics = {cfg.rgb_topic, cfg.depth_topic} | ({self._odom_topic} if self._odom_topic else set())
-        colour: list[tuple[float, Any, str]] = []  # (stamp, message, msgtype), sorted by stamp
-        depth: list[tuple[float, Any, str]] = []
-        index = 0
+        pairer = FramePairer(cfg, self.calibration, str(self.path))
+        self.skipped = pairer.skipped
         reader = self._open()
         try:
             conns = [c for c in reader.connections if c.topic in topics]
@@ -394,29 +400,58 @@ class BagSource:
                                                                                    tr.transform.rotation))
                     continue
                 if conn.topic == self._odom_topic:
-                    yield OdometrySample(stamp_of(msg.header), _pose_matrix(msg.pose.pose.position,
-                                                                            msg.pose.pose.orientation))
+                    yield odometry_sample(msg)
                     continue
-                pending = colour if conn.topic == cfg.rgb_topic else depth
-                bisect.insort(pending, (stamp_of(msg.header), msg, msgtype), key=lambda e: e[0])
-                if len(pending) > MAX_PENDING:
-                    pending.pop(0)
-                    self.skipped["unpaired"] += pending is colour
-                for ev in self._pairs(colour, depth, final=False, start=index):
-                    index += 1
-                    yield ev
-            for ev in self._pairs(colour, depth, final=True, start=index):
-                yield ev
+                yield from pairer.add(conn.topic == cfg.rgb_topic, msg, msgtype)
+            yield from pairer.finish()
         finally:
             reader.close()
         if self.skipped:
             log.warning("%s: frames left out: %s", self.name, dict(self.skipped))
 
-    def _pairs(self, colour: list[tuple[float, Any, str]], depth: list[tuple[float, Any, str]], *,
-               final: bool, start: int) -> Iterator[Frame | FrameProblem]:
+
+def odometry_sample(msg: Any) -> OdometrySample:
+    """A ``nav_msgs/Odometry`` -> its ``pose.pose`` as ``T_odom_base`` at its header stamp."""
+    pose = msg.pose.pose
+    return OdometrySample(stamp_of(msg.header), _pose_matrix(pose.position, pose.orientation))
+
+
+class FramePairer:
+    """Pairs colour and depth images by header stamp into :class:`Frame`\\ s (the rule of the
+    module docstring: nearest depth within ``max_depth_dt_s``; a colour image without a partner
+    waits until depth :data:`REORDER_S` past its window came, then is counted ``unpaired``).
+    Used by the recording reader and the live ROS 2 source; one thread owns it.
+
+    Attributes:
+        skipped: frames left out by reason (``unpaired``).
+    """
+
+    def __init__(self, config: BagSourceConfig, calibration: Calibration, where: str) -> None:
+        self.cfg = config
+        self.calibration = calibration
+        self.where = where
+        self.skipped: Counter[str] = Counter()
+        self._colour: list[tuple[float, Any, str]] = []  # (stamp, message, msgtype), sorted by stamp
+        self._depth: list[tuple[float, Any, str]] = []
+        self._index = 0
+
+    def add(self, is_colour: bool, msg: Any, msgtype: str) -> Iterator[Frame | FrameProblem]:
+        """Take one colour (or depth) message; yield the frames it settles."""
+        pending = self._colour if is_colour else self._depth
+        bisect.insort(pending, (stamp_of(msg.header), msg, msgtype), key=lambda e: e[0])
+        if len(pending) > MAX_PENDING:
+            pending.pop(0)
+            self.skipped["unpaired"] += pending is self._colour
+        yield from self._pairs(final=False)
+
+    def finish(self) -> Iterator[Frame | FrameProblem]:
+        """The source ended: pair what is left."""
+        yield from self._pairs(final=True)
+
+    def _pairs(self, *, final: bool) -> Iterator[Frame | FrameProblem]:
         """Pair the oldest colour images whose depth partner is settled (consumes both lists)."""
+        colour, depth = self._colour, self._depth
         tol = self.cfg.max_depth_dt_s
-        index = start
         while colour:
             c_stamp = colour[0][0]
             near = [k for k, d in enumerate(depth) if abs(d[0] - c_stamp) <= tol]
@@ -432,12 +467,12 @@ class BagSource:
             best = min(near, key=lambda k: (abs(depth[k][0] - c_stamp), k))
             _, d_msg, d_type = depth[best]
             del depth[: best + 1]
-            yield self._frame(index, c_stamp, c_msg, c_type, d_msg, d_type)
-            index += 1
+            yield self._frame(self._index, c_stamp, c_msg, c_type, d_msg, d_type)
+            self._index += 1
 
     def _frame(self, index: int, stamp: float, c_msg: Any, c_type: str, d_msg: Any,
                d_type: str) -> Frame | FrameProblem:
-        where = f"{self.path} at {stamp:.6f}"
+        where = f"{self.where} at {stamp:.6f}"
         try:
             rgb = decode_colour(c_msg, c_type, f"{where} {self.cfg.rgb_topic}")
             depth_m = decode_depth(d_msg, d_type, self.cfg.depth_unit_m, f"{where} {self.cfg.depth_topic}")

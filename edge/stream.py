@@ -265,10 +265,14 @@ class FrameStream:
             self._thread.join()
 
     def close(self) -> None:
-        """Stop the producer (thread safe); iteration ends at its next item."""
+        """Stop the producer (thread safe); iteration ends at its next item. A source with a
+        ``stop()`` method (a live source waiting for its device) is told to stop too."""
         with self._cond:
             self._closed = True
             self._cond.notify_all()
+        stop = getattr(self.source, "stop", None)
+        if stop is not None:
+            stop()
 
     def __iter__(self) -> Iterator[StreamItem]:
         while True:

@@ -94,7 +94,7 @@ TRAIN_MODULES = ("tools/training/training.py", "tools/training/logit_adjust.py")
 """The only files that may import the ``train`` extra's packages (they say so when missing)."""
 EXTRA_MODULES = {
     "train": TRAIN_MODULES, "export": ("tools/export.py",), "rerun": ("tools/export.py",),
-    "postgres": ("server/store/postgres.py",),
+    "postgres": ("server/store/postgres.py",), "realsense": ("edge/realsense.py",),
 }
 """Per optional extra, the only files that may import its packages (inside the function that
 needs them, saying so when missing)."""
