@@ -223,3 +223,23 @@ def test_yolox_finds_the_monitor_on_a_real_tum_frame() -> None:
     index = seg.class_names.index("wall_monitor")
     assert np.all(out.class_map[monitors[0].mask] == index)
     assert np.all(out.confidence[monitors[0].mask] == pytest.approx(monitors[0].confidence))
+
+
+@pytest.mark.skipif(not (YOLOX.is_file() and TUM.is_dir()), reason="needs ../shared (YOLOX, TUM excerpt)")
+def test_yolox_gives_no_hospital_only_class_in_the_tum_office() -> None:
+    """Every 10th frame of the TUM office (no hospital furniture in it): no pixel of a class COCO
+    cannot give or the table no longer maps (cabinet from refrigerator, bed from couch)."""
+    from wardmap.shared.dataset import DatasetReader
+    from wardmap.shared.detection import CocoMap
+
+    coco = CocoMap.load()
+    # the reviewed table: only COCO's own bed class gives beds, nothing gives a cabinet
+    assert {coco.names[i] for i, k in coco.to_kg.items() if k == "bed"} == {"bed"}
+    seg = make_segmenter(f"yolox:{YOLOX}")
+    forbidden = [seg.class_names.index(c) for c in ("door", "wheelchair", "cart", "iv_pole",
+                                                     "temperature_gun", "cabinet", "bed")]
+    reader = DatasetReader(TUM)
+    for i in range(0, len(reader), 10):
+        frame = reader.frame(i)
+        out = seg.segment(np.ascontiguousarray(frame.rgb[..., ::-1]), frame.depth_m)
+        assert not np.isin(out.class_map, forbidden).any(), f"frame {i}"
