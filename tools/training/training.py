@@ -55,6 +55,7 @@ from wardmap.tools.training.segdata import (
     iou_from_confusion,
     repeat_factors,
 )
+from wardmap.tools.training.sitedata import load_site_samples
 
 log = logging.getLogger(__name__)
 
@@ -300,6 +301,24 @@ class _Batches(torch.utils.data.Dataset[tuple[Tensor, Tensor]]):
         return x, y
 
 
+def _load_weights(model: BaffSkipNet, path: Path) -> None:
+    """Start ``model`` from the state dict in ``path`` (``init_weights``).
+
+    Raises:
+        TrainingError: a missing or unreadable file, or weights of another network shape.
+    """
+    if not path.is_file():
+        raise TrainingError(f"init_weights: {path} not found")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+        model.load_state_dict(state)
+    except (OSError, RuntimeError, ValueError, KeyError, TypeError) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise TrainingError(f"init_weights: {path} does not fit this network (encoder, decoder, depth "
+                            f"input, classes): {first}") from exc
+    log.info("starting from the weights in %s", path)
+
+
 def one_cycle(progress: float, max_lr: float, pct_start: float = 0.1) -> tuple[float, float]:
     """``(learning rate, Adam beta1)`` at ``progress`` in [0, 1] of a one-cycle schedule (Smith
     2018; torch's ``OneCycleLR`` defaults: cosine phases, start ``max_lr / 25``, end 1e-4 of
@@ -360,6 +379,8 @@ def train_model(
     torch.backends.cudnn.benchmark = device.type == "cuda"
     num_classes = len(samples.names)
     model = BaffSkipNet(cfg, num_classes)
+    if cfg.init_weights:
+        _load_weights(model, Path(cfg.init_weights))
     layout = torch.channels_last if cfg.channels_last else torch.contiguous_format
     model = cast(Any, model).to(device=device, memory_format=layout)
     weights = torch.from_numpy(
@@ -554,12 +575,17 @@ def train_and_export(
     def data_progress(tag: str) -> Callable[[int, int], None]:
         return lambda i, n: progress(tag, i, n, "worlds") if progress is not None else None
 
+    site = load_site_samples(cfg.site, names, cfg.data.width, cfg.data.height)  # bad site data fails first
     train = build_samples(cfg.data, cfg.cache_dir, data_progress("data"), kg, workers=cfg.threads)
+    if site is not None:
+        train = train.plus(site)
     val = build_samples(cfg.val, cfg.cache_dir, data_progress("val data"), kg, workers=cfg.threads)
     t_data = time.perf_counter() - started
     model, losses = train_model(cfg, train, progress, val)
     t_train = time.perf_counter() - started - t_data
     export_onnx(model, out, names, cfg.data.width, cfg.data.height)
+    if cfg.save_weights:
+        torch.save(model.state_dict(), out.with_suffix(".pt"))
     diff = check_export(model, out, val.rgb[0], val.depth[0])
     if not math.isfinite(diff) or diff > 1e-2:
         raise TrainingError(f"exported model disagrees with torch: max abs logit difference {diff:.3g}")
@@ -578,6 +604,7 @@ def train_and_export(
         "data_generation_s": round(train.generation_s + val.generation_s, 1),
         "train_time_s": round(t_train, 1),
         "train_frames": len(train),
+        "site_frames": 0 if site is None else len(site),
         "val_frames": len(val),
         "train_data_hash": config_hash(cfg.data),
         "val_data_hash": config_hash(cfg.val),
