@@ -495,17 +495,9 @@ class DetectionLabels:
     implausible: tuple[int, ...] = ()
 
 
-def labels_from_detections(
-    detections: Detections,
-    coco_map: CocoMap,
-    kg: KnowledgeGraph,
-    depth_m: ArrayLike | None = None,
-    *,
-    min_score: float = 0.3,
-    config: MaskConfig | None = None,
-) -> tuple[U8, U16]:
-    """``(class_image, instance_image)`` of :func:`detection_labels` (same arguments)."""
-    labels = detection_labels(detections, coco_map, kg, depth_m, min_score=min_score, config=config)
+def labels_from_detections(*args: Any, **kwargs: Any) -> tuple[U8, U16]:
+    """``(class_image, instance_image)`` of :func:`detection_labels` called with the same arguments."""
+    labels = detection_labels(*args, **kwargs)
     return labels.class_image, labels.instance_image
 
 

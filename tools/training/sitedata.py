@@ -152,10 +152,12 @@ def _coco_masks(path: Path, names: tuple[str, ...], cfg: SiteDataConfig) -> list
                     rle = coco_mask.merge(coco_mask.frPyObjects(seg, h, w))
                 elif isinstance(seg, dict) and isinstance(seg.get("counts"), list):  # uncompressed RLE
                     rle = coco_mask.frPyObjects(seg, h, w)
-                else:  # compressed RLE
+                elif isinstance(seg, dict):  # compressed RLE
                     rle = dict(seg)
                     if isinstance(rle["counts"], str):
                         rle["counts"] = rle["counts"].encode("ascii")
+                else:
+                    raise TypeError(f"segmentation is neither polygons nor RLE: {type(seg).__name__}")
                 with warnings.catch_warnings():  # pycocotools 2.0 on numpy 2: a copy= deprecation
                     warnings.simplefilter("ignore", DeprecationWarning)
                     mask = coco_mask.decode(rle).astype(bool)
@@ -215,7 +217,8 @@ def _mask_pngs(folder: Path, names: tuple[str, ...], cfg: SiteDataConfig) -> lis
         bgr = cv2.imread(str(mask_path), cv2.IMREAD_COLOR)
         if bgr is None or bgr.shape[:2] != rgb.shape[:2]:
             raise TrainingError(f"{mask_path}: unreadable, or not the size of {image.name}")
-        packed = (bgr[..., 2].astype(np.int32) << 16) | (bgr[..., 1].astype(np.int32) << 8) | bgr[..., 0]
+        channels = bgr.astype(np.int32)
+        packed = (channels[..., 2] << 16) | (channels[..., 1] << 8) | channels[..., 0]
         found = np.unique(packed)
         strange = [int(v) for v in found if int(v) not in code]
         if strange:
