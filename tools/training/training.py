@@ -710,6 +710,17 @@ def _machine_words(summary: dict[str, Any]) -> str:
     return f"{'' if device == 'CPU' else device + ', '}{cores} CPU cores"
 
 
+def _site_words(summary: dict[str, Any], cfg: dict[str, Any]) -> str:
+    """The site images among the training frames, for the card ('' without any)."""
+    n = summary.get("site_frames", 0)
+    if not n:
+        return ""
+    site = cfg["site"]
+    sources = ", ".join(f"{k} `{site[k]}`" for k in ("coco_json", "mask_dir", "negatives_dir") if site[k])
+    start = f"; started from `{cfg['init_weights']}`" if cfg.get("init_weights") else ""
+    return f", of them {n} real site images ({sources}; each {site['repeat']} time(s)){start}"
+
+
 def model_card(summary: dict[str, Any], metrics: dict[str, Any]) -> str:
     """The Markdown model card of an exported model."""
     cfg = summary["config"]
@@ -769,7 +780,7 @@ hash `{summary["train_data_hash"]}`:
 
 - scenarios: {", ".join(d["scenarios"])};
 - world seeds {d["seeds"]} (all < 1000), {d["frames_per_world"]} frames per world,
-  {summary["train_frames"]} frames in total;
+  {summary["train_frames"]} frames in total{_site_words(summary, cfg)};
 - {d["track_fraction"] * 100:.0f} % of frames on the scenario's robot trajectory at a random
   time (scenario people and lighting, including the dark corridor's lights-off phase), the
   rest from random viewpoints in free space (0.7-1.6 m high) looking at an object, rare

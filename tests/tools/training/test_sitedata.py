@@ -178,10 +178,11 @@ def test_site_fine_tune_end_to_end(tmp_path: Path) -> None:
                   class_map=(("table", "desk"), ("office chair", "chair"), ("unsure", "ignore"),
                              ("monitor", "wall_monitor"))),
     )
-    first = train_and_export(cfg, tmp_path / "a" / "seg.onnx", card=False)
+    first = train_and_export(cfg, tmp_path / "a" / "seg.onnx")
     assert first.summary["site_frames"] == 5 and first.summary["train_frames"] == 7
     weights = tmp_path / "a" / "seg.pt"
     assert weights.is_file()
+    assert "of them 5 real site images" in (tmp_path / "a" / "seg.md").read_text()
     tuned = train_and_export(replace(cfg, init_weights=str(weights), save_weights=False),
                              tmp_path / "b" / "seg.onnx", card=False)
     assert (tmp_path / "b" / "seg.onnx").is_file() and not (tmp_path / "b" / "seg.pt").exists()
