@@ -57,6 +57,9 @@ def run(args: argparse.Namespace) -> int:
     config = _with_site_arguments(load_config(TrainSegConfig, args.config, section="train_seg"), args)
     if args.adjust:
         return _adjust(args, config)
+    from wardmap.tools.training.sitedata import check_site_paths
+
+    check_site_paths(config.site)  # a mistyped site path fails now, not after the frames are rendered
     missing = [m for m in ("torch", "onnx") if importlib.util.find_spec(m) is None]
     if missing:
         raise TrainingError(

@@ -42,7 +42,7 @@ from numpy.typing import NDArray
 
 from wardmap.tools.training.segdata import IGNORE_INDEX, SegSamples, SiteDataConfig, TrainingError
 
-__all__ = ["SiteDataConfig", "load_site_samples", "site_class_lut"]
+__all__ = ["SiteDataConfig", "check_site_paths", "load_site_samples", "site_class_lut"]
 
 log = logging.getLogger(__name__)
 
@@ -241,6 +241,24 @@ def _negatives(folder: Path) -> list[tuple[str, U8, U8]]:
     return out
 
 
+def check_site_paths(cfg: SiteDataConfig) -> None:
+    """Fail early (before torch is imported or frames rendered) on a site file or folder that is
+    not there.
+
+    Raises:
+        TrainingError: naming the setting and the path.
+    """
+    for key, want_dir in (("coco_json", False), ("coco_images", True), ("mask_dir", True),
+                          ("negatives_dir", True), ("depth_dir", True)):
+        value = getattr(cfg, key)
+        if not value:
+            continue
+        path = Path(value)
+        if not (path.is_dir() if want_dir else path.is_file()):
+            kind = "folder" if want_dir else "file"
+            raise TrainingError(f"[train_seg.site] {key}: {path} not found (expected a {kind})")
+
+
 def load_site_samples(
     cfg: SiteDataConfig, names: tuple[str, ...], width: int, height: int
 ) -> SegSamples | None:
@@ -252,18 +270,13 @@ def load_site_samples(
     """
     if not cfg.used:
         return None
+    check_site_paths(cfg)
     items: list[tuple[str, U8, U8]] = []
     for value, load in ((cfg.coco_json, lambda p: _coco_masks(p, names, cfg)),
                         (cfg.mask_dir, lambda p: _mask_pngs(p, names, cfg)),
                         (cfg.negatives_dir, _negatives)):
-        if not value:
-            continue
-        path = Path(value)
-        if not path.exists():
-            raise TrainingError(f"[train_seg.site]: {path} not found")
-        items += load(path)
-    if cfg.depth_dir and not Path(cfg.depth_dir).is_dir():
-        raise TrainingError(f"[train_seg.site] depth_dir: {cfg.depth_dir} is not a folder")
+        if value:
+            items += load(Path(value))
     rgbs, clss, depths = [], [], []
     for stem, rgb, classes in items:
         depth = _depth_for(cfg, stem, classes.shape)
