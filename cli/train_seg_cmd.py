@@ -39,8 +39,10 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                       "SegmentationClass/, JPEGImages/)")
     site.add_argument("--site-negatives", metavar="DIR",
                       help="images with no hospital object (all background)")
-    site.add_argument("--init-weights", metavar="MODEL.pt", help="start from the weights of an earlier run "
-                      "(saved with [train_seg] save_weights = true) instead of random ones")
+    site.add_argument("--init-weights", metavar="MODEL.onnx|MODEL.pt",
+                      help="start from trained weights instead of random ones: an exported model of the same "
+                      "config (e.g. server/models/hospital_seg.onnx) or the MODEL.pt of a run with "
+                      "save_weights = true")
     p.add_argument(
         "--adjust",
         metavar="RAW.onnx",

@@ -241,9 +241,10 @@ class TrainSegConfig:
             the epoch with the best mIoU (before logit adjustment); off: the last epoch.
         site: a site's own labelled images mixed with the simulated frames
             (``tools/training/sitedata.py``; none by default).
-        init_weights: a torch state dict (``MODEL.pt`` of a run with ``save_weights``) to start
-            from instead of random weights: a site fine-tune of an earlier model. Its network
-            settings (encoder, decoder, depth input) must be this config's.
+        init_weights: weights to start from instead of random ones (a site fine-tune): an
+            exported ``MODEL.onnx`` (batch norms then frozen) or the ``MODEL.pt`` of a run with
+            ``save_weights``; its network settings (encoder, decoder, depth input) must be this
+            config's.
         save_weights: also write the trained weights as ``MODEL.pt`` beside ``MODEL.onnx`` (the
             ONNX file folds batch norms, so it cannot be trained further).
     """

@@ -187,6 +187,26 @@ def test_site_fine_tune_end_to_end(tmp_path: Path) -> None:
                              tmp_path / "b" / "seg.onnx", card=False)
     assert (tmp_path / "b" / "seg.onnx").is_file() and not (tmp_path / "b" / "seg.pt").exists()
     assert tuned.summary["site_frames"] == 5
+    onnx_start = replace(cfg, init_weights=str(tmp_path / "a" / "seg.onnx"), save_weights=False)
+    from_onnx = train_and_export(onnx_start, tmp_path / "d" / "seg.onnx", card=False)
+    assert from_onnx.summary["site_frames"] == 5
     with pytest.raises(TrainingError, match="does not fit this network"):
         train_and_export(replace(cfg, init_weights=str(weights), depth_input=False),
                          tmp_path / "c" / "seg.onnx", card=False)
+
+
+def test_the_packaged_model_reads_back_for_a_fine_tune() -> None:
+    """The packaged network's ONNX file (batch norms folded, logit adjustment added) loads into the
+    network of deploy/train_seg.toml and reproduces the file's logits (checked inside, 1e-3), so
+    a site fine-tune can start from it; a network of another shape is refused with one line."""
+    pytest.importorskip("torch")
+    pytest.importorskip("onnx")
+    from wardmap.shared.config import load_config
+    from wardmap.tools.training.training import BaffSkipNet, _load_weights
+
+    repo = Path(__file__).resolve().parents[3]
+    packaged = repo / "server" / "models" / "hospital_seg.onnx"
+    cfg = load_config(TrainSegConfig, repo / "deploy" / "train_seg.toml", section="train_seg")
+    assert _load_weights(BaffSkipNet(cfg, len(NAMES)), packaged) is True  # batch norms to freeze
+    with pytest.raises(TrainingError, match=r"folded convolutions|expected"):
+        _load_weights(BaffSkipNet(replace(cfg, stem_channels=8), len(NAMES)), packaged)
