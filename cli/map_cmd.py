@@ -12,8 +12,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "map",
         help="associate object measurements of data sets into landmarks (paper 000), write landmarks.json",
-        description="Select keyframes of each data set, measure its objects (oracle labels or the "
-        "segmentation model), associate them into object landmarks and write DIR/landmarks.json "
+        description="Select keyframes of each data set, measure its objects (oracle labels or a "
+        "segmenter), associate them into object landmarks and write DIR/landmarks.json "
         "(docs/association.md). The last line on stdout is a JSON summary.",
     )
     p.add_argument("datasets", nargs="+", metavar="DATASET", help="data-set folder(s), one map in this order")
@@ -25,9 +25,10 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     p.add_argument(
         "--measurements",
-        choices=("model", "oracle"),
         default="oracle",
-        help="instances from the simulator's labels (oracle, default) or the segmentation model",
+        metavar="SPEC",
+        help="instances from the simulator's labels (oracle, default) or a segmenter: model (the packaged "
+        "network), model:PATH or PATH (an ONNX segmentation network), yolox:PATH (a COCO detector)",
     )
     p.add_argument(
         "--poses",

@@ -28,6 +28,21 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument(
         "--config", metavar="FILE", help="TOML file with a [train_seg] table (deploy/train_seg.toml)"
     )
+    site = p.add_argument_group(
+        "site images",
+        "a site's own labelled images mixed with the simulated frames (override [train_seg.site]; "
+        "docs/training.md, 'Fine-tuning on a site's images')",
+    )
+    site.add_argument("--site-coco", metavar="LABELS.json",
+                      help="COCO-style instances file (polygons or RLE)")
+    site.add_argument("--site-masks", metavar="DIR", help="CVAT 'Segmentation mask' export (labelmap.txt, "
+                      "SegmentationClass/, JPEGImages/)")
+    site.add_argument("--site-negatives", metavar="DIR",
+                      help="images with no hospital object (all background)")
+    site.add_argument("--init-weights", metavar="MODEL.onnx|MODEL.pt",
+                      help="start from trained weights instead of random ones: an exported model of the same "
+                      "config (e.g. server/models/hospital_seg.onnx) or the MODEL.pt of a run with "
+                      "save_weights = true")
     p.add_argument(
         "--adjust",
         metavar="RAW.onnx",
@@ -41,9 +56,12 @@ def run(args: argparse.Namespace) -> int:
     from wardmap.shared.config import load_config
     from wardmap.tools.training.segdata import TrainingError, TrainSegConfig
 
-    config = load_config(TrainSegConfig, args.config, section="train_seg")
+    config = _with_site_arguments(load_config(TrainSegConfig, args.config, section="train_seg"), args)
     if args.adjust:
         return _adjust(args, config)
+    from wardmap.tools.training.sitedata import check_site_paths
+
+    check_site_paths(config.site)  # a mistyped site path fails now, not after the frames are rendered
     missing = [m for m in ("torch", "onnx") if importlib.util.find_spec(m) is None]
     if missing:
         raise TrainingError(
@@ -70,6 +88,20 @@ def run(args: argparse.Namespace) -> int:
         )
     )
     return 0
+
+
+def _with_site_arguments(config: TrainSegConfig, args: argparse.Namespace) -> TrainSegConfig:
+    """``config`` with the site options given on the command line."""
+    from dataclasses import replace
+
+    site = config.site
+    options = (("site_coco", "coco_json"), ("site_masks", "mask_dir"), ("site_negatives", "negatives_dir"))
+    for option, key in options:
+        value = getattr(args, option)
+        if value is not None:
+            site = replace(site, **{key: value})
+    config = replace(config, site=site)
+    return replace(config, init_weights=args.init_weights) if args.init_weights is not None else config
 
 
 def _adjust(args: argparse.Namespace, config: TrainSegConfig) -> int:

@@ -20,7 +20,8 @@ The YOLOX ONNX format (the export of Megvii's YOLOX, e.g. YOLOX-Nano):
 Detections become label images for the semantic descriptor (paper 001 Sec. 3.3) with
 :func:`labels_from_detections`: COCO classes are mapped to knowledge-graph classes by the
 data file ``shared/data/coco_to_kg.toml`` (:class:`CocoMap`), and each box becomes an
-instance mask by depth-based foreground segmentation.
+instance mask by depth-based foreground segmentation, less the masks of smaller detections
+inside it, dropped when larger than any object of its class.
 
 Pixel coordinates: ``x`` along columns, ``y`` along rows, box corners ``(x1, y1, x2, y2)``
 in pixels of the original image with the top-left image corner at (0, 0) (so a box
@@ -50,9 +51,11 @@ __all__ = [
     "LETTERBOX_PAD",
     "YOLOX_STRIDES",
     "CocoMap",
+    "DetectionLabels",
     "Detections",
     "MaskConfig",
     "decode_yolox",
+    "detection_labels",
     "labels_from_detections",
     "letterbox",
     "nms_per_class",
@@ -270,11 +273,15 @@ class CocoMap:
         to_kg: detector class id -> knowledge-graph class name, for mapped classes only;
             detections of other classes are ignored.
         source: where the map was read from, for messages.
+        max_size_m: knowledge-graph class name -> the largest dimension, metres, of any object
+            of the class (the file's ``[max_size_m]`` table); a mask that must be larger is not
+            that object (:func:`labels_from_detections`). Classes not in it are not checked.
     """
 
     names: tuple[str, ...]
     to_kg: Mapping[int, str] = field(default_factory=lambda: MappingProxyType({}))
     source: str = "<coco map>"
+    max_size_m: Mapping[str, float] = field(default_factory=lambda: MappingProxyType({}))
 
     @classmethod
     def load(cls, path: str | Path | None = None) -> CocoMap:
@@ -310,11 +317,13 @@ class CocoMap:
 
     @classmethod
     def from_mapping(cls, data: Mapping[str, Any], source: str = "<coco map>") -> CocoMap:
-        """Build a map from parsed TOML: ``version = 1`` and ``classes = [{id, name, kg?}, ...]``
-        with ids 0..N-1 in order and unique names."""
-        unknown = sorted(set(data) - {"version", "classes"})
+        """Build a map from parsed TOML: ``version = 1``, ``classes = [{id, name, kg?}, ...]``
+        with ids 0..N-1 in order and unique names, and an optional ``[max_size_m]`` table of
+        knowledge-graph class -> positive size in metres."""
+        unknown = sorted(set(data) - {"version", "classes", "max_size_m"})
         if unknown:
-            raise ConfigError(f"{source}: unknown key(s): {', '.join(unknown)}; allowed: version, classes")
+            raise ConfigError(f"{source}: unknown key(s): {', '.join(unknown)}; allowed: version, classes, "
+                              "max_size_m")
         if data.get("version") != 1 or isinstance(data.get("version"), bool):
             raise ConfigError(f"{source}: unsupported version {data.get('version')!r}; supported: 1")
         entries = data.get("classes")
@@ -344,7 +353,21 @@ class CocoMap:
                     raise ConfigError(f"{where}: kg must be a snake_case knowledge-graph class name, "
                                       f"got {kg_name!r}")
                 to_kg[position] = kg_name
-        return cls(names=tuple(names), to_kg=MappingProxyType(to_kg), source=source)
+        sizes = data.get("max_size_m", {})
+        if not isinstance(sizes, Mapping):
+            raise ConfigError(f"{source}: max_size_m must be a table of class = metres, got {sizes!r}")
+        max_size: dict[str, float] = {}
+        for kg_name, value in sizes.items():
+            if not _NAME_KEY.match(kg_name):
+                raise ConfigError(f"{source}: max_size_m: {kg_name!r} is not a snake_case class name")
+            if isinstance(value, bool) or not isinstance(value, int | float) or not (
+                math.isfinite(value) and value > 0
+            ):
+                raise ConfigError(f"{source}: max_size_m.{kg_name} must be a positive number of metres, "
+                                  f"got {value!r}")
+            max_size[kg_name] = float(value)
+        return cls(names=tuple(names), to_kg=MappingProxyType(to_kg), source=source,
+                   max_size_m=MappingProxyType(max_size))
 
     def id_of(self, name: str) -> int:
         """Detector class id of ``name`` (e.g. ``"person"`` -> 0)."""
@@ -365,6 +388,10 @@ class CocoMap:
         """
         lut = np.full(len(self.names), -1, dtype=np.int16)
         known = set(kg.names)
+        strange = sorted(set(self.max_size_m) - known)
+        if strange:
+            raise ConfigError(f"{self.source}: max_size_m names {', '.join(strange)}, not knowledge-graph "
+                              f"classes; known: {', '.join(kg.names)}")
         for class_id, kg_name in self.to_kg.items():
             if kg_name not in known:
                 raise ConfigError(f"{self.source}: {self.names[class_id]!r} maps to {kg_name!r}, which "
@@ -395,6 +422,16 @@ class MaskConfig:
        lies outside the band), keeping the largest connected part.
 
     Without depth, or with too little valid depth in the box, the shrunken box is filled.
+
+    Masks are made smallest box first, and a box loses the pixels of the kept masks of
+    smaller detections lying inside it (``inside_fraction``) before its depth is looked at:
+    the box of a desk holds the cups on it, and its depth band would take them in.
+
+    Size gate: a mask at reference depth ``z`` spanning ``n`` pixels (its longer bounding-box
+    side) is at least ``n * z / f_max`` metres long, with ``f_max`` the focal length in pixels
+    of the narrowest lens assumed (``min_hfov_deg``); when that exceeds the class's
+    ``CocoMap.max_size_m``, the detection is not that object and paints nothing (an oblique
+    monitor called a cup over a sixth of the image).
     """
 
     band_m: float = 0.4
@@ -416,10 +453,21 @@ class MaskConfig:
     """Without usable depth the box scaled by ``1 - box_shrink`` about its centre is filled."""
     kernel_fraction: float = 0.04
     """Morphology kernel side as a fraction of the box's shorter side (3..15 px, odd)."""
+    inside_fraction: float = 0.8
+    """A smaller detection lies inside a larger one when this fraction of its box is inside
+    the larger box; its mask is then cut out of the larger one."""
+    min_hfov_deg: float = 45.0
+    """Narrowest horizontal field of view, degrees, of the cameras the size gate must hold for
+    (RGB-D cameras: 57-87 deg): it gives the smallest metric size a mask can have, so the gate
+    never drops an object whose true size fits its class."""
 
     def __post_init__(self) -> None:
         if not 0.0 < self.mode_fraction <= 1.0:
             raise ConfigError(f"MaskConfig.mode_fraction must lie in (0, 1], got {self.mode_fraction!r}")
+        if not 0.0 < self.inside_fraction <= 1.0:
+            raise ConfigError(f"MaskConfig.inside_fraction must lie in (0, 1], got {self.inside_fraction!r}")
+        if not 0.0 < self.min_hfov_deg < 180.0:
+            raise ConfigError(f"MaskConfig.min_hfov_deg must lie in (0, 180), got {self.min_hfov_deg!r}")
         for name in ("min_valid_fraction", "box_shrink", "kernel_fraction", "band_relative"):
             value = getattr(self, name)
             if not 0.0 <= value < 1.0:
@@ -430,7 +478,30 @@ class MaskConfig:
                 raise ConfigError(f"MaskConfig.{name} must be positive, got {value!r}")
 
 
-def labels_from_detections(
+@dataclass(frozen=True, eq=False)
+class DetectionLabels:
+    """Class and instance images painted from detections (:func:`detection_labels`).
+
+    Attributes:
+        class_image: uint8 (H, W) knowledge-graph class index (0 = background).
+        instance_image: uint16 (H, W) instance id 1..K, in order of decreasing score over the
+            detections used (0 = none).
+        implausible: instance ids whose mask was larger than any object of their class
+            (:class:`MaskConfig`, size gate); they paint nothing.
+    """
+
+    class_image: U8
+    instance_image: U16
+    implausible: tuple[int, ...] = ()
+
+
+def labels_from_detections(*args: Any, **kwargs: Any) -> tuple[U8, U16]:
+    """``(class_image, instance_image)`` of :func:`detection_labels` called with the same arguments."""
+    labels = detection_labels(*args, **kwargs)
+    return labels.class_image, labels.instance_image
+
+
+def detection_labels(
     detections: Detections,
     coco_map: CocoMap,
     kg: KnowledgeGraph,
@@ -438,29 +509,31 @@ def labels_from_detections(
     *,
     min_score: float = 0.3,
     config: MaskConfig | None = None,
-) -> tuple[U8, U16]:
+) -> DetectionLabels:
     """Paint class and instance images from detection boxes.
 
     Detections below ``min_score`` or of classes without a knowledge-graph class are
-    ignored. Each remaining box becomes a mask: with depth, the nearest dominant surface
-    in the box (:class:`MaskConfig`); without depth (or with too little valid depth in
-    the box), the shrunken box. Masks are painted farthest first, so nearer instances
-    overwrite farther ones where they overlap (boxes without a depth reference count as
-    farthest; among those, larger boxes first).
+    ignored. Each remaining box becomes a mask, smallest box first: the box less the kept
+    masks of smaller detections inside it (``MaskConfig.inside_fraction``), then with
+    depth the nearest dominant surface in it (:class:`MaskConfig`), without depth (or with
+    too little valid depth in the box) the shrunken box. A mask larger than any object of its
+    class (``coco_map.max_size_m``, the size gate of :class:`MaskConfig`) is dropped and
+    reported. Masks are painted farthest first, so nearer instances overwrite farther ones
+    where they overlap (boxes without a depth reference count as farthest; among those,
+    larger boxes first).
 
     Args:
         detections: boxes in pixels of an image of size ``detections.image_wh``.
-        coco_map: detector class -> knowledge-graph class.
+        coco_map: detector class -> knowledge-graph class, and the classes' largest sizes.
         kg: the knowledge graph giving class indices.
         depth_m: float (H, W) depth in metres registered to the image (0, NaN, inf and
-            negative = no data), or None.
+            negative = no data), or None (no size gate then).
         min_score: smallest detection score used.
         config: mask parameters (defaults: :class:`MaskConfig`).
 
     Returns:
-        ``(class_image, instance_image)``: new uint8 (H, W) knowledge-graph class indices
-        (0 = background) and uint16 (H, W) instance ids 1..K in order of decreasing score
-        (0 = none). An instance fully covered by nearer ones has no pixels.
+        :class:`DetectionLabels`: new images and the ids of the implausible detections. An
+        instance fully covered by nearer ones, or implausible, has no pixels.
 
     Raises:
         GeometryError: the depth image does not match ``detections.image_wh``.
@@ -477,6 +550,9 @@ def labels_from_detections(
     if kg.num_classes > 256:
         raise ConfigError(f"knowledge graph has {kg.num_classes} classes; a uint8 class image holds 256")
     lut = coco_map.kg_lut(kg)
+    max_size = {kg.index_of(name): size for name, size in coco_map.max_size_m.items()}
+    # Focal length in pixels of the narrowest lens assumed: the smallest metres per pixel.
+    focal_max_px = (width / 2) / math.tan(math.radians(cfg.min_hfov_deg) / 2)
     class_image = np.zeros((height, width), dtype=np.uint8)
     instance_image = np.zeros((height, width), dtype=np.uint16)
     classes = detections.coco_class
@@ -484,24 +560,60 @@ def labels_from_detections(
     kg_index = np.where(in_map, lut[np.clip(classes, 0, lut.shape[0] - 1)], -1)
     use = np.flatnonzero((kg_index > 0) & (detections.scores >= min_score))
     use = use[np.argsort(-detections.scores[use], kind="stable")]
-    painted: list[tuple[float, int, int, int, tuple[slice, slice], NDArray[np.bool_]]] = []
+    boxes: list[tuple[int, int, tuple[slice, slice]]] = []  # (area, instance id, region)
     for instance_id, k in enumerate(use[:65535], start=1):
         region = _box_region(detections.boxes_xyxy[k], width, height)
-        if region is None:
-            continue
+        if region is not None:
+            rows, cols = region
+            boxes.append(((rows.stop - rows.start) * (cols.stop - cols.start), instance_id, region))
+    boxes.sort(key=lambda item: (item[0], item[1]))
+    kept: list[tuple[float, int, int, int, tuple[slice, slice], NDArray[np.bool_]]] = []
+    implausible: list[int] = []
+    for area, instance_id, region in boxes:
         rows, cols = region
-        area = (rows.stop - rows.start) * (cols.stop - cols.start)
-        found = None if depth is None else _depth_mask(depth[rows, cols], cfg)
+        exclude = _inner_masks(region, area, kept, cfg.inside_fraction)
+        class_index = int(kg_index[use[instance_id - 1]])
+        found = None if depth is None else _depth_mask(depth[rows, cols], cfg, exclude)
         if found is None:
-            reference, mask = math.inf, _shrunken_box(rows.stop - rows.start, cols.stop - cols.start, cfg)
+            reference = math.inf
+            mask = _shrunken_box(rows.stop - rows.start, cols.stop - cols.start, cfg) & ~exclude
         else:
             reference, mask = found
-        painted.append((reference, -area, instance_id, int(kg_index[k]), region, mask))
-    painted.sort(key=lambda item: (-item[0], item[1], item[2]))
-    for _, _, instance_id, class_index, region, mask in painted:
+        if class_index in max_size and math.isfinite(reference) and mask.any():
+            rows_used, cols_used = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+            extent_px = 1 + max(int(np.ptp(rows_used)), int(np.ptp(cols_used)))
+            if extent_px * reference / focal_max_px > max_size[class_index]:
+                implausible.append(instance_id)
+                continue
+        kept.append((reference, -area, instance_id, class_index, region, mask))
+    kept.sort(key=lambda item: (-item[0], item[1], item[2]))
+    for _, _, instance_id, class_index, region, mask in kept:
         class_image[region][mask] = class_index
         instance_image[region][mask] = instance_id
-    return class_image, instance_image
+    return DetectionLabels(class_image, instance_image, tuple(sorted(implausible)))
+
+
+def _inner_masks(
+    region: tuple[slice, slice],
+    area: int,
+    kept: list[tuple[float, int, int, int, tuple[slice, slice], NDArray[np.bool_]]],
+    inside_fraction: float,
+) -> NDArray[np.bool_]:
+    """bool (rows, cols) of ``region``: the pixels of kept masks of smaller boxes of which at
+    least ``inside_fraction`` lies inside ``region``."""
+    rows, cols = region
+    out = np.zeros((rows.stop - rows.start, cols.stop - cols.start), dtype=bool)
+    for _, minus_area, _, _, (r, c), mask in kept:
+        if -minus_area >= area:
+            continue
+        r0, r1 = max(r.start, rows.start), min(r.stop, rows.stop)
+        c0, c1 = max(c.start, cols.start), min(c.stop, cols.stop)
+        if r1 <= r0 or c1 <= c0 or (r1 - r0) * (c1 - c0) < inside_fraction * -minus_area:
+            continue
+        out[r0 - rows.start : r1 - rows.start, c0 - cols.start : c1 - cols.start] |= mask[
+            r0 - r.start : r1 - r.start, c0 - c.start : c1 - c.start
+        ]
+    return out
 
 
 def _check_wh(image_wh: tuple[int, int]) -> tuple[int, int]:
@@ -535,11 +647,14 @@ def _shrunken_box(rows: int, cols: int, cfg: MaskConfig) -> NDArray[np.bool_]:
     return mask
 
 
-def _depth_mask(depth_box: NDArray[np.float32], cfg: MaskConfig) -> tuple[float, NDArray[np.bool_]] | None:
+def _depth_mask(
+    depth_box: NDArray[np.float32], cfg: MaskConfig, exclude: NDArray[np.bool_]
+) -> tuple[float, NDArray[np.bool_]] | None:
     """Reference depth and foreground mask of one box (:class:`MaskConfig`), or None when
-    the box has too little valid depth."""
+    the box has too little valid depth. ``exclude`` (same shape): pixels of other objects,
+    neither counted nor taken."""
     rows, cols = depth_box.shape
-    valid = np.isfinite(depth_box) & (depth_box > 0)
+    valid = np.isfinite(depth_box) & (depth_box > 0) & ~exclude
     if np.count_nonzero(valid) < max(1.0, cfg.min_valid_fraction * rows * cols):
         return None
     # 1. reference depth: nearest strong mode of the centre-weighted depth histogram.
@@ -571,7 +686,7 @@ def _depth_mask(depth_box: NDArray[np.float32], cfg: MaskConfig) -> tuple[float,
     # 2. foreground: in the band; pixels without depth follow their nearest valid pixel.
     band = max(cfg.band_m, cfg.band_relative * reference)
     foreground = valid & (np.abs(depth_box - reference) <= band)
-    background = valid & ~foreground
+    background = (valid & ~foreground) | exclude
     if background.any() and not valid.all():
         to_fg = cv2.distanceTransform((~foreground).astype(np.uint8), cv2.DIST_L2, 3)
         to_bg = cv2.distanceTransform((~background).astype(np.uint8), cv2.DIST_L2, 3)
@@ -588,6 +703,6 @@ def _depth_mask(depth_box: NDArray[np.float32], cfg: MaskConfig) -> tuple[float,
     cleaned[background] = 0
     count, components, stats, _ = cv2.connectedComponentsWithStats(cleaned, connectivity=8)
     if count <= 1:
-        return reference, foreground
+        return reference, foreground & ~exclude
     largest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
     return reference, components == largest

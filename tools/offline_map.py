@@ -2,8 +2,10 @@
 
 For each data set: choose keyframes from the camera poses (ground truth, or a TUM
 trajectory given with ``--poses``), find object instances (``oracle``: the simulator's
-label images and ``objects.json``; ``model``: the trained segmenter, ground-truth
-instance ids attached from the labels when present) and measure them in 3D with the
+label images and ``objects.json``; or any segmenter spec of
+``server/perception/models.py``: ``model`` (the packaged network), ``model:PATH`` or ``PATH``
+(an ONNX segmentation network), ``yolox:PATH`` (a COCO detector); ground-truth instance ids
+attached from the labels when present) and measure them in 3D with the
 server's perception steps (``server/perception/keyframe.py``: ``moving`` classes such as
 people left out, and for the model its instances split and checked against the floor when
 the data set has a ``[base]`` calibration), then feed the keyframes to an
@@ -27,7 +29,7 @@ from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import cv2
 import numpy as np
@@ -65,7 +67,10 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
-MeasurementSource = Literal["oracle", "model"]
+MeasurementSource = str
+"""``oracle`` (the simulator's labels) or a segmenter spec (``make_segmenter``): ``model``,
+``model:PATH``, ``yolox:PATH`` or ``PATH``."""
+ORACLE = "oracle"
 Progress = Callable[[str, int, int], None]
 FORMAT_VERSION = 1
 
@@ -178,12 +183,16 @@ def _frame_poses(reader: DatasetReader, poses: Path | None) -> list[F64 | None]:
 
 
 def _segmenter(source: MeasurementSource) -> FindInstances:
+    """The segmenter of spec ``source``; a ConfigError naming the spec when it cannot be built."""
     try:
         from wardmap.server.perception.models import make_segmenter
     except ImportError as exc:
-        raise WardmapError(f"--measurements model: the segmentation model adapter is not available ({exc})") \
+        raise WardmapError(f"--measurements {source}: the segmenter adapter is not available ({exc})") \
             from exc
-    seg: FindInstances = make_segmenter(source)
+    try:
+        seg: FindInstances = make_segmenter(source)
+    except ConfigError as exc:
+        raise ConfigError(f"--measurements {source}: {exc}") from exc
     return seg
 
 
@@ -210,7 +219,8 @@ def measure_dataset(
 
     Args:
         path: data-set folder (docs/dataset.md).
-        measurements: ``oracle`` (needs ``labels/`` and ``objects.json``) or ``model``.
+        measurements: ``oracle`` (needs ``labels/`` and ``objects.json``) or a segmenter spec
+            (``model``, ``model:PATH``, ``PATH``, ``yolox:PATH``; :data:`MeasurementSource`).
         poses: TUM trajectory of the camera (``T_world_camera``); None uses groundtruth.txt.
             Poses are interpolated at each frame stamp (``shared.dataset.pose_at``).
         config: keyframe selection and measurement slimming.
@@ -220,20 +230,21 @@ def measure_dataset(
 
     Raises:
         DatasetError: missing folder, files, labels, poses or objects.json.
-        WardmapError: ``measurements`` is unknown or the model is not available.
+        ConfigError: ``measurements`` names a segmenter that cannot be built (bad spec or file).
+        WardmapError: the segmenter adapter is not available.
     """
     cfg = config or MapConfig()
-    if measurements not in ("oracle", "model"):
-        raise WardmapError(f"unknown measurement source {measurements!r}; use oracle or model")
+    if not measurements.strip():
+        raise ConfigError("--measurements is empty; use oracle, model, model:PATH, yolox:PATH or PATH")
     reader = DatasetReader(path)
     name = Path(path).resolve().name
     kg = knowledge or KnowledgeGraph.load()
     objects = reader.objects()
     gt_classes = id_to_class(objects) if objects is not None else None
-    if measurements == "oracle" and (gt_classes is None or not reader.has_labels):
+    if measurements == ORACLE and (gt_classes is None or not reader.has_labels):
         raise DatasetError(f"{reader.root}: --measurements oracle needs labels.txt + labels/ and "
                            "objects.json (a simulated data set)")
-    segment = _segmenter(measurements) if measurements == "model" else None
+    segment = None if measurements == ORACLE else _segmenter(measurements)
     mcfg = measure_config or MeasureConfig()
     perception = PerceptionConfig(measure=mcfg)  # the split uses the usual widths too
     frame_poses = _frame_poses(reader, Path(poses) if poses is not None else None)
@@ -383,7 +394,7 @@ def run_map(
         datasets: data-set folders, associated into one map in this order.
         out: output folder (created if needed).
         method: overrides ``[association] method`` of the config file.
-        measurements: ``oracle`` or ``model``.
+        measurements: ``oracle`` or a segmenter spec (:data:`MeasurementSource`).
         poses: one TUM trajectory per data set, or None for their ground truth.
         config_path: TOML file with optional ``[association]``, ``[map]`` and ``[measure]`` tables.
 

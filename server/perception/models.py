@@ -48,7 +48,7 @@ from wardmap.server.perception.config import PerceptionConfig
 from wardmap.server.perception.instances import instances_from_classes
 from wardmap.server.perception.masks import box_of_mask
 from wardmap.server.perception.types import Instance
-from wardmap.shared.detection import CocoMap, MaskConfig, decode_yolox, labels_from_detections, letterbox
+from wardmap.shared.detection import CocoMap, MaskConfig, decode_yolox, detection_labels, letterbox
 from wardmap.shared.errors import ConfigError, GeometryError
 from wardmap.shared.knowledge import BACKGROUND, KnowledgeGraph
 from wardmap.shared.segmentation import INPUT_NAME, OUTPUT_NAME, Decoded, PlacementRule, SegContract
@@ -82,12 +82,15 @@ class Segmentation:
         confidence: float32 (H, W) score of each pixel's class in 0..1.
         instances: the instances, each with a mask in the image.
         inference_ms: wall time of pre-processing, network and post-processing.
+        implausible: detections left out for a mask larger than any object of their class
+            (``yolox:``; the size gate of :class:`~wardmap.shared.detection.MaskConfig`).
     """
 
     class_map: U8
     confidence: F32
     instances: list[Instance]
     inference_ms: float
+    implausible: int = 0
 
 
 class Segmenter(Protocol):
@@ -284,8 +287,9 @@ class YoloxDetector:
 
     Per image: letterbox -> network -> :func:`decode_yolox` -> COCO classes mapped to
     knowledge-graph classes (:class:`CocoMap`, ``shared/data/coco_to_kg.toml``) -> one mask
-    per box by depth-based foreground segmentation (:func:`labels_from_detections`, nearer
-    instances win where masks overlap). An instance's confidence is its detection score.
+    per box by depth-based foreground segmentation, less the masks of smaller detections
+    inside it, dropped when larger than any object of its class (:func:`detection_labels`;
+    nearer instances win where masks overlap). An instance's confidence is its detection score.
     """
 
     def __init__(
@@ -354,7 +358,7 @@ class YoloxDetector:
         detections = decode_yolox(
             output, ratio, (width, height), score_threshold=self._score_threshold, nms_iou=self._nms_iou
         )
-        class_map, instance_map = labels_from_detections(
+        labels = detection_labels(
             detections,
             self._coco_map,
             self._kg,
@@ -362,7 +366,11 @@ class YoloxDetector:
             min_score=self._score_threshold,
             config=self._mask_config,
         )
-        # labels_from_detections numbers instances 1..K over the mapped detections at or above
+        class_map, instance_map = labels.class_image, labels.instance_image
+        if labels.implausible:
+            log.debug("YOLOX: %d detection(s) larger than any object of their class left out",
+                      len(labels.implausible))
+        # detection_labels numbers instances 1..K over the mapped detections at or above
         # min_score, highest score first (detections are already sorted by score).
         lut = self._coco_map.kg_lut(self._kg)
         cls = detections.coco_class
@@ -384,7 +392,8 @@ class YoloxDetector:
             name = self._class_names[int(mapped[k])]
             instances.append(Instance(name, score, mask, box_of_mask(mask)))
         instances.sort(key=lambda inst: -inst.confidence)
-        return Segmentation(class_map, confidence, instances, (time.perf_counter() - started) * 1e3)
+        return Segmentation(class_map, confidence, instances, (time.perf_counter() - started) * 1e3,
+                            len(labels.implausible))
 
     def __call__(self, bgr: U8, depth_m: F32 | None) -> list[Instance]:
         return self.segment(bgr, depth_m).instances

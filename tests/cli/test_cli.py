@@ -173,3 +173,11 @@ def test_map_pose_is_a_planar_pose() -> None:
     T = parse_map_pose("2.5,-1,90")
     np.testing.assert_allclose(T[:3, 3], [2.5, -1.0, 0.0])
     np.testing.assert_allclose(T[:3, :3] @ [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], atol=1e-12)
+
+
+@pytest.mark.parametrize("option", ["--site-coco", "--site-masks", "--site-negatives"])
+def test_train_seg_names_a_missing_site_path(tmp_path: Path, option: str) -> None:
+    """A mistyped site path is one line naming it, before anything is rendered or trained."""
+    p = wardmap("train-seg", "--out", str(tmp_path / "m.onnx"), option, str(tmp_path / "nope"))
+    one_line_error(p, str(tmp_path / "nope"), "train-seg")
+    assert "not found" in p.stderr and not (tmp_path / "m.onnx").exists()

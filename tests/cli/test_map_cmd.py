@@ -94,3 +94,38 @@ def test_model_measurements_without_the_model(small: Path, tmp_path: Path) -> No
     )
     one_line_error(p, "not installed", "map")
     assert str(missing) in p.stderr  # the message names where it looked
+
+
+YOLOX = TUM.parents[1] / "models" / "yolox_nano.onnx"
+
+
+@pytest.mark.parametrize("spec", ["nope.onnx", "model:nope.onnx", "yolox:nope.onnx"])
+def test_measurements_spec_with_a_missing_file(small: Path, tmp_path: Path, spec: str) -> None:
+    """Every segmenter spec that names a file that is not there: one line naming the spec."""
+    p = wardmap("map", str(small), "--out", str(tmp_path / "o"), "--measurements", spec)
+    one_line_error(p, "not found", "map")
+    assert f"--measurements {spec}" in p.stderr
+    assert not (tmp_path / "o").exists()
+
+
+def test_measurements_spec_that_is_not_a_model(small: Path, tmp_path: Path) -> None:
+    """A file that is no ONNX model (here a text file) is refused at start with one line."""
+    bad = tmp_path / "bad.onnx"
+    bad.write_text("not a model\n")
+    one_line_error(wardmap("map", str(small), "--out", str(tmp_path / "o"), "--measurements", str(bad)),
+                   "not a readable ONNX model", "map")
+
+
+def test_yolox_measurements_on_the_tum_excerpt(tmp_path: Path) -> None:
+    """``--measurements yolox:PATH`` maps a real TUM recording (ground-truth poses): the office's
+    monitor is found, and no class COCO cannot give (door, wheelchair, ...) appears."""
+    if not (TUM.is_dir() and YOLOX.is_file()):
+        pytest.skip(f"{TUM} or {YOLOX} absent")
+    p = wardmap("map", str(TUM), "--out", str(tmp_path / "o"), "--measurements", f"yolox:{YOLOX}",
+                "--association", "nearest")
+    assert p.returncode == 0, p.stderr
+    doc = json.loads((tmp_path / "o" / "landmarks.json").read_text())
+    assert doc["measurements"] == f"yolox:{YOLOX}"
+    classes = {lm["class"] for lm in doc["landmarks"]}
+    assert "wall_monitor" in classes
+    assert not classes & {"door", "wheelchair", "cart", "iv_pole", "temperature_gun", "cabinet", "bed"}

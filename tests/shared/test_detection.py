@@ -14,6 +14,7 @@ from wardmap.shared.detection import (
     Detections,
     MaskConfig,
     decode_yolox,
+    detection_labels,
     labels_from_detections,
     letterbox,
     nms_per_class,
@@ -23,6 +24,7 @@ from wardmap.shared.knowledge import KnowledgeGraph
 
 ANCHORS_416 = 52 * 52 + 26 * 26 + 13 * 13
 COCO_PERSON, COCO_CHAIR, COCO_TV, COCO_LAPTOP = 0, 56, 62, 63
+COCO_CUP, COCO_TABLE = 41, 60
 
 
 @pytest.fixture(scope="module")
@@ -255,3 +257,106 @@ def test_depth_of_the_wrong_size_is_rejected(coco: CocoMap, kg: KnowledgeGraph) 
         labels_from_detections(det, coco, kg, np.ones((10, 10), np.float32))
     with pytest.raises(ConfigError):
         MaskConfig(band_m=0.0)
+
+
+def desk_with_cups(rng: np.random.Generator) -> np.ndarray:
+    """120 x 160 depth: a far wall at 4 m, a desk top seen from above at an angle (rows 40..99,
+    columns 20..139; 1.8 m at its far edge, row 40, to 1.2 m at its near edge) and two cups
+    standing at its back at 1.68 m (rows 45..64, columns 40..54 and 100..114), farther than
+    most of the desk: depth noise 5 mm."""
+    depth = (4.0 + rng.normal(0, 0.005, (120, 160))).astype(np.float32)
+    ramp = np.linspace(1.8, 1.2, 60, dtype=np.float32)[:, None]
+    depth[40:100, 20:140] = ramp + rng.normal(0, 0.005, (60, 120))
+    depth[45:65, 40:55] = 1.68 + rng.normal(0, 0.005, (20, 15))
+    depth[45:65, 100:115] = 1.68 + rng.normal(0, 0.005, (20, 15))
+    return depth
+
+
+def test_a_desk_mask_never_swallows_the_cups_on_it(coco: CocoMap, kg: KnowledgeGraph) -> None:
+    """Scenario: a desk box around the desk and two cup boxes inside it, the desk scoring highest
+    and the cups within its depth band: every cup pixel is cup (its own instance), no cup
+    pixel is desk, and the desk keeps the rest of its surface."""
+    depth = desk_with_cups(np.random.default_rng(20))
+    det = detections([[18, 38, 142, 102], [38, 43, 57, 67], [98, 43, 117, 67]], [0.9, 0.6, 0.5],
+                     [COCO_TABLE, COCO_CUP, COCO_CUP])
+    class_image, instance_image = labels_from_detections(det, coco, kg, depth)
+    cup, desk = kg.index_of("cup"), kg.index_of("desk")
+    for k, cols in ((2, slice(40, 55)), (3, slice(100, 115))):
+        assert np.mean(class_image[45:65, cols] == cup) >= 0.9
+        assert np.mean(instance_image[45:65, cols] == k) >= 0.9
+        assert not np.any(class_image[45:65, cols] == desk)
+    rest = np.zeros((120, 160), bool)
+    rest[40:100, 20:140] = True
+    rest[40:70, 35:60] = rest[40:70, 95:120] = False
+    assert np.mean(class_image[rest] == desk) >= 0.9
+
+
+def test_a_box_only_partly_over_another_keeps_its_pixels(coco: CocoMap, kg: KnowledgeGraph) -> None:
+    """Scenario: the chair box overlaps the person box by half: not inside it, so the person's
+    mask is not cut by the chair's (the nearer object still wins where masks overlap)."""
+    rng = np.random.default_rng(21)
+    depth, person = wall_and_person(rng)
+    det = detections([[50, 20, 110, 110], [20, 50, 80, 110]], [0.9, 0.8], [COCO_PERSON, COCO_CHAIR])
+    labels = detection_labels(det, coco, kg, depth)
+    assert np.mean(labels.class_image[person] == kg.index_of("person")) >= 0.95
+    assert labels.implausible == ()
+
+
+def test_a_mask_larger_than_its_class_is_dropped(coco: CocoMap, kg: KnowledgeGraph) -> None:
+    """Scenario: a "cup" box over the 30 x 70 px block at 1.5 m: at 160 px across a 45 deg view
+    (the narrowest lens the gate assumes) the block is at least 0.5 m tall, more than any cup
+    (0.3 m): reported, no pixel painted. A real cup (15 x 20 px at 1.45 m, at least 0.15 m)
+    stays."""
+    rng = np.random.default_rng(22)
+    depth, _ = wall_and_person(rng)
+    depth[5:25, 120:135] = 1.45
+    det = detections([[50, 20, 110, 110], [118, 3, 137, 27]], [0.9, 0.8], [COCO_CUP, COCO_CUP])
+    labels = detection_labels(det, coco, kg, depth)
+    assert labels.implausible == (1,)
+    assert not np.any(labels.instance_image == 1)
+    assert np.mean(labels.class_image[5:25, 120:135] == kg.index_of("cup")) >= 0.9
+    tele = detection_labels(det, coco, kg, depth, config=MaskConfig(min_hfov_deg=10.0))
+    assert tele.implausible == ()  # behind a 10 deg lens 70 px at 1.5 m may be 0.12 m: kept
+
+
+def test_no_size_gate_without_depth(coco: CocoMap, kg: KnowledgeGraph) -> None:
+    """Scenario: the same large cup box without depth: its size is unknown, so it is kept."""
+    det = detections([[50, 20, 110, 110]], [0.9], [COCO_CUP])
+    labels = detection_labels(det, coco, kg, None)
+    assert labels.implausible == () and labels.class_image.any()
+
+
+@pytest.mark.parametrize(
+    ("table", "message"),
+    [
+        ("[max_size_m]\ncup = 0\n", "positive"),
+        ("[max_size_m]\ncup = true\n", "positive"),
+        ("[max_size_m]\nCup = 0.2\n", "snake_case"),
+        ("max_size_m = 3\n", "table"),
+    ],
+)
+def test_bad_max_size_table(tmp_path: Path, table: str, message: str) -> None:
+    path = tmp_path / "map.toml"
+    path.write_text('version = 1\nclasses = [{ id = 0, name = "cup", kg = "cup" }]\n' + table)
+    with pytest.raises(ConfigError, match=message):
+        CocoMap.load(path)
+
+
+def test_max_size_of_an_unknown_class_fails_against_the_graph(tmp_path: Path, kg: KnowledgeGraph) -> None:
+    path = tmp_path / "map.toml"
+    path.write_text('version = 1\nclasses = [{ id = 0, name = "cup", kg = "cup" }]\n'
+                    '[max_size_m]\nmug = 0.2\n')
+    with pytest.raises(ConfigError, match="mug"):
+        CocoMap.load(path).kg_lut(kg)
+
+
+def test_packaged_table_maps_no_appliance_or_sofa(coco: CocoMap, kg: KnowledgeGraph) -> None:
+    """The reviewed table: a refrigerator, microwave, oven, toaster or couch is no hospital
+    object; every mapped class has a size bound; the mapped rows are exactly the reviewed ones."""
+    for name in ("refrigerator", "microwave", "oven", "toaster", "couch", "hair drier"):
+        assert coco.kg_class(coco.id_of(name)) is None, name
+    mapped = {coco.names[i]: k for i, k in coco.to_kg.items()}
+    assert mapped == {"person": "person", "chair": "chair", "wine glass": "cup", "cup": "cup", "bed": "bed",
+                      "dining table": "desk", "tv": "wall_monitor", "sink": "sink"}
+    assert set(mapped.values()) == set(coco.max_size_m)
+    coco.kg_lut(kg)

@@ -150,6 +150,45 @@ class SegDataConfig:
             raise ValueError("max_extra_people, props_per_world and items_per_world must be >= 0")
 
 
+@dataclass(frozen=True)
+class SiteDataConfig:
+    """A site's labelled images (TOML ``[train_seg.site]``; every path empty = not used).
+
+    Attributes:
+        coco_json: a COCO-style instances file (polygons or RLE).
+        coco_images: folder the COCO ``file_name`` entries are relative to (default: the
+            JSON's folder).
+        mask_dir: a CVAT "Segmentation mask" export folder (``labelmap.txt``,
+            ``SegmentationClass/``, ``JPEGImages/``).
+        negatives_dir: images with no hospital object; every pixel background.
+        depth_dir: 16-bit depth PNGs in millimetres named ``<image stem>.png``; images
+            without one get depth 0 (no data).
+        class_map: ``[site name, our name]`` pairs; our name is a knowledge-graph class,
+            ``background`` or ``ignore``.
+        repeat: each site image appears this many times per epoch (site images are few
+            beside the simulated frames).
+    """
+
+    coco_json: str = ""
+    coco_images: str = ""
+    mask_dir: str = ""
+    negatives_dir: str = ""
+    depth_dir: str = ""
+    class_map: tuple[tuple[str, str], ...] = ()
+    repeat: int = 1
+
+    def __post_init__(self) -> None:
+        if self.repeat < 1:
+            raise ValueError(f"repeat must be >= 1, got {self.repeat}")
+        if any(len(pair) != 2 for pair in self.class_map):
+            raise ValueError("class_map entries are [site name, our name] pairs")
+
+    @property
+    def used(self) -> bool:
+        """True when any source is given."""
+        return bool(self.coco_json or self.mask_dir or self.negatives_dir)
+
+
 def _val_data() -> SegDataConfig:
     return SegDataConfig(seeds=(1000,), frames_per_world=16)
 
@@ -200,6 +239,14 @@ class TrainSegConfig:
             do not depend on it: each batch's augmentation is seeded by ``(seed, step)``.
         select_best: score the network on the validation worlds after every epoch and keep
             the epoch with the best mIoU (before logit adjustment); off: the last epoch.
+        site: a site's own labelled images mixed with the simulated frames
+            (``tools/training/sitedata.py``; none by default).
+        init_weights: weights to start from instead of random ones (a site fine-tune): an
+            exported ``MODEL.onnx`` (batch norms then frozen) or the ``MODEL.pt`` of a run with
+            ``save_weights``; its network settings (encoder, decoder, depth input) must be this
+            config's.
+        save_weights: also write the trained weights as ``MODEL.pt`` beside ``MODEL.onnx`` (the
+            ONNX file folds batch norms, so it cannot be trained further).
     """
 
     seed: int = 0
@@ -235,6 +282,9 @@ class TrainSegConfig:
     repeat_factor: float = 0.0
     loader_workers: int = 0
     select_best: bool = False
+    site: SiteDataConfig = field(default_factory=SiteDataConfig)
+    init_weights: str = ""
+    save_weights: bool = False
 
     def __post_init__(self) -> None:
         if self.device not in ("auto", "cpu", "cuda"):
@@ -302,6 +352,18 @@ class SegSamples:
         return SegSamples(
             self.rgb[keep], self.classes[keep], self.depth[keep], self.world[keep], self.on_track[keep],
             self.names,
+        )
+
+    def plus(self, other: SegSamples) -> SegSamples:
+        """These frames, then ``other``'s (same size and class names); generation time and cache
+        state are this set's."""
+        if other.names != self.names or other.rgb.shape[1:] != self.rgb.shape[1:]:
+            raise TrainingError(f"cannot join samples of {other.rgb.shape[1:3]} and classes {other.names} to "
+                                f"samples of {self.rgb.shape[1:3]} and classes {self.names}")
+        return SegSamples(
+            np.concatenate([self.rgb, other.rgb]), np.concatenate([self.classes, other.classes]),
+            np.concatenate([self.depth, other.depth]), np.concatenate([self.world, other.world]),
+            np.concatenate([self.on_track, other.on_track]), self.names, self.generation_s, self.cached,
         )
 
 

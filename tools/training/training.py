@@ -20,6 +20,7 @@ ONNX contract (the inference side depends on it, ``wardmap.shared.segmentation``
 
 from __future__ import annotations
 
+import itertools
 import json
 import logging
 import math
@@ -55,6 +56,7 @@ from wardmap.tools.training.segdata import (
     iou_from_confusion,
     repeat_factors,
 )
+from wardmap.tools.training.sitedata import load_site_samples
 
 log = logging.getLogger(__name__)
 
@@ -300,6 +302,125 @@ class _Batches(torch.utils.data.Dataset[tuple[Tensor, Tensor]]):
         return x, y
 
 
+def _load_weights(model: BaffSkipNet, path: Path) -> bool:
+    """Start ``model`` from ``path`` (``init_weights``): a torch state dict (``MODEL.pt``), or an
+    exported ``MODEL.onnx`` (:func:`_weights_from_onnx`). Returns True for an ONNX file, whose
+    batch norms must stay frozen while training (their statistics are folded away).
+
+    Raises:
+        TrainingError: a missing or unreadable file, or weights of another network shape.
+    """
+    if not path.is_file():
+        raise TrainingError(f"init_weights: {path} not found")
+    if path.suffix == ".onnx":
+        _weights_from_onnx(model, path)
+        log.info("starting from the weights in %s (batch norms frozen)", path)
+        return True
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+        model.load_state_dict(state)
+    except (OSError, RuntimeError, ValueError, KeyError, TypeError, AttributeError) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise TrainingError(f"init_weights: {path} does not fit this network (encoder, decoder, depth "
+                            f"input, classes): {first}") from exc
+    log.info("starting from the weights in %s", path)
+    return False
+
+
+def _weights_from_onnx(model: BaffSkipNet, path: Path) -> None:
+    """Load the weights of an exported model (the packaged ``hospital_seg.onnx``) into ``model``.
+
+    The exporter folds each batch norm into the convolution before it (``onnx::Conv_*``
+    initializers, in execution order); other parameters keep their names. A folded pair goes back
+    as the convolution's weight and a batch norm that only adds the folded bias (scale 1, mean 0,
+    variance 1 - eps), so the network computes what the file does as long as its batch norms stay
+    in eval mode. The logit adjustment of the file (``logit_bias``) is left out: the export adds
+    a new one. Checked: torch and onnxruntime logits agree within 1e-3 on a random input.
+
+    Raises:
+        TrainingError: onnx missing, or a file whose layers or shapes are not this network's.
+    """
+    try:
+        import onnx
+        import onnxruntime as ort
+        from onnx import numpy_helper
+    except ImportError as exc:
+        raise TrainingError("init_weights from an .onnx file needs onnx: pip install -e '.[train]'") from exc
+    where = f"init_weights: {path}"
+    try:
+        proto = onnx.load(str(path))
+    except Exception as exc:  # onnx raises its own untyped errors for unreadable files
+        raise TrainingError(f"{where}: not a readable ONNX model ({type(exc).__name__})") from exc
+    init = {i.name: numpy_helper.to_array(i) for i in proto.graph.initializer}
+    state = model.state_dict()
+    pairs: dict[nn.Module, nn.BatchNorm2d] = {}
+    for module in model.modules():
+        kids = list(module.children()) if isinstance(module, nn.Sequential) else []
+        for conv, bn in itertools.pairwise(kids):
+            if isinstance(conv, nn.Conv2d) and isinstance(bn, nn.BatchNorm2d):
+                pairs[conv] = bn
+    order: list[nn.Module] = []
+    hooks = [conv.register_forward_hook(lambda m, _i, _o: order.append(m)) for conv in pairs]
+    height, width = 240, 320
+    try:
+        with torch.no_grad():
+            model.eval()(torch.zeros(1, model.in_channels, height, width))
+    finally:
+        for hook in hooks:
+            hook.remove()
+    folded = [n for n in proto.graph.node if n.op_type == "Conv" and n.input[1] not in state]
+    if len(folded) != len(order):
+        raise TrainingError(f"{where}: {len(folded)} folded convolutions, this network has {len(order)}; "
+                            "is it a model of this config (encoder, decoder)?")
+    with torch.no_grad():
+        for node, conv in zip(folded, order, strict=True):
+            weight = init.get(node.input[1])
+            bias = init.get(node.input[2]) if len(node.input) > 2 else None
+            target = cast(nn.Conv2d, conv).weight
+            if weight is None or tuple(weight.shape) != tuple(target.shape):
+                found = None if weight is None else weight.shape
+                raise TrainingError(f"{where}: convolution {node.name} has weights {found}, "
+                                    f"expected {tuple(target.shape)}")
+            bn = pairs[conv]
+            target.copy_(torch.from_numpy(np.array(weight)))
+            bn.weight.fill_(1.0)
+            bn.bias.copy_(torch.from_numpy(np.array(bias)) if bias is not None else torch.zeros_like(bn.bias))
+            if bn.running_mean is None or bn.running_var is None:  # _conv_bn tracks statistics
+                raise TrainingError(f"{where}: a batch norm of this network keeps no running statistics")
+            bn.running_mean.zero_()
+            bn.running_var.fill_(1.0 - bn.eps)
+        in_pairs = set(pairs) | set(pairs.values())
+        folded_names = {f"{name}.{p}" for name, m in model.named_modules() if m in in_pairs
+                        for p in ("weight", "bias", "running_mean", "running_var", "num_batches_tracked")}
+        missing = [k for k in state if k not in folded_names and k not in init]
+        if missing:
+            raise TrainingError(f"{where}: no weights for {', '.join(missing[:4])}; is it a model of this "
+                                "config?")
+        for key, value in state.items():
+            if key in init and key not in folded_names:
+                if tuple(init[key].shape) != tuple(value.shape):
+                    raise TrainingError(f"{where}: {key} is {init[key].shape}, expected {tuple(value.shape)}")
+                value.copy_(torch.from_numpy(np.array(init[key])))
+    x = torch.rand(1, model.in_channels, height, width, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        ours = model(x).numpy()
+    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    theirs = session.run(None, {session.get_inputs()[0].name: x.numpy()})[0]
+    theirs = theirs - init.get("logit_bias", np.zeros(1, np.float32))
+    if ours.shape != theirs.shape or not float(np.abs(ours - theirs).max()) < 1e-3:
+        raise TrainingError(f"{where}: the weights read back do not reproduce the file's logits")
+
+
+def _set_train(model: nn.Module, frozen_batchnorm: bool) -> None:
+    """Training mode; with ``frozen_batchnorm`` the batch norms stay in eval mode (their running
+    statistics are used and kept; their scale and shift still learn)."""
+    model.train()
+    if frozen_batchnorm:
+        for module in model.modules():
+            if isinstance(module, nn.BatchNorm2d):
+                module.eval()
+
+
 def one_cycle(progress: float, max_lr: float, pct_start: float = 0.1) -> tuple[float, float]:
     """``(learning rate, Adam beta1)`` at ``progress`` in [0, 1] of a one-cycle schedule (Smith
     2018; torch's ``OneCycleLR`` defaults: cosine phases, start ``max_lr / 25``, end 1e-4 of
@@ -314,7 +435,8 @@ def one_cycle(progress: float, max_lr: float, pct_start: float = 0.1) -> tuple[f
 
 
 def _val_miou(model: BaffSkipNet, val: SegSamples, device: torch.device, depth: bool) -> float:
-    """Validation mIoU % of the network's own argmax (no logit adjustment), computed in torch."""
+    """Validation mIoU % of the network's own argmax (no logit adjustment), computed in torch;
+    leaves the model in eval mode."""
     n = len(val.names)
     cm = torch.zeros(n * n, dtype=torch.int64, device=device)
     model.eval()
@@ -328,7 +450,6 @@ def _val_miou(model: BaffSkipNet, val: SegSamples, device: torch.device, depth: 
             t = torch.from_numpy(val.classes[i : i + 16]).to(device).reshape(-1).long()
             keep = t < n
             cm += torch.bincount(t[keep] * n + pred[keep], minlength=n * n)
-    model.train()
     iou = iou_from_confusion(cm.reshape(n, n).cpu().numpy())
     present = cm.reshape(n, n).sum(1).cpu().numpy() > 0
     return float(np.mean(iou[present]) * 100.0)
@@ -360,6 +481,7 @@ def train_model(
     torch.backends.cudnn.benchmark = device.type == "cuda"
     num_classes = len(samples.names)
     model = BaffSkipNet(cfg, num_classes)
+    frozen_batchnorm = _load_weights(model, Path(cfg.init_weights)) if cfg.init_weights else False
     layout = torch.channels_last if cfg.channels_last else torch.contiguous_format
     model = cast(Any, model).to(device=device, memory_format=layout)
     weights = torch.from_numpy(
@@ -377,7 +499,7 @@ def train_model(
         pin_memory=device.type == "cuda",
         prefetch_factor=4 if cfg.loader_workers else None,
     )
-    model.train()
+    _set_train(model, frozen_batchnorm)
     losses: list[float] = []
     best: tuple[float, dict[str, Tensor] | None, int] = (-1.0, None, 0)
     epoch_loss, n_batches, epoch = 0.0, 0, 0
@@ -389,6 +511,7 @@ def train_model(
         note = ""
         if cfg.select_best and val is not None:
             miou = _val_miou(model, val, device, cfg.depth_input)
+            _set_train(model, frozen_batchnorm)
             note = f", validation mIoU {miou:.1f} %"
             if miou > best[0]:
                 best = (miou, {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}, epoch + 1)
@@ -547,6 +670,8 @@ def train_and_export(
     if out.exists() and not out.is_file():
         raise TrainingError(f"--out {out} exists and is not a file")
     _device(cfg)  # a missing GPU fails before the frames are rendered
+    if cfg.init_weights and not Path(cfg.init_weights).is_file():
+        raise TrainingError(f"init_weights: {cfg.init_weights} not found")
     started = time.perf_counter()
     kg = KnowledgeGraph.load()
     names = class_names(kg)
@@ -554,12 +679,17 @@ def train_and_export(
     def data_progress(tag: str) -> Callable[[int, int], None]:
         return lambda i, n: progress(tag, i, n, "worlds") if progress is not None else None
 
+    site = load_site_samples(cfg.site, names, cfg.data.width, cfg.data.height)  # bad site data fails first
     train = build_samples(cfg.data, cfg.cache_dir, data_progress("data"), kg, workers=cfg.threads)
+    if site is not None:
+        train = train.plus(site)
     val = build_samples(cfg.val, cfg.cache_dir, data_progress("val data"), kg, workers=cfg.threads)
     t_data = time.perf_counter() - started
     model, losses = train_model(cfg, train, progress, val)
     t_train = time.perf_counter() - started - t_data
     export_onnx(model, out, names, cfg.data.width, cfg.data.height)
+    if cfg.save_weights:
+        torch.save(model.state_dict(), out.with_suffix(".pt"))
     diff = check_export(model, out, val.rgb[0], val.depth[0])
     if not math.isfinite(diff) or diff > 1e-2:
         raise TrainingError(f"exported model disagrees with torch: max abs logit difference {diff:.3g}")
@@ -578,6 +708,7 @@ def train_and_export(
         "data_generation_s": round(train.generation_s + val.generation_s, 1),
         "train_time_s": round(t_train, 1),
         "train_frames": len(train),
+        "site_frames": 0 if site is None else len(site),
         "val_frames": len(val),
         "train_data_hash": config_hash(cfg.data),
         "val_data_hash": config_hash(cfg.val),
@@ -683,6 +814,17 @@ def _machine_words(summary: dict[str, Any]) -> str:
     return f"{'' if device == 'CPU' else device + ', '}{cores} CPU cores"
 
 
+def _site_words(summary: dict[str, Any], cfg: dict[str, Any]) -> str:
+    """The site images among the training frames, for the card ('' without any)."""
+    n = summary.get("site_frames", 0)
+    if not n:
+        return ""
+    site = cfg["site"]
+    sources = ", ".join(f"{k} `{site[k]}`" for k in ("coco_json", "mask_dir", "negatives_dir") if site[k])
+    start = f"; started from `{cfg['init_weights']}`" if cfg.get("init_weights") else ""
+    return f", of them {n} real site images ({sources}; each {site['repeat']} time(s)){start}"
+
+
 def model_card(summary: dict[str, Any], metrics: dict[str, Any]) -> str:
     """The Markdown model card of an exported model."""
     cfg = summary["config"]
@@ -742,7 +884,7 @@ hash `{summary["train_data_hash"]}`:
 
 - scenarios: {", ".join(d["scenarios"])};
 - world seeds {d["seeds"]} (all < 1000), {d["frames_per_world"]} frames per world,
-  {summary["train_frames"]} frames in total;
+  {summary["train_frames"]} frames in total{_site_words(summary, cfg)};
 - {d["track_fraction"] * 100:.0f} % of frames on the scenario's robot trajectory at a random
   time (scenario people and lighting, including the dark corridor's lights-off phase), the
   rest from random viewpoints in free space (0.7-1.6 m high) looking at an object, rare

@@ -181,16 +181,24 @@ def test_seed_split_is_enforced() -> None:
         from_mapping(TrainSegConfig, {"epoch": 3})
 
 
-@pytest.mark.parametrize("name", ["train_seg.toml", "train_seg_gpu.toml"])
+@pytest.mark.parametrize("name", ["train_seg.toml", "train_seg_gpu.toml", "train_seg_site.toml"])
 def test_deploy_config_loads(name: str) -> None:
-    """deploy/train_seg.toml (the shipped model's) and deploy/train_seg_gpu.toml (the GPU recipe)
-    are valid [train_seg] tables with the contract's input size and the seed split."""
+    """deploy/train_seg.toml (the shipped model's), deploy/train_seg_gpu.toml (the GPU recipe) and
+    deploy/train_seg_site.toml (a site fine-tune) are valid [train_seg] tables with the
+    contract's input size and the seed split."""
     from wardmap.shared.config import load_config
 
     path = Path(__file__).resolve().parents[3] / "deploy" / name
     cfg = load_config(TrainSegConfig, path, section="train_seg")
     assert (cfg.data.width, cfg.data.height) == (320, 240)
     assert max(cfg.data.seeds) < 1000 <= min(cfg.val.seeds)
+    if name == "train_seg_site.toml":  # the packaged model's network, so its weights fit
+        shipped = load_config(TrainSegConfig, path.with_name("train_seg.toml"), section="train_seg")
+        network = ("depth_input", "stem_channels", "encoder", "skip_stages", "decoder_channels",
+                   "baff_block_px")
+        for key in network:
+            assert getattr(cfg, key) == getattr(shipped, key), key
+        assert cfg.init_weights == "server/models/hospital_seg.onnx"
 
 
 def test_gpu_and_sampling_settings_are_checked() -> None:
