@@ -50,9 +50,9 @@ def test_bad_tables_and_flags_are_config_errors(tmp_path: Path, table: str, argv
 
 @pytest.mark.parametrize("name", ["edge.toml", "server.toml"])
 def test_the_commented_zenoh_table_of_the_deploy_files_loads(name: str, tmp_path: Path) -> None:
-    """Uncommented, the ``[zenoh]`` example at the end of ``deploy/NAME`` is a valid table."""
+    """Uncommented, the ``[zenoh]`` example of ``deploy/NAME`` (up to its blank line) is a valid table."""
     text = (Path(__file__).resolve().parents[2] / "deploy" / name).read_text()
-    table = text[text.index("# [zenoh]\n"):]
+    table = text[text.index("# [zenoh]\n"):].split("\n\n")[0]
     toml = tmp_path / name
     toml.write_text("".join(line.removeprefix("# ") + "\n" for line in table.splitlines()))
     opts = zenoh_options(_parse(), str(toml))
