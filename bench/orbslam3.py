@@ -49,7 +49,7 @@ from _report import EVAL_SEEDS, git_rev, machine, publish
 from wardmap.edge.offline import track_dataset
 from wardmap.edge.tracker import TrackResult
 from wardmap.shared.dataset import Calibration, DatasetReader, read_tum_trajectory
-from wardmap.shared.metrics import ate
+from wardmap.shared.metrics import ate, rpe
 from wardmap.sim.runner import generate
 from wardmap.tools.vocabulary import dataset_descriptors, train_vocabulary
 
@@ -170,26 +170,13 @@ Viewer.ViewpointF: 500.0
 """
 
 
-def rpe_cm(stamps_est: np.ndarray, T_est: np.ndarray, stamps_ref: np.ndarray, T_ref: np.ndarray) -> float:
-    """RPE (evo): RMSE of the translation error between consecutive associated frames, cm."""
-    from evo.core import metrics, sync
-    from evo.core.trajectory import PoseTrajectory3D
-
-    est = PoseTrajectory3D(poses_se3=list(T_est), timestamps=np.asarray(stamps_est, np.float64))
-    ref = PoseTrajectory3D(poses_se3=list(T_ref), timestamps=np.asarray(stamps_ref, np.float64))
-    ref_s, est_s = sync.associate_trajectories(ref, est, max_diff=0.02)
-    rpe = metrics.RPE(metrics.PoseRelation.translation_part, delta=1, delta_unit=metrics.Unit.frames)
-    rpe.process_data((ref_s, est_s))
-    return 100 * float(rpe.get_statistic(metrics.StatisticsType.rmse))
-
-
 def score(traj: Path, reader: DatasetReader) -> tuple[float, float]:
     """(ATE cm, RPE cm/frame) of a TUM trajectory file against the recording's ground truth."""
     gt = reader.groundtruth()
     if gt is None:
         raise SystemExit(f"{reader.root}: no groundtruth.txt")
     st, T = read_tum_trajectory(traj)
-    return 100 * ate(st, T, gt[0], gt[1]).rmse, rpe_cm(st, T, gt[0], gt[1])
+    return 100 * ate(st, T, gt[0], gt[1]).rmse, 100 * rpe(st, T, gt[0], gt[1]).rmse
 
 
 def drop_repeated_stamps(traj: Path) -> Path:
