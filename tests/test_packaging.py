@@ -90,7 +90,7 @@ def test_built_wheel_imports_every_module(tmp_path: Path) -> None:
     )
 
 
-TRAIN_MODULES = ("tools/training/training.py", "tools/training/logit_adjust.py")
+TRAIN_MODULES = ("tools/training/training.py", "tools/training/logit_adjust.py", "tools/training/sitedata.py")
 """The only files that may import the ``train`` extra's packages (they say so when missing)."""
 EXTRA_MODULES = {
     "train": TRAIN_MODULES, "export": ("tools/export.py",), "rerun": ("tools/export.py",),
