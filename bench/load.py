@@ -7,7 +7,9 @@ databases from, e.g. ``postgresql://postgres@127.0.0.1:5432/postgres``). The key
 recorded once (hospital_loop seed 0, the first ``--frames`` frames through the edge tracker,
 ``tools/keyframes.py``; cached under ``out/load/``) and encoded for every robot before the run,
 so the load generator costs little: one zenoh session in this process with one publisher per
-robot, each putting ``--rate`` keyframes a second for ``--seconds`` on a fixed schedule.
+robot, each putting ``--rate`` keyframes a second for ``--seconds`` on a fixed schedule, at a
+phase of its own within the period (uniform, seeded), as independent robots are (all in step,
+a server sees bursts of every robot's keyframe at once).
 
 Reported per run: keyframes offered and acked per second (an ack comes after the commit; with
 two servers the first ``stored``/``duplicate`` ack counts), ack latency from the put (p50, p99),
@@ -114,13 +116,14 @@ def run_once(db: str, servers: int, robots: int, rate: float, seconds: float,
             n = len(messages[0])
             mapped0, backlog0 = _metric(writer, "wardmap_mapping_keyframes_total"), _metric(
                 writer, "wardmap_mapping_backlog")
+            # Robots are not in step: each puts at its own phase within the period (seeded).
+            phase = np.random.default_rng(0).uniform(0.0, 1.0 / rate, robots)
+            schedule = sorted((i / rate + phase[r], r, i) for r in range(robots) for i in range(n))
             t0 = time.monotonic()
-            for i in range(n):
-                due = t0 + i / rate
-                time.sleep(max(0.0, due - time.monotonic()))  # the fixed schedule
-                for r, pub in enumerate(pubs):
-                    sent[(f"load{r:03d}", i)] = time.monotonic()
-                    pub.put(messages[r][i])
+            for due, r, i in schedule:
+                time.sleep(max(0.0, t0 + due - time.monotonic()))  # the fixed schedule
+                sent[(f"load{r:03d}", i)] = time.monotonic()
+                pubs[r].put(messages[r][i])
             deadline = time.monotonic() + 60
             while len(acked) < len(sent) and time.monotonic() < deadline:
                 try:
@@ -205,7 +208,8 @@ def main() -> None:
         f"Command: `{cmd}`  ",
         f"Machine: {machine()}; commit {git_rev()}. Real `wardmap router` and `wardmap server` (default "
         f"settings, mapping stage {'off: ingest alone' if args.no_mapping else 'on'}) on loopback; "
-        "recorded keyframes of hospital_loop (about 100 KB each) put on a fixed schedule; an ack "
+        "recorded keyframes of hospital_loop (about 100 KB each) put on a fixed schedule, each robot at "
+        "its own phase within the period; an ack "
         "comes after the commit. A shared 2-core host: upper bounds.",
         "",
         "| store | servers | robots | offered kf/s | acked | acked kf/s | ack p50 ms | ack p99 ms | "
