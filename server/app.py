@@ -174,9 +174,9 @@ class MapServer:
                 job.start()
                 stack.callback(job.stop)
             objects = ObjectMap(store)
-            # Ingest hands each keyframe it stored, decoded, to the mapping stage that runs here
-            # (``server/decoded.py``); on a standby the cache only fills to its bound.
-            decoded = None if self._pipeline_factory is None else DecodedCache()
+            # Ingest hands each keyframe it stored, decoded, to the mapping stage while one runs
+            # here (``server/decoded.py``; the writer-lease role switches it).
+            decoded = None if self._pipeline_factory is None else DecodedCache(active=False)
             ingest: Ingest | None = None
             corrections: CorrectionPublisher | None = None
             router_connected: Callable[[], bool] | None = None
@@ -198,7 +198,7 @@ class MapServer:
             mapping = None
             if decoded is not None:
                 build = functools.partial(self._make_pipeline, store, objects, decoded, corrections)
-                mapping = MappingRole(store.writer_lease(self.name), build)
+                mapping = MappingRole(store.writer_lease(self.name), build, on_running=decoded.set_active)
                 mapping.start()
                 stack.callback(mapping.stop)
             self._running = stack.pop_all()

@@ -138,23 +138,36 @@ class DecodedCache:
 
     Args:
         max_bytes: most bytes held (>= 0; 0: nothing is kept, every stage decodes itself).
+        active: whether :meth:`put` keeps anything (see :meth:`set_active`).
     """
 
-    def __init__(self, max_bytes: int = DEFAULT_MAX_BYTES) -> None:
+    def __init__(self, max_bytes: int = DEFAULT_MAX_BYTES, *, active: bool = True) -> None:
         if isinstance(max_bytes, bool) or not isinstance(max_bytes, int) or max_bytes < 0:
             raise ConfigError(f"decoded cache max_bytes must be an int >= 0, got {max_bytes!r}")
         self._max_bytes = max_bytes
+        self._active = active  # under _lock
         self._lock = threading.Lock()
         self._entries: OrderedDict[str, DecodedKeyframe] = OrderedDict()  # under _lock
         self._bytes = 0  # under _lock
         names = ("put", "hits", "from_store", "image_hits", "images_decoded", "evicted")
         self._counts = dict.fromkeys(names, 0)  # under _lock
 
+    def set_active(self, active: bool) -> None:
+        """Keep what :meth:`put` hands on only while a stage runs here to take it (a server
+        that is a standby for the writer lease runs none); inactive, the entries go."""
+        with self._lock:
+            self._active = active
+            if not active:
+                self._entries.clear()
+                self._bytes = 0
+
     def put(self, key: str, msg: KeyframeMsg, payload_bytes: int) -> None:
         """Keep ``msg``, decoded from a ``payload_bytes`` payload stored under ``key`` (ingest,
-        after the commit)."""
+        after the commit); nothing while inactive."""
         entry = DecodedKeyframe(key, msg, payload_bytes)
         with self._lock:
+            if not self._active:
+                return
             self._counts["put"] += 1
             old = self._entries.pop(key, None)
             if old is not None:

@@ -67,12 +67,16 @@ class MappingRole:
         lease: this server's handle on the store's writer lease (not acquired).
         make_pipeline: builds a new, unstarted mapping stage (its back-end included).
         poll_s: seconds between two checks of the lease.
+        on_running: told True before a mapping stage starts here and False after it stopped
+            (or failed to start): what only a running stage consumes, such as ingest's decoded
+            keyframes, is kept only then.
     """
 
     def __init__(self, lease: WriterLease, make_pipeline: Callable[[], MapPipeline], *,
-                 poll_s: float = DEFAULT_POLL_S) -> None:
+                 poll_s: float = DEFAULT_POLL_S, on_running: Callable[[bool], None] | None = None) -> None:
         self._lease = lease
         self._make = make_pipeline
+        self._on_running = on_running if on_running is not None else (lambda running: None)
         self._poll_s = poll_s
         self._lock = threading.Lock()  # guards _pipeline and _holder for readers on other threads
         self._pipeline: MapPipeline | None = None  # the role's thread (or start/stop) replaces it
@@ -156,7 +160,12 @@ class MappingRole:
 
     def _start_pipeline(self) -> None:
         pipeline = self._make()
-        pipeline.start()
+        self._on_running(True)
+        try:
+            pipeline.start()
+        except BaseException:
+            self._on_running(False)
+            raise
         with self._lock:
             self._pipeline = pipeline
             self._holder = self._lease.holder
@@ -166,6 +175,7 @@ class MappingRole:
             pipeline, self._pipeline = self._pipeline, None
         if pipeline is not None:
             pipeline.stop()
+            self._on_running(False)
 
     def _refresh_holder(self) -> None:
         holder = self._lease.holder if self.pipeline is not None else self._lease.current_holder()

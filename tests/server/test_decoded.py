@@ -83,6 +83,23 @@ def test_zero_bytes_keeps_nothing() -> None:
     assert (c.entries, c.nbytes, c.evicted, c.from_store, c.hits) == (0, 0, 1, 1, 0)
 
 
+def test_an_inactive_cache_keeps_nothing_and_going_inactive_empties_it() -> None:
+    """A standby server runs no stage: while inactive ``put`` keeps nothing (nor counts it), and
+    switching off drops what was kept; switched on, it keeps again."""
+    msgs = _keyframes(2)
+    payloads = [wire.encode(m) for m in msgs]
+    cache = DecodedCache(active=False)
+    cache.put(keyframe_key(msgs[0]), msgs[0], len(payloads[0]))
+    assert (cache.counters().put, cache.counters().entries) == (0, 0)
+    assert cache.decoded(keyframe_key(msgs[0]), payloads[0]).msg is not msgs[0]  # from the store
+    cache.set_active(True)
+    cache.put(keyframe_key(msgs[1]), msgs[1], len(payloads[1]))
+    assert cache.decoded(keyframe_key(msgs[1]), payloads[1]).msg is msgs[1]
+    cache.set_active(False)
+    c = cache.counters()
+    assert (c.put, c.entries, c.nbytes) == (1, 0, 0)
+
+
 def test_bad_rasters_raise_every_time_and_a_bad_payload_raises() -> None:
     """A JPEG that passes the wire's header check but does not decode: WireError on rgb_jpeg
     for every reader (decoded once); a payload that does not decode: WireError."""

@@ -61,9 +61,10 @@ class _Pipeline:
 
 def _role(lease: _Lease, events: list[str], fail: bool = False) -> tuple[MappingRole, threading.Event,
                                                                       threading.Event]:
+    """A role over fake stages; ``events`` also gets ``running``/``idle`` from its on_running."""
     started, stopped = threading.Event(), threading.Event()
     role = MappingRole(lease, lambda: _Pipeline(events, started, stopped, fail),  # type: ignore[arg-type,return-value]
-                       poll_s=0.01)
+                       poll_s=0.01, on_running=lambda on: events.append("running" if on else "idle"))
     return role, started, stopped
 
 
@@ -83,10 +84,10 @@ def test_the_holder_runs_the_stage_until_it_loses_the_lease() -> None:
         assert not started.is_set()
         lease.free = True
         assert started.wait(EVENT_TIMEOUT_S)
-        assert events == ["start", "stop", "start"]
+        assert events == ["running", "start", "stop", "idle", "running", "start"]
     finally:
         role.stop()
-    assert events == ["start", "stop", "start", "stop"]
+    assert events == ["running", "start", "stop", "idle", "running", "start", "stop", "idle"]
     assert not lease.mine and role.pipeline is None and not role.running()
 
 
@@ -112,7 +113,7 @@ def test_a_stage_that_cannot_start_gives_the_lease_back() -> None:
     role, _, _ = _role(lease, events, fail=True)
     with pytest.raises(ConfigError, match="no model"):
         role.start()
-    assert not lease.mine and events == []
+    assert not lease.mine and events == ["running", "idle"]
 
 
 def test_a_holder_whose_stage_died_gives_the_lease_back() -> None:
@@ -127,6 +128,7 @@ def test_a_holder_whose_stage_died_gives_the_lease_back() -> None:
         started.clear()
         first.alive = False
         assert stopped.wait(EVENT_TIMEOUT_S) and started.wait(EVENT_TIMEOUT_S)
-        assert role.pipeline is not first and events[:3] == ["start", "stop", "start"]
+        assert role.pipeline is not first
+        assert events[:6] == ["running", "start", "stop", "idle", "running", "start"]
     finally:
         role.stop()
