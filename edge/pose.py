@@ -32,7 +32,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.errors import GeometryError
-from wardmap.shared.se3 import check_transform, make_transform, se3_exp
+from wardmap.shared.se3 import check_transform, hat, make_transform, se3_exp
 
 F64 = NDArray[np.float64]
 Mask = NDArray[np.bool_]
@@ -552,15 +552,6 @@ class RollingShutterResult(NamedTuple):
     ok: bool
 
 
-def _hat_rows(v: F64) -> F64:
-    """Skew matrices (N, 3, 3) of vectors (N, 3): ``_hat_rows(v)[i] @ u == cross(v[i], u)``."""
-    out = np.zeros((*v.shape[:-1], 3, 3))
-    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
-    return out
-
-
 def refine_pose_rolling_shutter(
     points_world: ArrayLike,
     uv: ArrayLike,
@@ -644,9 +635,9 @@ def refine_pose_rolling_shutter(
         # dY/dX = I - tau [s]x; dX/d(rho, omega) = [I | -[X]x]; dY/ds = tau [X]x.
         m = len(X)
         eye = np.broadcast_to(np.eye(3), (m, 3, 3))
-        dY_dX = eye - tau[:, None, None] * _hat_rows(np.broadcast_to(shear, (m, 3)))
-        dX_dxi = np.concatenate([eye, -_hat_rows(X)], axis=2)
-        dY = np.concatenate([dY_dX @ dX_dxi, tau[:, None, None] * _hat_rows(X)], axis=2)  # (m, 3, 9)
+        dY_dX = eye - tau[:, None, None] * hat(shear)
+        dX_dxi = np.concatenate([eye, -hat(X)], axis=2)
+        dY = np.concatenate([dY_dX @ dX_dxi, tau[:, None, None] * hat(X)], axis=2)  # (m, 3, 9)
         da = (dY[:, 0] - a[:, None] * dY[:, 2]) * iz[:, None]
         db = (dY[:, 1] - b[:, None] * dY[:, 2]) * iz[:, None]
         diz = -(iz * iz)[:, None] * dY[:, 2]

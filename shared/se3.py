@@ -129,9 +129,15 @@ def transform_to_tum(T: ArrayLike) -> F64:
 
 
 def hat(v: ArrayLike) -> F64:
-    """Skew-symmetric (3, 3) matrix of a 3-vector: ``hat(a) @ b == cross(a, b)``."""
-    x, y, z = np.asarray(v, dtype=np.float64).reshape(3)
-    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    """Skew-symmetric matrices (..., 3, 3) of 3-vectors (..., 3): ``hat(a) @ b == cross(a, b)``."""
+    a = np.asarray(v, dtype=np.float64)
+    if a.shape[-1:] != (3,):
+        raise GeometryError(f"hat: expected 3-vectors (..., 3), got shape {a.shape}")
+    out = np.zeros((*a.shape, 3))
+    out[..., 0, 1], out[..., 0, 2] = -a[..., 2], a[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = a[..., 2], -a[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -a[..., 1], a[..., 0]
+    return out
 
 
 def so3_exp(omega: ArrayLike) -> F64:

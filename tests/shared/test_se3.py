@@ -107,3 +107,15 @@ def test_zero_quaternion_is_rejected() -> None:
     """A zero quaternion has no rotation: GeometryError."""
     with pytest.raises(GeometryError, match="zero norm"):
         se3.quat_to_rotation([0, 0, 0, 0])
+
+
+def test_hat_is_the_cross_product_for_one_vector_and_for_many() -> None:
+    """``hat(a) @ b == cross(a, b)`` for a (3,) vector and row by row for (N, 3); other shapes
+    are refused."""
+    rng = np.random.default_rng(3)
+    a, b = rng.normal(size=(5, 3)), rng.normal(size=(5, 3))
+    assert se3.hat(a[0]).shape == (3, 3)
+    np.testing.assert_allclose(se3.hat(a[0]) @ b[0], np.cross(a[0], b[0]), atol=1e-12)
+    np.testing.assert_allclose(np.einsum("nij,nj->ni", se3.hat(a), b), np.cross(a, b), atol=1e-12)
+    with pytest.raises(GeometryError, match="3-vectors"):
+        se3.hat(np.zeros(4))
