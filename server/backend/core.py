@@ -49,9 +49,10 @@ import time
 from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Literal, cast
+from typing import Final, Literal, cast
 
 import cv2
+import msgpack
 import numpy as np
 from numpy.typing import NDArray
 
@@ -243,6 +244,9 @@ NO_CODE = 0xFF
 """The block code of a keyframe without place recognition (equal to no real code: 0..15)."""
 MAX_VOTES = 64
 """Anchoring votes kept per floating session (the most recent)."""
+PENDING_FORMAT: Final = "wardmap-backend-pending"
+PENDING_VERSION: Final = 1
+"""The encoding of :meth:`BackendCore.pending_state` (bump on any change of its layout)."""
 
 
 class BackendCore:
@@ -278,10 +282,14 @@ class BackendCore:
 
     @classmethod
     def restore(cls, config: BackendConfig, nodes: Sequence[tuple[NodeKey, float, F64, bytes]],
-                graph: PoseGraph, *, features: FeatureLoader | None = None) -> BackendCore:
+                graph: PoseGraph, *, features: FeatureLoader | None = None,
+                pending: bytes | None = None) -> BackendCore:
         """A core over a stored graph: ``nodes`` = ``(key, stamp, T_odom_camera, codes)`` in
-        arrival order; ``graph`` restored from the same records. Codes of another fern
-        configuration (wrong length) raise :class:`ConfigError`."""
+        arrival order; ``graph`` restored from the same records; ``pending``: the
+        :meth:`pending_state` stored with them (None: none stored). Codes of another fern
+        configuration (wrong length) raise :class:`ConfigError`. A pending state this build
+        cannot read (another version, damaged) is logged and dropped: votes start over, which
+        only delays anchoring."""
         core = cls(config, features=features, graph=graph)
         for key, stamp, T_odom_camera, codes in nodes:
             arr = np.frombuffer(codes, np.uint8)
@@ -289,7 +297,54 @@ class BackendCore:
                 raise ConfigError(f"stored fern codes have {arr.size} blocks, backend.ferns.blocks is "
                                   f"{config.ferns.blocks}")
             core._remember(key, stamp, T_odom_camera, arr, None)
+        if pending is not None:
+            try:
+                core._set_pending(pending)
+            except (ValueError, TypeError, KeyError, IndexError, msgpack.UnpackException) as exc:
+                log.warning("back-end: stored pending votes not restored (%s); they start over", exc)
+                core._votes, core._loop_votes, core._last_loop = {}, {}, {}
         return core
+
+    def pending_state(self) -> bytes:
+        """What the core holds between keyframes beyond the graph, as bytes to store with it:
+        the anchoring votes of floating sessions, the loops waiting for a confirming one, and
+        each session's keyframe count at its last loop (``loop_gap``). Restored with
+        :meth:`restore`, a core continues as if it had never stopped.
+
+        Layout (msgpack): ``[PENDING_FORMAT, PENDING_VERSION, votes, loops, last_loop]`` with
+        ``votes`` = ``[[robot, session, T_map_odom, closure, path_m, turn_deg], ...]``,
+        ``loops`` = ``[[robot, session, path_m, C, closure], ...]``, ``last_loop`` =
+        ``[[robot, session, count], ...]``; a pose is 16 little-endian float64 (row-major), a
+        closure ``[a, b, T_a_b, inliers, kind, sigmas or None]`` with keys ``[robot, session, seq]``."""
+        votes = [[s[0], s[1], _pose_bytes(v.T_map_odom), _closure_list(v.closure), v.path_m, v.turn_deg]
+                 for s, vs in self._votes.items() for v in vs]
+        loops = [[s[0], s[1], path_m, _pose_bytes(C), _closure_list(c)]
+                 for s, ps in self._loop_votes.items() for path_m, C, c in ps]
+        last = [[s[0], s[1], n] for s, n in self._last_loop.items()]
+        return cast(bytes, msgpack.packb([PENDING_FORMAT, PENDING_VERSION, votes, loops, last]))
+
+    def _set_pending(self, blob: bytes) -> None:
+        """Load :meth:`pending_state`'s bytes (raises ValueError on another format or version)."""
+        fmt, version, votes, loops, last = msgpack.unpackb(blob)
+        if fmt != PENDING_FORMAT or version != PENDING_VERSION:
+            raise ValueError(f"{fmt!r} version {version!r}, this build reads {PENDING_FORMAT!r} "
+                             f"version {PENDING_VERSION}")
+        anchor: dict[Session, list[_Vote]] = {}
+        for robot, session, T, closure, path_m, turn_deg in votes:
+            anchor.setdefault((str(robot), str(session)), []).append(
+                _Vote(_pose_from(T), _closure_from(closure), float(path_m), float(turn_deg)))
+        pending: dict[Session, list[tuple[float, F64, Closure]]] = {}
+        for robot, session, path_m, C, closure in loops:
+            pending.setdefault((str(robot), str(session)), []).append(
+                (float(path_m), _pose_from(C), _closure_from(closure)))
+        closures = [v.closure for vs in anchor.values() for v in vs]
+        closures += [p[2] for ps in pending.values() for p in ps]
+        for c in closures:
+            for k in (c.a, c.b):
+                if k not in self._row:
+                    raise ValueError(f"a pending vote names keyframe {k}, which the graph lacks")
+        self._votes, self._loop_votes = anchor, pending
+        self._last_loop = {(str(r), str(s)): int(n) for r, s, n in last}
 
     # ------------------------------------------------------------------ adding keyframes
 
@@ -693,6 +748,33 @@ class BackendCore:
             return None
         T_map_b = Ta @ closure.T_a_b
         return np.asarray(T_map_b @ np.linalg.inv(self._nodes[self._row[b]].T_odom_camera), np.float64)
+
+
+def _pose_bytes(T: F64) -> bytes:
+    return np.asarray(T, "<f8").reshape(16).tobytes()
+
+
+def _pose_from(blob: bytes) -> F64:
+    T = np.frombuffer(blob, "<f8").astype(np.float64)
+    if T.shape != (16,) or not np.all(np.isfinite(T)):
+        raise ValueError("a stored pose is not 16 finite float64")
+    return T.reshape(4, 4)
+
+
+def _closure_list(c: Closure) -> list[object]:
+    sigmas = None if c.sigmas is None else np.asarray(c.sigmas, "<f8").tobytes()
+    return [list(c.a), list(c.b), _pose_bytes(c.T_a_b), c.inliers, c.kind, sigmas]
+
+
+def _closure_from(item: Sequence[object]) -> Closure:
+    a, b, T, inliers, kind, sigmas = item
+    if kind not in ("loop", "anchor", "floating"):
+        raise ValueError(f"unknown closure kind {kind!r}")
+    key_a, key_b = (cast(Sequence[object], k) for k in (a, b))
+    return Closure((str(key_a[0]), str(key_a[1]), int(cast(int, key_a[2]))),
+                   (str(key_b[0]), str(key_b[1]), int(cast(int, key_b[2]))), _pose_from(cast(bytes, T)),
+                   int(cast(int, inliers)), kind,
+                   None if sigmas is None else np.frombuffer(cast(bytes, sigmas), "<f8").astype(np.float64))
 
 
 def _merged(first: GraphUpdate, second: GraphUpdate) -> GraphUpdate:

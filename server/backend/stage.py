@@ -126,6 +126,8 @@ class BackendStage:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._error: BaseException | None = None
+        self._pending: bytes | None = None
+        """The pending votes as last committed (``GraphChange.pending`` is sent only on a change)."""
         self.core = self._load()
 
     # ------------------------------------------------------------------ life cycle
@@ -298,7 +300,12 @@ class BackendStage:
                                          (old.revision if old is not None else 0) + 1))
         if session not in self._anchors and session not in res.update.sessions:
             changed.append(SessionAnchor(session[0], session[1], None, None, "", 0))
-        return GraphChange([node], edge_rows, estimates, changed, res.rebuild), changed
+        pending = self.core.pending_state()
+        if pending == self._pending:
+            stored_pending = None
+        else:
+            stored_pending = self._pending = pending
+        return GraphChange([node], edge_rows, estimates, changed, res.rebuild, stored_pending), changed
 
     def _anchored_to(self, session: tuple[str, str], res: KeyframeResult) -> str:
         """Which session a newly anchored one was anchored through (itself: it set the map or
@@ -317,13 +324,14 @@ class BackendStage:
         """The core over the stored graph (empty for a new store)."""
         nodes, edges = self.store.graph_records()
         self._anchors = {(a.robot_id, a.session_id): a for a in self.store.session_anchors()}
+        self._pending = self.store.graph_pending()
         if not nodes:
             return BackendCore(self.cfg, features=self._features)
         graph = PoseGraph.restore(self.cfg.graph, [_node_record(n) for n in nodes],
                                   [_edge_record(e) for e in edges])
         graph.new_records()  # what is stored is not new
         core = BackendCore.restore(self.cfg, [(n.key, n.stamp, n.T_odom_camera, n.codes) for n in nodes],
-                                   graph, features=self._features)
+                                   graph, features=self._features, pending=self._pending)
         log.info("back-end: pose graph restored (%d nodes, %d edges)", len(nodes), len(edges))
         return core
 

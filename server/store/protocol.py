@@ -264,13 +264,17 @@ class GraphStore(Protocol):
     map, and the graph epoch that tells the mapping stage to rebuild the object map."""
 
     def commit_graph(self, cursor: str, rowid: int, change: GraphChange) -> None:
-        """In one transaction: add ``change``'s nodes and edges, replace the estimates and
-        session rows it carries, bump the epoch when asked, and move cursor ``cursor`` to
-        ``rowid``."""
+        """In one transaction: add ``change``'s nodes and edges, replace the estimates, session
+        rows and pending votes it carries, bump the epoch when asked, and move cursor ``cursor``
+        to ``rowid``."""
         ...
 
     def graph_records(self) -> tuple[list[GraphNodeRow], list[GraphEdgeRow]]:
         """Every node (in insertion order) and edge (in insertion order)."""
+        ...
+
+    def graph_pending(self) -> bytes | None:
+        """The back-end's pending votes as last committed with the graph (None: never)."""
         ...
 
     def graph_epoch(self) -> int:

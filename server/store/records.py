@@ -459,6 +459,8 @@ class GraphChange:
         sessions: sessions whose anchoring or ``T_map_odom`` changed (replacing their row).
         bump_epoch: the map moved enough that the object map must be rebuilt (the mapping
             stage re-associates when the epoch changes).
+        pending: the back-end's pending votes (``BackendCore.pending_state``), replacing the
+            stored ones; None: unchanged.
     """
 
     nodes: Sequence[GraphNodeRow] = ()
@@ -466,6 +468,7 @@ class GraphChange:
     estimates: Sequence[tuple[NodeKey, NDArray[np.float64]]] = ()
     sessions: Sequence[SessionAnchor] = ()
     bump_epoch: bool = False
+    pending: bytes | None = None
 
 
 # --------------------------------------------------------------------------- REST API tokens

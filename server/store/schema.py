@@ -258,6 +258,11 @@ STEPS: Final[tuple[Step, ...]] = (
         "CREATE TABLE writer_fence (id {int} PRIMARY KEY CHECK (id = 1), epoch {int} NOT NULL)",
         "INSERT INTO writer_fence (id, epoch) VALUES (1, 0)",
     ),
+    # v13: the back-end's pending votes (anchoring votes of sessions off the map, loops waiting
+    # for a confirming one), written with the graph so a restart or a takeover continues them.
+    (
+        "CREATE TABLE graph_pending (id {int} PRIMARY KEY CHECK (id = 1), state {blob} NOT NULL)",
+    ),
 )
 
 

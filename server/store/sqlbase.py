@@ -824,6 +824,9 @@ class SqlMapStore:
                     "anchored_to = excluded.anchored_to, revision = excluded.revision",
                     [(a.robot_id, a.session_id, None if a.T_map_odom is None else pose_blob(a.T_map_odom),
                       a.anchored_s, a.anchored_to, a.revision) for a in change.sessions])
+            if change.pending is not None:
+                conn.execute("INSERT INTO graph_pending (id, state) VALUES (1, ?) "
+                             "ON CONFLICT (id) DO UPDATE SET state = excluded.state", (change.pending,))
             if change.bump_epoch:
                 conn.execute("INSERT INTO graph_epoch (id, epoch) VALUES (1, 1) "
                              "ON CONFLICT (id) DO UPDATE SET epoch = graph_epoch.epoch + 1")
@@ -852,6 +855,12 @@ class SqlMapStore:
                               bool(r[9]), int(r[10]))
                  for r in edge_rows]
         return nodes, edges
+
+    def graph_pending(self) -> bytes | None:
+        """See :meth:`~wardmap.server.store.protocol.GraphStore.graph_pending`."""
+        with self._read("back-end: pending votes") as conn:
+            row = conn.execute("SELECT state FROM graph_pending WHERE id = 1").fetchone()
+        return None if row is None else bytes(row[0])
 
     def graph_epoch(self) -> int:
         """See :meth:`~wardmap.server.store.protocol.GraphStore.graph_epoch`."""

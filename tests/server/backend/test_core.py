@@ -11,11 +11,17 @@ aisle tracked by the edge frontend offline, replayed as sessions the core must p
 from __future__ import annotations
 
 from dataclasses import replace
+from pathlib import Path
 
+import msgpack
 import numpy as np
 import pytest
 
 from wardmap.server.backend.core import BackendConfig, BackendCore
+from wardmap.server.backend.graph import PoseGraph
+from wardmap.server.backend.stage import BackendStage
+from wardmap.server.store import open_store
+from wardmap.shared import wire
 from wardmap.shared.se3 import yaw_transform
 from wardmap.shared.wire import KeyframeMsg
 
@@ -195,3 +201,62 @@ def test_ground_robot_sessions_are_told_from_handheld_ones(drive: list[KeyframeM
         core.add(m)
     assert core._on_floor((drive[0].robot_id, drive[0].session_id))
     assert not core._on_floor(("hand", drive[0].session_id))
+
+
+def test_pending_votes_survive_a_restart_of_the_back_end(drive: list[KeyframeMsg], tmp_path: Path) -> None:
+    """Anchoring votes and loops waiting for confirmation are committed with the graph, so a
+    back-end restored from the store one keyframe before the second session's anchoring one
+    anchors it at the same keyframe and ``T_map_odom`` as one that never stopped (without the
+    votes it starts counting again, and this drive ends before they span enough to anchor)."""
+    T_true = yaw_transform(np.radians(30.0), 2.0, -1.0, 0.0)
+    msgs = drive + _as(drive, "r2", "day2", T=np.linalg.inv(T_true), dt=86_400.0)
+    session = ("r2", "day2")
+
+    def run(db: Path, restart_at: int | None) -> tuple[int | None, int | None, np.ndarray | None]:
+        """(keyframes processed when the first vote was pending, when anchored, T_map_odom)."""
+        first_vote = anchored_at = None
+        with open_store(f"sqlite:///{db}") as store:
+            for m in msgs:
+                assert store.insert(m, wire.encode(m), 1.0) == "stored"
+            stage = BackendStage(store, batch=1)
+            for done in range(1, len(msgs) + 1):
+                assert stage.step() == 1
+                if first_vote is None and stage.counters().rejected.get("anchor vote"):
+                    first_vote = done
+                if anchored_at is None and stage.core.anchored(session):
+                    anchored_at = done
+                if done == restart_at:
+                    assert not stage.core.anchored(session) and store.graph_pending() is not None
+                    stage = BackendStage(store, batch=1)  # what a restart or a takeover builds
+            return first_vote, anchored_at, stage.core.T_map_odom(session)
+
+    first_vote, anchored_at, T_once = run(tmp_path / "once.db", None)
+    assert first_vote is not None and anchored_at is not None and anchored_at > first_vote
+    # restarted one keyframe before the anchoring one: the votes then span the most driving
+    _, anchored_restarted, T_restarted = run(tmp_path / "restarted.db", anchored_at - 1)
+    assert anchored_restarted == anchored_at
+    assert T_once is not None and T_restarted is not None
+    assert np.allclose(T_restarted, T_once, atol=1e-6)
+
+
+def test_a_pending_state_this_build_cannot_read_starts_the_votes_over(drive: list[KeyframeMsg]) -> None:
+    """A stored pending state of another version, or naming keyframes the graph lacks, is
+    dropped with a log line (the votes start over: anchoring is delayed, nothing is wrong)."""
+    core = BackendCore(BackendConfig())
+    for m in drive[:3]:
+        core.add(m)
+    nodes, edges = core.graph.records()
+    rows = [(n.key, m.stamp, m.T_odom_camera, core.encode(m).tobytes())
+            for n, m in zip(nodes, drive, strict=False)]
+    good = core.pending_state()
+    restored = BackendCore.restore(core.cfg, rows, PoseGraph.restore(core.graph.config, nodes, edges),
+                                   pending=good)
+    assert restored.pending_state() == good
+    fmt, version, *rest = msgpack.unpackb(good)
+    vote = [["r9", "s9", np.eye(4).tobytes(), [["r9", "s9", 0], ["r1", "day1", 0], np.eye(4).tobytes(), 30,
+                                                "anchor", None], 0.0, 0.0]]
+    for blob in (msgpack.packb([fmt, version + 1, *rest]), b"\x00garbage",
+                 msgpack.packb([fmt, version, vote, [], []])):
+        restored = BackendCore.restore(core.cfg, rows, PoseGraph.restore(core.graph.config, nodes, edges),
+                                       pending=blob)
+        assert restored.pending_state() == msgpack.packb([fmt, version, [], [], []])

@@ -1,6 +1,6 @@
 """Protocol tests of the back-end's records (:class:`~wardmap.server.store.GraphStore`), run
 against every backend (``conftest.BACKENDS``): nodes with codes and estimates, factors, session
-anchoring, the graph epoch, map trajectories, and replay reading the back-end's poses."""
+anchoring, pending votes, the graph epoch, map trajectories, and replay reading the back-end's poses."""
 
 from __future__ import annotations
 
@@ -50,6 +50,17 @@ def test_a_committed_graph_reads_back_in_order_with_its_cursor(backend: Backend)
         (e.kind, e.a, e.b, e.robust, e.inliers) for e in edges]
     np.testing.assert_array_equal(got_edges[0].sigmas, edges[0].sigmas)
     np.testing.assert_array_equal(got_edges[1].T_a_b, edges[1].T_a_b)
+
+
+def test_pending_votes_are_replaced_with_the_graph_and_kept_when_unchanged(store: MapStore) -> None:
+    assert store.graph_pending() is None
+    for seq in range(3):
+        store.insert(*keyframe("r1", "s1", seq), 1.0)
+    store.commit_graph("backend", 1, GraphChange([_node("r1", "s1", 0)], pending=b"first"))
+    store.commit_graph("backend", 2, GraphChange([_node("r1", "s1", 1)]))  # None: unchanged
+    assert store.graph_pending() == b"first"
+    store.commit_graph("backend", 3, GraphChange([_node("r1", "s1", 2)], pending=b""))
+    assert store.graph_pending() == b"" and store.cursor("backend") == 3
 
 
 def test_bundle_edges_are_stored(store: MapStore) -> None:
