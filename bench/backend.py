@@ -760,7 +760,9 @@ def main() -> int:
     seeds = list(TUNE_SEEDS) if args.tune else args.seeds
     names = [] if args.scale_only else [n for n in args.only or SCENARIOS if n != "tum"]
     with_tum = not args.scale_only and (args.only is None or "tum" in args.only)
-    config = BackendConfig(bundle_enabled=args.bundle)
+    # in the back-end's thread: each adjustment joins the graph at the keyframe whose loop started
+    # it, so runs repeat exactly (the server runs it in a child process, joining a few keyframes later)
+    config = BackendConfig(bundle_enabled=args.bundle, bundle_process=False)
     scores: list[RunScore] = []
     objects: list[ObjectScore] = []
     for scenario in names:

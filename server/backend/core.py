@@ -57,6 +57,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from wardmap.server.backend.bundle import BundleConfig, BundleFrame, BundleResult, bundle_adjust
+from wardmap.server.backend.bundle_worker import BundleWorker
 from wardmap.server.backend.graph import EdgeRecord, GraphConfig, GraphUpdate, NodeRecord, PoseGraph
 from wardmap.server.backend.places import FernConfig, FernEncoder, FernIndex
 from wardmap.server.backend.verify import KeyframeFeatures, Verified, VerifyConfig, verify_pair
@@ -109,8 +110,12 @@ class BackendConfig:
             sessions it joins (``bundle``; ground robots' keyframes with a level prior) and tie
             their consecutive keyframes by ``bundle`` edges (ORB-SLAM2's global bundle
             adjustment after loop closure); off by default: it lowers the error of four
-            evaluation scenarios but raises ward_chairs' on two worlds of five, and it runs in
-            the back-end thread for minutes (decisions 0035, 0036) ...
+            evaluation scenarios but raises ward_chairs' on two worlds of five (decisions 0035,
+            0036) ...
+        bundle_process: ... in a child process while the back-end goes on, its result added
+            when it is there (``bundle_worker.py``; one at a time: a loop while one runs starts
+            none); False: in the back-end thread, which waits for it (deterministic: for
+            benchmarks and tests) ...
         bundle_min_pairs: ... when at least this many of their consecutive keyframe pairs have
             no ``bundle`` edge yet ...
         bundle_context: ... over those pairs' keyframes and this many more on each side of
@@ -142,6 +147,7 @@ class BackendConfig:
     rebuild_move_m: float = 0.02
     loop_gap: int = 10
     bundle_enabled: bool = False
+    bundle_process: bool = True
     bundle: BundleConfig = field(default_factory=BundleConfig)
     bundle_min_pairs: int = 30
     bundle_context: int = 10
@@ -205,8 +211,9 @@ class KeyframeResult:
         update: the graph update (estimates moved, sessions anchored).
         rebuild: the map moved enough to rebuild the object map.
         ms: milliseconds per step: ``encode``, ``query``, ``verify``, ``graph``, and
-            ``bundle`` (the adjustment and its graph update) when one ran.
-        bundle: the bundle adjustment this keyframe's loop closure ran, or None.
+            ``bundle`` (the adjustment, wherever it ran, and its graph update) when one was added.
+        bundle: the bundle adjustment added to the graph with this keyframe (run for its loop
+            closure, or finished in the child process since the last keyframe), or None.
     """
 
     key: NodeKey
@@ -277,6 +284,7 @@ class BackendCore:
         self._loop_votes: dict[Session, list[tuple[float, F64, Closure]]] = {}
         self._last_loop: dict[Session, int] = {}
         """Session -> its keyframes counted when its last loop edge entered the graph."""
+        self._worker = BundleWorker() if self.cfg.bundle_enabled and self.cfg.bundle_process else None
 
     # ------------------------------------------------------------------ restore
 
@@ -394,14 +402,17 @@ class BackendCore:
                     if self.anchored((key[0], key[1])):  # a floating session keeps searching: its votes
                         self._last_loop[(key[0], key[1])] = len(self._session_rows[self._session_of_row[row]])
             ms["verify"] = (time.perf_counter() - t3) * 1e3
+        bundle = self._collect_bundle()  # finished in the child: its edges join this update
         t4 = time.perf_counter()
         update = self.graph.update()
         ms["graph"] = (time.perf_counter() - t4) * 1e3
-        bundle = None
+        if bundle is not None:
+            ms["bundle"] = bundle.ms
         if self.cfg.bundle_enabled and any(c.kind == "loop" for c in closures):
             t5 = time.perf_counter()
-            bundle = self._bundle(closures)
-            if bundle is not None:
+            inline = self._bundle(closures)
+            if inline is not None:
+                bundle = inline
                 update = _merged(update, self.graph.update())
                 ms["bundle"] = (time.perf_counter() - t5) * 1e3
         # A session anchored at its first keyframe (the map's first, or a map-pose prior) moved
@@ -411,6 +422,25 @@ class BackendCore:
         rebuild = grown or update.moved_m > self.cfg.rebuild_move_m
         return KeyframeResult(key, codes.tobytes(), n_cand, bool(searched), closures, rejected, update,
                               rebuild, ms, bundle)
+
+    def collect_bundle(self, timeout_s: float = 0.0) -> tuple[BundleResult, GraphUpdate] | None:
+        """Between keyframes: a bundle adjustment finished in the child process (waiting up to
+        ``timeout_s``), added to the graph as ``bundle`` edges and the graph updated; None when
+        none finished (or none runs, or it failed: logged)."""
+        bundle = self._collect_bundle(timeout_s)
+        if bundle is None:
+            return None
+        return bundle, self.graph.update()
+
+    def bundle_running(self) -> bool:
+        """Whether a bundle adjustment runs in the child process."""
+        return self._worker is not None and self._worker.busy()
+
+    def close(self) -> None:
+        """Stop a bundle adjustment still running in the child process (its pairs stay
+        unbundled: a later loop adjusts them)."""
+        if self._worker is not None:
+            self._worker.close()
 
     def encode(self, msg: KeyframeMsg, images: KeyframeImages | None = None) -> NDArray[np.uint8]:
         """The keyframe's fern code, from ``images`` (decoded from ``msg`` when None).
@@ -448,8 +478,22 @@ class BackendCore:
 
     # ------------------------------------------------------------------ internals
 
+    def _collect_bundle(self, timeout_s: float = 0.0) -> BundleResult | None:
+        """The child's finished adjustment, its ``bundle`` edges added (no graph update yet)."""
+        if self._worker is None:
+            return None
+        result = self._worker.collect(timeout_s)
+        if result is not None:
+            added = self.graph.add_bundle_edges(cast(dict[NodeKey, F64], result.poses))
+            log.info("bundle adjustment (child process): %d keyframes, %d landmarks, %d observations "
+                     "(%d dropped), %d edges, %.0f ms", len(result.poses), result.landmarks,
+                     result.observations, result.dropped, added, result.ms)
+        return result
+
     def _bundle(self, closures: Sequence[Closure]) -> BundleResult | None:
-        """Bundle-adjust around this keyframe's loop ``closures`` and add the ``bundle`` edges.
+        """Bundle-adjust around this keyframe's loop ``closures`` and add the ``bundle`` edges
+        (with ``bundle_process``: start the adjustment in the child process and return None;
+        its edges come with a later keyframe or :meth:`collect_bundle`).
 
         The frames: the keyframes of the closures' (anchored) sessions in a pair without a
         ``bundle`` edge, and ``bundle_context`` keyframes on each side of those and of every
@@ -460,6 +504,9 @@ class BackendCore:
         sessions = sorted({k[:2] for c in closures for k in (c.a, c.b) if self.graph.anchored(k[:2])})
         new_pairs = {s: self.graph.unbundled(s) for s in sessions}
         if sum(len(p) for p in new_pairs.values()) < cfg.bundle_min_pairs:
+            return None
+        if self._worker is not None and self._worker.busy():
+            log.debug("bundle adjustment: one runs already; this loop starts none")
             return None
         chosen: list[tuple[float, Session, int, NodeKey]] = []
         for s in sessions:
@@ -483,6 +530,10 @@ class BackendCore:
                 up = est[:3, :3] @ node.T_odom_camera[:3, :3].T @ _UP if self._on_floor(s) else None
                 frames.append(BundleFrame(k, est, feats, chain=s, up=up))
         if len(frames) < 2:
+            return None
+        if self._worker is not None:
+            self._worker.submit(frames, cfg.bundle)
+            log.info("bundle adjustment over %d keyframes started in a child process", len(frames))
             return None
         try:
             result = bundle_adjust(frames, cfg.bundle)

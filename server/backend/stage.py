@@ -13,6 +13,11 @@ After a commit, each session whose ``T_map_odom`` changed is handed to ``publish
 server sends it to the robot on ``wardmap/v1/robots/<id>/correction``) when it is the
 robot's running session (that of its latest keyframe); the store keeps the others.
 
+With ``bundle_process`` a bundle adjustment runs in a child process (``bundle_worker.py``);
+its result joins the graph with the next keyframe, or, when none waits, is committed alone
+(new ``bundle`` edges and the estimates they moved; the cursor stays). Stopping the stage
+stops a running adjustment.
+
 Restart: the graph is rebuilt from its stored nodes and factors with the stored estimates as
 initial values, and the fern index from the stored codes; no keyframe is verified again.
 
@@ -27,15 +32,15 @@ import logging
 import threading
 import time
 from collections import Counter, OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Final, cast
 
 import numpy as np
 from numpy.typing import NDArray
 
-from wardmap.server.backend.core import BackendConfig, BackendCore, KeyframeResult, NodeKey
-from wardmap.server.backend.graph import EdgeRecord, NodeRecord, PoseGraph
+from wardmap.server.backend.core import BackendConfig, BackendCore, Closure, KeyframeResult, NodeKey
+from wardmap.server.backend.graph import EdgeRecord, GraphUpdate, NodeRecord, PoseGraph
 from wardmap.server.backend.verify import KeyframeFeatures
 from wardmap.server.decoded import DecodedCache, DecodedKeyframe
 from wardmap.server.store import GraphChange, GraphEdgeRow, GraphNodeRow, MapStore, SessionAnchor
@@ -142,6 +147,7 @@ class BackendStage:
         if self._thread is not None:
             self._thread.join()
             self._thread = None
+        self.core.close()
 
     def running(self) -> bool:
         """Whether the thread is started and has not stopped or died."""
@@ -186,7 +192,7 @@ class BackendStage:
         while not self._stop.is_set():
             try:
                 done = self.step()
-                if done == 0:
+                if done == 0 and not self.apply_bundle():
                     self._stop.wait(self._poll_s)
                 delay, failing = self._retry_s, None
             except Exception as exc:
@@ -202,6 +208,7 @@ class BackendStage:
                     if failing[1] >= self._max_attempts:
                         self._skip_after(cursor, f"internal: {type(exc).__name__}")
                         failing = None
+                    self.core.close()
                     self.core = self._load()
                 except Exception:
                     log.exception("back-end: recovery failed; retrying")
@@ -249,6 +256,7 @@ class BackendStage:
         res = self.core.add(msg, images)
         change, changed = self._change(msg, res)
         self.store.commit_graph(CURSOR_NAME, rowid, change)
+        self._settled(changed)
         if self._telemetry is not None:
             self._telemetry.mapping("backend", time.perf_counter() - started)
         with self._lock:
@@ -258,12 +266,41 @@ class BackendStage:
             self._counts["anchored"] += len(res.update.anchored)
             self._rejected.update(res.rejected)
             self._last_ms = dict(res.ms)
-            for anchor in changed:
-                self._anchors[(anchor.robot_id, anchor.session_id)] = anchor
         for closure in res.closures:
             log.info("back-end: %s %s -> %s (%d inliers)", closure.kind, "/".join(map(str, closure.a)),
                      "/".join(map(str, closure.b)), closure.inliers)
         self._running[msg.robot_id] = msg.session_id
+        self._publish_changed(changed)
+
+    def apply_bundle(self, timeout_s: float = 0.0) -> bool:
+        """Commit a bundle adjustment the child process finished (waiting up to ``timeout_s``)
+        while no keyframe waits: its edges, the estimates they moved, the sessions whose
+        ``T_map_odom`` changed (published), a rebuild request; the cursor stays. Whether one was
+        committed."""
+        got = self.core.collect_bundle(timeout_s)
+        if got is None:
+            return False
+        _, update = got
+        _, edges = self.core.graph.new_records()
+        keys = self.core.node_keys()
+        estimates = [(k, T) for k, T in zip(keys, self.core.graph.estimates(keys), strict=True)
+                     if T is not None]
+        changed = self._sessions_changed(update, [])
+        rebuild = update.moved_m > self.cfg.rebuild_move_m
+        self.store.commit_graph(CURSOR_NAME, self.cursor(),
+                                GraphChange((), [_edge_row(e) for e in edges], estimates, changed, rebuild))
+        self._settled(changed)
+        self._publish_changed(changed)
+        return True
+
+    def _settled(self, changed: list[SessionAnchor]) -> None:
+        """After a commit: the sessions it changed, as the store now has them."""
+        with self._lock:
+            for anchor in changed:
+                self._anchors[(anchor.robot_id, anchor.session_id)] = anchor
+
+    def _publish_changed(self, changed: list[SessionAnchor]) -> None:
+        """Send each changed session's correction to its robot, if it is the robot's running one."""
         for anchor in changed:
             # A robot runs one session at a time: older sessions' corrections would only be refused.
             if self._running.get(anchor.robot_id) != anchor.session_id:
@@ -289,15 +326,8 @@ class BackendStage:
             keys = [k for k in self.core.node_keys() if k != key]
             estimates = [(k, T) for k, T in zip(keys, self.core.graph.estimates(keys), strict=True)
                          if T is not None]
-        now = self._clock()
-        changed = []
+        changed = self._sessions_changed(res.update, res.closures)
         session = (msg.robot_id, msg.session_id)
-        for s, T_map_odom in res.update.sessions.items():
-            old = self._anchors.get(s)
-            anchored_s = old.anchored_s if old is not None and old.anchored_s is not None else now
-            to = old.anchored_to if old is not None and old.anchored_to else self._anchored_to(s, res)
-            changed.append(SessionAnchor(s[0], s[1], T_map_odom, anchored_s, to,
-                                         (old.revision if old is not None else 0) + 1))
         if session not in self._anchors and session not in res.update.sessions:
             changed.append(SessionAnchor(session[0], session[1], None, None, "", 0))
         pending = self.core.pending_state()
@@ -307,10 +337,22 @@ class BackendStage:
             stored_pending = self._pending = pending
         return GraphChange([node], edge_rows, estimates, changed, res.rebuild, stored_pending), changed
 
-    def _anchored_to(self, session: tuple[str, str], res: KeyframeResult) -> str:
+    def _sessions_changed(self, update: GraphUpdate, closures: Sequence[Closure]) -> list[SessionAnchor]:
+        """The session rows of a graph update's changed sessions (revision bumped)."""
+        now = self._clock()
+        changed = []
+        for s, T_map_odom in update.sessions.items():
+            old = self._anchors.get(s)
+            anchored_s = old.anchored_s if old is not None and old.anchored_s is not None else now
+            to = old.anchored_to if old is not None and old.anchored_to else self._anchored_to(s, closures)
+            changed.append(SessionAnchor(s[0], s[1], T_map_odom, anchored_s, to,
+                                         (old.revision if old is not None else 0) + 1))
+        return changed
+
+    def _anchored_to(self, session: tuple[str, str], closures: Sequence[Closure]) -> str:
         """Which session a newly anchored one was anchored through (itself: it set the map or
         came with a prior)."""
-        for closure in res.closures:
+        for closure in closures:
             sa, sb = closure.a[:2], closure.b[:2]
             if session == sa and sb != sa:
                 return f"{sb[0]}/{sb[1]}"

@@ -160,7 +160,8 @@ def test_a_loop_between_anchored_sessions_bundle_adjusts_them(drive: list[Keyfra
     and each consecutive pair gets one ``bundle`` edge; the edges survive a restore."""
     from wardmap.server.backend.graph import PoseGraph
 
-    core = BackendCore(BackendConfig(loop_gap=0, bundle_enabled=True, bundle_min_pairs=3))
+    config = BackendConfig(loop_gap=0, bundle_enabled=True, bundle_process=False, bundle_min_pairs=3)
+    core = BackendCore(config)
     for m in drive:
         core.add(m)
     second = _as(drive, "r2", "day2", T=yaw_transform(np.radians(-20.0), 1.0, 0.5, 0.0), dt=86_400.0)
@@ -187,6 +188,41 @@ def test_a_loop_between_anchored_sessions_bundle_adjusts_them(drive: list[Keyfra
         est, got = core.estimate(n.key), restored.estimate(n.key)
         assert est is not None and got is not None
         np.testing.assert_allclose(got[:3, 3], est[:3, 3], atol=2e-3)
+
+
+def test_the_server_bundle_adjusts_in_a_child_process_while_keyframes_go_on(
+        drive: list[KeyframeMsg], tmp_path: Path) -> None:
+    """With ``bundle_process`` (the default) the adjustment a loop starts runs in a child
+    process: the back-end stage keeps adding keyframes meanwhile, and the result is committed
+    when it is there (here: with no keyframe waiting, as its own commit, the cursor unchanged):
+    one ``bundle`` edge per consecutive pair, the sessions' views still together."""
+    config = BackendConfig(loop_gap=0, bundle_enabled=True, bundle_min_pairs=3)
+    second = _as(drive, "r2", "day2", T=yaw_transform(np.radians(-20.0), 1.0, 0.5, 0.0), dt=86_400.0)
+    with open_store(f"sqlite:///{tmp_path / 'map.db'}") as store:
+        for m in drive + second:
+            assert store.insert(m, wire.encode(m), 1.0) == "stored"
+        stage = BackendStage(store, config, batch=1)
+        try:
+            added_while_running = 0
+            for _ in drive + second:
+                running = stage.core.bundle_running()
+                assert stage.step() == 1
+                added_while_running += running
+            assert added_while_running > 0, "no keyframe went in while an adjustment ran"
+            cursor = stage.cursor()
+            while stage.core.bundle_running():
+                stage.apply_bundle(timeout_s=1.0)
+            assert stage.cursor() == cursor == len(drive) + len(second)
+            edges = store.graph_records()[1]
+        finally:
+            stage.stop()
+        pairs = [(e.a, e.b) for e in edges if e.kind == "bundle"]
+        assert len(pairs) == len(set(pairs)) > 0
+        for a, b in zip(drive, second, strict=True):
+            keys = [(a.robot_id, a.session_id, a.seq), (b.robot_id, b.session_id, b.seq)]
+            Ta, Tb = store.graph_poses(keys).values()
+            assert Ta is not None and Tb is not None
+            assert np.linalg.norm(Ta[:3, 3] - Tb[:3, 3]) < 0.05
 
 
 def test_ground_robot_sessions_are_told_from_handheld_ones(drive: list[KeyframeMsg]) -> None:
