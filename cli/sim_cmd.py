@@ -21,6 +21,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--out", metavar="DIR", help="output folder (created; must be empty)")
     p.add_argument("--frames", type=int, metavar="K", help="stop after K camera frames per robot")
     p.add_argument("--overwrite", action="store_true", help="allow a non-empty output folder")
+    p.add_argument("--rgb-readout-ms", type=float, default=0.0, metavar="MS",
+                   help="render the colour camera with a rolling shutter of this readout time, first row "
+                        "to last (default 0: global shutter); the calibration records it")
     p.set_defaults(func=run)
 
 
@@ -37,11 +40,13 @@ def run(args: argparse.Namespace) -> int:
         raise SimulationError("--scenario NAME and --out DIR are required (or --list)")
 
     from wardmap.sim.runner import generate
+    from wardmap.sim.sensors import SensorRig
 
+    rig = SensorRig(rgb_readout_s=args.rgb_readout_ms / 1000.0)
     started = time.monotonic()
     with Progress("frames") as bar:
         summaries = generate(args.scenario, args.seed, args.out, frames=args.frames, overwrite=args.overwrite,
-                             progress=bar.update)
+                             progress=bar.update, rig=rig)
     elapsed = time.monotonic() - started
     for s in summaries:
         print(f"{s.name}: {s.frames} frames, {s.duration_s:.1f} s, {s.length_m:.1f} m -> {s.path}")

@@ -101,7 +101,7 @@ def calibration_of(rig: SensorRig, geometry: BaseGeometry) -> Calibration:
         wheel_radius_m=geometry.wheel_radius_m,
         wheel_base_m=geometry.wheel_base_m,
         ticks_per_mm=geometry.ticks_per_mm,
-        rgb_readout_s=0.0,  # the renderer exposes every row at once
+        rgb_readout_s=rig.rgb_readout_s,  # 0: the renderer exposes every row at once
     )
 
 
@@ -216,7 +216,11 @@ class LiveRun:
         bank = scene.world_of(self.run).bank
         dyn = TriangleSoup.concat([soup_of(*a.at(t), a.id, bank) for a in scene.actors])
         T_world_rgb = self.T_world_base[i] @ self.rig.T_base_rgb
-        f = self.sensors.capture(T_world_rgb, dyn, scene.light(t), self._rng)
+        band_poses = None
+        if self.rig.rgb_readout_s > 0.0:  # rolling shutter: each band of rows at its own instant
+            band_t = np.array([t + dt for _, _, dt in self.rig.readout_bands()])
+            band_poses = list(base_pose(self.run, band_t) @ self.rig.T_base_rgb)
+        f = self.sensors.capture(T_world_rgb, dyn, scene.light(t), self._rng, band_poses=band_poses)
         stamp = float(self.stamps[i])
         return Frame(
             index=i,

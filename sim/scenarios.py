@@ -2,8 +2,8 @@
 
 Scenario names are stable (tests, benchmarks and docs use them). ``aisle_*`` follow
 paper 000 Table II (straight, left-turn and right-turn aisles, slow and at about twice
-the speed); the rest exercise association traps, loop closure, dynamic people, darkness
-and multi-robot mapping.
+the speed); the rest exercise association traps, loop closure, dynamic people, darkness,
+multi-robot mapping, and (``pan_in_place``) the fast turns that show a rolling shutter.
 """
 
 from __future__ import annotations
@@ -413,6 +413,18 @@ def _dark_corridor(seed: int) -> Scene:
     )
 
 
+def _pan_in_place(seed: int) -> Scene:
+    """Turning on the spot left and right in a furnished aisle, as one records a camera to
+    calibrate its rolling shutter: yaw ``A sin(2 pi t / P)``, A = 40 deg, P = 4 s (up to
+    1.1 rad/s), for 8 s after 0.5 s at rest."""
+    world, _ = _aisle_world("pan_in_place", seed, 0)
+    t = np.arange(0.0, 8.5 + 1e-9, 0.01)
+    swing = np.where(t < 0.5, 0.0, np.radians(40.0) * np.sin(2.0 * np.pi * np.maximum(t - 0.5, 0.0) / 4.0))
+    track = Track(t, np.full_like(t, 8.0), np.full_like(t, 1.5), swing, np.zeros_like(t))
+    return Scene("pan_in_place", seed, world, [RobotRun("robot_0", track)],
+                 description="turning on the spot, +-40 deg at up to 1.1 rad/s")
+
+
 SCENARIOS: dict[str, ScenarioSpec] = {
     s.name: s
     for s in (
@@ -434,6 +446,8 @@ SCENARIOS: dict[str, ScenarioSpec] = {
             _walking_staff,
         ),
         ScenarioSpec("dark_corridor", "the lights go out for 12 s (thermal keeps working)", _dark_corridor),
+        ScenarioSpec("pan_in_place", "turning on the spot left and right (+-40 deg): for a rolling "
+                     "shutter's calibration", _pan_in_place),
         ScenarioSpec("two_robots", "two robots in one world with overlapping paths", _two_robots),
         ScenarioSpec(
             "two_robots_meet",

@@ -2,12 +2,15 @@
 
 RGB: 640x480, registered depth with Kinect-v2-like noise (axial std growing with the
 square of range), missing depth beyond range, at depth edges and on dark or specular
-materials. Thermal: 388x284, 37.7 x 28.7 deg (paper 003), beside the RGB camera,
-rendered from per-material temperatures with optics blur and sensor noise (NETD).
+materials; a global shutter by default, or a rolling shutter (``rgb_readout_s``: each band
+of rows rendered at its own instant, depth and labels registered with it). Thermal:
+388x284, 37.7 x 28.7 deg (paper 003), beside the RGB camera, rendered from per-material
+temperatures with optics blur and sensor noise (NETD).
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import cv2
@@ -15,6 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from wardmap.shared.camera import PinholeCamera
+from wardmap.shared.errors import SimulationError
 from wardmap.shared.se3 import inverse, make_transform, so3_exp
 from wardmap.sim import raster
 from wardmap.sim.geometry import TriangleSoup
@@ -52,6 +56,12 @@ class SensorRig:
         rgb_noise_std: colour noise std in 8-bit levels.
         thermal_blur_px: Gaussian optics blur of the thermal image (pixels).
         thermal_netd_k: thermal noise std in kelvin.
+        rgb_readout_s: rolling-shutter readout time of the RGB camera (first row to last),
+            seconds; row ``v`` is exposed ``(v - cy) / height`` readouts after the frame's
+            stamp (the middle row's instant, the tracker's convention, docs/tracking.md);
+            registered depth and labels follow the same rows. 0: global shutter.
+        readout_band_rows: rows rendered at one instant under a rolling shutter (the pose
+            is interpolated no finer: 16 rows of 480 at 30 ms are 1 ms apart).
     """
 
     rgb: PinholeCamera = field(default_factory=lambda: PinholeCamera(640, 480, 525.0, 525.0, 319.5, 239.5))
@@ -66,6 +76,25 @@ class SensorRig:
     rgb_noise_std: float = 1.5
     thermal_blur_px: float = 0.8
     thermal_netd_k: float = 0.05
+    rgb_readout_s: float = 0.0
+    readout_band_rows: int = 16
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.rgb_readout_s) and 0.0 <= self.rgb_readout_s <= 0.1):
+            raise SimulationError(f"rgb_readout_s must be in [0, 0.1] seconds, got {self.rgb_readout_s}")
+        if self.readout_band_rows < 1:
+            raise SimulationError(f"readout_band_rows must be >= 1, got {self.readout_band_rows}")
+
+    def readout_bands(self) -> list[tuple[int, int, float]]:
+        """Under a rolling shutter, ``(first row, end row, seconds after the stamp)`` per band
+        of rows (its middle row's instant); one band at 0 for a global shutter."""
+        cam = self.rgb
+        if self.rgb_readout_s == 0.0:
+            return [(0, cam.height, 0.0)]
+        return [(r0, min(r0 + self.readout_band_rows, cam.height),
+                 ((r0 + min(r0 + self.readout_band_rows, cam.height) - 1) / 2.0 - cam.cy) / cam.height
+                 * self.rgb_readout_s)
+                for r0 in range(0, cam.height, self.readout_band_rows)]
 
 
 @dataclass(frozen=True)
@@ -107,24 +136,28 @@ class SensorSimulator:
         return raster.Mesh(soup.vertices, soup.uv, soup.texture, soup.instance, soup.material, soup.shade)
 
     def capture(
-        self, T_world_rgb: F64, dynamic: TriangleSoup | None, light: float, rng: np.random.Generator
+        self, T_world_rgb: F64, dynamic: TriangleSoup | None, light: float, rng: np.random.Generator,
+        *, band_poses: Sequence[F64] | None = None,
     ) -> SensorFrame:
         """Render RGB, depth, labels and thermal at the RGB camera pose ``T_world_rgb``.
 
         ``light`` scales scene illumination (1 normal, 0.02 lights off); emissive
-        materials keep glowing. All noise comes from ``rng``.
+        materials keep glowing. All noise comes from ``rng``. ``band_poses``: under a rolling
+        shutter, the RGB camera's pose (4, 4) at each band of :meth:`SensorRig.readout_bands`
+        (RGB, depth and labels of its rows rendered there; thermal stays at ``T_world_rgb``).
         """
         rig, cam = self.rig, self.rig.rgb
         mesh = self.mesh(dynamic)
-        out = raster.render(
-            mesh,
-            self.atlas,
-            (cam.fx, cam.fy, cam.cx, cam.cy),
-            cam.width,
-            cam.height,
-            inverse(T_world_rgb),
-            sample_gray=False,
-        )
+        bands = rig.readout_bands()
+        poses = [T_world_rgb] if band_poses is None else list(band_poses)
+        if len(poses) != len(bands):
+            raise SimulationError(f"capture: {len(poses)} band poses for {len(bands)} bands")
+        parts = [
+            raster.render(mesh, self.atlas, (cam.fx, cam.fy, cam.cx, cam.cy - r0), cam.width, r1 - r0,
+                          inverse(T), sample_gray=False)
+            for (r0, r1, _), T in zip(bands, poses, strict=True)
+        ]
+        out = parts[0] if len(parts) == 1 else _stack_rows(parts)
         if out.color is None:
             raise RuntimeError("renderer returned no colour")
         gain = np.where(self.emissive[out.material], np.float32(max(light, 0.8)), np.float32(light))
@@ -155,6 +188,17 @@ class SensorSimulator:
             rig.thermal_netd_k
         )
         return SensorFrame(rgb, depth, out.instance.copy(), temp_noisy.astype(np.float32), depth_true)
+
+
+def _stack_rows(parts: Sequence[raster.RenderOut]) -> raster.RenderOut:
+    """Bands of rows rendered apart, as one image (top to bottom)."""
+    colors = [p.color for p in parts]
+    return raster.RenderOut(
+        np.concatenate([p.depth for p in parts]), np.concatenate([p.instance for p in parts]),
+        np.concatenate([p.material for p in parts]),
+        None if any(c is None for c in colors) else np.concatenate([c for c in colors if c is not None]),
+        None,
+    )
 
 
 def depth_dropout_table() -> NDArray[np.float32]:

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from procs import one_line_error, wardmap
 
 from wardmap.shared.dataset import DatasetReader
 from wardmap.shared.errors import SimulationError
@@ -77,3 +78,23 @@ def test_odom_frame_in_the_world_is_the_start_of_the_base() -> None:
     T_world_base0 = T_world_cam0 @ np.linalg.inv(live.rig.T_base_rgb)
     np.testing.assert_allclose(T_world_base_odo[:2, 3], T_world_base0[:2, 3], atol=1e-6)
     np.testing.assert_allclose(T_world_base_odo[:2, :2], T_world_base0[:2, :2], atol=1e-2)
+
+
+def test_rolling_shutter_bands_cover_every_row_once_around_the_stamp() -> None:
+    """Under a rolling shutter each band of rows has its own instant, from about half a readout
+    before the stamp (top) to half after (bottom), the middle row at the stamp; 0 is one band."""
+    from wardmap.sim.sensors import SensorRig
+
+    rig = SensorRig(rgb_readout_s=0.03)
+    bands = rig.readout_bands()
+    rows = [r for r0, r1, _ in bands for r in range(r0, r1)]
+    assert rows == list(range(rig.rgb.height))
+    offsets = np.array([dt for _, _, dt in bands])
+    assert np.all(np.diff(offsets) > 0)
+    assert offsets[0] == pytest.approx(-0.015, abs=0.001) and offsets[-1] == pytest.approx(0.015, abs=0.001)
+    assert SensorRig().readout_bands() == [(0, rig.rgb.height, 0.0)]
+    for bad in (-0.01, 0.5, float("nan")):
+        with pytest.raises(SimulationError, match="rgb_readout_s"):
+            SensorRig(rgb_readout_s=bad)
+    one_line_error(wardmap("sim", "--scenario", "pan_in_place", "--out", "/nonexistent/x",
+                           "--rgb-readout-ms", "-5"), "rgb_readout_s")
