@@ -100,6 +100,7 @@ from wardmap.edge.labels import LabelSource, make_label_source
 from wardmap.edge.metrics import EdgeMetrics
 from wardmap.edge.outbox import Outbox, OutboxFull, OutboxItem, SessionIds
 from wardmap.edge.privacy import PRIVACY_MODES, person_mask
+from wardmap.edge.readout import OnlineReadout
 from wardmap.edge.stream import FrameSourceStream, FrameStream, StreamSource
 from wardmap.edge.tracker import Tracker, TrackerConfig, TrackInput
 from wardmap.shared.dataset import DatasetReader, Frame, FrameSource
@@ -337,6 +338,7 @@ class EdgeAgent:
         self._latest_pose: tuple[NDArray[np.float64] | None, NDArray[np.float64]] | None = None
         self._sender_error: BaseException | None = None
         self._stream: FrameStream | None = None  # set by run(); close() ends its iteration
+        self._online: OnlineReadout | None = None  # the tracking thread's online readout estimate, if any
 
     # ------------------------------------------------------------------ control
 
@@ -446,6 +448,7 @@ class EdgeAgent:
             "keyframes_with_people": track.with_people,
             "keyframes_unlabelled": track.unlabelled,
             "latency_ms": _percentiles(lat),
+            **({"online_readout": self._online.summary()} if self._online is not None else {}),
             **self._corrections.summary(**self._pose_args()),  # the sender has stopped
             "seconds": round(time.monotonic() - t_start, 3),
         }
@@ -464,6 +467,9 @@ class EdgeAgent:
     ) -> None:
         calib = stream.source.calibration
         intrinsics = Intrinsics.from_camera(calib.rgb, calib.depth_scale)
+        # no readout time known: estimated from the first turning frames in a child process
+        online = OnlineReadout(calib, self.tracker_cfg) if OnlineReadout.wanted(tracker.readout) else None
+        self._online = online
         for item in stream:
             if self._stop.is_set():
                 break
@@ -481,6 +487,8 @@ class EdgeAgent:
                 )
                 person = None if lab is None else person_mask(lab.class_image, mobility_lut)
             res = tracker.track(inp)
+            if online is not None and (found := online.offer(inp, res)) is not None:
+                tracker.readout = found  # from the next frame on
             self._frame_pose = res.T_world_camera
             track.frames += 1
             track.lost += int(res.lost)
@@ -505,6 +513,8 @@ class EdgeAgent:
                 track.keyframes += 1
             self._progress = (track.frames, track.keyframes, track.lost)
         self._progress = (track.frames, track.keyframes, track.lost)
+        if online is not None:
+            online.close()
 
     def _put_with_backpressure(self, ids: SessionIds, msg: KeyframeMsg, track: _TrackStats) -> bool:
         """Put ``msg`` into the outbox; while it is full, wait for acks (never drop); True if stored.

@@ -17,9 +17,10 @@ from typing import Any
 import numpy as np
 
 from wardmap.edge.labels import make_label_source
+from wardmap.edge.readout import OnlineReadout, OnlineReadoutConfig
 from wardmap.edge.stream import FrameSourceStream, FrameStream, StreamSource
 from wardmap.edge.tracker import Tracker, TrackerConfig, TrackInput, TrackResult
-from wardmap.shared.dataset import Calibration, DatasetReader, pose_at
+from wardmap.shared.dataset import Calibration, DatasetReader
 from wardmap.shared.errors import DatasetError, WardmapError
 from wardmap.shared.knowledge import KnowledgeGraph
 from wardmap.shared.se3 import transform_to_tum
@@ -42,17 +43,21 @@ def track_source(
     label_threads: int = 1,
     progress: Callable[[int, int, TrackResult], None] | None = None,
     calibration: Calibration | None = None,
+    online_readout: OnlineReadoutConfig | None = None,
 ) -> dict[str, Any]:
     """Track every frame of ``source``; write ``out`` (TUM trajectory); return a summary.
 
     The source is replayed as fast as the tracker goes (a :class:`FrameStream` that blocks,
     never drops; a live source drops what the tracker cannot keep up with, counted).
     ``calibration`` replaces the source's own (e.g. with a readout time estimated by
-    :func:`wardmap.edge.readout.estimate_readout`).
+    :func:`wardmap.edge.readout.estimate_readout`). When neither gives a readout time, it is
+    estimated while tracking (:class:`~wardmap.edge.readout.OnlineReadout`, in line, so a run
+    repeats exactly; ``online_readout``'s settings).
 
     The summary has frames, keyframes, lost frames (with the reasons), pose sources, the
     stream's counters (``stream``: received, dropped, late), the rolling-shutter model
-    (``readout``: seconds, where it came from, whether it is a guess) and milliseconds per frame (median
+    (``readout``: seconds, where it came from, whether it is a guess, as used at the end; ``online``:
+    the online estimate's state, when one ran) and milliseconds per frame (median
     and p95) for each stage and in total; label inference is timed apart (``labels_ms``) and is
     not part of ``total``.
     """
@@ -65,8 +70,11 @@ def track_source(
         raise WardmapError(f"--max-frames must be positive, got {max_frames}")
     kg = KnowledgeGraph.load()
     label_source = make_label_source(labels, dataset=source.dataset, kg=kg, threads=label_threads)
-    tracker = Tracker(calibration or source.calibration, config, kg.mobility_lut())
+    cal = calibration or source.calibration
+    tracker = Tracker(cal, config, kg.mobility_lut())
     readout = tracker.readout
+    online = (OnlineReadout(cal, config, online_readout, background=False)
+              if OnlineReadout.wanted(readout, online_readout) else None)
     log.debug("%s: rolling-shutter readout %.1f ms: %s", source.name, 1e3 * readout.readout_s, readout.source)
     n = source.frame_count or 0  # for progress only: 0 when unknown
     if max_frames is not None and n:
@@ -91,6 +99,8 @@ def track_source(
                              class_image)
             res = tracker.track(inp)
             results.append(res)
+            if online is not None and (found := online.offer(inp, res)) is not None:
+                tracker.readout = readout = found  # from the next frame on
             if progress is not None:
                 progress(len(results), max(n, len(results)), res)
     if not results:
@@ -99,16 +109,9 @@ def track_source(
     return {
         **summarize(results, label_ms),
         "stream": stream.counters(),
-        "readout": {"readout_s": readout.readout_s, "source": readout.source, "assumed": readout.assumed},
+        "readout": {"readout_s": readout.readout_s, "source": readout.source, "assumed": readout.assumed,
+                    **({"online": online.summary()} if online is not None else {})},
     }
-
-
-def odom_at(odo: tuple[np.ndarray, np.ndarray] | None, stamp: float) -> np.ndarray | None:
-    """Wheel-odometry pose ``T_odom_base`` at ``stamp`` from ``DatasetReader.odometry()``, or
-    None (no odometry, or none within 0.1 s bracket / 0.05 s nearest)."""
-    if odo is None:
-        return None
-    return pose_at(odo[0], odo[1], stamp, max_bracket_s=0.1, max_nearest_s=0.05)
 
 
 def _write_tum(path: Path, results: list[TrackResult]) -> None:

@@ -9,27 +9,42 @@ the readout time (``[rgb] readout_s``, or its ``[rgb] sensor``'s default:
 (:func:`wardmap.edge.pose.refine_pose_rolling_shutter`). This estimate is an offline check.
 
 The readout time is seldom published. :func:`estimate_readout` finds it from a recording
-with some rotation in it: it tracks the frames once per candidate time and keeps the one
-under which the most keypoints fit one rigid pose (mean inliers per frame; the peak is
-placed between grid points by a parabola through the best candidate and its neighbours).
+with some rotation in it (offline, ``wardmap calibrate-readout``; or online while tracking, a
+window of the first turning frames, :class:`OnlineReadout`): it tracks the frames once per
+candidate time and keeps the one under which the most keypoints fit one rigid pose (mean
+inliers per frame; the peak is placed between grid points by a parabola through the best
+candidate and its neighbours).
 No ground truth is used. A recording that barely turns cannot tell readout times apart (the
 curve is flat within noise: on a simulated global-shutter drive the best candidate fits 1 %
 more keypoints than 0 ms, at a random time); unless the best candidate beats 0 ms by
 ``min_gain`` (3 %), the estimate is 0 and marked not decisive.
+
+Online (:class:`OnlineReadout`), when the recording says nothing of its readout (no ``[rgb]
+readout_s``, no sensor with a known default): the tracking loop offers each frame with its
+tracked pose; frames are kept in a window of ``window`` frames, and once a window has turned
+``min_turn_deg`` the candidates (0-40 ms every 10 ms, parabola between them) are scored on it,
+in a child process for a live source (the tracker keeps its core) or in line for a recording
+(the result does not depend on timing). A decisive result replaces the tracker's readout from
+the next frame on; an undecided window is dropped and the next one tried, ``max_attempts``
+times at most. Earlier frames keep the global-shutter model they were tracked with.
 """
 
 from __future__ import annotations
 
 import logging
+import math
+import multiprocessing
 from collections.abc import Callable, Sequence
+from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass, replace
 
 import numpy as np
+from numpy.typing import NDArray
 
-from wardmap.edge.offline import odom_at
-from wardmap.edge.tracker import Tracker, TrackerConfig, TrackInput
-from wardmap.shared.dataset import MAX_READOUT_S, DatasetReader
+from wardmap.edge.tracker import Tracker, TrackerConfig, TrackInput, TrackResult
+from wardmap.shared.dataset import MAX_READOUT_S, Calibration, DatasetReader, odom_at
 from wardmap.shared.errors import WardmapError
+from wardmap.shared.sensors import ReadoutModel
 
 log = logging.getLogger(__name__)
 
@@ -99,30 +114,186 @@ def estimate_readout(
         raise WardmapError(f"{reader.root}: {n} frames; the readout estimate needs at least 10 with motion")
     odo = reader.odometry()
     frames = [reader.frame(i) for i in range(n)]
-    odoms = [odom_at(odo, f.stamp) for f in frames]
-    per_frame = []
-    for c in cands:
-        tracker = Tracker(replace(reader.calibration, rgb_readout_s=c), config)
-        inliers = 0
-        for f, T_odom in zip(frames, odoms, strict=True):
-            res = tracker.track(TrackInput(f.stamp, f.rgb, f.depth_m, f.thermal_k, T_odom))
-            inliers += 0 if res.lost else res.n_inliers
-        per_frame.append(inliers / n)
-        log.info("readout %.1f ms: %.1f inliers per frame", 1e3 * c, per_frame[-1])
-        if progress is not None:
-            progress(c, per_frame[-1])
+    inputs = [TrackInput(f.stamp, f.rgb, f.depth_m, f.thermal_k, odom_at(odo, f.stamp)) for f in frames]
+    per_frame = score_candidates(inputs, reader.calibration, config, cands, progress)
     if max(per_frame) <= 0:
         raise WardmapError(f"{reader.root}: no frame tracked under any readout time; cannot estimate it")
-    gain = max(per_frame) / max(per_frame[0], 1e-9) - 1.0
-    decisive = gain >= min_gain
-    if not decisive:
+    est = _decide(cands, per_frame, n, min_gain)
+    if not est.decisive:
         log.warning(
             "%s: readout times are not told apart (best %+.1f %% inliers over 0 ms, need %.0f %%); "
             "keeping 0 (global shutter). Record the camera turning to estimate it.",
-            reader.root, 100 * gain, 100 * min_gain,
+            reader.root, 100 * est.gain, 100 * min_gain,
         )
+    return est
+
+
+def score_candidates(inputs: Sequence[TrackInput], calibration: Calibration, config: TrackerConfig | None,
+                     candidates_s: Sequence[float],
+                     progress: Callable[[float, float], None] | None = None) -> list[float]:
+    """Mean pose inliers per frame (lost frames count 0) of ``inputs`` tracked from the start
+    under each candidate readout time, seconds."""
+    per_frame = []
+    for c in candidates_s:
+        tracker = Tracker(replace(calibration, rgb_readout_s=c), config)
+        inliers = 0
+        for inp in inputs:
+            res = tracker.track(inp)
+            inliers += 0 if res.lost else res.n_inliers
+        per_frame.append(inliers / max(len(inputs), 1))
+        log.info("readout %.1f ms: %.1f inliers per frame", 1e3 * c, per_frame[-1])
+        if progress is not None:
+            progress(c, per_frame[-1])
+    return per_frame
+
+
+def _decide(cands: Sequence[float], per_frame: Sequence[float], frames: int,
+            min_gain: float) -> ReadoutEstimate:
+    """The estimate from candidates' scores (``cands[0]`` is 0 ms)."""
+    gain = max(per_frame) / max(per_frame[0], 1e-9) - 1.0
+    decisive = gain >= min_gain
     best = _peak(cands, per_frame) if decisive else 0.0
-    return ReadoutEstimate(best, tuple(cands), tuple(per_frame), n, float(gain), decisive)
+    return ReadoutEstimate(best, tuple(cands), tuple(per_frame), frames, float(gain), decisive)
+
+
+@dataclass(frozen=True)
+class OnlineReadoutConfig:
+    """:class:`OnlineReadout` settings (``[tracker.online_readout]``).
+
+    Attributes:
+        enabled: estimate the readout while tracking when the recording does not give it.
+        window: frames per attempt (tracked again once per candidate).
+        min_turn_deg: tracked rotation a window must hold, degrees (a straight drive tells little).
+        candidates_s: readout times scored, seconds (0 is always added).
+        min_gain: a candidate must fit this much more inliers per frame than 0 ms.
+        max_attempts: windows scored before giving up (the global-shutter model stays).
+    """
+
+    enabled: bool = True
+    window: int = 50
+    min_turn_deg: float = 15.0
+    candidates_s: tuple[float, ...] = (0.01, 0.02, 0.03, 0.04)
+    min_gain: float = 0.03
+    max_attempts: int = 3
+
+    def __post_init__(self) -> None:
+        if self.window < 10:
+            raise WardmapError(f"online_readout.window must be >= 10 frames, got {self.window}")
+        if not (math.isfinite(self.min_turn_deg) and self.min_turn_deg >= 0):
+            raise WardmapError(f"online_readout.min_turn_deg must be >= 0, got {self.min_turn_deg}")
+        if not self.candidates_s or not all(0 < c <= MAX_READOUT_S for c in self.candidates_s):
+            raise WardmapError(f"online_readout.candidates_s must lie in (0, {MAX_READOUT_S}] s, got "
+                               f"{self.candidates_s}")
+        if self.max_attempts < 1 or not self.min_gain >= 0:
+            raise WardmapError("online_readout.max_attempts must be >= 1 and min_gain >= 0")
+
+
+class OnlineReadout:
+    """The readout estimated while tracking (see the module docstring). Owned by the tracking
+    loop: call :meth:`offer` after each frame and :meth:`close` at the end.
+
+    Args:
+        calibration: the recording's calibration (the candidates replace its readout).
+        tracker_config: the live tracker's settings (the candidates use the same).
+        config: settings.
+        background: score in a child process (a live source); False: in line (a recording).
+    """
+
+    def __init__(self, calibration: Calibration, tracker_config: TrackerConfig | None,
+                 config: OnlineReadoutConfig | None = None, *, background: bool = True) -> None:
+        self.cfg = config or OnlineReadoutConfig()
+        self._cal, self._tracker_cfg = calibration, tracker_config
+        self._background = background
+        self._window: list[TrackInput] = []
+        self._turn_deg = 0.0
+        self._prev: NDArray[np.float64] | None = None
+        self._pool: ProcessPoolExecutor | None = None
+        self._job: Future[list[float]] | None = None
+        self.attempts = 0
+        self.estimate: ReadoutEstimate | None = None
+        """The last scored window's estimate (None: none scored yet)."""
+        self.state = "collecting"
+        """``collecting``, ``scoring``, ``done`` (decisive) or ``gave up``."""
+
+    @staticmethod
+    def wanted(model: ReadoutModel, config: OnlineReadoutConfig | None = None) -> bool:
+        """Whether a recording tracked with ``model`` should have its readout estimated online."""
+        return (config or OnlineReadoutConfig()).enabled and model.assumed
+
+    def offer(self, inp: TrackInput, res: TrackResult) -> ReadoutModel | None:
+        """Take one tracked frame; a new readout model once an estimate is decisive (once)."""
+        if self.state == "scoring":
+            return self._collect()
+        if self.state != "collecting":
+            return None
+        if inp.rgb is None or res.lost:
+            self._window, self._turn_deg, self._prev = [], 0.0, None  # a gap: start the window over
+            return None
+        T = res.T_world_camera
+        if self._prev is not None:
+            R = self._prev[:3, :3].T @ T[:3, :3]
+            self._turn_deg += math.degrees(math.acos(float(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+        self._prev = T
+        self._window.append(inp)
+        if len(self._window) < self.cfg.window:
+            return None
+        if self._turn_deg < self.cfg.min_turn_deg:
+            self._window.pop(0)  # slide; the turn is counted over the whole window, roughly
+            return None
+        self.attempts += 1
+        self.state = "scoring"
+        cands = [0.0, *self.cfg.candidates_s]
+        if not self._background:
+            return self._scored(score_candidates(self._window, self._cal, self._tracker_cfg, cands))
+        if self._pool is None:
+            self._pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+        self._job = self._pool.submit(score_candidates, list(self._window), self._cal, self._tracker_cfg,
+                                      cands)
+        return None
+
+    def _collect(self) -> ReadoutModel | None:
+        if self._job is None or not self._job.done():
+            return None
+        job, self._job = self._job, None
+        try:
+            scores = job.result()
+        except Exception as exc:  # the child died or the tracker failed: the model stays
+            log.warning("online readout estimate failed: %s", exc)
+            self.state = "gave up"
+            return None
+        return self._scored(scores)
+
+    def _scored(self, scores: list[float]) -> ReadoutModel | None:
+        cands = [0.0, *self.cfg.candidates_s]
+        n = len(self._window)
+        self._window, self._turn_deg, self._prev = [], 0.0, None
+        if max(scores) <= 0:
+            self.state = "gave up" if self.attempts >= self.cfg.max_attempts else "collecting"
+            return None
+        est = self.estimate = _decide(cands, scores, n, self.cfg.min_gain)
+        if est.decisive:
+            self.state = "done"
+            log.info("rolling-shutter readout estimated online: %.1f ms (%+.0f %% inliers over 0 ms, "
+                     "%d frames)", 1e3 * est.readout_s, 100 * est.gain, n)
+            return ReadoutModel(est.readout_s, f"estimated online from {n} frames ({100 * est.gain:+.0f} % "
+                                f"inliers over 0 ms)", False)
+        self.state = "gave up" if self.attempts >= self.cfg.max_attempts else "collecting"
+        log.info("online readout: window %d not decisive (%+.1f %% inliers over 0 ms)%s", self.attempts,
+                 100 * est.gain, "; keeping the global-shutter model" if self.state == "gave up" else "")
+        return None
+
+    def summary(self) -> dict[str, object]:
+        """For a run's summary: state, windows scored, the last estimate."""
+        est = self.estimate
+        return {"state": self.state, "attempts": self.attempts,
+                "readout_s": None if est is None else est.readout_s,
+                "gain": None if est is None else round(est.gain, 4)}
+
+    def close(self) -> None:
+        """Stop a child process still scoring (its result is dropped)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            self._pool = None
 
 
 def _peak(x: Sequence[float], y: Sequence[float]) -> float:
@@ -137,4 +308,5 @@ def _peak(x: Sequence[float], y: Sequence[float]) -> float:
     return float(x[k])
 
 
-__all__ = ["DEFAULT_CANDIDATES_S", "ReadoutEstimate", "estimate_readout"]
+__all__ = ["DEFAULT_CANDIDATES_S", "OnlineReadout", "OnlineReadoutConfig", "ReadoutEstimate",
+           "estimate_readout", "score_candidates"]

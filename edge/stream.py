@@ -23,7 +23,7 @@ stamp. Threads and state:
   frames per second), with either policy.
 
 Odometry: a frame is held until an odometry sample at or after its stamp has arrived (so its
-pose can be interpolated, as :func:`wardmap.edge.offline.odom_at` does on a whole file), until
+pose can be interpolated, as :func:`wardmap.shared.dataset.odom_at` does on a whole file), until
 a frame more than :data:`ODOM_WAIT_S` newer arrives (the odometry is late or stopped: the frame
 goes with what there is), or the source ends. Held frames are released in stamp order, so
 frames that arrive slightly out of order are put back in order; a frame older than one already

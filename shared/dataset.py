@@ -554,6 +554,14 @@ class _Row(NamedTuple):
     fields: list[str]
 
 
+def odom_at(odo: tuple[F64, F64] | None, stamp: float) -> F64 | None:
+    """Wheel-odometry pose ``T_odom_base`` at ``stamp`` from :meth:`DatasetReader.odometry`, or
+    None (no odometry, or none within 0.1 s bracket / 0.05 s nearest: :func:`pose_at`)."""
+    if odo is None:
+        return None
+    return pose_at(odo[0], odo[1], stamp, max_bracket_s=0.1, max_nearest_s=0.05)
+
+
 def _match_equal(sorted_stamps: F64, query: F64, tol: float) -> list[int | None]:
     """For each query stamp, the index of the equal (within ``tol``) sorted stamp, or None."""
     m = sorted_stamps.shape[0]

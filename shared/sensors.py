@@ -3,8 +3,9 @@
 A recording's readout time (first row to last, seconds) comes, in this order, from its
 calibration (``[rgb] readout_s``, e.g. written by ``wardmap calibrate-readout``), from the
 default of the sensor it names (``[rgb] sensor``, or a TUM RGB-D folder's name), or is
-unknown. An unknown readout is treated as a global shutter, and :func:`readout_model` says
-so: nothing downstream assumes a global shutter silently.
+unknown. An unknown readout is treated as a global shutter until the tracker estimates it from
+turning frames (``wardmap.edge.readout.OnlineReadout``), and :func:`readout_model` says so:
+nothing downstream assumes a global shutter silently.
 """
 
 from __future__ import annotations
@@ -83,13 +84,14 @@ def readout_model(readout_s: float | None, sensor: str) -> ReadoutModel:
         return ReadoutModel(
             0.0,
             f"{known.description} has a rolling shutter of unknown readout time: tracked as a "
-            "global shutter; run wardmap calibrate-readout and set [rgb] readout_s",
+            "global shutter until estimated online from turning frames (or run wardmap "
+            "calibrate-readout and set [rgb] readout_s)",
             True,
         )
     return ReadoutModel(
         0.0,
-        "no readout information (no [rgb] readout_s or sensor): tracked as a global shutter; "
-        "if the colour camera has a rolling shutter, run wardmap calibrate-readout",
+        "no readout information (no [rgb] readout_s or sensor): tracked as a global shutter "
+        "until estimated online from turning frames (or run wardmap calibrate-readout)",
         True,
     )
 

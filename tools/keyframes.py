@@ -36,10 +36,9 @@ from numpy.typing import NDArray
 from wardmap.edge.agent import AgentConfig
 from wardmap.edge.keyframes import build_keyframe_msg, thermal_due
 from wardmap.edge.labels import make_label_source
-from wardmap.edge.offline import odom_at
 from wardmap.edge.privacy import person_mask
 from wardmap.edge.tracker import Tracker, TrackerConfig, TrackInput
-from wardmap.shared.dataset import DatasetReader, pose_at
+from wardmap.shared.dataset import DatasetReader, odom_at, pose_at
 from wardmap.shared.errors import DatasetError, WardmapError
 from wardmap.shared.knowledge import KnowledgeGraph
 from wardmap.shared.wire import Intrinsics, KeyframeMsg, decode_keyframe, encode

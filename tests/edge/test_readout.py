@@ -8,6 +8,7 @@ from ../shared and those tests skip when it is absent.
 from __future__ import annotations
 
 import json
+import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -16,7 +17,9 @@ import pytest
 from procs import one_line_error, wardmap
 
 from wardmap.edge.features import Features
-from wardmap.edge.readout import _peak, estimate_readout
+from wardmap.edge.offline import track_source
+from wardmap.edge.readout import OnlineReadout, OnlineReadoutConfig, _peak, estimate_readout
+from wardmap.edge.stream import FrameSourceStream
 from wardmap.edge.tracker import Tracker, TrackInput, unroll_keypoints
 from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.dataset import DatasetReader, load_calibration
@@ -91,7 +94,7 @@ def test_estimate_readout_rejects_bad_candidates(tmp_path: Path) -> None:
 
 @pytest.fixture(scope="module")
 def panning(tmp_path_factory: pytest.TempPathFactory) -> dict[float, Path]:
-    """The first 50 frames (5 s) of ``pan_in_place`` (turning on the spot at up to 1.1 rad/s),
+    """The first 60 frames (6 s) of ``pan_in_place`` (turning on the spot at up to 1.1 rad/s),
     rendered with a global shutter and with a 30 ms rolling shutter."""
     from wardmap.sim.runner import generate
     from wardmap.sim.sensors import SensorRig
@@ -100,7 +103,7 @@ def panning(tmp_path_factory: pytest.TempPathFactory) -> dict[float, Path]:
     out = {}
     for readout in (0.0, 0.03):
         out[readout] = root / f"readout_{readout}"
-        generate("pan_in_place", 0, out[readout], frames=50, rig=SensorRig(rgb_readout_s=readout))
+        generate("pan_in_place", 0, out[readout], frames=60, rig=SensorRig(rgb_readout_s=readout))
     return out
 
 
@@ -171,3 +174,58 @@ def test_cli_calibrate_readout_bad_input(tmp_path: Path) -> None:
     one_line_error(wardmap("calibrate-readout", str(tmp_path), "--step-ms", "0"), "--step-ms")
     one_line_error(wardmap("calibrate-readout", str(tmp_path), "--max-ms", "500"), "--max-ms")
     one_line_error(wardmap("calibrate-readout", str(tmp_path), "--write", str(tmp_path)), "is a folder")
+
+
+@pytest.mark.parametrize("background", [False, True], ids=["in_line", "child_process"])
+def test_an_unknown_readout_is_estimated_online_while_tracking(panning: dict[float, Path],
+                                                                background: bool) -> None:
+    """A recording that says nothing of its readout (no readout_s, no sensor) is tracked as a
+    global shutter until a window of turning frames has been scored; then the tracker uses the
+    estimate (30 ms true: within 5 ms). In line (``wardmap track``) and in a child process (the
+    edge daemon, which keeps tracking meanwhile)."""
+    reader = DatasetReader(panning[0.03])
+    cal = replace(reader.calibration, rgb_readout_s=None)
+    assert cal.readout.assumed and OnlineReadout.wanted(cal.readout)
+    cfg = OnlineReadoutConfig()  # a window of 50 frames
+    online = OnlineReadout(cal, None, cfg, background=background)
+    tracker = Tracker(cal)
+    found, applied_at = None, None
+    try:
+        for i in range(len(reader)):
+            f = reader.frame(i)
+            inp = TrackInput(f.stamp, f.rgb, f.depth_m, f.thermal_k)
+            res = tracker.track(inp)
+            if (model := online.offer(inp, res)) is not None:
+                tracker.readout = found = model
+                applied_at = i
+        deadline = time.monotonic() + 120
+        while found is None and online.state == "scoring" and time.monotonic() < deadline:
+            found = online.offer(inp, res)  # a child may still score after the last frame
+            time.sleep(0.2)  # polling the child's result, bounded by the deadline
+    finally:
+        online.close()
+    assert found is not None and online.state == "done", online.summary()
+    assert found.readout_s == pytest.approx(0.03, abs=0.005) and "estimated online" in found.source
+    if not background:
+        assert applied_at == cfg.window - 1  # scored in line on the window's last frame
+
+
+def test_a_global_shutter_keeps_its_model_online(panning: dict[float, Path], tmp_path: Path) -> None:
+    """The same turns under a global shutter: no window is decisive; `track` keeps the
+    global-shutter model and its summary says what the online estimate found."""
+    reader = DatasetReader(panning[0.0])
+    out = tmp_path / "traj.txt"
+    summary = track_source(FrameSourceStream(reader), out,
+                           calibration=replace(reader.calibration, rgb_readout_s=None),
+                           online_readout=OnlineReadoutConfig(window=20))
+    ro = summary["readout"]
+    assert ro["readout_s"] == 0.0 and ro["assumed"]
+    assert ro["online"]["state"] in ("collecting", "gave up") and ro["online"]["attempts"] >= 1
+    assert abs(ro["online"]["gain"]) < 0.03
+
+
+def test_online_readout_settings_are_checked() -> None:
+    for bad in ({"window": 5}, {"candidates_s": ()}, {"candidates_s": (0.2,)}, {"max_attempts": 0},
+                {"min_turn_deg": -1.0}):
+        with pytest.raises(WardmapError, match="online_readout"):
+            OnlineReadoutConfig(**bad)

@@ -10,7 +10,6 @@ from typing import Any
 import numpy as np
 import pytest
 
-from wardmap.edge.offline import odom_at
 from wardmap.edge.stream import (
     BLOCK,
     DROP_OLDEST,
@@ -21,7 +20,7 @@ from wardmap.edge.stream import (
     SourceEvent,
 )
 from wardmap.shared.camera import PinholeCamera
-from wardmap.shared.dataset import Calibration, Frame
+from wardmap.shared.dataset import Calibration, Frame, odom_at
 from wardmap.shared.se3 import yaw_transform
 
 CALIB = Calibration(rgb=PinholeCamera(8, 6, 10.0, 10.0, 4.0, 3.0))
