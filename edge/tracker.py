@@ -46,6 +46,8 @@ from wardmap.shared.se3 import (
     interpolate_transform,
     inverse,
     rotation_angle,
+    se3_exp,
+    se3_log,
     so3_log,
     transform_points,
     yaw_rotation,
@@ -56,6 +58,10 @@ log = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
 PoseSource = Literal["init", "rgb", "relocalised", "thermal", "depth", "odometry", "motion_model", "none"]
+MOTION_MODEL_MAX_S = 0.2
+"""The constant-velocity prior extrapolates the last step's twist over at most this long (seconds):
+a frame after a gap (frames dropped by the stream) is predicted as far as the camera kept moving,
+a long gap no further than this."""
 
 
 def level_toward_floor(T_world_cam: F64, T_base_rgb: F64, gain: float) -> F64:
@@ -438,7 +444,18 @@ class Tracker:
         if inp.T_odom_base is not None and self._prev_odom is not None and T_base_rgb is not None:
             step = inverse(T_base_rgb) @ inverse(self._prev_odom) @ inp.T_odom_base @ T_base_rgb
             return self._T_world_cam @ step, "odometry"
-        return self._T_world_cam @ self._velocity, "motion_model"
+        return self._T_world_cam @ self._motion_step(inp.stamp), "motion_model"
+
+    def _motion_step(self, stamp: float) -> F64:
+        """``T_prev_cur`` predicted for a frame at ``stamp``: the last step's twist (constant
+        velocity in time, not per frame) over the time since the last frame, at most
+        :data:`MOTION_MODEL_MAX_S`. The step as measured when the spacing is unchanged."""
+        if self._prev_stamp is None or self._prev_dt <= 0:
+            return self._velocity
+        ratio = min(stamp - self._prev_stamp, MOTION_MODEL_MAX_S) / self._prev_dt
+        if ratio <= 0 or abs(ratio - 1.0) < 1e-3:
+            return self._velocity
+        return se3_exp(ratio * se3_log(self._velocity))
 
     # ------------------------------------------------------------------ matching / pose
     def _match_map(
@@ -535,42 +552,34 @@ class Tracker:
     def _relocalise(
         self, feats: Features, kp_depth: NDArray[np.float64]
     ) -> tuple[F64 | None, NDArray[np.bool_], NDArray[np.intp], NDArray[np.intp]]:
-        """Match against recent keyframes by descriptor alone; EPnP on the best one."""
-        best: tuple[F64 | None, NDArray[np.bool_], NDArray[np.intp], NDArray[np.intp]] = (
-            None,
-            np.zeros(0, bool),
-            np.zeros(0, np.intp),
-            np.zeros(0, np.intp),
-        )
-        best_n = 0
-        # The last tracked frame first (ORB-SLAM2's reference-frame tracking), then keyframes.
+        """Match against the last frame and recent keyframes by descriptor alone, EPnP on each in
+        turn; the first pose the local map confirms (re-matched and refined from it) is returned
+        with its map matches ``(T_cam_world, inliers, map indexes, feature indexes)``, else None."""
+        # The last tracked frame first (ORB-SLAM2's reference-frame tracking), then keyframes
+        # newest first (the last one is skipped when it is that frame); the first pose the local
+        # map confirms is taken, so a frame pays for one candidate when the newest fits.
         candidates = [self._frame_snapshot(*self._last_frame_raw)] if self._last_frame_raw is not None else []
-        candidates += list(reversed(self.keyframes[-self.cfg.reloc_keyframes :]))
+        last_stamp = self._last_frame_raw[0] if self._last_frame_raw is not None else None
+        candidates += [kf for kf in reversed(self.keyframes[-self.cfg.reloc_keyframes :])
+                       if kf.stamp != last_stamp]
         for kf in candidates:
-            if best_n >= 3 * self.cfg.min_inliers:
-                break
             if len(kf.desc) < self.cfg.min_inliers:
                 continue
             ki, fi, _ = match_descriptors(kf.desc, feats.descriptors, ratio=0.8)
             if len(ki) < self.cfg.min_inliers:
                 continue
             pnp = solve_pnp_ransac(kf.points_world[ki], feats.uv[fi].astype(np.float64), self.cam)
-            n = int(pnp.inliers.sum()) if pnp.ok else 0
-            if n >= self.cfg.min_inliers and n > best_n:
-                T_cw, inl, _ = refine_pose_huber(
-                    kf.points_world[ki], feats.uv[fi].astype(np.float64), self.cam, pnp.T_cam_world
-                )
-                best_n = int(inl.sum())
-                best = (T_cw, inl, np.zeros(0, np.intp), np.zeros(0, np.intp))
-        if best[0] is None:
-            return best
-        # Re-match the local map from the relocalised pose so map points are fused as usual.
-        T_reloc = best[0]
-        m_idx, f_idx = self._match_map(T_reloc, feats, None, self.cfg.match_radius_px)
-        T_new, inl = self._pose_from_matches(m_idx, f_idx, feats, kp_depth, T_reloc)
-        if T_new is None:
-            return None, np.zeros(0, bool), np.zeros(0, np.intp), np.zeros(0, np.intp)
-        return T_new, inl, m_idx, f_idx
+            if not pnp.ok or int(pnp.inliers.sum()) < self.cfg.min_inliers:
+                continue
+            T_reloc, _, _ = refine_pose_huber(
+                kf.points_world[ki], feats.uv[fi].astype(np.float64), self.cam, pnp.T_cam_world
+            )
+            # Re-match the local map from the relocalised pose so map points are fused as usual.
+            m_idx, f_idx = self._match_map(T_reloc, feats, None, self.cfg.match_radius_px)
+            T_new, inl = self._pose_from_matches(m_idx, f_idx, feats, kp_depth, T_reloc)
+            if T_new is not None:
+                return T_new, inl, m_idx, f_idx
+        return None, np.zeros(0, bool), np.zeros(0, np.intp), np.zeros(0, np.intp)
 
     # ------------------------------------------------------------------ thermal fallback
     def _thermal_pose(
