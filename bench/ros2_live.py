@@ -58,7 +58,8 @@ def pin(core: int) -> str:
 
 def camera_main(core: int) -> int:
     """Router + camera publisher + stand-in acker; talks to the edge over stdin/stdout lines."""
-    pin(core)
+    if core >= 0:
+        pin(core)
     from peers import open_client, router_on_thread
     from ros2robot import Robot, camera_info, image
 
@@ -112,9 +113,10 @@ def camera_main(core: int) -> int:
 # --------------------------------------------------------------------------- edge process
 
 
-def edge_run(core: int) -> dict[str, Any]:
-    """Start the camera process, run the edge daemon on its topics, return the figures."""
-    where = pin(core)
+def edge_run(core: int | None, capacity: int) -> dict[str, Any]:
+    """Start the camera process, run the edge daemon on its topics (pinned to ``core`` unless
+    None; a stream slot of ``capacity`` frames), return the figures."""
+    where = pin(core) if core is not None else "not pinned"
     from wardmap.edge import agent as agent_mod
     from wardmap.edge.agent import AgentConfig, EdgeAgent
     from wardmap.edge.bag import BagSourceConfig
@@ -140,7 +142,8 @@ def edge_run(core: int) -> dict[str, Any]:
             return res
 
     agent_mod.Tracker = TimedTracker  # type: ignore[misc]
-    cam = subprocess.Popen([sys.executable, __file__, "--camera", str(1 - core)], stdin=subprocess.PIPE,
+    cam_core = "-1" if core is None else str(1 - core)
+    cam = subprocess.Popen([sys.executable, __file__, "--camera", cam_core], stdin=subprocess.PIPE,
                            stdout=subprocess.PIPE, text=True)
     assert cam.stdin is not None and cam.stdout is not None
     try:
@@ -152,7 +155,8 @@ def edge_run(core: int) -> dict[str, Any]:
         source = ReconnectingSource(ros2_connector(cfg, parse_spec(f"ros2:{endpoint}", cfg)))
         with tempfile.TemporaryDirectory() as tmp:
             agent = EdgeAgent("bench", source, [endpoint], Path(tmp) / "outbox.db",
-                              config=AgentConfig(labels="none", privacy="off", flush_timeout_s=10.0))
+                              config=AgentConfig(labels="none", privacy="off", flush_timeout_s=10.0,
+                                                 stream_capacity=capacity))
 
             def on_ready(_session: str, _pending: int) -> None:
                 cam.stdin.write("go\n")  # type: ignore[union-attr]
@@ -185,6 +189,9 @@ def pct(values: list[float]) -> str:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--write", type=Path, help="put the table into this BENCHMARKS.md")
+    ap.add_argument("--capacity", type=int, default=2, help="the edge's stream slot, frames (default 2, "
+                    "the edge's default)")
+    ap.add_argument("--no-pin", action="store_true", help="let the OS place both processes (a loaded host)")
     ap.add_argument("--camera", type=int, metavar="CORE", help=argparse.SUPPRESS)  # the camera process
     args = ap.parse_args()
     if not TUM.is_dir():
@@ -194,7 +201,10 @@ def main() -> int:
     if args.camera is not None:
         return camera_main(args.camera)
     load = os.getloadavg()
-    r = edge_run(1)
+    if args.capacity < 1:
+        print(f"--capacity must be >= 1, got {args.capacity}", file=sys.stderr)
+        return 1
+    r = edge_run(None if args.no_pin else 1, args.capacity)
     s = r["summary"]
     tracked = s["frames"] - s["lost_frames"]
     row = (f"| {r['published']} | {s['frames_received']} | {tracked} | {s['frames_dropped']} "
@@ -204,12 +214,13 @@ def main() -> int:
     body = "\n".join([
         "## Live ROS 2 topics over Zenoh at 30 Hz (issue 38)",
         "",
-        f"`python bench/ros2_live.py --write BENCHMARKS.md` at {git_rev()}; {machine()}; load average",
+        f"`python bench/ros2_live.py {' '.join(sys.argv[1:])}` at {git_rev()}; {machine()}; load average",
         f"{load[0]:.1f} / {load[1]:.1f} (1 / 5 min) when it started (a shared host: figures are upper",
         "bounds). Two processes: a camera process (router on loopback, shared memory off; the TUM excerpt as",
         "640x480 rgb8 + 32FC1 depth, CDR on rmw_zenoh keys at 30 Hz, stamped with the host clock at each",
         "tick; a stand-in server that decodes and acks each keyframe, no store) and the edge daemon",
-        f"(`--source ros2:`, stream slot of 2, drop-oldest, labels `none`, outbox on disk), {r['where']},",
+        f"(`--source ros2:`, stream slot of {args.capacity}, drop-oldest, labels `none`, outbox on disk), "
+        f"{r['where']},",
         "numba/OpenCV threads = 1. Latency: camera stamp -> tracked pose, and -> keyframe acked, ms.",
         "",
         "| published | received | tracked | dropped | late | track ms p50 / p95 | stamp -> pose ms p50 / p95 "
