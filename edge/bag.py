@@ -381,6 +381,11 @@ class BagSource:
                         self.path, TF_STATIC_TOPIC, base, cam_frame)
         return Calibration(rgb=camera, T_base_rgb=T_base_rgb)
 
+    @property
+    def dropped_frames(self) -> int:
+        """Colour images left out because no depth image paired with them."""
+        return self.skipped["unpaired"]
+
     def events(self) -> Iterator[SourceEvent]:
         """Frames (colour paired with depth) and odometry, in the recording's order."""
         cfg = self.cfg
