@@ -1,18 +1,19 @@
 """Live ROS 2 source benchmark: a robot's camera topics over Zenoh at 30 Hz into the edge daemon.
 
 Two processes, as on a robot. The *camera* process (this script with ``--camera``; pinned to
-core 0 when the host has two) runs a Zenoh router on loopback (shared memory off), puts the TUM
-excerpt's frames (640x480 ``rgb8`` colour, ``32FC1`` depth, CameraInfo) on rmw_zenoh keys at 30 Hz,
-CDR serialised at each tick as a camera driver does (tests/ros2robot.py), each stamped with the
-host clock at its tick, and stands in for the map server: it decodes every keyframe and acks it
-(no store). The *edge* process (this script; pinned to the other core) runs the edge daemon
-(:class:`wardmap.edge.agent.EdgeAgent`) on ``--source ros2:`` (reconnect loop, stream slot of 2,
-drop-oldest), labels ``none``, privacy off, outbox on disk. Counts frames published, received,
-tracked (a measured pose), dropped and late; track ms per frame; latency camera stamp -> tracked
-pose and camera stamp -> keyframe acked (ms, host clock). A throwaway tracker first tracks a few
-frames untimed (numba compiles on first use).
+core 0 when the host has two) runs a Zenoh router on loopback (shared memory off), puts a data
+set's frames (``--data``, default the TUM excerpt; 640x480 ``rgb8`` colour, ``32FC1`` depth,
+CameraInfo) on rmw_zenoh keys at 30 Hz, CDR serialised at each tick as a camera driver does
+(tests/ros2robot.py), each stamped with the host clock at its tick, and stands in for the map
+server: it decodes every keyframe and acks it (no store). The *edge* process (this script;
+pinned to the other core unless ``--no-pin``) runs the edge daemon
+(:class:`wardmap.edge.agent.EdgeAgent`) on ``--source ros2:`` (reconnect loop, stream slot of
+``--capacity``, drop-oldest), labels ``none``, privacy off, outbox on disk. Counts frames
+published, received, tracked (a measured pose), dropped, late and lost before the stream; track
+ms per frame; latency camera stamp -> tracked pose and camera stamp -> keyframe acked (ms, host
+clock). A throwaway tracker first tracks a few frames untimed (numba compiles on first use).
 
-    python bench/ros2_live.py [--write BENCHMARKS.md]
+    python bench/ros2_live.py [--data DIR] [--capacity N] [--no-pin] [--write BENCHMARKS.md]
 """
 
 from __future__ import annotations
@@ -56,7 +57,7 @@ def pin(core: int) -> str:
 # --------------------------------------------------------------------------- camera process
 
 
-def camera_main(core: int) -> int:
+def camera_main(core: int, data: Path) -> int:
     """Router + camera publisher + stand-in acker; talks to the edge over stdin/stdout lines."""
     if core >= 0:
         pin(core)
@@ -67,7 +68,7 @@ def camera_main(core: int) -> int:
     from wardmap.shared.wire import AckMsg, decode_keyframe, encode
     from wardmap.shared.zenoh_config import ALL_KEYFRAMES, ack_key
 
-    reader = DatasetReader(TUM)
+    reader = DatasetReader(data)
     frames = [reader.frame(i) for i in range(len(reader))]
     acks: list[tuple[float, float]] = []  # (keyframe stamp, host time of its ack)
     inbox: queue.Queue[bytes | None] = queue.Queue(maxsize=256)
@@ -113,7 +114,7 @@ def camera_main(core: int) -> int:
 # --------------------------------------------------------------------------- edge process
 
 
-def edge_run(core: int | None, capacity: int) -> dict[str, Any]:
+def edge_run(core: int | None, capacity: int, data: Path) -> dict[str, Any]:
     """Start the camera process, run the edge daemon on its topics (pinned to ``core`` unless
     None; a stream slot of ``capacity`` frames), return the figures."""
     where = pin(core) if core is not None else "not pinned"
@@ -125,7 +126,7 @@ def edge_run(core: int | None, capacity: int) -> dict[str, Any]:
     from wardmap.edge.tracker import Tracker, TrackInput, TrackResult
     from wardmap.shared.dataset import DatasetReader
 
-    reader = DatasetReader(TUM)
+    reader = DatasetReader(data)
     warm = Tracker(reader.calibration)  # numba compiles its kernels before the clock runs
     for i in range(WARM_UP_FRAMES):
         f = reader.frame(i)
@@ -143,7 +144,8 @@ def edge_run(core: int | None, capacity: int) -> dict[str, Any]:
 
     agent_mod.Tracker = TimedTracker  # type: ignore[misc]
     cam_core = "-1" if core is None else str(1 - core)
-    cam = subprocess.Popen([sys.executable, __file__, "--camera", cam_core], stdin=subprocess.PIPE,
+    cam = subprocess.Popen([sys.executable, __file__, "--camera", cam_core, "--data", str(data)],
+                           stdin=subprocess.PIPE,
                            stdout=subprocess.PIPE, text=True)
     assert cam.stdin is not None and cam.stdout is not None
     try:
@@ -189,26 +191,30 @@ def pct(values: list[float]) -> str:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--write", type=Path, help="put the table into this BENCHMARKS.md")
+    ap.add_argument("--data", type=Path, default=TUM, help="the data set the camera publishes, 640x480 "
+                    "(default: the TUM excerpt)")
     ap.add_argument("--capacity", type=int, default=2, help="the edge's stream slot, frames (default 2, "
                     "the edge's default)")
     ap.add_argument("--no-pin", action="store_true", help="let the OS place both processes (a loaded host)")
     ap.add_argument("--camera", type=int, metavar="CORE", help=argparse.SUPPRESS)  # the camera process
     args = ap.parse_args()
-    if not TUM.is_dir():
-        print(f"bench/ros2_live.py needs the TUM excerpt at {TUM}", file=sys.stderr)
+    if not (args.data / "rgb.txt").is_file():
+        print(f"bench/ros2_live.py: {args.data} is not a data set (the TUM excerpt is at {TUM})",
+              file=sys.stderr)
         return 1
     cv2.setNumThreads(1)
     if args.camera is not None:
-        return camera_main(args.camera)
+        return camera_main(args.camera, args.data)
     load = os.getloadavg()
     if args.capacity < 1:
         print(f"--capacity must be >= 1, got {args.capacity}", file=sys.stderr)
         return 1
-    r = edge_run(None if args.no_pin else 1, args.capacity)
+    r = edge_run(None if args.no_pin else 1, args.capacity, args.data)
     s = r["summary"]
     tracked = s["frames"] - s["lost_frames"]
     row = (f"| {r['published']} | {s['frames_received']} | {tracked} | {s['frames_dropped']} "
            f"({100 * s['frames_dropped'] / max(s['frames_received'], 1):.0f} %) | {s['frames_late']} | "
+           f"{s.get('frames_source_dropped', '-')} | "
            f"{pct(r['track_ms'])} | {pct(r['pose_ms'])} | {s['keyframes']} / {s['acked']} | "
            f"{pct(r['ack_ms'])} |")
     body = "\n".join([
@@ -216,16 +222,17 @@ def main() -> int:
         "",
         f"`python bench/ros2_live.py {' '.join(sys.argv[1:])}` at {git_rev()}; {machine()}; load average",
         f"{load[0]:.1f} / {load[1]:.1f} (1 / 5 min) when it started (a shared host: figures are upper",
-        "bounds). Two processes: a camera process (router on loopback, shared memory off; the TUM excerpt as",
-        "640x480 rgb8 + 32FC1 depth, CDR on rmw_zenoh keys at 30 Hz, stamped with the host clock at each",
+        f"bounds). Two processes: a camera process (router on loopback, shared memory off; {args.data.name}",
+        "as 640x480 rgb8 + 32FC1 depth, CDR on rmw_zenoh keys at 30 Hz, stamped with the host clock at each",
         "tick; a stand-in server that decodes and acks each keyframe, no store) and the edge daemon",
         f"(`--source ros2:`, stream slot of {args.capacity}, drop-oldest, labels `none`, outbox on disk), "
         f"{r['where']},",
         "numba/OpenCV threads = 1. Latency: camera stamp -> tracked pose, and -> keyframe acked, ms.",
         "",
-        "| published | received | tracked | dropped | late | track ms p50 / p95 | stamp -> pose ms p50 / p95 "
+        "| published | received | tracked | dropped | late | lost before the stream | track ms p50 / p95 "
+        "| stamp -> pose ms p50 / p95 "
         "| keyframes / acked | stamp -> ack ms p50 / p95 |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|",
         row,
     ])
     publish(body, args.write, "ros2_live")
