@@ -258,6 +258,7 @@ class Tracker:
         # Depth of the last frame with a measured pose, for the ICP fallback: the array and
         # its pose are kept, the pyramid is built only when a frame needs it.
         self._depth_ref: tuple[F64, NDArray[np.float32]] | None = None
+        self._depth_ref_index = -1  # its frame index
         self._depth_ref_pyr: DepthPyramid | None = None
         self._rays: F64 | None = None
 
@@ -628,9 +629,12 @@ class Tracker:
         return inverse(T_rgb_th @ T_th_w)
 
     def _depth_pose(self, depth: NDArray[np.float32], prior: F64, timings: dict[str, float]) -> F64 | None:
-        """``T_world_camera`` by depth ICP against the last measured frame, or None (logged)."""
+        """``T_world_camera`` by depth ICP against the previous frame when its pose was measured, or
+        None (logged). After a lost frame it is not tried: the reference is older and the prior a
+        guess, so ICP (about 100 ms of CPU at 640x480) seldom converges, and a lost tracker that
+        pays it on every frame falls further behind a live camera."""
         cfg = self.cfg.icp
-        if not cfg.enabled or self._depth_ref is None:
+        if not cfg.enabled or self._depth_ref is None or self._depth_ref_index != self._frame_index - 1:
             return None
         t0 = time.perf_counter()
         if self._rays is None:
@@ -650,6 +654,7 @@ class Tracker:
 
     def _set_depth_ref(self, T: F64, depth: NDArray[np.float32], pyramid: DepthPyramid | None = None) -> None:
         self._depth_ref = (T, depth)
+        self._depth_ref_index = self._frame_index
         self._depth_ref_pyr = pyramid
 
     def _maybe_thermal_ref(
