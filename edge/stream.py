@@ -322,7 +322,8 @@ class FrameStream:
         events = self.source.events()
         try:
             for event in events:
-                if self._closed:
+                if self._closed:  # a frame the source gave (and a recording wrote) is still counted
+                    self.received += not isinstance(event, OdometrySample)
                     return
                 if isinstance(event, OdometrySample):
                     odo.add(event)
