@@ -381,6 +381,11 @@ class BagSource:
                         self.path, TF_STATIC_TOPIC, base, cam_frame)
         return Calibration(rgb=camera, T_base_rgb=T_base_rgb)
 
+    @property
+    def dropped_frames(self) -> int:
+        """Colour images left out because no depth image paired with them."""
+        return self.skipped["unpaired"]
+
     def events(self) -> Iterator[SourceEvent]:
         """Frames (colour paired with depth) and odometry, in the recording's order."""
         cfg = self.cfg
@@ -456,9 +461,12 @@ class FramePairer:
             c_stamp = colour[0][0]
             near = [k for k, d in enumerate(depth) if abs(d[0] - c_stamp) <= tol]
             newest = depth[-1][0] if depth else -math.inf
-            # settled: a depth image past the pairing window came (none nearer will), or, without
-            # a partner yet, one past the window plus REORDER_S (a late partner may still come)
-            if not final and newest <= c_stamp + tol + (0.0 if near else REORDER_S):
+            # settled: a partner at or after the colour stamp came (depth comes in stamp order, so
+            # none nearer will: a camera's aligned depth, stamped like its colour, pairs at once),
+            # or a depth image past the pairing window came, or, without a partner yet, one past
+            # the window plus REORDER_S (a late partner may still come)
+            at_or_after = any(depth[k][0] >= c_stamp for k in near)
+            if not final and not at_or_after and newest <= c_stamp + tol + (0.0 if near else REORDER_S):
                 return
             _, c_msg, c_type = colour.pop(0)
             if not near:

@@ -16,8 +16,8 @@ it was built with would disagree.
 
 Threads: :meth:`ReconnectingSource.events` runs on the stream's producer thread and owns the
 inner source; :meth:`ReconnectingSource.stop` (any thread) sets the stop event, which the
-inner source and the backoff wait both watch. ``reconnects`` and ``up`` are written by the
-producer thread only.
+inner source and the backoff wait both watch. ``reconnects``, ``up`` and the inner source
+being streamed are written by the producer thread only (``dropped_frames`` reads them).
 
 :class:`RecordingSource` passes a source's events through unchanged and writes each frame
 and odometry sample to a data-set folder (:class:`~wardmap.shared.dataset.DatasetWriter`,
@@ -71,6 +71,13 @@ class ReconnectingSource:
         up: False while the source is lost.
     """
 
+    @property
+    def dropped_frames(self) -> int:
+        """Frames the inner sources let go before the stream (their ``dropped_frames``), summed
+        over connections."""
+        current = self._current
+        return self._dropped_before + int(getattr(current, "dropped_frames", 0))
+
     live = True
     frame_count: int | None = None
     dataset: FrameSource | None = None
@@ -92,6 +99,7 @@ class ReconnectingSource:
         self.has_odometry = first.has_odometry
         self.reconnects = 0
         self.up = True
+        self._dropped_before = 0  # dropped_frames of the connections that ended
 
     def stop(self) -> None:
         """End :meth:`events` soon (thread safe): the inner source and any backoff wait return."""
@@ -114,7 +122,6 @@ class ReconnectingSource:
         lost_at = 0.0
         while not self._stop.is_set():
             source = self._current
-            self._current = None
             if source is None:
                 try:
                     source = self._connect(self._stop)
@@ -127,6 +134,7 @@ class ReconnectingSource:
                     _close(source)
                     raise DatasetError(f"{self.name} came back with another calibration (another "
                                        "camera?); restart the edge to track with it")
+                self._current = source  # read by dropped_frames while it streams
             events = source.events()
             flowing = False  # back (or up at start) once the first event came, not at connect
             try:
@@ -157,6 +165,8 @@ class ReconnectingSource:
                     delay = min(2 * delay, cap)
             finally:
                 _close(events)  # a generator: runs the inner source's own clean-up
+                self._dropped_before += int(getattr(source, "dropped_frames", 0))
+                self._current = None
 
 
 class RecordingSource:

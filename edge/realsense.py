@@ -141,6 +141,11 @@ class RealSenseSource:
         finally:
             self.close()
 
+    @property
+    def dropped_frames(self) -> int:
+        """Frame sets left out because they lacked colour or depth."""
+        return self.skipped["incomplete"]
+
     def frame(self, frames: Any) -> Frame | None:
         """One SDK frame set -> a :class:`Frame` (depth aligned to colour), or None when it lacks
         an image (counted in ``skipped``)."""

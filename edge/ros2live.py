@@ -143,6 +143,7 @@ class Ros2Source:
 
     Attributes:
         dropped_messages: messages dropped because the producer thread was behind.
+        dropped_colour: colour images among them.
         skipped: frames left out by reason (``unpaired``, ``wrong_type``).
     """
 
@@ -162,6 +163,7 @@ class Ros2Source:
         self.name = f"{SOURCE_PREFIX}{options.endpoint}"
         self.skipped: Counter[str] = Counter()
         self.dropped_messages = 0
+        self.dropped_colour = 0
         self._stop = stop
         self._queue: queue.Queue[tuple[str, str, bytes]] = queue.Queue(maxsize=QUEUE_SIZE)
         _, typesys = import_rosbags()
@@ -207,7 +209,14 @@ class Ros2Source:
                 self._queue.put_nowait((role, str(sample.key_expr), sample.payload.to_bytes()))
             except queue.Full:
                 self.dropped_messages += 1
+                self.dropped_colour += role == "rgb"
         return on_sample
+
+    @property
+    def dropped_frames(self) -> int:
+        """Frames lost before the stream: colour images dropped at the full queue, or unpaired
+        (a dropped depth image shows as an unpaired colour image)."""
+        return self.dropped_colour + self.skipped["unpaired"]
 
     def close(self) -> None:
         """Close the Zenoh session (idempotent; subscribers go with it)."""

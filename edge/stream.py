@@ -28,6 +28,10 @@ a frame more than :data:`ODOM_WAIT_S` newer arrives (the odometry is late or sto
 goes with what there is), or the source ends. Held frames are released in stamp order, so
 frames that arrive slightly out of order are put back in order; a frame older than one already
 released is dropped and counted (``late``). Sources without odometry release at once.
+
+A source may also let frames go before they reach the stream (a live subscription whose queue
+is full, a colour image without a depth partner); one that counts them says so in
+``dropped_frames``, which :meth:`FrameStream.counters` reports as ``source_dropped``.
 """
 
 from __future__ import annotations
@@ -289,8 +293,11 @@ class FrameStream:
             yield item
 
     def counters(self) -> dict[str, int]:
-        """``received``, ``dropped`` (consumer behind) and ``late`` (out of order) frames."""
-        return {"received": self.received, "dropped": self.dropped, "late": self.late}
+        """``received``, ``dropped`` (consumer behind) and ``late`` (out of order) frames, and
+        ``source_dropped``: frames the source let go before they reached the stream (its
+        ``dropped_frames`` when it counts them, e.g. a subscription's full queue; else 0)."""
+        return {"received": self.received, "dropped": self.dropped, "late": self.late,
+                "source_dropped": int(getattr(self.source, "dropped_frames", 0))}
 
     # ------------------------------------------------------------------ producer
 
@@ -315,7 +322,8 @@ class FrameStream:
         events = self.source.events()
         try:
             for event in events:
-                if self._closed:
+                if self._closed:  # a frame the source gave (and a recording wrote) is still counted
+                    self.received += not isinstance(event, OdometrySample)
                     return
                 if isinstance(event, OdometrySample):
                     odo.add(event)

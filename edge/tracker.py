@@ -46,6 +46,8 @@ from wardmap.shared.se3 import (
     interpolate_transform,
     inverse,
     rotation_angle,
+    se3_exp,
+    se3_log,
     so3_log,
     transform_points,
     yaw_rotation,
@@ -56,6 +58,10 @@ log = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
 PoseSource = Literal["init", "rgb", "relocalised", "thermal", "depth", "odometry", "motion_model", "none"]
+MOTION_MODEL_MAX_S = 0.2
+"""The constant-velocity prior extrapolates the last step's twist over at most this long (seconds):
+a frame after a gap (frames dropped by the stream) is predicted as far as the camera kept moving,
+a long gap no further than this."""
 
 
 def level_toward_floor(T_world_cam: F64, T_base_rgb: F64, gain: float) -> F64:
@@ -252,6 +258,7 @@ class Tracker:
         # Depth of the last frame with a measured pose, for the ICP fallback: the array and
         # its pose are kept, the pyramid is built only when a frame needs it.
         self._depth_ref: tuple[F64, NDArray[np.float32]] | None = None
+        self._depth_ref_index = -1  # its frame index
         self._depth_ref_pyr: DepthPyramid | None = None
         self._rays: F64 | None = None
 
@@ -438,7 +445,18 @@ class Tracker:
         if inp.T_odom_base is not None and self._prev_odom is not None and T_base_rgb is not None:
             step = inverse(T_base_rgb) @ inverse(self._prev_odom) @ inp.T_odom_base @ T_base_rgb
             return self._T_world_cam @ step, "odometry"
-        return self._T_world_cam @ self._velocity, "motion_model"
+        return self._T_world_cam @ self._motion_step(inp.stamp), "motion_model"
+
+    def _motion_step(self, stamp: float) -> F64:
+        """``T_prev_cur`` predicted for a frame at ``stamp``: the last step's twist (constant
+        velocity in time, not per frame) over the time since the last frame, at most
+        :data:`MOTION_MODEL_MAX_S`. The step as measured when the spacing is unchanged."""
+        if self._prev_stamp is None or self._prev_dt <= 0:
+            return self._velocity
+        ratio = min(stamp - self._prev_stamp, MOTION_MODEL_MAX_S) / self._prev_dt
+        if ratio <= 0 or abs(ratio - 1.0) < 1e-3:
+            return self._velocity
+        return se3_exp(ratio * se3_log(self._velocity))
 
     # ------------------------------------------------------------------ matching / pose
     def _match_map(
@@ -535,42 +553,34 @@ class Tracker:
     def _relocalise(
         self, feats: Features, kp_depth: NDArray[np.float64]
     ) -> tuple[F64 | None, NDArray[np.bool_], NDArray[np.intp], NDArray[np.intp]]:
-        """Match against recent keyframes by descriptor alone; EPnP on the best one."""
-        best: tuple[F64 | None, NDArray[np.bool_], NDArray[np.intp], NDArray[np.intp]] = (
-            None,
-            np.zeros(0, bool),
-            np.zeros(0, np.intp),
-            np.zeros(0, np.intp),
-        )
-        best_n = 0
-        # The last tracked frame first (ORB-SLAM2's reference-frame tracking), then keyframes.
+        """Match against the last frame and recent keyframes by descriptor alone, EPnP on each in
+        turn; the first pose the local map confirms (re-matched and refined from it) is returned
+        with its map matches ``(T_cam_world, inliers, map indexes, feature indexes)``, else None."""
+        # The last tracked frame first (ORB-SLAM2's reference-frame tracking), then keyframes
+        # newest first (the last one is skipped when it is that frame); the first pose the local
+        # map confirms is taken, so a frame pays for one candidate when the newest fits.
         candidates = [self._frame_snapshot(*self._last_frame_raw)] if self._last_frame_raw is not None else []
-        candidates += list(reversed(self.keyframes[-self.cfg.reloc_keyframes :]))
+        last_stamp = self._last_frame_raw[0] if self._last_frame_raw is not None else None
+        candidates += [kf for kf in reversed(self.keyframes[-self.cfg.reloc_keyframes :])
+                       if kf.stamp != last_stamp]
         for kf in candidates:
-            if best_n >= 3 * self.cfg.min_inliers:
-                break
             if len(kf.desc) < self.cfg.min_inliers:
                 continue
             ki, fi, _ = match_descriptors(kf.desc, feats.descriptors, ratio=0.8)
             if len(ki) < self.cfg.min_inliers:
                 continue
             pnp = solve_pnp_ransac(kf.points_world[ki], feats.uv[fi].astype(np.float64), self.cam)
-            n = int(pnp.inliers.sum()) if pnp.ok else 0
-            if n >= self.cfg.min_inliers and n > best_n:
-                T_cw, inl, _ = refine_pose_huber(
-                    kf.points_world[ki], feats.uv[fi].astype(np.float64), self.cam, pnp.T_cam_world
-                )
-                best_n = int(inl.sum())
-                best = (T_cw, inl, np.zeros(0, np.intp), np.zeros(0, np.intp))
-        if best[0] is None:
-            return best
-        # Re-match the local map from the relocalised pose so map points are fused as usual.
-        T_reloc = best[0]
-        m_idx, f_idx = self._match_map(T_reloc, feats, None, self.cfg.match_radius_px)
-        T_new, inl = self._pose_from_matches(m_idx, f_idx, feats, kp_depth, T_reloc)
-        if T_new is None:
-            return None, np.zeros(0, bool), np.zeros(0, np.intp), np.zeros(0, np.intp)
-        return T_new, inl, m_idx, f_idx
+            if not pnp.ok or int(pnp.inliers.sum()) < self.cfg.min_inliers:
+                continue
+            T_reloc, _, _ = refine_pose_huber(
+                kf.points_world[ki], feats.uv[fi].astype(np.float64), self.cam, pnp.T_cam_world
+            )
+            # Re-match the local map from the relocalised pose so map points are fused as usual.
+            m_idx, f_idx = self._match_map(T_reloc, feats, None, self.cfg.match_radius_px)
+            T_new, inl = self._pose_from_matches(m_idx, f_idx, feats, kp_depth, T_reloc)
+            if T_new is not None:
+                return T_new, inl, m_idx, f_idx
+        return None, np.zeros(0, bool), np.zeros(0, np.intp), np.zeros(0, np.intp)
 
     # ------------------------------------------------------------------ thermal fallback
     def _thermal_pose(
@@ -619,9 +629,12 @@ class Tracker:
         return inverse(T_rgb_th @ T_th_w)
 
     def _depth_pose(self, depth: NDArray[np.float32], prior: F64, timings: dict[str, float]) -> F64 | None:
-        """``T_world_camera`` by depth ICP against the last measured frame, or None (logged)."""
+        """``T_world_camera`` by depth ICP against the previous frame when its pose was measured, or
+        None (logged). After a lost frame it is not tried: the reference is older and the prior a
+        guess, so ICP (about 100 ms of CPU at 640x480) seldom converges, and a lost tracker that
+        pays it on every frame falls further behind a live camera."""
         cfg = self.cfg.icp
-        if not cfg.enabled or self._depth_ref is None:
+        if not cfg.enabled or self._depth_ref is None or self._depth_ref_index != self._frame_index - 1:
             return None
         t0 = time.perf_counter()
         if self._rays is None:
@@ -641,6 +654,7 @@ class Tracker:
 
     def _set_depth_ref(self, T: F64, depth: NDArray[np.float32], pyramid: DepthPyramid | None = None) -> None:
         self._depth_ref = (T, depth)
+        self._depth_ref_index = self._frame_index
         self._depth_ref_pyr = pyramid
 
     def _maybe_thermal_ref(

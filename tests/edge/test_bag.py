@@ -170,7 +170,7 @@ def test_out_of_order_messages_give_the_same_frames_in_stamp_order(tmp_path: Pat
     for name in ("ordered", "shuffled"):
         with FrameStream(BagSource(tmp_path / name)) as stream:
             runs.append(list(stream))
-        assert stream.counters() == {"received": 8, "dropped": 0, "late": 0}
+        assert stream.counters() == {"received": 8, "dropped": 0, "late": 0, "source_dropped": 0}
     a, b = runs
     assert [i.stamp for i in a] == [i.stamp for i in b] == [f[0] for f in frames]
     for x, y in zip(a, b, strict=True):
@@ -199,3 +199,48 @@ def test_odometry_from_tf_when_the_recording_has_no_odometry_topic(tmp_path: Pat
     with pytest.raises(DatasetError, match="no transform 'map' -> 'base_link'"):
         BagSource(tmp_path / "tf", BagSourceConfig(odom_topic="/tf", odom_frame="map"))
     assert not BagSource(tmp_path / "none").has_odometry
+
+
+def test_colour_without_a_depth_partner_is_counted_as_dropped_by_the_source(tmp_path: Path) -> None:
+    """Frame 5's depth image is stamped 25 ms after its colour (outside the 20 ms window): that
+    colour image is left out, and the stream reports it as ``source_dropped``."""
+    frames = _images(8)
+    with BagWriter(tmp_path / "gap") as w:
+        w.write_camera_info(frames[0][0], CAM)
+        for i, (stamp, rgb, depth) in enumerate(frames):
+            w.write_frame(stamp, rgb, depth, depth_stamp=round(stamp + 0.025, 6) if i == 5 else None)
+    source = BagSource(tmp_path / "gap", BagSourceConfig(odom_topic=""))
+    with FrameStream(source) as stream:
+        stamps = [item.stamp for item in stream]
+    assert stamps == [f[0] for i, f in enumerate(frames) if i != 5]
+    assert source.dropped_frames == 1
+    assert stream.counters() == {"received": 7, "dropped": 0, "late": 0, "source_dropped": 1}
+
+
+def test_aligned_depth_pairs_as_soon_as_it_comes() -> None:
+    """A depth image stamped like its colour image settles the pair at once (a camera's aligned
+    depth); one stamped before it waits for a later depth image (a nearer one may still come)."""
+    from rosbags.typesys import Stores, get_typestore
+
+    from wardmap.edge.bag import FramePairer
+    from wardmap.shared.dataset import Calibration
+
+    types = get_typestore(Stores.ROS2_HUMBLE).types
+
+    def msg(stamp: float, pixels: np.ndarray, encoding: str) -> Any:
+        ns = round(stamp * 1e9)
+        header = types["std_msgs/msg/Header"](
+            stamp=types["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9), frame_id="cam")
+        data = np.ascontiguousarray(pixels).view(np.uint8).reshape(-1)
+        return types["sensor_msgs/msg/Image"](header=header, height=12, width=16, encoding=encoding,
+                                              is_bigendian=0, step=data.size // 12, data=data)
+
+    (s0, rgb, depth), (s1, _, _) = _images(2)
+    pairer = FramePairer(BagSourceConfig(odom_topic=""), Calibration(rgb=CAM), "test")
+    assert list(pairer.add(True, msg(s0, rgb, "rgb8"), IMAGE)) == []
+    got = list(pairer.add(False, msg(s0, depth, "32FC1"), IMAGE))
+    assert [f.stamp for f in got] == [s0]  # at once, not one frame later
+    assert list(pairer.add(True, msg(s1, rgb, "rgb8"), IMAGE)) == []
+    assert list(pairer.add(False, msg(s1 - 0.005, depth, "32FC1"), IMAGE)) == []  # before: waits
+    got = list(pairer.add(False, msg(s1 + 0.030, depth, "32FC1"), IMAGE))
+    assert [f.stamp for f in got] == [s1] and got[0].depth_stamp == pytest.approx(s1 - 0.005)

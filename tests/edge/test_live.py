@@ -63,6 +63,7 @@ class _Session:
         self.calibration = camera.calibration
         self.n = n
         self.stop = stop
+        self.dropped_frames = 0  # one per frame it gives: a driver that lost every other frame
 
     def close(self) -> None:
         self.camera.closed += 1
@@ -73,6 +74,7 @@ class _Session:
                 if self.stop.is_set():
                     return
                 self.camera.stamp += 0.1
+                self.dropped_frames += 1
                 yield _frame(round(self.camera.stamp * 10), self.camera.stamp)
             raise SourceLostError("unplugged")
         finally:
@@ -192,3 +194,15 @@ def test_record_refuses_a_folder_that_is_not_empty(tmp_path: Path) -> None:
     with pytest.raises(DatasetError, match="not empty"):
         RecordingSource(_Recorded(), tmp_path)
     assert (tmp_path / "x").read_text() == "keep me"
+
+
+def test_frames_a_source_lost_before_the_stream_are_counted_across_reconnects() -> None:
+    """A camera whose driver loses one frame per frame it gives, unplugged after 3 and after 2
+    frames, then streaming on: the stream's ``source_dropped`` sums every connection's."""
+    camera = _Camera([3, 2], absent=set())
+    source = ReconnectingSource(camera.connect, backoff_first_s=0.01, backoff_max_s=0.02)
+    with FrameStream(source, max_frames=8) as stream:  # live: the slot may drop some (counted)
+        list(stream)
+    assert source.reconnects == 2  # 8 frames released: the third connection gave some
+    assert stream.counters()["source_dropped"] == source.dropped_frames
+    assert source.dropped_frames == stream.received  # the ended connections' and the current one's

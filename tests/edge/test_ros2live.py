@@ -104,12 +104,13 @@ def test_frames_and_odometry_come_from_the_robots_topics(robot: tuple[str, Robot
             odo.append(ev)
         elif isinstance(ev, Frame):
             got.append(ev)
-        # The last frame waits for a later depth image to settle its pair. Topics are not ordered
-        # among themselves (one odometry sample may come after the next image): wait for all.
-        if len(got) == len(frames) - 1 and len(odo) == len(frames):
+        # Each depth image is stamped like its colour image, so every pair settles when its depth
+        # comes, the last one too. Topics are not ordered among themselves (one odometry sample
+        # may come after the next image): wait for all.
+        if len(got) == len(frames) and len(odo) == len(frames):
             stop.set()
     assert source._session is None  # the session is closed when the events end
-    assert [f.stamp for f in got] == [round(s, 6) for s, _, _ in frames[:-1]]
+    assert [f.stamp for f in got] == [round(s, 6) for s, _, _ in frames]
     for frame, (_, rgb, depth) in zip(got, frames, strict=False):
         np.testing.assert_array_equal(frame.rgb, rgb)  # rgb8 and PNG are exact
         np.testing.assert_array_equal(frame.depth_m, depth)

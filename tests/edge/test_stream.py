@@ -92,7 +92,7 @@ def test_a_replay_as_fast_as_possible_blocks_and_loses_nothing() -> None:
     with stream:
         got = [item.stamp for item in stream]
     assert got == [f.stamp for f in frames]  # type: ignore[union-attr]
-    assert stream.counters() == {"received": 20, "dropped": 0, "late": 0}
+    assert stream.counters() == {"received": 20, "dropped": 0, "late": 0, "source_dropped": 0}
     assert max(source.slot_lengths) <= 2
 
 
@@ -133,7 +133,7 @@ def test_out_of_order_frames_are_put_back_in_order_and_late_ones_counted() -> No
         items = list(stream)
     assert [it.stamp for it in items] == [100.05, 100.10, 100.3]
     assert items[2].frame is None and items[2].problem == "cannot read frame: corrupt"
-    assert stream.counters() == {"received": 4, "dropped": 0, "late": 1}
+    assert stream.counters() == {"received": 4, "dropped": 0, "late": 1, "source_dropped": 0}
 
 
 def test_a_source_error_reaches_the_consumer_after_the_frames_before_it() -> None:
