@@ -67,18 +67,23 @@ class LocalBaConfig:
         graph_keyframes: keyframes the covisibility graph remembers.
         cull_after_keyframes: a map point seen by no keyframe but the one that made it is
             dropped this many keyframes later (ORB-SLAM2's MapPointCulling; 0 = never).
+        stereo_bf: virtual stereo baseline x fx (pixels x metres) of the adjustment's depth
+            residual ``u - stereo_bf / z``: a pixel of its error is ``z^2 / stereo_bf`` metres
+            of depth, so ``1 / stereo_bf`` plays the part of a depth sensor's axial noise
+            coefficient (std = b z^2). The tracker's ``rgbd_bf`` is ORB-SLAM2's 40.
         max_correction_m, max_correction_deg: a solution that moves a keyframe farther is
             refused (counted), as a failed optimisation.
     """
 
     enabled: bool = False
     worker: str = "process"
-    window: int = 10
+    window: int = 6
     min_shared_points: int = 15
     max_fixed: int = 10
     iterations: tuple[int, int] = (5, 10)
     graph_keyframes: int = 40
     cull_after_keyframes: int = 2
+    stereo_bf: float = 40.0
     max_correction_m: float = 0.1
     max_correction_deg: float = 5.0
 
@@ -93,6 +98,8 @@ class LocalBaConfig:
             raise ConfigError("tracker.local_ba.graph_keyframes must exceed window")
         if self.cull_after_keyframes < 0:
             raise ConfigError("tracker.local_ba.cull_after_keyframes must be >= 0")
+        if not (np.isfinite(self.stereo_bf) and self.stereo_bf >= 0):
+            raise ConfigError(f"tracker.local_ba.stereo_bf must be >= 0, got {self.stereo_bf}")
         if not (self.max_correction_m > 0 and self.max_correction_deg > 0):
             raise ConfigError("tracker.local_ba: max_correction_m and max_correction_deg must be > 0")
 

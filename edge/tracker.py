@@ -276,7 +276,7 @@ class Tracker:
         self._ba: LocalBundleAdjuster | None = None
         if self.cfg.local_ba.enabled:
             self._ba = LocalBundleAdjuster(
-                Intrinsics(self.cam.fx, self.cam.fy, self.cam.cx, self.cam.cy, self.cfg.rgbd_bf,
+                Intrinsics(self.cam.fx, self.cam.fy, self.cam.cx, self.cam.cy, self.cfg.local_ba.stereo_bf,
                            self.cfg.rgbd_max_depth_m),
                 self.cfg.local_ba,
             )
