@@ -400,6 +400,7 @@ class BaStats:
     solved: int = 0
     refused: int = 0
     superseded: int = 0
+    unfinished: int = 0  # solving or waiting when the adjuster was closed
     max_backlog: int = 0
     cpu_ms: list[float] = field(default_factory=list)
     rms_before: list[float] = field(default_factory=list)
@@ -410,7 +411,8 @@ class BaStats:
             return round(float(np.median(v)), 3) if v else 0.0
         return {
             "submitted": self.submitted, "solved": self.solved, "refused": self.refused,
-            "superseded": self.superseded, "max_backlog": self.max_backlog,
+            "superseded": self.superseded, "unfinished": self.unfinished,
+            "max_backlog": self.max_backlog,
             "cpu_ms_median": med(self.cpu_ms),
             "cpu_ms_p95": round(float(np.percentile(self.cpu_ms, 95)), 3) if self.cpu_ms else 0.0,
             "rms_before_median": med(self.rms_before), "rms_after_median": med(self.rms_after),
@@ -465,6 +467,8 @@ class LocalBundleAdjuster:
                 return
 
     def close(self) -> None:
+        """Stop the worker; what was solving or waiting is counted ``unfinished``."""
+        self.stats.unfinished += self.backlog()
         if self._pool is not None:
             self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None

@@ -154,3 +154,4 @@ def test_worker_process_keeps_up_with_a_bounded_backlog() -> None:
     assert st.max_backlog <= 2
     assert len(got) == st.solved + st.refused == st.submitted - st.superseded
     assert st.superseded >= 1 and all(s.accepted for s in got)
+    assert st.unfinished == 0 and ba.stats.summary()["max_backlog"] <= 2
