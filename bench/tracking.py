@@ -36,8 +36,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _report import add_seed_arguments, git_rev, machine, write_section
 
+from wardmap.edge.localba import LocalBaConfig
 from wardmap.edge.offline import track_dataset
-from wardmap.edge.tracker import TrackResult
+from wardmap.edge.tracker import TrackerConfig, TrackResult
 from wardmap.shared.dataset import Calibration, DatasetReader
 from wardmap.shared.metrics import ate, rpe
 from wardmap.shared.se3 import transform_from_tum
@@ -68,7 +69,7 @@ def read_tum(path: Path) -> tuple[list[float], list]:
 
 
 def run_one(folder: Path, labels: str, tmp: Path, calibration: Calibration | None = None,
-            repeats: int = 1) -> dict:
+            repeats: int = 1, config: TrackerConfig | None = None) -> dict:
     traj = tmp / f"{folder.name}_{labels.split(':')[0]}.txt"
     total: list[float] = []
     cpu: list[float] = []
@@ -81,7 +82,8 @@ def run_one(folder: Path, labels: str, tmp: Path, calibration: Calibration | Non
             cpu.append(result.timings_ms["cpu_total"])
 
         out = traj if k == 0 else tmp / f"repeat_{traj.name}"
-        summary = track_dataset(folder, out, labels=labels, calibration=calibration, progress=keep)
+        summary = track_dataset(folder, out, labels=labels, calibration=calibration, progress=keep,
+                                config=config)
         if k == 0:
             first = summary
         elif out.read_text() != traj.read_text():
@@ -106,6 +108,7 @@ def run_one(folder: Path, labels: str, tmp: Path, calibration: Calibration | Non
         "runs": run_medians,
         "labels": "-" if lab is None else f"{lab['median']:.1f}",
         "sources": first["sources"],
+        "ba": first["local_ba"],
     }
 
 
@@ -114,6 +117,10 @@ def _row(label: str, seed: str, kind: str, r: dict, ratio: str, goal: str) -> st
     ro = r["readout"]
     readout = f"{1e3 * ro['readout_s']:.1f} ms{' (guess)' if ro['assumed'] else ''}"
     src = ", ".join(f"{k} {v}" for k, v in sorted(r["sources"].items()))
+    ba = r["ba"]
+    if ba is not None:  # the bundle adjuster's CPU time per keyframe (inline: outside the frame's)
+        src += (f"; BA {ba['solved']}/{ba['submitted']} solved, "
+                f"{ba['cpu_ms_median']:.0f} ms ({ba['cpu_ms_p95']:.0f} p95)")
     runs = " / ".join(f"{m:.1f}" for m in r["runs"])
     return (
         f"| {label} | {seed} | {kind} | {readout} | {r['frames']} | {r['kf']} | {r['lost']} "
@@ -132,11 +139,16 @@ def main() -> int:
     ap.add_argument("--no-generate", action="store_true",
                     help="skip (and list) scenarios without data under --data instead of rendering them")
     ap.add_argument("--repeats", type=int, default=3, help="times each sequence is tracked (default 3)")
+    ap.add_argument("--local-ba", choices=["on", "off"], default=None,
+                    help="local bundle adjustment on or off (default: the tracker's default)")
     ap.add_argument("--write", type=Path, help="update this markdown file's tracking section")
     args = ap.parse_args()
     if args.repeats < 1:
         ap.error("--repeats must be at least 1")
     cv2.setNumThreads(1)
+    config = None
+    if args.local_ba is not None:
+        config = TrackerConfig(local_ba=LocalBaConfig(enabled=args.local_ba == "on"))
     names = args.only or [*SCENARIOS, "tum"]
     rows = []
     skipped: list[str] = []  # --no-generate: scenarios without data
@@ -181,7 +193,7 @@ def main() -> int:
                     base = None
                     for label, spec, calib in runs:
                         print(f"tracking {label} seed {seed} labels={spec.split(':')[0]}", file=sys.stderr)
-                        r = run_one(folder, spec, tmp, calib, args.repeats)
+                        r = run_one(folder, spec, tmp, calib, args.repeats, config)
                         ratio = "" if base is None else f"{100 * r['ate_cm'] / base:.0f}% of none"
                         base = r["ate_cm"] if base is None else base
                         goal = next((g for k, g in GOALS.items() if label.startswith(k)), "")
@@ -226,7 +238,8 @@ def main() -> int:
     body = (
         "## Tracking frontend (issues 3, 41)\n\n"
         f"Command: `python bench/tracking.py --seeds {' '.join(map(str, args.seeds))}{only}"
-        f"{' --no-generate' if args.no_generate else ''} "
+        f"{' --no-generate' if args.no_generate else ''}"
+        f"{f' --local-ba {args.local_ba}' if args.local_ba else ''} "
         f"--repeats {args.repeats} --write BENCHMARKS.md`  \n"
         f"Machine: {machine()}; one core (numba/OpenCV threads = 1); commit {git_rev()}.\n"
         "ATE: evo, SE3 (Umeyama) alignment, translation RMSE. RPE: evo, translation error of each "

@@ -410,7 +410,7 @@ class EdgeAgent:
                     self._stream = stream
                     if self._stop.is_set():
                         stream.close()
-                    with stream:
+                    with stream, tracker:  # the tracker's bundle-adjustment worker stops with it
                         self._track_loop(stream, labels, mobility_lut, tracker, outbox, ids, track)
                     flushed = self._flush(outbox)
                 finally:

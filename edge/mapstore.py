@@ -26,6 +26,11 @@ class MapPoints:
         weight: (M,) float64 sum of observation weights used in the position average.
         kf_last: (M,) int64 index of the last keyframe that observed the point.
         n_seen: (M,) int64 frames in which the point was an inlier.
+        pid: (M,) int64 point ids, increasing, never reused within one map (the local
+            bundle adjustment's keyframe observations name points by id).
+        n_kf: (M,) int64 keyframes that observed the point (the one that made it included).
+        kf_first: (M,) int64 index of the keyframe that made the point.
+        next_pid: the id of the next point added.
     """
 
     pos_world: F64 = field(default_factory=lambda: np.zeros((0, 3)))
@@ -34,6 +39,10 @@ class MapPoints:
     weight: F64 = field(default_factory=lambda: np.zeros(0))
     kf_last: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
     n_seen: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    pid: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    n_kf: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    kf_first: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    next_pid: int = 0
 
     def __len__(self) -> int:
         return int(self.pos_world.shape[0])
@@ -54,6 +63,10 @@ class MapPoints:
         self.weight = np.concatenate([self.weight, weight])
         self.kf_last = np.concatenate([self.kf_last, np.full(n, kf, np.int64)])
         self.n_seen = np.concatenate([self.n_seen, np.ones(n, np.int64)])
+        self.pid = np.concatenate([self.pid, np.arange(self.next_pid, self.next_pid + n, dtype=np.int64)])
+        self.n_kf = np.concatenate([self.n_kf, np.ones(n, np.int64)])
+        self.kf_first = np.concatenate([self.kf_first, np.full(n, kf, np.int64)])
+        self.next_pid += n
 
     def keep(self, mask: NDArray[np.bool_]) -> None:
         self.pos_world = self.pos_world[mask]
@@ -63,6 +76,9 @@ class MapPoints:
         self.weight = self.weight[mask]
         self.kf_last = self.kf_last[mask]
         self.n_seen = self.n_seen[mask]
+        self.pid = self.pid[mask]
+        self.n_kf = self.n_kf[mask]
+        self.kf_first = self.kf_first[mask]
 
     def fuse(self, idx: NDArray[np.intp], pos_world: F64, weight: F64, max_weight: float) -> None:
         """Weighted running average of positions for points ``idx`` with new estimates."""

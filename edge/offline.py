@@ -11,6 +11,7 @@ import logging
 import os
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -70,6 +71,10 @@ def track_source(
         raise WardmapError(f"--max-frames must be positive, got {max_frames}")
     kg = KnowledgeGraph.load()
     label_source = make_label_source(labels, dataset=source.dataset, kg=kg, threads=label_threads)
+    config = config or TrackerConfig()
+    # Bundle adjustment solved at each keyframe, in order: the same trajectory on every run
+    # (the edge daemon solves in a worker process, as fast as it can).
+    config = replace(config, local_ba=replace(config.local_ba, worker="inline"))
     cal = calibration or source.calibration
     tracker = Tracker(cal, config, kg.mobility_lut())
     readout = tracker.readout
@@ -81,7 +86,7 @@ def track_source(
         n = min(n, max_frames)
     results: list[TrackResult] = []
     label_ms: list[float] = []
-    with FrameStream(source, max_frames=max_frames) as stream:
+    with tracker, FrameStream(source, max_frames=max_frames) as stream:
         for item in stream:
             frame = item.frame
             if frame is None:
@@ -111,6 +116,7 @@ def track_source(
         "stream": stream.counters(),
         "readout": {"readout_s": readout.readout_s, "source": readout.source, "assumed": readout.assumed,
                     **({"online": online.summary()} if online is not None else {})},
+        "local_ba": tracker.local_ba_stats(),
     }
 
 

@@ -134,6 +134,8 @@ def score_candidates(inputs: Sequence[TrackInput], calibration: Calibration, con
     """Mean pose inliers per frame (lost frames count 0) of ``inputs`` tracked from the start
     under each candidate readout time, seconds."""
     per_frame = []
+    config = config or TrackerConfig()
+    config = replace(config, local_ba=replace(config.local_ba, enabled=False))  # inliers only: no BA
     for c in candidates_s:
         tracker = Tracker(replace(calibration, rgb_readout_s=c), config)
         inliers = 0

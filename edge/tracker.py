@@ -37,6 +37,13 @@ from wardmap.edge.features import (
     thermal_to_gray8,
 )
 from wardmap.edge.icp import DepthPyramid, IcpConfig, icp
+from wardmap.edge.localba import (
+    BaProblem,
+    CovisibilityGraph,
+    Intrinsics,
+    LocalBaConfig,
+    LocalBundleAdjuster,
+)
 from wardmap.edge.mapstore import Keyframe, MapPoints
 from wardmap.edge.pose import refine_pose_huber, refine_pose_rolling_shutter, solve_pnp_ransac
 from wardmap.shared.camera import PinholeCamera
@@ -123,6 +130,8 @@ class TrackerConfig:
             frame's own spin over one readout is fitted with its pose
             (:func:`wardmap.edge.pose.refine_pose_rolling_shutter`); this is the standard
             deviation (radians) of its prior, the motion model's spin times the readout.
+        local_ba: local bundle adjustment of the keyframes covisible with each new one
+            (:mod:`wardmap.edge.localba`).
     """
 
     orb: OrbConfig = field(default_factory=OrbConfig)
@@ -153,6 +162,7 @@ class TrackerConfig:
     rgbd_max_depth_m: float = 3.1
     floor_level_tau_s: float = 2.0
     rs_shear_sigma_rad: float = 0.02
+    local_ba: LocalBaConfig = field(default_factory=LocalBaConfig)
 
     def __post_init__(self) -> None:
         if self.min_inliers < 6:
@@ -217,7 +227,11 @@ class TrackResult:
 
 
 class Tracker:
-    """Stateful frontend for one camera stream. Not thread-safe: one owner calls ``track``."""
+    """Stateful frontend for one camera stream. Not thread-safe: one owner calls ``track``.
+
+    With ``local_ba`` enabled it owns a :class:`LocalBundleAdjuster` (a worker process in
+    ``process`` mode): call :meth:`close` when done (or use the tracker as a context manager).
+    """
 
     def __init__(
         self,
@@ -261,14 +275,56 @@ class Tracker:
         self._depth_ref_index = -1  # its frame index
         self._depth_ref_pyr: DepthPyramid | None = None
         self._rays: F64 | None = None
+        # Local bundle adjustment: the graph is this thread's; problems are copies of it,
+        # solutions are applied at the start of the next frame (_apply_local_ba).
+        self._map_epoch = 0  # +1 when the map restarts: older solutions are stale
+        self._ba_graph = CovisibilityGraph(self.cam, self.cfg.local_ba)
+        self._ba_problem: BaProblem | None = None  # made at a keyframe, submitted after the frame
+        self._ba: LocalBundleAdjuster | None = None
+        if self.cfg.local_ba.enabled:
+            self._ba = LocalBundleAdjuster(
+                Intrinsics(self.cam.fx, self.cam.fy, self.cam.cx, self.cam.cy, self.cfg.local_ba.stereo_bf,
+                           self.cfg.rgbd_max_depth_m),
+                self.cfg.local_ba,
+            )
+
+    def __enter__(self) -> Tracker:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Stop the bundle-adjustment worker, if any."""
+        if self._ba is not None:
+            self._ba.close()
+
+    def local_ba_stats(self) -> dict[str, float | int] | None:
+        """The bundle adjuster's counters (:class:`~wardmap.edge.localba.BaStats`), or None when off."""
+        return None if self._ba is None else self._ba.stats.summary()
 
     # ------------------------------------------------------------------ public
     def track(self, inp: TrackInput) -> TrackResult:
-        """Estimate the camera pose of one frame; never raises on bad frame content."""
+        """Estimate the camera pose of one frame; never raises on bad frame content.
+
+        A keyframe's bundle-adjustment problem is handed to the adjuster after the frame's
+        timing ends (``inline``: solved here, its time in :meth:`local_ba_stats`).
+        """
+        result = self._track(inp)
+        if self._ba is not None and self._ba_problem is not None:
+            self._ba.submit(self._ba_problem)
+        self._ba_problem = None
+        return result
+
+    def _track(self, inp: TrackInput) -> TrackResult:
         self._frame_index += 1
         timings: dict[str, float] = {}
         t_start = time.perf_counter()
         self._cpu_start = time.thread_time()
+        if self._ba is not None:
+            t0 = time.perf_counter()
+            self._apply_local_ba()
+            timings["local_ba"] = _ms(t0)
         prior, prior_source = self._predict(inp)
         bad = _frame_problem(inp, self.cam)
         if bad:
@@ -414,7 +470,8 @@ class Tracker:
             matched = np.zeros(len(feats.uv), bool)
             matched[f_idx[inl]] = True
             self.map.kf_last[m_idx[inl]] = self._kf_count
-            self._insert_keyframe(inp.stamp, T, feats, kp_depth, sem, skip=matched)
+            self._insert_keyframe(inp.stamp, T, feats, kp_depth, sem, skip=matched,
+                                  observed=(m_idx[inl], f_idx[inl]))
             self._maybe_thermal_ref(inp, depth, T, timings)
         self._last_frame_raw = (inp.stamp, T, feats, kp_depth)
         self._rgb_failures = 0
@@ -710,7 +767,11 @@ class Tracker:
         *,
         skip: NDArray[np.bool_] | None = None,
         new_all: bool = False,
+        observed: tuple[NDArray[np.intp], NDArray[np.intp]] | None = None,
     ) -> None:
+        """Make keyframe ``_kf_count`` at pose ``T`` (4, 4): map points for keypoints with
+        depth (not ``skip``), and with local BA its observations: ``observed`` = (map rows,
+        keypoint rows) of its matched inliers, plus the points it made."""
         kf_index = self._kf_count
         self._kf_count += 1
         ok = (kp_depth > self.cfg.min_depth_m) & (kp_depth < self.cfg.max_depth_m)
@@ -730,8 +791,14 @@ class Tracker:
             1.0 / np.maximum(z, 0.5) ** 4,
             kf_index,
         )
+        if self._ba is not None:
+            self._record_keyframe(kf_index, T, feats, kp_depth, int(new.sum()), observed)
         # Forget points not seen for a while and cap the map size.
         keep = self.map.kf_last >= kf_index - self.cfg.local_keyframes
+        cull = self.cfg.local_ba.cull_after_keyframes
+        if self._ba is not None and cull > 0:
+            # ORB-SLAM2's MapPointCulling: a point no other keyframe confirmed is dropped.
+            keep &= ~((self.map.kf_first <= kf_index - cull) & (self.map.n_kf < 2))
         if keep.sum() > self.cfg.max_map_points:
             order = np.argsort(-self.map.kf_last, kind="stable")
             keep = np.zeros(len(self.map), bool)
@@ -739,6 +806,67 @@ class Tracker:
         self.map.keep(keep)
         self._kf_T = T.copy()
         self._kf_stamp = stamp
+        if self._ba is not None:
+            self._ba_problem = self._ba_graph.problem(kf_index, self._map_epoch, self.map.pid,
+                                                      self.map.pos_world)
+
+    # ------------------------------------------------------------------ local bundle adjustment
+    def _record_keyframe(
+        self, kf_index: int, T: F64, feats: Features, kp_depth: NDArray[np.float64], n_new: int,
+        observed: tuple[NDArray[np.intp], NDArray[np.intp]] | None,
+    ) -> None:
+        """Keyframe ``kf_index``'s observations into the covisibility graph: its matched
+        map points (``observed``) and the ``n_new`` points it just added (the map's last rows)."""
+        m_idx, f_idx = observed if observed is not None else (np.zeros(0, np.intp), np.zeros(0, np.intp))
+        self.map.n_kf[m_idx] += 1
+        new_rows = np.arange(len(self.map) - n_new, len(self.map))
+        ok = (kp_depth > self.cfg.min_depth_m) & (kp_depth < self.cfg.max_depth_m)
+        made = np.flatnonzero(ok)
+        if observed is None:
+            f_new = made
+        else:
+            skip = np.zeros(len(feats.uv), bool)
+            skip[f_idx] = True
+            f_new = made[~skip[made]]
+        rows = np.concatenate([m_idx, new_rows]).astype(np.intp)
+        f_all = np.concatenate([f_idx, f_new]).astype(np.intp)
+        sigma = np.power(self.cfg.orb.scale_factor, feats.octave[f_all].astype(np.float64))
+        self._ba_graph.add(kf_index, T, self.map.pid[rows], feats.uv[f_all], kp_depth[f_all], sigma)
+
+    def _apply_local_ba(self) -> None:
+        """Take finished bundle adjustments (at a frame boundary, on the tracking thread).
+
+        Adjusted points replace their map positions and the keyframe poses in the graph. The
+        keyframe that triggered the problem moved by ``D = T_new T_old^-1`` (world frame);
+        what was estimated from it afterwards moves with it: the current pose, later
+        keyframes, points made since, the depth reference.
+        """
+        assert self._ba is not None
+        for sol in self._ba.poll():
+            pr = sol.problem
+            if not sol.accepted or pr.epoch != self._map_epoch:
+                continue
+            self._ba_graph.apply(sol)
+            rows = np.searchsorted(self.map.pid, pr.pid)
+            found = rows < len(self.map)
+            found[found] = self.map.pid[rows[found]] == pr.pid[found]
+            self.map.pos_world[rows[found]] = sol.points_world[found]
+            r = int(np.flatnonzero(pr.kf_index == pr.trigger)[0])
+            delta = sol.T_world_cam[r] @ inverse(pr.T_world_cam[r])
+            later = np.ones(len(self.map), bool)
+            later[rows[found]] = False
+            later &= self.map.kf_first >= pr.trigger
+            self.map.pos_world[later] = transform_points(delta, self.map.pos_world[later])
+            self._ba_graph.move_after(pr.trigger, delta)
+            if self._T_world_cam is not None:
+                self._T_world_cam = delta @ self._T_world_cam
+            if self._kf_T is not None:
+                self._kf_T = delta @ self._kf_T
+            if self._last_frame_raw is not None:
+                st, T_l, f_l, z_l = self._last_frame_raw
+                self._last_frame_raw = (st, delta @ T_l, f_l, z_l)
+            if self._depth_ref is not None:
+                self._depth_ref = (delta @ self._depth_ref[0], self._depth_ref[1])
 
     def _frame_snapshot(
         self, stamp: float, T: F64, feats: Features, kp_depth: NDArray[np.float64]
@@ -760,6 +888,8 @@ class Tracker:
         if ok.sum() < 2 * self.cfg.min_inliers:
             return
         self.map = MapPoints()
+        self._map_epoch += 1
+        self._ba_graph.reset()
         self._insert_keyframe(stamp, T, feats, kp_depth, sem, new_all=True)
         self._kf_inliers = int(ok.sum())
 
