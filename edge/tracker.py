@@ -610,31 +610,37 @@ class Tracker:
     def _relocalise(
         self, feats: Features, kp_depth: NDArray[np.float64]
     ) -> tuple[F64 | None, NDArray[np.bool_], NDArray[np.intp], NDArray[np.intp]]:
-        """Match against the last frame and recent keyframes by descriptor alone, EPnP on each in
-        turn; the first pose the local map confirms (re-matched and refined from it) is returned
-        with its map matches ``(T_cam_world, inliers, map indexes, feature indexes)``, else None."""
+        """Match against the last frame and recent keyframes by descriptor alone, EPnP in RANSAC on
+        each; the candidate with the most refined inliers (stopping early at three times
+        ``min_inliers``) is re-matched against the local map and its pose refined: ``(T_cam_world,
+        inliers, map indexes, feature indexes)``, else None."""
         # The last tracked frame first (ORB-SLAM2's reference-frame tracking), then keyframes
-        # newest first (the last one is skipped when it is that frame); the first pose the local
-        # map confirms is taken, so a frame pays for one candidate when the newest fits.
+        # newest first (the last one is skipped when it is that frame).
         candidates = [self._frame_snapshot(*self._last_frame_raw)] if self._last_frame_raw is not None else []
         last_stamp = self._last_frame_raw[0] if self._last_frame_raw is not None else None
         candidates += [kf for kf in reversed(self.keyframes[-self.cfg.reloc_keyframes :])
                        if kf.stamp != last_stamp]
+        best: F64 | None = None
+        best_n = 0
         for kf in candidates:
+            if best_n >= 3 * self.cfg.min_inliers:
+                break
             if len(kf.desc) < self.cfg.min_inliers:
                 continue
             ki, fi, _ = match_descriptors(kf.desc, feats.descriptors, ratio=0.8)
             if len(ki) < self.cfg.min_inliers:
                 continue
             pnp = solve_pnp_ransac(kf.points_world[ki], feats.uv[fi].astype(np.float64), self.cam)
-            if not pnp.ok or int(pnp.inliers.sum()) < self.cfg.min_inliers:
-                continue
-            T_reloc, _, _ = refine_pose_huber(
-                kf.points_world[ki], feats.uv[fi].astype(np.float64), self.cam, pnp.T_cam_world
-            )
+            n = int(pnp.inliers.sum()) if pnp.ok else 0
+            if n >= self.cfg.min_inliers and n > best_n:
+                T_cw, inl, _ = refine_pose_huber(
+                    kf.points_world[ki], feats.uv[fi].astype(np.float64), self.cam, pnp.T_cam_world
+                )
+                best_n, best = int(inl.sum()), T_cw
+        if best is not None:
             # Re-match the local map from the relocalised pose so map points are fused as usual.
-            m_idx, f_idx = self._match_map(T_reloc, feats, None, self.cfg.match_radius_px)
-            T_new, inl = self._pose_from_matches(m_idx, f_idx, feats, kp_depth, T_reloc)
+            m_idx, f_idx = self._match_map(best, feats, None, self.cfg.match_radius_px)
+            T_new, inl = self._pose_from_matches(m_idx, f_idx, feats, kp_depth, best)
             if T_new is not None:
                 return T_new, inl, m_idx, f_idx
         return None, np.zeros(0, bool), np.zeros(0, np.intp), np.zeros(0, np.intp)
