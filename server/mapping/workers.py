@@ -290,7 +290,7 @@ class PerceptionWorkers:
 class _Relay(logging.Handler):
     """Hands a worker process's log record to the logger of the same name here."""
 
-    def handle(self, record: logging.LogRecord) -> bool:  # type: ignore[override]  # a relay, no formatting
+    def handle(self, record: logging.LogRecord) -> bool:  # a relay: no filtering or formatting here
         logging.getLogger(record.name).handle(record)
         return True
 
