@@ -212,6 +212,8 @@ def worker_metrics(c: WorkerCounters) -> list[Metric]:
             "Keyframes this server's workers stored as skipped, by reason.", sorted(c.failures.items())),
         _by("worker", CounterMetricFamily, "wardmap_perception_busy_seconds_total",
             "Seconds each worker spent on keyframes (claim to stored result).", sorted(c.busy_s.items())),
+        _by("worker", CounterMetricFamily, "wardmap_perception_cpu_seconds_total",
+            "CPU seconds each worker's process used on keyframes.", sorted(c.cpu_s.items())),
         _counter("wardmap_perception_worker_restarts_total",
                  "Worker processes started again after they died (see the server log).", c.restarts),
         _by("check", CounterMetricFamily, "wardmap_perception_left_out_total",

@@ -113,6 +113,7 @@ class WorkerCounters:
         refused: results not stored because another worker's (or the stage's) came first.
         failures: keyframes stored as skipped, by reason (the error type; ``internal: <type>``).
         busy_s: seconds each worker spent on keyframes (claim to stored result), by worker name.
+        cpu_s: CPU seconds each worker's process used on them (all its threads), by worker name.
         restarts: worker processes started again after they died.
         floating, wall_pieces, floor_pieces: instances the floor checks left out (as the mapping
             stage counts them).
@@ -127,6 +128,7 @@ class WorkerCounters:
     refused: int = 0
     failures: dict[str, int] = field(default_factory=dict)
     busy_s: dict[str, float] = field(default_factory=dict)
+    cpu_s: dict[str, float] = field(default_factory=dict)
     restarts: int = 0
     floating: int = 0
     wall_pieces: int = 0
@@ -243,7 +245,8 @@ class PerceptionWorkers:
         alive = sum(1 for p in self._procs if p is not None and p.is_alive())
         return WorkerCounters(len(self._specs), alive, total["claims"], total["measured"],
                               total["measurements"], total["refused"], dict(failures),
-                              {name: float(s["busy_s"]) for name, s in snaps}, restarts,
+                              {name: float(s["busy_s"]) for name, s in snaps},
+                              {name: float(s["cpu_s"]) for name, s in snaps}, restarts,
                               total["floating"], total["wall_pieces"], total["floor_pieces"],
                               dict(skipped))
 
@@ -329,7 +332,7 @@ def run_worker(store: MapStore, measurer: KeyframeMeasurer, spec: _Spec, stop: A
     """Claim, measure and store keyframes until ``stop`` (an Event) is set; ``report`` is called
     with the cumulative counters after each keyframe and about once a second when idle."""
     counts: dict[str, Any] = {"claims": 0, "measured": 0, "measurements": 0, "refused": 0, "floating": 0,
-                              "wall_pieces": 0, "floor_pieces": 0, "busy_s": 0.0,
+                              "wall_pieces": 0, "floor_pieces": 0, "busy_s": 0.0, "cpu_s": 0.0,
                               "failures": Counter(), "skipped": Counter()}
     reported = 0.0
     while not stop.is_set():
@@ -347,7 +350,7 @@ def run_worker(store: MapStore, measurer: KeyframeMeasurer, spec: _Spec, stop: A
                 reported = time.monotonic()
             stop.wait(spec.poll_s)
             continue
-        started = time.perf_counter()
+        started, cpu = time.perf_counter(), time.process_time()
         counts["claims"] += 1
         try:
             _measure_claimed(store, measurer, spec, claim, counts)
@@ -356,6 +359,7 @@ def run_worker(store: MapStore, measurer: KeyframeMeasurer, spec: _Spec, stop: A
                           claim.key, spec.retry_s)
             stop.wait(spec.retry_s)
         counts["busy_s"] += time.perf_counter() - started
+        counts["cpu_s"] += time.process_time() - cpu
         report(_snapshot(counts))
         reported = time.monotonic()
 

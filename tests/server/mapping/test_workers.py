@@ -149,7 +149,7 @@ def test_worker_counters_in_prometheus_text() -> None:
     from wardmap.server.api.prometheus import exposition, worker_metrics
 
     c = WorkerCounters(2, 1, claims=9, measured=7, measurements=20, refused=1, failures={"WireError": 1},
-                       busy_s={"a/p0": 1.5, "a/p1": 2.0}, restarts=1, floating=3)
+                       busy_s={"a/p0": 1.5, "a/p1": 2.0}, cpu_s={"a/p0": 1.25}, restarts=1, floating=3)
     text = exposition(worker_metrics(c))
     samples = {k: float(v) for k, v in (line.rsplit(" ", 1) for line in text.splitlines()
                                          if line and not line.startswith("#"))}
@@ -158,4 +158,5 @@ def test_worker_counters_in_prometheus_text() -> None:
     assert samples["wardmap_perception_keyframes_total"] == 7
     assert samples['wardmap_perception_failures_total{reason="WireError"}'] == 1
     assert samples['wardmap_perception_busy_seconds_total{worker="a/p1"}'] == 2.0
+    assert samples['wardmap_perception_cpu_seconds_total{worker="a/p0"}'] == 1.25
     assert samples['wardmap_perception_left_out_total{check="floating"}'] == 3
