@@ -21,8 +21,9 @@ workers' busy seconds over the keyframes they measured). ``--perception-workers 
 each case with that many perception worker processes per server (``wardmap server
 --perception-workers``). Wall-clock figures on a shared host are upper bounds.
 
-``--backlog K`` (PostgreSQL) measures the parts of the mapping stage apart, on K keyframes stored
-beforehand, in this process, without servers or ingest: the perception workers alone (for each
+``--backlog K`` (PostgreSQL) also measures the parts of the mapping stage apart, after the server
+runs, on K keyframes of the first ``--robots`` count stored beforehand, in this process, without
+servers or ingest: the perception workers alone (for each
 ``--perception-workers`` count > 0, a fresh database: workers started and ready, then the
 keyframes stored, timed until every keyframe has a result), then the back-end alone over them,
 then the association writer alone (the mapping stage started with every measurement and every
@@ -311,28 +312,8 @@ def main() -> None:
     ap.add_argument("--write", type=Path, default=None, help="write the table into this markdown file")
     args = ap.parse_args()
     base = recorded(args.frames)
-    if args.backlog:
-        if not args.postgres:
-            raise SystemExit("--backlog needs --postgres")
-        robots = args.robots[0]
-        rows = backlog_parts(args.postgres, base, robots, max(1, args.backlog // robots),
-                             args.perception_workers)
-        cmd = (f"python bench/load.py --postgres URL --backlog {args.backlog} --robots {robots} "
-               f"--perception-workers {' '.join(map(str, args.perception_workers))} --write BENCHMARKS.md")
-        body = "\n".join([
-            "## Mapping stage parts apart, on a stored backlog (issue 43)", "",
-            f"Command: `{cmd}`  ",
-            f"Machine: {machine()}; commit {git_rev()}. PostgreSQL 15 (throwaway cluster on loopback); "
-            "no servers, no ingest. Perception workers: processes with the packaged network, timed from "
-            "the keyframes' insert to the last result; back-end: one BackendStage over them; association "
-            "writer: the mapping stage with every measurement and graph pose stored, start to idle "
-            "(association, object-map writes, commits). CPU ms: the part's own process CPU per keyframe "
-            "(not the database server's); load avg: 1-minute, at the end of the part.",
-            "",
-            "| part | workers | keyframes | kf/s | wall ms/kf | CPU ms/kf | load avg |",
-            "|---|---|---|---|---|---|---|", *rows])
-        publish(body, args.write, "load-parts")
-        return
+    if args.backlog and not args.postgres:
+        raise SystemExit("--backlog needs --postgres")
     runs: list[tuple[str, int]] = [("sqlite", 1)]
     if args.postgres:
         runs += [("postgres", 1), ("postgres", 2)]
@@ -366,12 +347,17 @@ def main() -> None:
                                f"{steps['association']:.0f} |")
                             + f" {r['load']:.2f} |")
                 print(rows[-1], file=sys.stderr)
+    parts: list[str] = []
+    if args.backlog:
+        robots = args.robots[0]
+        parts = backlog_parts(args.postgres, base, robots, max(1, args.backlog // robots),
+                              args.perception_workers)
     cmd = (f"python bench/load.py --robots {' '.join(map(str, args.robots))} --rate {args.rate:g} "
            f"--seconds {args.seconds:g}"
            + (" --postgres URL" if args.postgres else "") + (" --no-mapping" if args.no_mapping else "")
            + (f" --perception-workers {' '.join(map(str, args.perception_workers))}"
               if args.perception_workers != [0] else "")
-           + " --write BENCHMARKS.md")
+           + (f" --backlog {args.backlog}" if args.backlog else "") + " --write BENCHMARKS.md")
     body = "\n".join([
         "## Ingest load: robots into one and two servers" + (", mapping off" if args.no_mapping else "")
         + " (issue 43)",
@@ -390,6 +376,21 @@ def main() -> None:
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
         *rows,
     ])
+    if parts:
+        body += "\n".join([
+            "", "",
+            f"Mapping stage parts apart (`--backlog`): {parts[0].split('|')[3].strip()} keyframes of "
+            f"{args.robots[0]} robots stored beforehand in a fresh PostgreSQL database, no servers, "
+            "no ingest. Perception workers: processes with the packaged network, timed from the keyframes' "
+            "insert to the last result; back-end: one BackendStage over them; association writer: the "
+            "mapping stage with every measurement and graph pose stored, from start to idle (association, "
+            "object-map writes, commits). CPU ms: the part's own process CPU per keyframe (not the "
+            "database server's).",
+            "",
+            "| part | workers | keyframes | kf/s | wall ms/kf | CPU ms/kf | load avg |",
+            "|---|---|---|---|---|---|---|",
+            *parts,
+        ])
     publish(body, args.write, "load-ingest" if args.no_mapping else "load")
 
 
