@@ -41,6 +41,7 @@ import queue
 import threading
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from multiprocessing.process import BaseProcess
 from typing import Any, Final
@@ -315,8 +316,10 @@ def _worker_main(spec: _Spec, stop: Any, reports: Any, logs: Any) -> None:
     try:
         segmenter = make_segmenter(spec.perception.segmenter, spec.perception, threads=spec.threads)
         with open_store(spec.db_url, password=spec.password) as store:
+            parent = multiprocessing.parent_process()
             run_worker(store, KeyframeMeasurer(segmenter, spec.perception), spec, stop,
-                       lambda snap: _report(reports, spec.name, snap))
+                       lambda snap: _report(reports, spec.name, snap),
+                       alive=(lambda: True) if parent is None else parent.is_alive)
     except BaseException:
         log.exception("perception worker %s stopped", spec.name)
         raise
@@ -328,14 +331,18 @@ def _report(reports: Any, name: str, snap: dict[str, Any]) -> None:
 
 
 def run_worker(store: MapStore, measurer: KeyframeMeasurer, spec: _Spec, stop: Any,
-               report: Any) -> None:
-    """Claim, measure and store keyframes until ``stop`` (an Event) is set; ``report`` is called
-    with the cumulative counters after each keyframe and about once a second when idle."""
+               report: Callable[[dict[str, Any]], None], alive: Callable[[], bool] = lambda: True) -> None:
+    """Claim, measure and store keyframes until ``stop`` (an Event) is set or ``alive()`` is False
+    (the server process died: a SIGKILLed parent does not stop its children); ``report`` is
+    called with the cumulative counters after each keyframe and about once a second when idle."""
     counts: dict[str, Any] = {"claims": 0, "measured": 0, "measurements": 0, "refused": 0, "floating": 0,
                               "wall_pieces": 0, "floor_pieces": 0, "busy_s": 0.0, "cpu_s": 0.0,
                               "failures": Counter(), "skipped": Counter()}
     reported = 0.0
     while not stop.is_set():
+        if not alive():
+            log.warning("perception worker %s: its server process is gone; exiting", spec.name)
+            return
         try:
             claim = store.claim_keyframe(spec.name, cursor=MAPPING_CURSOR, now_s=time.time(),
                                          claim_s=spec.claim_s)
