@@ -80,7 +80,7 @@ log = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
 CURSOR_NAME: Final = MAPPING_CURSOR
-WAIT_POLL_S: Final = 0.01
+WAIT_POLL_S: Final = 0.02
 """How long the stage sleeps while the keyframe it needs next is being measured by a worker."""
 MAX_FAILURE_REASON: Final = 120
 REPLAY_CHUNK: Final = 500
