@@ -210,9 +210,10 @@ def _postgres_db(admin_url: str, name: str, drop: bool = False) -> str:
 
 
 def backlog_parts(admin_url: str, base: list[wire.KeyframeMsg], robots: int, n: int,
-                  workers: list[int]) -> list[str]:
+                  workers: list[int]) -> tuple[list[str], dict[str, float]]:
     """The ``--backlog`` rows (see the module docstring): perception workers alone for each count,
-    then the back-end alone and the association writer alone on the last database."""
+    then the back-end alone and the association writer alone on the last database; and their
+    rates (kf/s) by part: ``"workers N"``, ``"backend"``, ``"writer"``."""
     from wardmap.server.backend.stage import BackendStage
     from wardmap.server.mapping import MapPipeline, PipelineConfig
     from wardmap.server.mapping.stage import CURSOR_NAME
@@ -226,6 +227,7 @@ def backlog_parts(admin_url: str, base: list[wire.KeyframeMsg], robots: int, n: 
     keyframes = [(wire.decode_keyframe(m), m) for m in ordered]
     total = len(keyframes)
     rows = []
+    rates: dict[str, float] = {}
     name = f"wardmap_backlog_{os.getpid()}"
     db = ""
     for count in [w for w in workers if w > 0] or [1]:
@@ -251,6 +253,7 @@ def backlog_parts(admin_url: str, base: list[wire.KeyframeMsg], robots: int, n: 
                 pool.stop()
         done = max(c.measured + sum(c.failures.values()), 1)
         busy_ms, cpu_ms = 1e3 * sum(c.busy_s.values()) / done, 1e3 * sum(c.cpu_s.values()) / done
+        rates[f"workers {count}"] = total / elapsed
         rows.append(f"| perception workers alone | {count} | {total} | {total / elapsed:.1f} | "
                     f"{busy_ms:.0f} | {cpu_ms:.0f} | {os.getloadavg()[0]:.2f} |")
         print(rows[-1], file=sys.stderr)
@@ -264,6 +267,7 @@ def backlog_parts(admin_url: str, base: list[wire.KeyframeMsg], robots: int, n: 
                 time.sleep(0.05)
             elapsed, cpu = time.monotonic() - t0, _cpu_s() - cpu0
             backend.stop()
+            rates["backend"] = total / elapsed
             rows.append(f"| back-end alone | - | {total} | {total / elapsed:.1f} | "
                         f"{1e3 * elapsed / total:.0f} | {1e3 * cpu / total:.0f} | {os.getloadavg()[0]:.2f} |")
             print(rows[-1], file=sys.stderr)
@@ -278,13 +282,14 @@ def backlog_parts(admin_url: str, base: list[wire.KeyframeMsg], robots: int, n: 
             elapsed, cpu = time.monotonic() - t0, _cpu_s() - cpu0
             counters = pipe.counters()
             pipe.stop()
+        rates["writer"] = total / elapsed
         rows.append(f"| association writer alone | - | {total} ({counters.mapped} on the map) | "
                     f"{total / elapsed:.1f} | {1e3 * elapsed / total:.1f} | {1e3 * cpu / total:.1f} | "
                     f"{os.getloadavg()[0]:.2f} |")
         print(rows[-1], file=sys.stderr)
     finally:
         _postgres_db(admin_url, name, drop=True)
-    return rows
+    return rows, rates
 
 
 def _cpu_s() -> float:
@@ -348,9 +353,10 @@ def main() -> None:
                             + f" {r['load']:.2f} |")
                 print(rows[-1], file=sys.stderr)
     parts: list[str] = []
+    rates: dict[str, float] = {}
     if args.backlog:
         robots = args.robots[0]
-        parts = backlog_parts(args.postgres, base, robots, max(1, args.backlog // robots),
+        parts, rates = backlog_parts(args.postgres, base, robots, max(1, args.backlog // robots),
                               args.perception_workers)
     cmd = (f"python bench/load.py --robots {' '.join(map(str, args.robots))} --rate {args.rate:g} "
            f"--seconds {args.seconds:g}"
@@ -390,6 +396,11 @@ def main() -> None:
             "| part | workers | keyframes | kf/s | wall ms/kf | CPU ms/kf | load avg |",
             "|---|---|---|---|---|---|---|",
             *parts,
+            "",
+            "Issue 43 targets (PostgreSQL): two perception workers >= 1.8x one: "
+            + (f"{rates['workers 2'] / rates['workers 1']:.2f}x (workers alone)"
+               if "workers 1" in rates and "workers 2" in rates else "not run")
+            + f"; the association writer alone >= 60 kf/s: {rates.get('writer', float('nan')):.1f} kf/s.",
         ])
     publish(body, args.write, "load-ingest" if args.no_mapping else "load")
 

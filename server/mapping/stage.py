@@ -458,7 +458,8 @@ class MapPipeline:
                 self._unclaimed = (slot.rowid, self._clock())
             if self._clock() - self._unclaimed[1] < wait_s:
                 return None
-        assert self._measurer is not None  # built by start()
+        if self._measurer is None:
+            raise WardmapError("the mapping stage measures keyframes only once started")
         payload = self.store.payload(slot.robot_id, slot.session_id, slot.seq)
         if payload is None:
             raise WardmapError(f"keyframe {slot.key} is not stored")
