@@ -6,14 +6,14 @@ on one database of the session's cluster (tests/pgcluster.py), each connected to
 router as their fallback) publish the keyframes of a short simulated run (hospital_loop seed 0,
 made by the edge tracker, tools/keyframes.py; doors in view), each under its own robot id, and
 resend every one not acked yet, as a robot's outbox does. Each server runs one perception
-worker process (short claims, so the killed server's claim expires within the test). Mid-
-stream, once it has mapped some keyframes, the writer-lease holder is SIGKILLed; later router A
-is killed. Then: every keyframe of every robot is stored exactly once (insertion order without
-gaps), the writer lease has moved to the other server (``/readyz``, ``/metrics``), whose back-
-end and mapping stage processed every keyframe without failures, taking in only what the first
-had not (the survivor's worker measured some); and the object map has the same objects and
-observations as one server that never stopped (centres within 5 mm: the survivor's solver
-restarted from the stored estimates).
+worker process (short claims, so the killed server's claim expires within the test).
+Mid-stream, once it has mapped some keyframes, the writer-lease holder is SIGKILLed; later
+router A is killed. Then: every keyframe of every robot is stored exactly once (insertion order
+without gaps), the writer lease has moved to the other server (``/readyz``, ``/metrics``),
+whose back-end and mapping stage processed every keyframe without failures, taking in only what
+the first had not (the survivor's worker measured some); and the object map has the same
+objects and observations as one server that never stopped (centres within 5 mm: the survivor's
+solver restarted from the stored estimates).
 """
 
 from __future__ import annotations
