@@ -21,12 +21,14 @@ Failures: a keyframe perception cannot measure is stored as a result with its re
 error type); an unexpected error (a bug) releases the claim, and the keyframe's ``max_attempts``
 -th claim that fails so (or finds the earlier claimers died) stores it as ``internal: <type>``.
 The worker backs off (``retry_s``) after a store error. A worker process that dies is started
-again after ``RESTART_S``.
+again after ``RESTART_S``; a worker whose server process died (SIGKILL does not reach children)
+exits at its next claim.
 
 Ownership: :class:`PerceptionWorkers` (the server's composition root owns it) owns the processes,
 one bounded report queue (policy: a full queue drops the snapshot; the next one carries the
-totals, as snapshots are cumulative) and one log queue (records relayed to this process's
-loggers), and one monitor thread that drains both and restarts dead workers.
+totals, as snapshots are cumulative), one bounded log queue (records relayed to this process's
+loggers by a ``QueueListener`` thread), and one monitor thread that drains the reports and
+restarts dead workers.
 """
 
 from __future__ import annotations
@@ -294,8 +296,10 @@ class PerceptionWorkers:
 class _Relay(logging.Handler):
     """Hands a worker process's log record to the logger of the same name here."""
 
-    def handle(self, record: logging.LogRecord) -> bool:  # a relay: no filtering or formatting here
-        logging.getLogger(record.name).handle(record)
+    def handle(self, record: logging.LogRecord) -> bool:  # a relay: no formatting here
+        logger = logging.getLogger(record.name)
+        if logger.isEnabledFor(record.levelno):
+            logger.handle(record)
         return True
 
     def emit(self, record: logging.LogRecord) -> None:  # pragma: no cover - handle() does the work
