@@ -43,6 +43,11 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="this server's name among several on one database (the writer lease's holder runs the "
              "mapping stage; /readyz and /metrics show it); default: HOST-PID",
     )
+    p.add_argument(
+        "--perception-workers", type=int, metavar="N",
+        help="perception worker processes on this server, writer or standby (overrides [mapping] "
+             "perception_workers; 0: the writer's mapping stage measures every keyframe itself)",
+    )
     add_log_format(p)
     add_zenoh_args(p)
     p.set_defaults(func=run)
@@ -71,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
 
     run_server(args.connect, args.db, host, port, on_ready=ready, config_path=args.config,
                insecure_loopback=args.insecure_loopback, zenoh_options=options,
-               db_password=db_password(args), name=args.name)
+               db_password=db_password(args), name=args.name, perception_workers=args.perception_workers)
     return 0
 
 

@@ -23,6 +23,7 @@ attempt until it answers or that event is set (a stop while waiting exits cleanl
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import ipaddress
 import logging
@@ -53,6 +54,7 @@ if TYPE_CHECKING:
     from fastapi import FastAPI
 
     from wardmap.server.mapping import MapPipeline, PipelineFactory
+    from wardmap.server.mapping.workers import PerceptionWorkers
     from wardmap.server.store import MapStore
 
 log = logging.getLogger(__name__)
@@ -92,6 +94,7 @@ class MapServer:
         db_password: str | None = None,
         retention: RetentionConfig | None = None,
         name: str | None = None,
+        workers_factory: Callable[[str, str | None, str], PerceptionWorkers] | None = None,
     ) -> None:
         """
         Args:
@@ -119,6 +122,9 @@ class MapServer:
             name: this server's name in the store's writer lease (several servers on one
                 database: the holder runs the mapping stage, ``server/mapping/role.py``);
                 None: :func:`default_name`.
+            workers_factory: builds this server's perception workers from the store URL, the
+                password and the server's name (``server/mapping/workers.py``; they run on a
+                standby too); None: none here.
 
         Raises:
             ConfigError: a bad endpoint in ``connect``.
@@ -137,6 +143,7 @@ class MapServer:
         self._db_password = db_password
         self._connect = None if connect is None else list(connect)
         self._pipeline_factory = pipeline_factory
+        self._workers_factory = workers_factory
         self._telemetry = telemetry if telemetry is not None else ServerTelemetry()
         self._retry_until = retry_until
         self._cancelled = False  # start() gave up waiting because retry_until was set
@@ -201,9 +208,15 @@ class MapServer:
                 mapping = MappingRole(store.writer_lease(self.name), build, on_running=decoded.set_active)
                 mapping.start()
                 stack.callback(mapping.stop)
+            workers = None
+            if self._workers_factory is not None:
+                workers = self._workers_factory(self._db_url, self._db_password, self.name)
+                workers.start()
+                stack.callback(workers.stop)
             self._running = stack.pop_all()
         self._services = Services(store=store, objects=objects, ingest=ingest, mapping=mapping,
-                                  router_connected=router_connected, telemetry=self._telemetry)
+                                  router_connected=router_connected, telemetry=self._telemetry,
+                                  workers=workers)
         return self._services
 
     def _make_pipeline(self, store: MapStore, objects: ObjectMap, decoded: DecodedCache,
@@ -247,7 +260,7 @@ class MapServer:
         cls, db_url: str, *, connect: Sequence[str] | None, config_path: str | None = None,
         require_tokens: bool = True, retry_until: threading.Event | None = None,
         zenoh_options: ZenohOptions | None = None, db_password: str | None = None,
-        name: str | None = None,
+        name: str | None = None, perception_workers: int | None = None,
     ) -> MapServer:
         """The server ``wardmap server`` runs, with its mapping stage configured from a file.
 
@@ -257,6 +270,8 @@ class MapServer:
             config_path: TOML file with ``[pipeline]``, ``[perception]`` and ``[association]``
                 tables (defaults when None; ``deploy/server.toml``). With ``[pipeline]
                 enabled = false`` keyframes are stored but not mapped.
+            perception_workers: overrides ``[mapping] perception_workers`` (worker processes
+                on this server, ``server/mapping/workers.py``).
 
         Raises:
             ConfigError: a bad file or value, or a bad endpoint.
@@ -267,6 +282,7 @@ class MapServer:
         from wardmap.server.backend.core import BackendConfig
         from wardmap.server.backend.stage import BackendStage
         from wardmap.server.mapping import MapPipeline, PipelineConfig
+        from wardmap.server.mapping.workers import MappingConfig, PerceptionWorkers
         from wardmap.server.perception.config import PerceptionConfig
         from wardmap.server.perception.models import make_segmenter
         from wardmap.shared.config import load_config
@@ -276,6 +292,9 @@ class MapServer:
         association_cfg = load_config(AssociationConfig, config_path, section="association")
         backend_cfg = load_config(BackendConfig, config_path, section="backend")
         retention = load_config(RetentionConfig, config_path, section="store")
+        mapping_cfg = load_config(MappingConfig, config_path, section="mapping")
+        if perception_workers is not None:
+            mapping_cfg = dataclasses.replace(mapping_cfg, perception_workers=perception_workers)
         telemetry = ServerTelemetry()
         if not pipeline_cfg.enabled:
             return cls(db_url, connect=connect, require_tokens=require_tokens, telemetry=telemetry,
@@ -288,11 +307,16 @@ class MapServer:
             return MapPipeline(store, objects, config=pipeline_cfg, perception=perception_cfg,
                                association=association_cfg, segmenter=segmenter,
                                backend=BackendStage(store, backend_cfg, telemetry=telemetry, decoded=decoded),
-                               telemetry=telemetry)
+                               telemetry=telemetry, shared=mapping_cfg)
+
+        def make_workers(url: str, password: str | None, server: str) -> PerceptionWorkers:
+            return PerceptionWorkers(url, config=mapping_cfg, perception=perception_cfg, name=server,
+                                     max_attempts=pipeline_cfg.max_attempts, password=password)
 
         return cls(db_url, connect=connect, pipeline_factory=make_pipeline, require_tokens=require_tokens,
                    telemetry=telemetry, retry_until=retry_until, zenoh_options=zenoh_options,
-                   db_password=db_password, retention=retention, name=name)
+                   db_password=db_password, retention=retention, name=name,
+                   workers_factory=make_workers if mapping_cfg.perception_workers > 0 else None)
 
     @property
     def start_cancelled(self) -> bool:
@@ -403,6 +427,7 @@ def run_server(
     zenoh_options: ZenohOptions | None = None,
     db_password: str | None = None,
     name: str | None = None,
+    perception_workers: int | None = None,
 ) -> None:
     """Serve until ``stop`` is set or SIGTERM/SIGINT (in the main thread).
 
@@ -421,6 +446,8 @@ def run_server(
         zenoh_options: TLS files and zenoh config file of the session (docs/security.md).
         db_password: the PostgreSQL password (see :class:`MapServer`).
         name: this server's name in the writer lease (see :class:`MapServer`).
+        perception_workers: overrides ``[mapping] perception_workers`` (see
+            :meth:`MapServer.from_config`).
 
     Raises:
         ConfigError: a bad zenoh endpoint, zenoh config file or TLS file.
@@ -446,7 +473,7 @@ def run_server(
     server_root = MapServer.from_config(db_url, connect=connect, config_path=config_path,
                                         require_tokens=not insecure_loopback, retry_until=stop,
                                         zenoh_options=zenoh_options, db_password=db_password,
-                                        name=name)
+                                        name=name, perception_workers=perception_workers)
     try:
         open_store(db_url, password=db_password).close()  # validate URL and file now: one clear line
     except StoreUnavailableError as exc:  # may pass later: start() waits for it

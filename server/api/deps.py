@@ -20,6 +20,7 @@ from wardmap.server.api.readiness import ReadinessLog
 from wardmap.server.ingest import Ingest
 from wardmap.server.mapping import MapPipeline
 from wardmap.server.mapping.role import MappingRole
+from wardmap.server.mapping.workers import PerceptionWorkers
 from wardmap.server.objectmap import ObjectMap
 from wardmap.server.store import MapStore
 from wardmap.server.telemetry import ServerTelemetry
@@ -51,6 +52,8 @@ class Services:
         router_connected: whether the server's Zenoh session has a router now (thread safe,
             fast), or None when the server has no Zenoh.
         telemetry: the histograms and per-robot series the parts record into.
+        workers: this server's perception worker processes (``server/mapping/workers.py``), or
+            None when it runs none.
     """
 
     store: MapStore
@@ -61,6 +64,7 @@ class Services:
     readiness: ReadinessLog = field(default_factory=ReadinessLog)
     router_connected: Callable[[], bool] | None = None
     telemetry: ServerTelemetry = field(default_factory=ServerTelemetry)
+    workers: PerceptionWorkers | None = None
 
     def running_pipeline(self) -> MapPipeline | None:
         """The mapping stage running in this process now: the role's while this server holds the

@@ -80,7 +80,7 @@ def create_app(server: ServerLifecycle, *, require_tokens: bool = True) -> FastA
             app.state.services = services
             app.state.metrics = metrics_registry(
                 ServerCollector(services.store, services.objects, services.ingest, services.pipeline,
-                                services.mapping)
+                                services.mapping, services.workers)
             )
             services.telemetry.register(app.state.metrics)
             yield

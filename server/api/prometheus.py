@@ -24,6 +24,7 @@ from wardmap.server.decoded import DecodedCounters
 from wardmap.server.ingest import Ingest, IngestCounters
 from wardmap.server.mapping import MapPipeline, PipelineCounters
 from wardmap.server.mapping.role import LeaseState, MappingRole
+from wardmap.server.mapping.workers import PerceptionWorkers, WorkerCounters
 from wardmap.server.objectmap import ObjectMap
 from wardmap.server.perception.measure import SKIP_KINDS
 from wardmap.server.store import KeyframeStore
@@ -37,6 +38,7 @@ __all__ = [
     "map_metrics",
     "metrics_registry",
     "pipeline_metrics",
+    "worker_metrics",
 ]
 
 CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
@@ -110,7 +112,8 @@ def pipeline_metrics(c: PipelineCounters) -> list[Metric]:
     return [
         _gauge("wardmap_mapping_backlog", "Stored keyframes the mapping stage has not processed yet.",
                c.backlog),
-        _counter("wardmap_mapping_keyframes_total", "Keyframes run through perception by this process.",
+        _counter("wardmap_mapping_keyframes_total",
+                 "Measured keyframes the mapping stage took in (measured by it or by a perception worker).",
                  c.processed),
         _counter("wardmap_mapping_measurements_total", "Object measurements stored by this process.",
                  c.measurements),
@@ -191,20 +194,52 @@ def backend_metrics(c: BackendCounters) -> list[Metric]:
     ]
 
 
+def worker_metrics(c: WorkerCounters) -> list[Metric]:
+    """This server's perception workers (``server/mapping/workers.py``)."""
+    return [
+        _gauge("wardmap_perception_workers", "Perception worker processes configured on this server.",
+               c.workers),
+        _gauge("wardmap_perception_workers_alive", "Perception worker processes running now.", c.alive),
+        _counter("wardmap_perception_claims_total", "Stored keyframes this server's workers claimed.",
+                 c.claims),
+        _counter("wardmap_perception_keyframes_total",
+                 "Keyframes this server's workers measured and stored a result for.", c.measured),
+        _counter("wardmap_perception_measurements_total", "Object measurements in those results.",
+                 c.measurements),
+        _counter("wardmap_perception_refused_total",
+                 "Results not stored: another worker's (or the mapping stage's) came first.", c.refused),
+        _by("reason", CounterMetricFamily, "wardmap_perception_failures_total",
+            "Keyframes this server's workers stored as skipped, by reason.", sorted(c.failures.items())),
+        _by("worker", CounterMetricFamily, "wardmap_perception_busy_seconds_total",
+            "Seconds each worker spent on keyframes (claim to stored result).", sorted(c.busy_s.items())),
+        _by("worker", CounterMetricFamily, "wardmap_perception_cpu_seconds_total",
+            "CPU seconds each worker's process used on keyframes.", sorted(c.cpu_s.items())),
+        _counter("wardmap_perception_worker_restarts_total",
+                 "Worker processes started again after they died (see the server log).", c.restarts),
+        _by("check", CounterMetricFamily, "wardmap_perception_left_out_total",
+            "Instances the workers' floor checks left out, by check.",
+            [("floating", c.floating), ("wall", c.wall_pieces), ("floor", c.floor_pieces)]),
+        _by("kind", CounterMetricFamily, "wardmap_perception_instances_skipped_total",
+            "Instances the workers found but could not measure, by kind.", sorted(c.skipped.items())),
+    ]
+
+
 class ServerCollector(Collector):
     """Yields the server's metrics at scrape time from the parts that count them."""
 
     def __init__(
         self, store: KeyframeStore, objects: ObjectMap, ingest: Ingest | None, pipeline: MapPipeline | None,
-        mapping: MappingRole | None = None,
+        mapping: MappingRole | None = None, workers: PerceptionWorkers | None = None,
     ) -> None:
         """``pipeline``: a mapping stage that always runs here; ``mapping``: the writer-lease role
-        whose stage runs here only while it holds the lease (its metrics then, and the lease's)."""
+        whose stage runs here only while it holds the lease (its metrics then, and the lease's);
+        ``workers``: this server's perception workers (writer or standby)."""
         self._store = store
         self._objects = objects
         self._ingest = ingest
         self._pipeline = pipeline
         self._mapping = mapping
+        self._workers = workers
 
     def collect(self) -> Iterator[Metric]:
         counters = self._ingest.counters() if self._ingest is not None else None
@@ -219,6 +254,8 @@ class ServerCollector(Collector):
             yield from pipeline_metrics(pipeline.counters())
             yield from backend_metrics(pipeline.backend.counters())
             yield from decoded_metrics(pipeline.decoded.counters())
+        if self._workers is not None:
+            yield from worker_metrics(self._workers.counters())
 
 
 def metrics_registry(collector: Collector) -> CollectorRegistry:

@@ -4,15 +4,18 @@ Ingest stores a keyframe and acks it (``server/ingest.py``); this stage runs beh
 own thread and never delays an ack. It reads keyframes from the store in insertion order
 (their ``rowid``), and for each one:
 
-1. takes the keyframe as ingest and the back-end decoded it (``server/decoded.py``: message,
-   JPEG colour, depth; decoded from the stored payload after a restart or an eviction), the
-   depth upsampled to the colour size;
-2. runs the segmenter (``server/perception/models.py``: the trained network by default) and
-   measures every non-``moving`` instance in 3D (paper 000 Eq. 1, ``measure.py``);
-3. commits the measurements, the keyframe's map pose and camera, and its cursor in one
+1. takes its perception result: the one a perception worker of any server stored
+   (``workers.py``), or, when no worker has claimed the keyframe (at once when this server runs
+   no workers, else after ``[mapping] wait_s``), measures it here (``perceive.py``: the keyframe
+   as ingest and the back-end decoded it, ``server/decoded.py``; the segmenter, the trained
+   network by default; every non-``moving`` instance measured in 3D, paper 000 Eq. 1). While a
+   worker holds a live claim on it, the stage waits: results are taken strictly in order, so
+   association (a deterministic function of the ordered measurements) is the same wherever
+   they were made;
+2. commits the measurements, the keyframe's map pose and camera, and its cursor in one
    transaction (:meth:`~wardmap.server.store.MappingStore.commit_keyframe`), so a crash
    never loses or repeats one;
-4. when the keyframe's session is on the map (the robot sent ``T_map_odom``, docs/wire.md),
+3. when the keyframe's session is on the map (the robot sent ``T_map_odom``, docs/wire.md),
    hands the measurements, in the map frame, to the :class:`~wardmap.server.mapping.writer.MapWriter`
    (association and object-map writes).
 
@@ -53,21 +56,21 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Final
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from wardmap.server.association.associator import AssociationConfig, Associator
 from wardmap.server.backend.stage import BackendStage
-from wardmap.server.decoded import DecodedCache, KeyframeImages
+from wardmap.server.decoded import DecodedCache
 from wardmap.server.mapping.checkpoint import checkpoint_key, decode_state, encode_state
+from wardmap.server.mapping.perceive import MAPPING_CURSOR, KeyframeMeasurer, mapped_pose
+from wardmap.server.mapping.workers import MappingConfig
 from wardmap.server.mapping.writer import MappedKeyframe, MapWriter, WriterState
 from wardmap.server.objectmap import ObjectMap
 from wardmap.server.perception.config import PerceptionConfig, measure_config_for
-from wardmap.server.perception.keyframe import keyframe_camera, keyframe_map_pose, measure_keyframe_msg
 from wardmap.server.perception.models import Segmenter, make_segmenter
 from wardmap.server.perception.types import ObjectMeasurement
-from wardmap.server.store import Checkpoint, MappedPose, MapStore
+from wardmap.server.store import Checkpoint, MapStore, Perceived, PerceptionSlot
 from wardmap.server.telemetry import ServerTelemetry
 from wardmap.shared.errors import ConfigError, WardmapError, WireError
 from wardmap.shared.knowledge import KnowledgeGraph
@@ -76,7 +79,9 @@ from wardmap.shared.wire import KeyframeMsg, decode_keyframe
 log = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
-CURSOR_NAME: Final = "mapping"
+CURSOR_NAME: Final = MAPPING_CURSOR
+WAIT_POLL_S: Final = 0.02
+"""How long the stage sleeps while the keyframe it needs next is being measured by a worker."""
 MAX_FAILURE_REASON: Final = 120
 REPLAY_CHUNK: Final = 500
 """Keyframes read per step of the replay at start (bounds its memory besides the associator's)."""
@@ -141,7 +146,7 @@ class PipelineCounters:
     """A snapshot for ``/metrics``.
 
     Attributes:
-        processed: keyframes this process ran through perception.
+        processed: measured keyframes the stage took in (measured here or by a perception worker).
         measurements: object measurements it stored.
         mapped: keyframes it fed to association (anchored sessions).
         unanchored: keyframes of sessions without ``T_map_odom`` (measured, not mapped).
@@ -221,6 +226,8 @@ class MapPipeline:
         association: association settings.
         segmenter: a ready segmenter (tests); None builds ``perception.segmenter`` in
             :meth:`start`.
+        shared: perception shared out (``[mapping]``): with perception workers on this server
+            the stage waits ``wait_s`` for one to claim a keyframe before measuring it itself.
         clock: monotonic seconds, for idle sessions and checkpoint intervals.
         backend: the back-end stage this one follows (started and stopped with it); None
             builds one with default settings.
@@ -240,8 +247,10 @@ class MapPipeline:
         clock: Callable[[], float] = time.monotonic,
         backend: BackendStage | None = None,
         telemetry: ServerTelemetry | None = None,
+        shared: MappingConfig | None = None,
     ) -> None:
         self.store = store
+        self.shared = shared or MappingConfig()
         self._telemetry = telemetry if telemetry is not None else ServerTelemetry()
         self.backend = backend if backend is not None else BackendStage(store)
         self.decoded: DecodedCache = self.backend.decoded
@@ -252,10 +261,12 @@ class MapPipeline:
         self.perception = perception or PerceptionConfig()
         self.association = association or AssociationConfig()
         self._segmenter = segmenter
+        self._measurer: KeyframeMeasurer | None = None
         self._clock = clock
+        self._unclaimed: tuple[int, float] | None = None  # (rowid, clock) of the keyframe waited for
+        self._waiting = False  # the last round stopped at a keyframe a worker is measuring
         self._measure_config = measure_config_for(self.perception, self.perception.segmenter)
         self._kg = KnowledgeGraph.load()
-        self._moving = {c.name for c in self._kg.classes if str(c.mobility) == "moving"}
         self._rebuild_after = 0.0
         self._reset()
         self._lock = threading.Lock()  # guards _counts and _backlog for counters()
@@ -280,6 +291,7 @@ class MapPipeline:
         """
         if self._segmenter is None:
             self._segmenter = make_segmenter(self.perception.segmenter, self.perception)
+        self._measurer = KeyframeMeasurer(self._segmenter, self.perception, self._kg)
         self.backend.start()
         self._replay()
         self._settle()
@@ -349,7 +361,7 @@ class MapPipeline:
                 if self._clock() - self._checkpoint_at >= self.cfg.checkpoint_s:
                     self._checkpoint()
                 if done == 0:
-                    self._stop.wait(self.cfg.poll_s)
+                    self._stop.wait(WAIT_POLL_S if self._waiting else self.cfg.poll_s)
                 delay, failing = self.cfg.retry_s, None
             except Exception as exc:  # any bug: log, back off, recover
                 settled = False
@@ -390,7 +402,8 @@ class MapPipeline:
         kf = rows[0]
         log.error("mapping stage: keyframe %s failed %d times; skipped (%s)",
                   kf.key, self.cfg.max_attempts, reason)
-        self._commit(kf.rowid, kf.key, msg=None, measurements=[])
+        unmeasured = mapped_pose(kf.robot_id, kf.session_id, kf.seq, None)
+        self.store.commit_keyframe(CURSOR_NAME, kf.rowid, unmeasured, [], anchored=False)
         with self._lock:
             self._counts.failures[reason] += 1
 
@@ -416,62 +429,73 @@ class MapPipeline:
 
     def _round(self) -> int:
         done_by_backend = self.backend.cursor()
-        rows = [kf for kf in self.store.next_keyframes(self._cursor(), self.cfg.batch)
-                if kf.rowid <= done_by_backend]
-        for kf in rows:
+        slots = self.store.perception_slots(self._cursor(), done_by_backend, self.cfg.batch)
+        done = 0
+        self._waiting = False
+        for slot in slots:
             if self._stop.is_set():
                 break
-            self._process(kf.rowid, kf.key, kf.payload)
+            result = slot.result if slot.result is not None else self._measure_here(slot)
+            if result is None:  # a worker measures it (or may claim it soon): keep the order
+                self._waiting = True
+                break
+            self._process(slot.rowid, slot.key, result)
+            done += 1
         with self._lock:
             self._backlog = self.store.count_keyframes_after(self._cursor())
-        return len(rows)
+        return done
 
-    def _process(self, rowid: int, key: str, payload: bytes) -> None:
-        try:
-            started = time.perf_counter()
-            decoded = self.decoded.decoded(key, payload)
-            msg = decoded.msg
-            measurements = self._measure(msg, key, self.decoded.images(decoded))
-            self._telemetry.mapping("perception", time.perf_counter() - started)
-        except (WardmapError, WireError, cv2.error, ValueError) as exc:
-            reason = f"{type(exc).__name__}: {exc}"[:MAX_FAILURE_REASON]
-            log.warning("keyframe %s: perception skipped: %s", key, reason)
-            with self._lock:
-                self._counts.failures[type(exc).__name__] += 1
-            self._commit(rowid, key, msg=None, measurements=[])
-            self.decoded.discard(key)
-            return
-        self._commit(rowid, key, msg, measurements)
-        self.decoded.discard(key)  # this stage reads a keyframe last
-        with self._lock:
-            self._counts.processed += 1
-            self._counts.measurements += len(measurements)
-        node = (msg.robot_id, msg.session_id, msg.seq)
-        T_map_camera = self.store.graph_poses([node])[node]
-        if T_map_camera is None:
-            with self._lock:
-                self._counts.unanchored += 1
-            return
-        moved = on_map(measurements, keyframe_map_pose(msg), T_map_camera)
-        stream = f"{msg.robot_id}/{msg.session_id}"
-        self.associate([MappedKeyframe(stream, T_map_camera, keyframe_camera(msg), moved)])
-
-    def _measure(self, msg: KeyframeMsg, key: str, images: KeyframeImages) -> list[ObjectMeasurement]:
-        """The keyframe's object measurements in the map frame (:func:`measure_keyframe_msg`, on
-        its decoded ``images``); what perception left out is counted."""
-        assert self._segmenter is not None
-        result = measure_keyframe_msg(msg, key, segmenter=self._segmenter, config=self.perception,
-                                      moving=self._moving, images=images)
-        left = result.left_out
-        if any(left):
-            log.debug("keyframe %s: %d instance(s) float above the floor, %d lie on a taller surface, "
-                      "%d lie flat on the floor; left out", key, *left)
+    def _measure_here(self, slot: PerceptionSlot) -> Perceived | None:
+        """The keyframe measured by this stage, or None while a worker holds a live claim on it or,
+        with workers on this server, it has waited less than ``wait_s`` unclaimed. The stage takes
+        no claim: a worker that claims the keyframe meanwhile measures it again, and whichever
+        result comes second is dropped (both are the same measurement)."""
+        if slot.claim_expires_s is not None and slot.claim_expires_s > time.time():
+            return None
+        wait_s = self.shared.wait_s if self.shared.perception_workers > 0 else 0.0
+        if wait_s > 0:
+            if self._unclaimed is None or self._unclaimed[0] != slot.rowid:
+                self._unclaimed = (slot.rowid, self._clock())
+            if self._clock() - self._unclaimed[1] < wait_s:
+                return None
+        if self._measurer is None:
+            raise WardmapError("the mapping stage measures keyframes only once started")
+        payload = self.store.payload(slot.robot_id, slot.session_id, slot.seq)
+        if payload is None:
+            raise WardmapError(f"keyframe {slot.key} is not stored")
+        started = time.perf_counter()
+        measured = self._measurer.measure(slot.key, payload, self.decoded)
+        self._telemetry.mapping("perception", time.perf_counter() - started)
+        left = measured.left_out
         with self._lock:
             self._counts.floating += left.floating
             self._counts.wall_pieces += left.walls
             self._counts.floor_pieces += left.floors
-            self._counts.skipped.update(skip.kind for skip in result.skipped)
-        return list(result.measurements)
+            self._counts.skipped.update(measured.skipped)
+        return measured.result
+
+    def _process(self, rowid: int, key: str, result: Perceived) -> None:
+        """Commit a keyframe's perception result with the cursor, then associate it when its
+        session is on the map."""
+        pose = result.pose
+        self.store.commit_keyframe(CURSOR_NAME, rowid, pose, result.measurements, anchored=result.anchored)
+        self.decoded.discard(key)  # this stage reads a keyframe last
+        if result.failure is not None:
+            with self._lock:
+                self._counts.failures[result.failure] += 1
+            return
+        with self._lock:
+            self._counts.processed += 1
+            self._counts.measurements += len(result.measurements)
+        node = (pose.robot_id, pose.session_id, pose.seq)
+        T_map_camera = self.store.graph_poses([node])[node]
+        if T_map_camera is None or pose.camera is None:
+            with self._lock:
+                self._counts.unanchored += 1
+            return
+        moved = on_map(result.measurements, pose.T_map_camera, T_map_camera)
+        stream = f"{pose.robot_id}/{pose.session_id}"
+        self.associate([MappedKeyframe(stream, T_map_camera, pose.camera, moved)])
 
     def associate(self, keyframes: Iterable[MappedKeyframe]) -> None:
         """Feed measured keyframes of anchored sessions to the writer in order and write the
@@ -536,12 +560,6 @@ class MapPipeline:
         cursor = self._cursor()
         with self._lock:
             self._settled = cursor
-
-    def _commit(self, rowid: int, key: str, msg: KeyframeMsg | None,
-                measurements: list[ObjectMeasurement]) -> None:
-        robot_id, session_id, seq = key.split("/")
-        self.store.commit_keyframe(CURSOR_NAME, rowid, _mapped_pose(robot_id, session_id, int(seq), msg),
-                                   measurements, anchored=msg is not None and msg.T_map_odom is not None)
 
     def _replay(self) -> None:
         """Rebuild the writer from stored measurements of anchored keyframes, in order.
@@ -662,7 +680,7 @@ class MapPipeline:
                     msg: KeyframeMsg | None = None if payload is None else decode_keyframe(payload)
                 except WireError:
                     msg = None  # it was skipped the first time too (counted then)
-                filled.append(_mapped_pose(kf.robot_id, kf.session_id, kf.seq, msg))
+                filled.append(mapped_pose(kf.robot_id, kf.session_id, kf.seq, msg))
             self.store.record_mapped(filled)
             done += len(filled)
         if done:
@@ -676,14 +694,6 @@ class MapPipeline:
 def _split_stream(stream: str) -> tuple[str, str]:
     robot_id, session_id = stream.split("/", 1)
     return robot_id, session_id
-
-
-def _mapped_pose(robot_id: str, session_id: str, seq: int, msg: KeyframeMsg | None) -> MappedPose:
-    """The pose a processed keyframe's measurements were computed with (its map-pose prior, or
-    its odom frame); none when it was not measured (undecodable, no intrinsics)."""
-    if msg is None or msg.intrinsics is None:
-        return MappedPose(robot_id, session_id, seq, None, None)
-    return MappedPose(robot_id, session_id, seq, keyframe_map_pose(msg), keyframe_camera(msg))
 
 
 def on_map(measurements: Sequence[ObjectMeasurement], T_measured_camera: F64 | None,

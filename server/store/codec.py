@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import functools
 import json
+from collections.abc import Sequence
 from typing import Any, Final
 
 import cv2
@@ -61,6 +62,16 @@ def unpack_measurement(blob: bytes) -> ObjectMeasurement:
         confidence=float(d["confidence"]), mask=np.zeros((0, 0), bool), gt_instance=d["gt_instance"],
         **arrays,
     )
+
+
+def pack_measurements(measurements: Sequence[ObjectMeasurement]) -> bytes:
+    """A keyframe's measurements as one blob: a msgpack list of :func:`pack_measurement` blobs."""
+    return bytes(msgpack.packb([pack_measurement(m) for m in measurements], use_bin_type=True))
+
+
+def unpack_measurements(blob: bytes) -> list[ObjectMeasurement]:
+    """Inverse of :func:`pack_measurements` (masks come back empty)."""
+    return [unpack_measurement(b) for b in msgpack.unpackb(bytes(blob), raw=False)]
 
 
 def _array(value: dict[str, Any]) -> NDArray[Any]:

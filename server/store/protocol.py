@@ -21,6 +21,7 @@ from wardmap.server.perception.types import ObjectMeasurement
 from wardmap.server.store.records import (
     AnchoredKeyframe,
     Checkpoint,
+    ClaimedKeyframe,
     ClosedSession,
     Cursor,
     GraphChange,
@@ -37,6 +38,8 @@ from wardmap.server.store.records import (
     ObjectRow,
     ObjectWrite,
     Observation,
+    Perceived,
+    PerceptionSlot,
     RobotSummary,
     SessionAnchor,
     StoredKeyframe,
@@ -217,7 +220,8 @@ class MappingStore(Protocol):
     ) -> None:
         """In one transaction: store the keyframe's ``measurements`` (their masks are not
         kept; ``anchored``: of a session on the map, which replay reads), its map pose
-        (replacing any), and move cursor ``cursor`` to ``rowid``."""
+        (replacing any), delete its perception row (:class:`PerceptionStore`), and move cursor
+        ``cursor`` to ``rowid``."""
         ...
 
     def unmapped_keyframes(self, upto: int, limit: int) -> list[KeyframeKey]:
@@ -255,6 +259,49 @@ class MappingStore(Protocol):
 
     def save_checkpoint(self, checkpoint: Checkpoint) -> None:
         """Replace the association checkpoint (there is at most one)."""
+        ...
+
+
+class PerceptionStore(Protocol):
+    """Perception shared out between servers (``server/mapping/workers.py``): any server's workers
+    claim stored keyframes ahead of the mapping stage's cursor, one worker per keyframe at a
+    time, and store what they measured; the mapping stage reads the results in insertion order.
+
+    A claim lasts until ``now_s + claim_s`` (server wall-clock seconds: the servers' clocks must
+    agree well within ``claim_s``) or until its result is stored; a worker that died leaves its
+    claim to expire, and the keyframe is claimed again. A result is stored once: the first one
+    stored for a keyframe stays. These writes are not fenced by the writer lease (standbys make
+    them); :meth:`MappingStore.commit_keyframe` deletes the keyframe's row.
+    """
+
+    def claim_keyframe(
+        self, worker: str, *, cursor: str, now_s: float, claim_s: float, rowid: int | None = None,
+    ) -> ClaimedKeyframe | None:
+        """Claim for ``worker`` the first keyframe in insertion order after cursor ``cursor``
+        that has no result and no live claim (only keyframe ``rowid`` when given), until
+        ``now_s + claim_s``; None when there is none. Two callers never hold one keyframe's
+        claim at once (one transaction per claim; PostgreSQL: a conditional upsert, whose
+        loser sees the winner's row)."""
+        ...
+
+    def store_perceived(self, worker: str, result: Perceived) -> bool:
+        """Store ``worker``'s ``result`` for the keyframe it names (``result.pose``), claimed by
+        anyone, the claim live or not; False (nothing changes) when a result is stored already,
+        or the keyframe was never claimed or the mapping stage has committed it."""
+        ...
+
+    def release_claim(self, worker: str, rowid: int) -> None:
+        """End ``worker``'s claim on keyframe ``rowid`` now (after an unexpected error), so any
+        worker may claim it again; nothing when the claim is another's or a result is stored."""
+        ...
+
+    def perception_slots(self, after: int, upto: int, limit: int) -> list[PerceptionSlot]:
+        """Up to ``limit`` keyframes with ``after < rowid <= upto`` in insertion order, each with
+        its stored result or its claim's expiry; no keyframe payload is read."""
+        ...
+
+    def count_unperceived(self, cursor: str) -> int:
+        """Keyframes after cursor ``cursor`` with no stored perception result."""
         ...
 
 
@@ -366,7 +413,8 @@ class LeaseStore(Protocol):
         ...
 
 
-class MapStore(KeyframeStore, ObjectStore, MappingStore, GraphStore, TokenStore, LeaseStore, Protocol):
+class MapStore(KeyframeStore, ObjectStore, MappingStore, PerceptionStore, GraphStore, TokenStore, LeaseStore,
+               Protocol):
     """The server's whole database: what a backend implements (see the module docstring)."""
 
     def __enter__(self) -> MapStore: ...

@@ -350,6 +350,64 @@ class AnchoredKeyframe:
 
 
 @dataclass(frozen=True, slots=True)
+class ClaimedKeyframe(KeyframeKey):
+    """A stored keyframe a perception worker claimed (``PerceptionStore.claim_keyframe``).
+
+    Attributes:
+        payload: its wire bytes.
+        attempts: how many claims it has had, this one included (a worker that died or failed
+            unexpectedly left the earlier ones to expire).
+    """
+
+    payload: bytes
+    attempts: int
+
+
+@dataclass(frozen=True, eq=False)
+class Perceived:
+    """A keyframe's perception result, as the worker that measured it stored it.
+
+    Attributes:
+        pose: the keyframe and the colour-camera pose its measurements were computed with
+            (:class:`MappedPose`; both None when it was not measured).
+        anchored: its session had ``T_map_odom`` (the robot's map-pose prior).
+        measurements: its object measurements (masks empty once stored), in the frame of
+            ``pose.T_map_camera``.
+        failure: why perception skipped it (``"<error type>: <message>"``, at most
+            ``MAX_REASON_LEN`` characters), None when it was measured.
+    """
+
+    pose: MappedPose
+    anchored: bool
+    measurements: Sequence[ObjectMeasurement]
+    failure: str | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class PerceptionSlot:
+    """A keyframe ahead of the mapping stage's cursor with what perception has of it.
+
+    Attributes:
+        rowid, robot_id, session_id, seq: the keyframe.
+        result: its stored perception result, None while it has none.
+        claim_expires_s: when the claim on it expires (server wall-clock seconds; None: never
+            claimed, or its result is stored).
+    """
+
+    rowid: int
+    robot_id: str
+    session_id: str
+    seq: int
+    result: Perceived | None
+    claim_expires_s: float | None
+
+    @property
+    def key(self) -> str:
+        """``"<robot>/<session>/<seq>"``."""
+        return f"{self.robot_id}/{self.session_id}/{self.seq}"
+
+
+@dataclass(frozen=True, slots=True)
 class ClosedSession:
     """A session whose last keyframe group the mapping stage closed when its cursor was at
     ``at_rowid`` (it went quiet)."""

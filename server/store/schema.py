@@ -263,6 +263,29 @@ STEPS: Final[tuple[Step, ...]] = (
     (
         "CREATE TABLE graph_pending (id {int} PRIMARY KEY CHECK (id = 1), state {blob} NOT NULL)",
     ),
+    # v14: perception shared out between servers (server/mapping/workers.py): one row per
+    # keyframe ahead of the mapping stage's cursor that a perception worker claimed, until the
+    # claim expires (expires_s, server wall clock) or the worker stores its result (done = 1:
+    # the measurements packed as one msgpack list, the pose they were computed with, or the
+    # failure that skips it). The mapping stage deletes the row when it commits the keyframe.
+    (
+        """CREATE TABLE perception (
+            robot_id TEXT NOT NULL,
+            session_id TEXT NOT NULL,
+            seq {int} NOT NULL,
+            kf_rowid {int} NOT NULL,
+            worker TEXT NOT NULL,
+            expires_s {real} NOT NULL,
+            attempts {int} NOT NULL,
+            done {int} NOT NULL DEFAULT 0 CHECK (done IN (0, 1)),
+            anchored {int} NOT NULL DEFAULT 0 CHECK (anchored IN (0, 1)),
+            T_measured_camera {blob} CHECK (T_measured_camera IS NULL OR length(T_measured_camera) = 128),
+            camera TEXT,
+            failure TEXT,
+            measurements {blob},
+            PRIMARY KEY (robot_id, session_id, seq)){without_rowid}""",
+        "CREATE INDEX perception_rowid ON perception (kf_rowid)",
+    ),
 )
 
 

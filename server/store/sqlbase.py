@@ -26,16 +26,21 @@ from numpy.typing import NDArray
 from wardmap.server.perception.types import ObjectMeasurement
 from wardmap.server.store.codec import (
     camera_from_json,
+    camera_to_json,
     pack_measurement,
+    pack_measurements,
     pose_blob,
     pose_from_blob,
     poses_from_blobs,
     unpack_measurement,
+    unpack_measurements,
     without_images,
 )
 from wardmap.server.store.records import (
+    MAX_REASON_LEN,
     AnchoredKeyframe,
     Checkpoint,
+    ClaimedKeyframe,
     ClosedSession,
     Cursor,
     GraphChange,
@@ -55,6 +60,8 @@ from wardmap.server.store.records import (
     ObjectRow,
     ObjectWrite,
     Observation,
+    Perceived,
+    PerceptionSlot,
     RobotSummary,
     SessionAnchor,
     StoredKeyframe,
@@ -94,6 +101,11 @@ MAX_HOLDER_LEN = 40
 """Longest writer-lease holder name (PostgreSQL shows it in a 63-byte ``application_name``)."""
 ERASE_BATCH = 64
 """Keyframes whose images :meth:`SqlMapStore.erase_images` rewrites per transaction."""
+
+CLAIM_CANDIDATES = 8
+"""Keyframes :meth:`SqlMapStore.claim_keyframe` reads as candidates per call (others' claims race)."""
+_CURSOR_OF = "COALESCE((SELECT last_rowid FROM pipeline_cursor WHERE name = ?), 0)"
+"""The rowid of the named cursor (one ``?``), 0 when it has none."""
 
 _INSERT_MAPPED = (
     "INSERT INTO mapped_keyframes (robot_id, session_id, seq, T_map_camera, camera) VALUES (?, ?, ?, ?, ?) "
@@ -690,11 +702,99 @@ class SqlMapStore:
                 rows,
             )
             conn.execute(_INSERT_MAPPED, mapped_params(pose))
+            conn.execute("DELETE FROM perception WHERE robot_id = ? AND session_id = ? AND seq = ?",
+                         (pose.robot_id, pose.session_id, pose.seq))
             conn.execute(
                 "INSERT INTO pipeline_cursor (name, last_rowid) VALUES (?, ?) "
                 "ON CONFLICT(name) DO UPDATE SET last_rowid = excluded.last_rowid",
                 (cursor, rowid),
             )
+
+    def claim_keyframe(
+        self, worker: str, *, cursor: str, now_s: float, claim_s: float, rowid: int | None = None,
+    ) -> ClaimedKeyframe | None:
+        """See :meth:`~wardmap.server.store.protocol.PerceptionStore.claim_keyframe`.
+
+        Candidates are read first; each is then claimed by a conditional upsert in a transaction
+        of its own, which takes it only when it has no row or an expired, resultless one, and
+        only while it is still after the cursor (a keyframe the mapping stage committed
+        meanwhile is not claimed again). A candidate another worker took first is skipped."""
+        check_str(worker, "worker")
+        if not (math.isfinite(now_s) and math.isfinite(claim_s) and claim_s > 0):
+            raise StoreError(f"claim_keyframe: need finite now_s and claim_s > 0, got {now_s!r}, {claim_s!r}")
+        only = "" if rowid is None else " AND k.rowid = ?"
+        with self._read("perception: candidates") as conn:
+            candidates = [int(r[0]) for r in conn.execute(
+                "SELECT k.rowid FROM keyframes k LEFT JOIN perception p USING (robot_id, session_id, seq) "
+                f"WHERE k.rowid > {_CURSOR_OF}{only} "
+                "AND (p.robot_id IS NULL OR (p.done = 0 AND p.expires_s <= ?)) ORDER BY k.rowid LIMIT ?",
+                (cursor, now_s, CLAIM_CANDIDATES) if rowid is None else (cursor, rowid, now_s, 1)).fetchall()]
+        for candidate in candidates:
+            with self._write("perception: claim") as conn:
+                row = conn.execute(
+                    "INSERT INTO perception (robot_id, session_id, seq, kf_rowid, worker, expires_s, "
+                    "attempts) SELECT robot_id, session_id, seq, rowid, ?, ?, 1 FROM keyframes k "
+                    f"WHERE k.rowid = ? AND k.rowid > {_CURSOR_OF} "
+                    "ON CONFLICT (robot_id, session_id, seq) DO UPDATE SET worker = excluded.worker, "
+                    "expires_s = excluded.expires_s, attempts = perception.attempts + 1 "
+                    "WHERE perception.done = 0 AND perception.expires_s <= ? RETURNING attempts",
+                    (worker, now_s + claim_s, candidate, cursor, now_s)).fetchone()
+                if row is None:
+                    continue
+                kf = conn.execute("SELECT robot_id, session_id, seq, payload FROM keyframes WHERE rowid = ?",
+                                  (candidate,)).fetchone()
+            return ClaimedKeyframe(candidate, str(kf[0]), str(kf[1]), int(kf[2]), bytes(kf[3]), int(row[0]))
+        return None
+
+    def store_perceived(self, worker: str, result: Perceived) -> bool:
+        """See :meth:`~wardmap.server.store.protocol.PerceptionStore.store_perceived`."""
+        check_str(worker, "worker")
+        p = result.pose
+        pose = None if p.T_map_camera is None else pose_blob(p.T_map_camera)
+        camera = None if p.camera is None else camera_to_json(p.camera)
+        failure = None if result.failure is None else check_str(result.failure[:MAX_REASON_LEN], "failure")
+        with self._write("perception: store a result") as conn:
+            return bool(conn.execute(
+                "UPDATE perception SET done = 1, worker = ?, anchored = ?, T_measured_camera = ?, "
+                "camera = ?, failure = ?, measurements = ? "
+                "WHERE robot_id = ? AND session_id = ? AND seq = ? AND done = 0",
+                (worker, int(result.anchored), pose, camera, failure, pack_measurements(result.measurements),
+                 p.robot_id, p.session_id, p.seq)).rowcount == 1)
+
+    def release_claim(self, worker: str, rowid: int) -> None:
+        """See :meth:`~wardmap.server.store.protocol.PerceptionStore.release_claim`."""
+        with self._write("perception: release a claim") as conn:
+            conn.execute("UPDATE perception SET expires_s = 0 WHERE kf_rowid = ? AND worker = ? AND done = 0",
+                         (rowid, worker))
+
+    def perception_slots(self, after: int, upto: int, limit: int) -> list[PerceptionSlot]:
+        """See :meth:`~wardmap.server.store.protocol.PerceptionStore.perception_slots`."""
+        with self._read("perception: results") as conn:
+            rows = conn.execute(
+                "SELECT k.rowid, k.robot_id, k.session_id, k.seq, p.done, p.expires_s, p.anchored, "
+                "p.T_measured_camera, p.camera, p.failure, p.measurements "
+                "FROM keyframes k LEFT JOIN perception p USING (robot_id, session_id, seq) "
+                "WHERE k.rowid > ? AND k.rowid <= ? ORDER BY k.rowid LIMIT ?",
+                (after, upto, limit)).fetchall()
+        out = []
+        for rowid, robot_id, session_id, seq, done, expires_s, anchored, pose, camera, failure, blob in rows:
+            key = (str(robot_id), str(session_id), int(seq))
+            result = None
+            if done:
+                mapped = MappedPose(*key, None if pose is None else pose_from_blob(pose),
+                                    None if camera is None else camera_from_json(camera))
+                result = Perceived(mapped, bool(anchored), unpack_measurements(blob),
+                                   None if failure is None else str(failure))
+            out.append(PerceptionSlot(int(rowid), *key, result,
+                                      None if done or expires_s is None else float(expires_s)))
+        return out
+
+    def count_unperceived(self, cursor: str) -> int:
+        """See :meth:`~wardmap.server.store.protocol.PerceptionStore.count_unperceived`."""
+        with self._read("perception: backlog") as conn:
+            return int(conn.execute(
+                "SELECT COUNT(*) FROM keyframes k LEFT JOIN perception p USING (robot_id, session_id, seq) "
+                f"WHERE k.rowid > {_CURSOR_OF} AND (p.done IS NULL OR p.done = 0)", (cursor,)).fetchone()[0])
 
     def unmapped_keyframes(self, upto: int, limit: int) -> list[KeyframeKey]:
         """See :meth:`~wardmap.server.store.protocol.MappingStore.unmapped_keyframes`."""

@@ -4,14 +4,16 @@ Real processes: two ``wardmap router`` (B joins A with ``--connect``), two ``war
 on one database of the session's cluster (tests/pgcluster.py), each connected to both routers
 (its own first). Four robots (zenoh clients in this process, two on each router, the other
 router as their fallback) publish the keyframes of a short simulated run (hospital_loop seed 0,
-made by the edge tracker, tools/keyframes.py; doors in view), each under its own robot id,
-and resend every one not acked yet, as a robot's outbox does. Mid-stream, once it has mapped
-some keyframes, the writer-lease holder is SIGKILLed; later router A is killed. Then: every
-keyframe of every robot is stored exactly once (insertion order without gaps), the writer lease
-has moved to the other server (``/readyz``, ``/metrics``), whose back-end and mapping stage
-processed every keyframe without failures, measuring only what the first had not; and the
-object map has the same objects and observations as one server that never stopped (centres
-within 5 mm: the survivor's solver restarted from the stored estimates).
+made by the edge tracker, tools/keyframes.py; doors in view), each under its own robot id, and
+resend every one not acked yet, as a robot's outbox does. Each server runs one perception
+worker process (short claims, so the killed server's claim expires within the test).
+Mid-stream, once it has mapped some keyframes, the writer-lease holder is SIGKILLed; later
+router A is killed. Then: every keyframe of every robot is stored exactly once (insertion order
+without gaps), the writer lease has moved to the other server (``/readyz``, ``/metrics``),
+whose back-end and mapping stage processed every keyframe without failures, taking in only what
+the first had not (the survivor's worker measured some); and the object map has the same
+objects and observations as one server that never stopped (centres within 5 mm: the survivor's
+solver restarted from the stored estimates).
 """
 
 from __future__ import annotations
@@ -57,7 +59,8 @@ POSITION_TOL_M = 0.005
 PIPELINE = PipelineConfig(poll_s=0.05, close_idle_s=0.0, rebuild_min_s=0.0)
 """No idle-session closures and no delayed rebuilds: they depend on wall-clock gaps, which
 differ between runs (the servers' [pipeline] table says the same)."""
-CONFIG = "[pipeline]\npoll_s = 0.05\nclose_idle_s = 0.0\nrebuild_min_s = 0.0\n"
+CONFIG = ("[pipeline]\npoll_s = 0.05\nclose_idle_s = 0.0\nrebuild_min_s = 0.0\n"
+          "[mapping]\nperception_workers = 1\nclaim_s = 5.0\nwait_s = 1.0\n")
 
 
 @pytest.fixture(scope="module")
@@ -241,6 +244,8 @@ def test_two_servers_two_routers_survive_a_killed_writer_and_router(
             assert not any(failures.values()), failures
             # The survivor went on after the writer's cursor: it measured only what was left.
             assert 0 < metrics["wardmap_mapping_keyframes_total"] < len(stored)
+            assert metrics["wardmap_perception_keyframes_total"] > 0
+            assert not any(v for k, v in metrics.items() if k.startswith("wardmap_perception_failures_total"))
             got = _objects(store)
         # The same objects with the same observations as one server that never stopped; centres
         # within POSITION_TOL_M: the survivor's solver restarted from the stored estimates, where

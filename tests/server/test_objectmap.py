@@ -543,7 +543,7 @@ def test_v1_store_migrates_to_the_object_map(tmp_path: Path) -> None:
         assert raw.execute("PRAGMA user_version").fetchone()[0] == 1
         assert raw.execute("SELECT name FROM sqlite_master WHERE name = 'objects'").fetchone() is None
     with open_store(f"sqlite:///{path}") as store:
-        assert store.stats().schema_version == len(MIGRATIONS) == 13
+        assert store.stats().schema_version == len(MIGRATIONS) == 14
         assert [(r.robot_id, r.keyframes) for r in store.robots()] == [("r1", 0)]
         om = ObjectMap(store, knowledge=KG, clock=Clock())
         om.upsert([_obj(1, 0, 0)])
