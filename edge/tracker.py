@@ -65,6 +65,8 @@ log = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
 PoseSource = Literal["init", "rgb", "relocalised", "thermal", "depth", "odometry", "motion_model", "none"]
+GAP_RATIO = 1.5
+"""A frame this many times the last step's time after the last frame follows a gap (dropped frames)."""
 MOTION_MODEL_MAX_S = 0.2
 """The constant-velocity prior extrapolates the last step's twist over at most this long (seconds):
 a frame after a gap (frames dropped by the stream) is predicted as far as the camera kept moving,
@@ -505,13 +507,15 @@ class Tracker:
         return self._T_world_cam @ self._motion_step(inp.stamp), "motion_model"
 
     def _motion_step(self, stamp: float) -> F64:
-        """``T_prev_cur`` predicted for a frame at ``stamp``: the last step's twist (constant
-        velocity in time, not per frame) over the time since the last frame, at most
-        :data:`MOTION_MODEL_MAX_S`. The step as measured when the spacing is unchanged."""
+        """``T_prev_cur`` predicted for a frame at ``stamp``: after a gap (frames dropped: more
+        than :data:`GAP_RATIO` times the last step's time since the last frame) the last step's
+        twist over that time, at most :data:`MOTION_MODEL_MAX_S`; otherwise the last step as
+        measured (a recording's stamp jitter is not motion: scaling by it made the TUM excerpt's
+        early keyframes worse)."""
         if self._prev_stamp is None or self._prev_dt <= 0:
             return self._velocity
         ratio = min(stamp - self._prev_stamp, MOTION_MODEL_MAX_S) / self._prev_dt
-        if ratio <= 0 or abs(ratio - 1.0) < 1e-3:
+        if ratio < GAP_RATIO:
             return self._velocity
         return se3_exp(ratio * se3_log(self._velocity))
 
