@@ -252,3 +252,20 @@ def test_bad_tracker_config_is_rejected(tmp_path: Path) -> None:
         p.write_text(text)
         with pytest.raises(ConfigError):
             load_config(TrackerConfig, p, section="tracker")
+
+
+def test_the_motion_model_extrapolates_over_a_gap_but_not_over_jitter(aisle_clip: Path) -> None:
+    """After dropped frames (more than 1.5 steps since the last frame) the prediction is the last
+    step's twist over the time that passed, at most 0.2 s; a recording's stamp jitter leaves the
+    last step as measured (decision 0043)."""
+    from wardmap.shared.se3 import se3_exp, se3_log
+
+    tracker = Tracker(DatasetReader(aisle_clip).calibration)
+    for f in _frames(DatasetReader(aisle_clip), 4):
+        tracker.track(f)
+    step, dt, last = tracker._velocity, tracker._prev_dt, tracker._prev_stamp
+    assert dt > 0 and last is not None and np.linalg.norm(se3_log(step)) > 1e-4
+    np.testing.assert_array_equal(tracker._motion_step(last + 1.2 * dt), step)  # jitter
+    np.testing.assert_allclose(tracker._motion_step(last + 2 * dt), se3_exp(2 * se3_log(step)), atol=1e-12)
+    capped = se3_exp(min(10 * dt, 0.2) / dt * se3_log(step))
+    np.testing.assert_allclose(tracker._motion_step(last + 10 * dt), capped, atol=1e-12)
