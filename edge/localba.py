@@ -183,7 +183,7 @@ def reprojection_chi2(problem: BaProblem, intr: Intrinsics, T_world_cam: F64, po
     the point in the observing camera; the third row only for a stereo observation (``0 < depth
     <= max_stereo_depth_m``). A point behind the camera (z <= 1 cm) gets ``inf``.
     """
-    T_cw = inverse_batch(T_world_cam)[problem.obs_kf]
+    T_cw = inverse(T_world_cam)[problem.obs_kf]
     P = points_world[problem.obs_point]
     Pc = np.einsum("nij,nj->ni", T_cw[:, :3, :3], P) + T_cw[:, :3, 3]
     z = Pc[:, 2]
@@ -196,16 +196,6 @@ def reprojection_chi2(problem: BaProblem, intr: Intrinsics, T_world_cam: F64, po
     ur_meas = problem.uv[:, 0] - intr.bf / np.where(stereo, problem.depth_m, 1.0)
     e2 = e2 + np.where(stereo, (ur_meas - (u - intr.bf / zs)) ** 2, 0.0)
     return np.where(front, e2 / problem.sigma_px**2, np.inf)
-
-
-def inverse_batch(T: F64) -> F64:
-    """Inverses (K, 4, 4) of rigid transforms (K, 4, 4)."""
-    R_t = np.transpose(T[:, :3, :3], (0, 2, 1))
-    out = np.zeros_like(T)
-    out[:, :3, :3] = R_t
-    out[:, :3, 3] = -np.einsum("kij,kj->ki", R_t, T[:, :3, 3])
-    out[:, 3, 3] = 1.0
-    return out
 
 
 def _is_stereo(depth_m: F64, intr: Intrinsics) -> NDArray[np.bool_]:

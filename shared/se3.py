@@ -51,12 +51,14 @@ def make_transform(R: ArrayLike, t: ArrayLike) -> F64:
 
 
 def inverse(T: ArrayLike) -> F64:
-    """Inverse of a rigid transform: ``T_b_a`` from ``T_a_b`` (closed form, no general inverse)."""
+    """Inverse of a rigid transform: ``T_b_a`` from ``T_a_b`` (closed form, no general inverse);
+    ``T`` (4, 4) or a stack (..., 4, 4)."""
     M = np.asarray(T, dtype=np.float64)
-    R = M[:3, :3]
-    out = np.eye(4)
-    out[:3, :3] = R.T
-    out[:3, 3] = -R.T @ M[:3, 3]
+    R_t = np.swapaxes(M[..., :3, :3], -1, -2)
+    out = np.zeros(M.shape)
+    out[..., :3, :3] = R_t
+    out[..., :3, 3] = -(R_t @ M[..., :3, 3, None])[..., 0]
+    out[..., 3, 3] = 1.0
     return out
 
 

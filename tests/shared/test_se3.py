@@ -20,6 +20,8 @@ def test_inverse_composes_to_identity() -> None:
         T = _random_T(rng)
         assert np.allclose(T @ se3.inverse(T), np.eye(4), atol=1e-12)
         assert np.allclose(se3.inverse(T) @ T, np.eye(4), atol=1e-12)
+    stack = np.stack([_random_T(rng) for _ in range(7)]).reshape(7, 4, 4)
+    np.testing.assert_allclose(se3.inverse(stack), [se3.inverse(T) for T in stack], atol=0)  # batched = each
 
 
 def test_composition_is_associative_and_maps_points_consistently() -> None:
