@@ -34,6 +34,7 @@ from __future__ import annotations
 import logging
 import math
 import multiprocessing
+from collections import deque
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass, replace
@@ -44,6 +45,7 @@ from numpy.typing import NDArray
 from wardmap.edge.tracker import Tracker, TrackerConfig, TrackInput, TrackResult
 from wardmap.shared.dataset import MAX_READOUT_S, Calibration, DatasetReader, odom_at
 from wardmap.shared.errors import WardmapError
+from wardmap.shared.se3 import rotation_angle
 from wardmap.shared.sensors import ReadoutModel
 
 log = logging.getLogger(__name__)
@@ -160,7 +162,8 @@ def _decide(cands: Sequence[float], per_frame: Sequence[float], frames: int,
 
 @dataclass(frozen=True)
 class OnlineReadoutConfig:
-    """:class:`OnlineReadout` settings (``[tracker.online_readout]``).
+    """:class:`OnlineReadout` settings (``wardmap track`` and the edge use the defaults; a
+    calibration's ``[rgb] readout_s``, 0 for a global shutter, turns the estimate off).
 
     Attributes:
         enabled: estimate the readout while tracking when the recording does not give it.
@@ -206,8 +209,8 @@ class OnlineReadout:
         self.cfg = config or OnlineReadoutConfig()
         self._cal, self._tracker_cfg = calibration, tracker_config
         self._background = background
-        self._window: list[TrackInput] = []
-        self._turn_deg = 0.0
+        self._window: deque[TrackInput] = deque(maxlen=self.cfg.window)
+        self._turns: deque[float] = deque(maxlen=self.cfg.window)  # degrees from the frame before each
         self._prev: NDArray[np.float64] | None = None
         self._pool: ProcessPoolExecutor | None = None
         self._job: Future[list[float]] | None = None
@@ -229,19 +232,15 @@ class OnlineReadout:
         if self.state != "collecting":
             return None
         if inp.rgb is None or res.lost:
-            self._window, self._turn_deg, self._prev = [], 0.0, None  # a gap: start the window over
+            self._restart()  # a gap: start the window over
             return None
         T = res.T_world_camera
-        if self._prev is not None:
-            R = self._prev[:3, :3].T @ T[:3, :3]
-            self._turn_deg += math.degrees(math.acos(float(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+        turn = 0.0 if self._prev is None else math.degrees(rotation_angle(self._prev[:3, :3].T @ T[:3, :3]))
         self._prev = T
-        self._window.append(inp)
-        if len(self._window) < self.cfg.window:
-            return None
-        if self._turn_deg < self.cfg.min_turn_deg:
-            self._window.pop(0)  # slide; the turn is counted over the whole window, roughly
-            return None
+        self._window.append(inp)  # a full window slides: its oldest frame goes
+        self._turns.append(turn)
+        if len(self._window) < self.cfg.window or sum(self._turns) - self._turns[0] < self.cfg.min_turn_deg:
+            return None  # the turn within the window: from its first frame to its last
         self.attempts += 1
         self.state = "scoring"
         cands = [0.0, *self.cfg.candidates_s]
@@ -268,7 +267,7 @@ class OnlineReadout:
     def _scored(self, scores: list[float]) -> ReadoutModel | None:
         cands = [0.0, *self.cfg.candidates_s]
         n = len(self._window)
-        self._window, self._turn_deg, self._prev = [], 0.0, None
+        self._restart()
         if max(scores) <= 0:
             self.state = "gave up" if self.attempts >= self.cfg.max_attempts else "collecting"
             return None
@@ -283,6 +282,11 @@ class OnlineReadout:
         log.info("online readout: window %d not decisive (%+.1f %% inliers over 0 ms)%s", self.attempts,
                  100 * est.gain, "; keeping the global-shutter model" if self.state == "gave up" else "")
         return None
+
+    def _restart(self) -> None:
+        self._window.clear()
+        self._turns.clear()
+        self._prev = None
 
     def summary(self) -> dict[str, object]:
         """For a run's summary: state, windows scored, the last estimate."""

@@ -229,3 +229,29 @@ def test_online_readout_settings_are_checked() -> None:
                 {"min_turn_deg": -1.0}):
         with pytest.raises(WardmapError, match="online_readout"):
             OnlineReadoutConfig(**bad)
+
+
+@pytest.mark.parametrize(("deg_per_frame", "scored_at"), [(1.0, None), (2.0, 9)])
+def test_online_readout_counts_the_turn_within_its_window(
+        monkeypatch: pytest.MonkeyPatch, deg_per_frame: float, scored_at: int | None) -> None:
+    """A window is scored once the rotation between its first and last frame reaches
+    min_turn_deg: a slow turn (1 deg a frame, 9 deg over a 10-frame window) never is, however
+    long it lasts; 2 deg a frame is, as soon as the window is full. (The scoring itself is
+    replaced here: this is about when it runs.)"""
+    from types import SimpleNamespace
+
+    from wardmap.edge import readout
+    from wardmap.shared.se3 import yaw_transform
+
+    calls: list[int] = []
+    monkeypatch.setattr(readout, "score_candidates",
+                        lambda frames, *_: calls.append(len(frames)) or [1.0] * 5)
+    config = OnlineReadoutConfig(window=10, min_turn_deg=15.0)
+    online = OnlineReadout(None, None, config, background=False)  # type: ignore[arg-type]
+    frame = SimpleNamespace(rgb=np.zeros((1, 1, 3), np.uint8))
+    for i in range(60):
+        pose = yaw_transform(0.0, 0.0, np.radians(deg_per_frame * i))
+        online.offer(frame, SimpleNamespace(lost=False, T_world_camera=pose))  # type: ignore[arg-type]
+        if calls:
+            break
+    assert (i if calls else None) == scored_at and calls in ([], [10])
