@@ -240,7 +240,7 @@ class OnlineReadout:
         self._window.append(inp)  # a full window slides: its oldest frame goes
         self._turns.append(turn)
         if len(self._window) < self.cfg.window or sum(self._turns) - self._turns[0] < self.cfg.min_turn_deg:
-            return None  # the turn within the window: from its first frame to its last
+            return None  # the turn within the window: summed from its first frame to its last
         self.attempts += 1
         self.state = "scoring"
         cands = [0.0, *self.cfg.candidates_s]

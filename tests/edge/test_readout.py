@@ -234,7 +234,7 @@ def test_online_readout_settings_are_checked() -> None:
 @pytest.mark.parametrize(("deg_per_frame", "scored_at"), [(1.0, None), (2.0, 9)])
 def test_online_readout_counts_the_turn_within_its_window(
         monkeypatch: pytest.MonkeyPatch, deg_per_frame: float, scored_at: int | None) -> None:
-    """A window is scored once the rotation between its first and last frame reaches
+    """A window is scored once the rotation summed frame to frame within it reaches
     min_turn_deg: a slow turn (1 deg a frame, 9 deg over a 10-frame window) never is, however
     long it lasts; 2 deg a frame is, as soon as the window is full. (The scoring itself is
     replaced here: this is about when it runs.)"""
