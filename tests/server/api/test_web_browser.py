@@ -98,7 +98,8 @@ def open_page(browser: Any, base: str, path: str = "/", **context: Any) -> tuple
 
 def ready(page: Any) -> None:
     page.wait_for_selector("body[data-ready='1']", timeout=15_000)
-    page.wait_for_function("wardmap.state.robots.length > 0 && wardmap.state.trajectories.size > 0")
+    # robotsLoaded is set once every robot's trajectory is fetched (they arrive one by one)
+    page.wait_for_function("wardmap.state.robotsLoaded && wardmap.state.trajectories.size > 0")
 
 
 def screen(page: Any, x: float, y: float) -> dict[str, float]:
