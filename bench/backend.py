@@ -79,6 +79,7 @@ from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import get_args
 
 import cv2
 import numpy as np
@@ -88,6 +89,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _report import git_rev, machine, publish
 
 from wardmap.server.association.types import Landmark
+from wardmap.server.backend.bundle import BundleConfig, TrackSource
 from wardmap.server.backend.core import BackendConfig, BackendCore, Closure
 from wardmap.shared.dataset import DatasetReader
 from wardmap.shared.metrics import ate_series
@@ -749,6 +751,9 @@ def main() -> int:
     ap.add_argument("--objects", action="store_true", help="also compare object maps (slower)")
     ap.add_argument("--bundle", action="store_true",
                     help="bundle-adjust after loops (BackendConfig.bundle_enabled; off by default)")
+    ap.add_argument("--tracks", choices=get_args(TrackSource), default=BundleConfig.tracks,
+                    help="with --bundle: how tracks join within a session (BundleConfig.tracks; "
+                         "descriptors: the adjustment before map point ids)")
     ap.add_argument("--write", type=Path, help="update this markdown file's backend section")
     ap.add_argument("--plot", type=Path, metavar="DIR",
                     help="also write, per scenario and seed, a PNG of the map's first session: frontend, "
@@ -762,7 +767,8 @@ def main() -> int:
     with_tum = not args.scale_only and (args.only is None or "tum" in args.only)
     # in the back-end's thread: each adjustment joins the graph at the keyframe whose loop started
     # it, so runs repeat exactly (the server runs it in a child process, joining a few keyframes later)
-    config = BackendConfig(bundle_enabled=args.bundle, bundle_process=False)
+    config = BackendConfig(bundle_enabled=args.bundle, bundle_process=False,
+                           bundle=BundleConfig(tracks=args.tracks))
     scores: list[RunScore] = []
     objects: list[ObjectScore] = []
     for scenario in names:
@@ -799,6 +805,7 @@ def main() -> int:
         + (f" --only {' '.join(args.only)}" if args.only else "")
         + (" --objects" if args.objects else "")
         + (" --bundle" if args.bundle else "")
+        + (f" --tracks {args.tracks}" if args.tracks != BundleConfig.tracks else "")
         + " --write BENCHMARKS.md"
     )
     body = "\n".join([

@@ -737,13 +737,16 @@ class EdgeAgent:
     def _stream_stats(self) -> dict[str, int | float]:
         """The heartbeat's source numbers: frames the source gave (``received``), those dropped
         because tracking was behind or came out of order (``dropped``), frames with a measured pose
-        (``tracked``), the live source's ``reconnects`` and ``source_up`` (0 while it is lost), and
+        (``tracked``), the live source's ``reconnects``, ``source_up`` (0 while it is lost) and
+        ``source_dropped`` (frames it let go before they reached the stream: a full subscription
+        queue, a camera SDK's frame drops), and
         the latest frame's camera pose in the odometry frame ``odom_x odom_y odom_z`` (m) and
         ``odom_yaw_deg`` (heading of its optical axis about z) once a frame was tracked."""
         frames, _, lost = self._progress
         out: dict[str, int | float] = {"received": 0, "dropped": 0, "tracked": frames - lost,
                                        "reconnects": int(getattr(self.source, "reconnects", 0)),
-                                       "source_up": int(bool(getattr(self.source, "up", True)))}
+                                       "source_up": int(bool(getattr(self.source, "up", True))),
+                                       "source_dropped": int(getattr(self.source, "dropped_frames", 0))}
         stream = self._stream
         if stream is not None:
             out.update(received=stream.received, dropped=stream.dropped + stream.late)

@@ -6,7 +6,8 @@ byte-identical to the one the robot would have sent.
 
 Content (docs/wire.md): the tracker's own ORB features of the keyframe after dynamic-point
 removal, the strongest ``max_keypoints`` of them (a keyframe the tracker made without RGB
-features gets ORB extracted here), each with the depth at its pixel (0 = none); the colour
+features gets ORB extracted here, without map point ids), each with the depth at its pixel
+(0 = none) and the id of the tracker's map point it observed or made (-1 = none); the colour
 image as JPEG; depth at 1/``depth_stride`` resolution (1 when the image size is not
 divisible by it); thermal at 1/``thermal_stride`` resolution quantised to
 ``thermal_unit_k`` when due (:func:`thermal_due`).
@@ -84,12 +85,14 @@ def build_keyframe_msg(
         WardmapError: the colour image cannot be JPEG-encoded.
     """
     depth = np.nan_to_num(frame.depth_m, nan=0.0, posinf=0.0, neginf=0.0)
-    feats = res.features
+    feats, point_id = res.features, res.point_ids
     if feats is None:
         feats = tracker.orb.extract(np.asarray(cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2GRAY), np.uint8))
+        point_id = None
     if len(feats.uv) > config.max_keypoints:
-        strongest = np.argsort(-feats.response, kind="stable")[: config.max_keypoints]
-        feats = feats.select(np.sort(strongest))
+        strongest = np.sort(np.argsort(-feats.response, kind="stable")[: config.max_keypoints])
+        feats = feats.select(strongest)
+        point_id = None if point_id is None else point_id[strongest]
     h, w = depth.shape
     col = np.clip(np.rint(feats.uv[:, 0]).astype(np.int64), 0, w - 1)
     row = np.clip(np.rint(feats.uv[:, 1]).astype(np.int64), 0, h - 1)
@@ -100,6 +103,7 @@ def build_keyframe_msg(
         angle_deg=np.clip(feats.angle_deg, 0.0, 360.0).astype(np.float32),
         depth_m=kp_depth,
         descriptors=np.ascontiguousarray(feats.descriptors, np.uint8),
+        point_id=None if point_id is None else np.ascontiguousarray(point_id, np.int64),
     )
     rgb, thermal_k = frame.rgb, frame.thermal_k
     if config.privacy != "off":

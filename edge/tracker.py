@@ -226,6 +226,10 @@ class TrackResult:
     features: Features | None = None
     """On RGB keyframes: the frame's ORB features after dynamic-point removal (what the map
     was built from; for the wire). None otherwise."""
+    point_ids: NDArray[np.int64] | None = None
+    """With ``features``: int64 (N,) the local map point each keypoint observed (a matched
+    inlier) or made, -1 for none; an id names one point for the tracker's lifetime (the map
+    restarts keep counting), so equal ids in two keyframes are one observed point."""
 
 
 class Tracker:
@@ -391,12 +395,13 @@ class Tracker:
                 timings["unroll"] = _ms(t0)
         if len(self.map) == 0:
             T = prior
-            self._insert_keyframe(inp.stamp, T, feats, kp_depth, sem, new_all=True)
+            made = self._insert_keyframe(inp.stamp, T, feats, kp_depth, sem, new_all=True)
             self._accept(inp, T, n_inliers=len(feats.uv))
             self._set_depth_ref(T, depth)
             self._maybe_thermal_ref(inp, depth, T, timings)
             return self._result(
-                inp, T, "init", False, "", feats, n_dyn, 0, len(feats.uv), True, timings, t_start
+                inp, T, "init", False, "", feats, n_dyn, 0, len(feats.uv), True, timings, t_start,
+                point_ids=made,
             )
 
         t0 = time.perf_counter()
@@ -468,12 +473,13 @@ class Tracker:
         t0 = time.perf_counter()
         self._fuse(T_cw, m_idx[inl], feats.uv[f_idx[inl]], kp_depth[f_idx[inl]])
         is_kf = self._need_keyframe(inp.stamp, T, n_inl)
+        ids = None
         if is_kf:
             matched = np.zeros(len(feats.uv), bool)
             matched[f_idx[inl]] = True
             self.map.kf_last[m_idx[inl]] = self._kf_count
-            self._insert_keyframe(inp.stamp, T, feats, kp_depth, sem, skip=matched,
-                                  observed=(m_idx[inl], f_idx[inl]))
+            ids = self._insert_keyframe(inp.stamp, T, feats, kp_depth, sem, skip=matched,
+                                        observed=(m_idx[inl], f_idx[inl]))
             self._maybe_thermal_ref(inp, depth, T, timings)
         self._last_frame_raw = (inp.stamp, T, feats, kp_depth)
         self._rgb_failures = 0
@@ -481,7 +487,8 @@ class Tracker:
         self._accept(inp, T, n_inliers=n_inl, keyframe=is_kf)
         self._set_depth_ref(T, depth)
         return self._result(
-            inp, T, source, False, "", feats, n_dyn, len(m_idx), n_inl, is_kf, timings, t_start
+            inp, T, source, False, "", feats, n_dyn, len(m_idx), n_inl, is_kf, timings, t_start,
+            point_ids=ids,
         )
 
     # ------------------------------------------------------------------ prediction
@@ -778,10 +785,13 @@ class Tracker:
         skip: NDArray[np.bool_] | None = None,
         new_all: bool = False,
         observed: tuple[NDArray[np.intp], NDArray[np.intp]] | None = None,
-    ) -> None:
+    ) -> NDArray[np.int64]:
         """Make keyframe ``_kf_count`` at pose ``T`` (4, 4): map points for keypoints with
         depth (not ``skip``), and with local BA its observations: ``observed`` = (map rows,
-        keypoint rows) of its matched inliers, plus the points it made."""
+        keypoint rows) of its matched inliers, plus the points it made.
+
+        Returns int64 (N,) per keypoint of ``feats``: the id of the map point it observed
+        (``observed``) or made, -1 for none."""
         kf_index = self._kf_count
         self._kf_count += 1
         ok = (kp_depth > self.cfg.min_depth_m) & (kp_depth < self.cfg.max_depth_m)
@@ -794,6 +804,10 @@ class Tracker:
         new = ok & ~skip if skip is not None and not new_all else ok
         z = kp_depth[new]
         pts_new = transform_points(T, self.cam.unproject(feats.uv[new].astype(np.float64), z))
+        ids = np.full(len(feats.uv), -1, np.int64)
+        if observed is not None:
+            ids[observed[1]] = self.map.pid[observed[0]]
+        first_new = self.map.next_pid
         self.map.add(
             pts_new,
             desc[new],
@@ -801,6 +815,7 @@ class Tracker:
             1.0 / np.maximum(z, 0.5) ** 4,
             kf_index,
         )
+        ids[new] = np.arange(first_new, first_new + int(new.sum()), dtype=np.int64)
         if self._ba is not None:
             self._record_keyframe(kf_index, T, feats, kp_depth, int(new.sum()), observed)
         # Forget points not seen for a while and cap the map size.
@@ -819,6 +834,7 @@ class Tracker:
         if self._ba is not None:
             self._ba_problem = self._ba_graph.problem(kf_index, self._map_epoch, self.map.pid,
                                                       self.map.pos_world)
+        return ids
 
     # ------------------------------------------------------------------ local bundle adjustment
     def _record_keyframe(
@@ -897,7 +913,7 @@ class Tracker:
         ok = (kp_depth > self.cfg.min_depth_m) & (kp_depth < self.cfg.max_depth_m)
         if ok.sum() < 2 * self.cfg.min_inliers:
             return
-        self.map = MapPoints()
+        self.map = MapPoints(next_pid=self.map.next_pid)  # ids stay unique for the wire
         self._map_epoch += 1
         self._ba_graph.reset()
         self._insert_keyframe(stamp, T, feats, kp_depth, sem, new_all=True)
@@ -975,14 +991,16 @@ class Tracker:
         t_start: float,
         *,
         n_feat: int | None = None,
+        point_ids: NDArray[np.int64] | None = None,
     ) -> TrackResult:
         timings["total"] = _ms(t_start)
         # CPU time of this thread: the frame's compute, without time other processes took.
         timings["cpu_total"] = (time.thread_time() - self._cpu_start) * 1e3
         n = n_feat if n_feat is not None else (0 if feats is None else len(feats.uv))
+        wire = keyframe and feats is not None and feats.kind == "orb"
         return TrackResult(
             inp.stamp, T.copy(), source, lost, reason, n, n_dyn, n_matches, n_inliers, keyframe, timings,
-            features=feats if keyframe and feats is not None and feats.kind == "orb" else None,
+            features=feats if wire else None, point_ids=point_ids if wire else None,
         )
 
 

@@ -92,7 +92,7 @@ _ID_RE: Final = re.compile(r"[A-Za-z0-9_.\-]{1,64}")
 _CALIB_REF_RE: Final = re.compile(r"[A-Za-z0-9_.:\-]{1,128}")
 _UINT63: Final = 2**63
 _DTYPES: Final[Mapping[str, np.dtype[Any]]] = MappingProxyType({
-    name: np.dtype(name).newbyteorder("<") for name in ("float32", "int8", "int16", "uint8")
+    name: np.dtype(name).newbyteorder("<") for name in ("float32", "int8", "int16", "int64", "uint8")
 })
 """Array dtypes allowed on the wire (little-endian)."""
 _UNPACK_LIMITS: Final = {
@@ -467,6 +467,9 @@ class Keypoints:
         angle_deg: float32 (N,) orientation in degrees, [0, 360].
         depth_m: float32 (N,) depth along the camera's z axis in metres, 0 = none.
         descriptors: uint8 (N, 32) binary descriptors (ORB, 256 bits).
+        point_id: int64 (N,) the tracker's map point each keypoint observed, -1 = none; ids
+            name one point within a session (keypoints of two keyframes with one id saw the
+            same point), or None when the robot does not send them.
     """
 
     uv: F32
@@ -474,6 +477,7 @@ class Keypoints:
     angle_deg: F32
     depth_m: F32
     descriptors: NDArray[np.uint8]
+    point_id: NDArray[np.int64] | None = None
 
     def __post_init__(self) -> None:
         uv = _check_array(self.uv, "keypoints.uv", ("float32",), (None, 2))
@@ -493,6 +497,10 @@ class Keypoints:
             raise _fail("keypoints.angle_deg", "expected values in [0, 360]")
         if n and checked["depth_m"].min() < 0:
             raise _fail("keypoints.depth_m", "expected values >= 0 (0 = no depth)")
+        if self.point_id is not None:
+            checked["point_id"] = _check_array(self.point_id, "keypoints.point_id", ("int64",), (n,))
+            if n and checked["point_id"].min() < -1:
+                raise _fail("keypoints.point_id", "expected values >= -1 (-1 = no map point)")
         for name, arr in checked.items():
             object.__setattr__(self, name, arr)
 
@@ -698,7 +706,8 @@ def _to_wire(msg: Message) -> dict[str, Any]:
             "schema": SCHEMA_KEYFRAME, "version": SCHEMA_VERSION,
             "robot_id": msg.robot_id, "session_id": msg.session_id, "seq": msg.seq, "stamp": msg.stamp,
             "T_odom_camera": _pose_to_wire(msg.T_odom_camera), "pose_source": msg.pose_source,
-            "keypoints": {name: _array_to_wire(getattr(kp, name)) for name in _KEYPOINT_FIELDS},
+            "keypoints": {name: _array_to_wire(getattr(kp, name)) for name in _KEYPOINT_FIELDS
+                          if getattr(kp, name) is not None},
             "rgb_jpeg": msg.rgb_jpeg, "depth": _raster_to_wire(msg.depth),
         }
         if msg.intrinsics is not None:
@@ -738,13 +747,15 @@ def encode(msg: Message) -> bytes:
 
 # --------------------------------------------------------------------------- decode
 
-_KEYPOINT_FIELDS: Final = ("uv", "octave", "angle_deg", "depth_m", "descriptors")
+_KEYPOINT_FIELDS: Final = ("uv", "octave", "angle_deg", "depth_m", "descriptors", "point_id")
+_OPTIONAL_KEYPOINT_FIELDS: Final = frozenset({"point_id"})
 _KEYPOINT_LAYOUT: Final[Mapping[str, tuple[tuple[str, ...], tuple[int | None, ...]]]] = MappingProxyType({
     "uv": (("float32",), (None, 2)),
     "octave": (("int8", "int16"), (None,)),
     "angle_deg": (("float32",), (None,)),
     "depth_m": (("float32",), (None,)),
     "descriptors": (("uint8",), (None, 32)),
+    "point_id": (("int64",), (None,)),
 })
 """Wire dtypes and shapes (None = the keypoint count N) of the keypoint arrays."""
 
@@ -869,7 +880,9 @@ def _keyframe_from_wire(f: _Fields) -> KeyframeMsg:
     kp_arrays: dict[str, Any] = {}
     for name in _KEYPOINT_FIELDS:
         dtypes, shape = _KEYPOINT_LAYOUT[name]
-        kp_arrays[name] = _array_from_wire(kf.get(name), kf.name(name), dtypes, shape)
+        raw = kf.optional(name) if name in _OPTIONAL_KEYPOINT_FIELDS else kf.get(name)
+        if raw is not None:
+            kp_arrays[name] = _array_from_wire(raw, kf.name(name), dtypes, shape)
     kf.done()
     counts = {name: a.shape[0] for name, a in kp_arrays.items()}
     if len(set(counts.values())) > 1:

@@ -114,7 +114,9 @@ def full_keyframe(rng: np.random.Generator, *, thermal: bool = True, intrinsics:
                   base: bool = True, n: int = 20) -> KeyframeMsg:
     """A valid keyframe of robot_0 with random seq, stamp near :data:`T0`, random poses and ``n``
     keypoints; thermal when ``thermal``; intrinsics with distortion when ``intrinsics``, else a
-    calibration reference; ``T_odom_base`` and ``T_map_odom`` when ``base``."""
+    calibration reference; ``T_odom_base`` and ``T_map_odom`` when ``base``; map point ids on
+    the keypoints (every fifth -1)."""
+    ids = np.where(np.arange(n) % 5 == 0, -1, np.arange(n) + 1000).astype(np.int64)
     return KeyframeMsg(
         robot_id="robot_0",
         session_id="2024-05-01T10.00_a",
@@ -122,7 +124,7 @@ def full_keyframe(rng: np.random.Generator, *, thermal: bool = True, intrinsics:
         stamp=T0 + float(rng.random()),
         T_odom_camera=random_pose(rng),
         pose_source="rgb",
-        keypoints=keypoints(rng, n),
+        keypoints=replace(keypoints(rng, n), point_id=ids),
         rgb_jpeg=noise_jpeg(rng),
         depth=PackedRaster(*wire.encode_depth(depth_image(rng))),
         intrinsics=Intrinsics(W, H, 52.5, 52.5, 31.5, 23.5, (0.1, -0.2, 0.001, 0.002, 0.05), 5000.0)

@@ -55,7 +55,8 @@ __all__ = [
 ]
 
 F64 = NDArray[np.float64]
-CACHE_FORMAT = 1
+CACHE_FORMAT = 2
+"""2: keypoints carry the tracker's map point ids (``Keypoints.point_id``)."""
 INDEX = "keyframes.json"
 
 

@@ -3,10 +3,12 @@
 The pose graph can only spread the frontend's odometry error between a loop's ends
 (decision 0034); re-estimating the keyframe poses from their features removes part of it.
 :func:`bundle_adjust` takes keyframes with initial map poses (the pose graph's estimates after
-loop closure), matches their ORB descriptors between keyframes up to ``window`` apart and
-between keyframes whose initial poses are close (revisits), joins the matches into tracks
-(a track never holds two keypoints of one keyframe) and solves ORB-SLAM2's RGB-D bundle
-adjustment with gtsam:
+loop closure) and joins their keypoints into tracks (a track never holds two keypoints of one
+keyframe): within a session by the edge tracker's map point ids where the keyframes carry them
+(the tracker's own association) and by matching ORB descriptors between keyframes up to
+``window`` apart (:attr:`BundleConfig.tracks`); and by matching descriptors between keyframes
+whose initial poses are close (revisits, across sessions). Then it solves
+ORB-SLAM2's RGB-D bundle adjustment with gtsam:
 
 - a keypoint with depth ``d`` is a stereo measurement ``(u_L, u_R, v)`` with the virtual right
   coordinate ``u_R = u_L - bf / d`` (ORB-SLAM2's ``mbf``), a ``GenericStereoFactor3D``;
@@ -26,6 +28,7 @@ from __future__ import annotations
 import time
 from collections.abc import Hashable, Sequence
 from dataclasses import dataclass
+from typing import Literal, get_args
 
 import gtsam
 import numpy as np
@@ -39,6 +42,7 @@ F64 = NDArray[np.float64]
 
 _CHI2_3DOF = 7.815  # 95 % bound, stereo (u_L, u_R, v)
 _CHI2_2DOF = 5.991  # 95 % bound, monocular (u, v)
+TrackSource = Literal["ids", "descriptors", "both"]
 _WEAK_PRIOR = 1.0  # rad and m: a prior on every pose that only matters where no feature is
 
 
@@ -48,7 +52,15 @@ class BundleConfig:
 
     window: int = 10
     """Keyframes up to this many apart in the input order are matched (the covisible span of
-    a keyframe stream at 2 Hz)."""
+    a keyframe stream at 2 Hz), unless both carry map point ids and ``tracks`` is ``ids``."""
+    tracks: TrackSource = "both"
+    """How keypoints of one chain (session) join into tracks: ``both``: by the edge tracker's
+    map point id (``KeyframeFeatures.point_id``: the tracker matched the keypoint against its
+    local map at the pose it measured), then descriptor matches within the window join those
+    tracks too (the tracker re-makes a point it failed to match, so its own tracks are
+    short); ``ids``: by id only where both keyframes carry ids, descriptors
+    where they do not; ``descriptors``: ids ignored. Revisits always match descriptors
+    (decision 0044)."""
     revisit_radius_m: float = 1.5
     """Keyframes further apart in sequence are matched when their initial camera centres are
     within this distance ..."""
@@ -85,6 +97,9 @@ class BundleConfig:
     def __post_init__(self) -> None:
         if self.window < 1:
             raise GeometryError(f"bundle window must be >= 1, got {self.window}")
+        if self.tracks not in get_args(TrackSource):
+            raise GeometryError(
+                f"bundle tracks: expected one of {', '.join(get_args(TrackSource))}, got {self.tracks!r:.40}")
         if not (self.bf > 0 and self.pixel_sigma > 0 and self.gate_px > 0 and self.scale_factor >= 1):
             raise GeometryError("bundle config: bf, pixel_sigma, gate_px must be > 0, scale_factor >= 1")
 
@@ -247,9 +262,31 @@ def _pairs(frames: Sequence[BundleFrame], cfg: BundleConfig) -> list[tuple[int, 
     return pairs
 
 
+def _id_tracks(frames: Sequence[BundleFrame], tracks: _Tracks) -> None:
+    """Join keypoints of one chain with the same map point id (exact tracks)."""
+    first: dict[tuple[Hashable, int], tuple[int, int]] = {}
+    for k, f in enumerate(frames):
+        pid = f.features.point_id
+        if pid is None:
+            continue
+        for p in np.flatnonzero(pid >= 0).tolist():
+            at = first.setdefault((f.chain, int(pid[p])), (k, p))
+            if at[0] != k:
+                tracks.join(at, (k, p))
+
+
+def _has_ids(frame: BundleFrame) -> bool:
+    return frame.features.point_id is not None
+
+
 def _match(frames: Sequence[BundleFrame], prep: Sequence[_Prepared], cfg: BundleConfig) -> _Tracks:
     tracks = _Tracks()
+    if cfg.tracks != "descriptors":
+        _id_tracks(frames, tracks)
     for j, i in _pairs(frames, cfg):
+        exact = cfg.tracks == "ids" and _has_ids(frames[i]) and _has_ids(frames[j])
+        if exact and frames[i].chain == frames[j].chain and i - j <= cfg.window:
+            continue  # joined by id
         fa, fb = frames[i].features, frames[j].features
         if not len(fa.descriptors) or not len(fb.descriptors):
             continue

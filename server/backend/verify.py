@@ -78,6 +78,9 @@ class KeyframeFeatures:
         camera: the colour camera's intrinsics and distortion.
         octave: int (N,) ORB pyramid level of each keypoint (0 = full resolution), or None
             (unknown; bundle adjustment then weighs all as level 0).
+        point_id: int64 (N,) the edge tracker's map point each keypoint observed, -1 = none
+            (unique within the keyframe's session), or None when the robot sent none; bundle
+            adjustment joins a session's keypoints into tracks by it.
     """
 
     uv: F32
@@ -85,6 +88,7 @@ class KeyframeFeatures:
     descriptors: U8
     camera: PinholeCamera
     octave: NDArray[np.integer] | None = None
+    point_id: NDArray[np.int64] | None = None
 
     def __post_init__(self) -> None:
         uv = np.asarray(self.uv)
@@ -118,6 +122,12 @@ class KeyframeFeatures:
                 raise GeometryError(
                     f"keyframe features: expected octave int ({n},), got {octave.dtype} {octave.shape}")
             object.__setattr__(self, "octave", _readonly(octave))
+        if self.point_id is not None:
+            pid = np.asarray(self.point_id)
+            if pid.shape != (n,) or not np.issubdtype(pid.dtype, np.integer):
+                raise GeometryError(
+                    f"keyframe features: expected point_id int ({n},), got {pid.dtype} {pid.shape}")
+            object.__setattr__(self, "point_id", _readonly(pid.astype(np.int64, copy=False)))
 
     def __len__(self) -> int:
         return int(self.uv.shape[0])
@@ -126,7 +136,7 @@ class KeyframeFeatures:
     def from_keypoints(keypoints: Keypoints, camera: PinholeCamera) -> KeyframeFeatures:
         """The features of a wire :class:`~wardmap.shared.wire.Keypoints` seen by ``camera``."""
         return KeyframeFeatures(keypoints.uv, keypoints.depth_m, keypoints.descriptors, camera,
-                                keypoints.octave)
+                                keypoints.octave, keypoints.point_id)
 
 
 @dataclass(frozen=True)

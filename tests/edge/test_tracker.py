@@ -269,3 +269,43 @@ def test_the_motion_model_extrapolates_over_a_gap_but_not_over_jitter(aisle_clip
     np.testing.assert_allclose(tracker._motion_step(last + 2 * dt), se3_exp(2 * se3_log(step)), atol=1e-12)
     capped = se3_exp(min(10 * dt, 0.2) / dt * se3_log(step))
     np.testing.assert_allclose(tracker._motion_step(last + 10 * dt), capped, atol=1e-12)
+
+
+def test_keyframe_point_ids_name_one_world_point(aisle_clip: Path) -> None:
+    """Keypoints of two keyframes with the same map point id see the same world point (their
+    depths back-projected with ground-truth poses meet within a few cm), no id repeats within a
+    keyframe, and most keypoints with depth carry one."""
+    reader = DatasetReader(aisle_clip)
+    gt = reader.groundtruth()
+    assert gt is not None
+    tracker = Tracker(reader.calibration, TrackerConfig())
+    seen: dict[int, list[np.ndarray]] = {}
+    n_kf, with_depth, with_id = 0, 0, 0
+    for f in _frames(reader, 50):
+        res = tracker.track(f)
+        if not res.keyframe or res.features is None:
+            continue
+        ids = res.point_ids
+        assert ids is not None and ids.dtype == np.int64 and ids.shape == (len(res.features.uv),)
+        named = ids[ids >= 0]
+        assert len(np.unique(named)) == len(named)
+        n_kf += 1
+        T = pose_at(gt[0], gt[1], f.stamp)
+        assert T is not None and f.depth_m is not None
+        uv = res.features.uv.astype(np.float64)
+        rows, cols = np.rint(uv[:, 1]).astype(int), np.rint(uv[:, 0]).astype(int)
+        h, w = f.depth_m.shape
+        z = f.depth_m[rows.clip(0, h - 1), cols.clip(0, w - 1)].astype(float)
+        good = np.isfinite(z) & (z > 0.3) & (z < 6.0)
+        with_depth += int(good.sum())
+        with_id += int((good & (ids >= 0)).sum())
+        pts = tracker.cam.unproject(uv[good], z[good]) @ T[:3, :3].T + T[:3, 3]
+        for pid, p in zip(ids[good].tolist(), pts, strict=True):
+            if pid >= 0:
+                seen.setdefault(pid, []).append(p)
+    spread = [float(np.linalg.norm(p - ps[0])) for ps in seen.values() if len(ps) > 1 for p in ps[1:]]
+    assert n_kf >= 4
+    assert with_id > 0.9 * with_depth
+    assert len(spread) > 300
+    p50, p95 = np.percentile(spread, [50, 95])
+    assert p50 < 0.02 and p95 < 0.10, (p50, p95)

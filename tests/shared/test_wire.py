@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 import math
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any, get_args
 
 import cv2
@@ -65,8 +66,11 @@ def assert_keyframes_equal(a: KeyframeMsg, b: KeyframeMsg) -> None:
     else:
         assert b.T_map_odom is not None
         np.testing.assert_allclose(a.T_map_odom, b.T_map_odom, atol=1e-12)
-    for name in ("uv", "octave", "angle_deg", "depth_m", "descriptors"):
+    for name in ("uv", "octave", "angle_deg", "depth_m", "descriptors", "point_id"):
         x, y = getattr(a.keypoints, name), getattr(b.keypoints, name)
+        if x is None:
+            assert y is None, name
+            continue
         assert x.dtype == y.dtype and np.array_equal(x, y), name
     assert a.rgb_jpeg == b.rgb_jpeg
     assert a.depth == b.depth and a.thermal == b.thermal
@@ -108,6 +112,20 @@ def test_int16_octaves_round_trip() -> None:
     back = wire.decode_keyframe(wire.encode(msg16))
     assert back.keypoints.octave.dtype == np.int16
     assert back.keypoints.octave.tolist() == [-1, 0, 1, 2, 31]
+
+
+def test_point_ids_are_optional_and_round_trip() -> None:
+    """Map point ids travel as int64 when the robot sends them and are absent (not an empty
+    array) when it does not: a keyframe from a robot without them decodes without them."""
+    rng = np.random.default_rng(4)
+    msg = full_keyframe(rng, n=6)
+    assert msg.keypoints.point_id is not None
+    back = wire.decode_keyframe(wire.encode(msg))
+    assert back.keypoints.point_id is not None and back.keypoints.point_id.dtype == np.int64
+    assert back.keypoints.point_id.tolist() == [-1, 1001, 1002, 1003, 1004, -1]
+    plain = replace(msg, keypoints=replace(msg.keypoints, point_id=None))
+    assert "point_id" not in wire_dict(plain)["keypoints"]
+    assert wire.decode_keyframe(wire.encode(plain)).keypoints.point_id is None
 
 
 def test_pose_through_quaternion_is_rigid_and_close() -> None:
@@ -348,6 +366,10 @@ KEYFRAME_CASES: list[tuple[str, Mutation, str]] = [
     ("keypoint depth negative", _array_values("depth_m", "<f4", -1.0), "keypoints.depth_m"),
     ("descriptors wrong shape", _set("keypoints.descriptors.shape", [20, 16]), "keypoints.descriptors"),
     ("keypoints extra field", _set("keypoints.score", 1), "keypoints.score"),
+    ("point_id float", _set("keypoints.point_id.dtype", "float32"), "keypoints.point_id.dtype"),
+    ("point_id int16", _set("keypoints.point_id.dtype", "int16"), "keypoints.point_id.dtype"),
+    ("point_id count mismatch", _set("keypoints.point_id.shape", [3]), "keypoints.point_id.data"),
+    ("point_id below -1", _array_values("point_id", "<i8", -2), "keypoints.point_id"),
     ("unknown top-level field", _set("bogus", 1), "bogus"),
     ("both camera sources", _both_cameras, "intrinsics"),
     ("no camera source", _delete("intrinsics"), "intrinsics"),

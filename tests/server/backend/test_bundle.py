@@ -27,7 +27,10 @@ def _scene(rng: np.random.Generator, n_frames: int = 24) -> tuple[list[np.ndarra
     return truth, pts, desc
 
 
-def _features(rng: np.random.Generator, T: np.ndarray, pts: np.ndarray, desc: np.ndarray) -> KeyframeFeatures:
+def _features(rng: np.random.Generator, T: np.ndarray, pts: np.ndarray, desc: np.ndarray, *,
+              ids: bool = False, scramble: bool = False) -> KeyframeFeatures:
+    """The frame's view of the wall; ``ids``: each keypoint's map point id is its wall point's
+    index; ``scramble``: descriptors drawn afresh in every view (no descriptor match exists)."""
     Ti = inverse(T)
     pc = pts @ Ti[:3, :3].T + Ti[:3, 3]
     uv = np.stack([CAM.fx * pc[:, 0] / pc[:, 2] + CAM.cx, CAM.fy * pc[:, 1] / pc[:, 2] + CAM.cy], 1)
@@ -41,7 +44,10 @@ def _features(rng: np.random.Generator, T: np.ndarray, pts: np.ndarray, desc: np
     for row, bits in zip(d, flips, strict=True):
         for b in bits:
             row[b // 8] ^= np.uint8(1 << (b % 8))
-    return KeyframeFeatures(uv_noisy.astype(np.float32), z.astype(np.float32), d, CAM)
+    if scramble:
+        d = rng.integers(0, 256, size=d.shape, dtype=np.uint8)
+    return KeyframeFeatures(uv_noisy.astype(np.float32), z.astype(np.float32), d, CAM,
+                            point_id=idx.astype(np.int64) if ids else None)
 
 
 def _errors(poses: list[np.ndarray], truth: list[np.ndarray]) -> tuple[float, float]:
@@ -157,6 +163,50 @@ def test_frames_of_other_chains_only_pair_as_revisits() -> None:
     assert t < 0.02 and r < 0.3
 
 
+def _drifting(truth: list[np.ndarray]) -> list[np.ndarray]:
+    drift = make_transform(so3_exp([0.0, np.radians(0.025), np.radians(0.015)]), [0.001, 0.0005, 0.0])
+    init, acc = [], np.eye(4)
+    for G in truth:
+        init.append(G @ acc)
+        acc = acc @ drift
+    return init
+
+
+def test_exact_tracks_join_keypoints_by_map_point_id() -> None:
+    """Descriptors that never match between views but the tracker's map point ids: the tracks
+    come from the ids and the drift goes; with exact tracks off nothing is matched and the
+    initial poses stay (only the weak priors act)."""
+    rng = np.random.default_rng(7)
+    truth, pts, desc = _scene(rng)
+    init = _drifting(truth)
+    frames = [BundleFrame(i, T, _features(rng, G, pts, desc, ids=True, scramble=True), chain="s")
+              for i, (T, G) in enumerate(zip(init, truth, strict=True))]
+    before = _errors(init, truth)
+    res = bundle_adjust(frames, BundleConfig())
+    after = _errors([res.poses[i] for i in range(len(frames))], truth)
+    assert res.landmarks > 500 and res.observations > 3000
+    assert after[0] < 0.01 and after[1] < 0.15, (before, after)
+    off = bundle_adjust(frames, BundleConfig(tracks="descriptors"))
+    assert off.landmarks == 0
+    assert _errors([off.poses[i] for i in range(len(frames))], truth)[0] > 0.8 * before[0]
+
+
+def test_map_point_ids_join_only_within_their_chain() -> None:
+    """Two sessions reuse the same id numbers for different points: ids never join across
+    chains (that takes a descriptor match of a revisit, none here)."""
+    rng = np.random.default_rng(9)
+    truth, pts, desc = _scene(rng, n_frames=8)
+    frames = []
+    for i, G in enumerate(truth):
+        f = _features(rng, G, pts, desc, ids=True, scramble=True)
+        if i >= 4:  # the second session numbers its points differently
+            f = KeyframeFeatures(f.uv, f.depth_m, f.descriptors, CAM, point_id=np.asarray(f.point_id) + 7)
+        frames.append(BundleFrame(i, G, f, chain=i // 4))
+    res = bundle_adjust(frames, BundleConfig(revisit_radius_m=1.0))
+    one_chain = sum(bundle_adjust(part, BundleConfig()).landmarks for part in (frames[:4], frames[4:]))
+    assert res.landmarks == one_chain
+
+
 def test_bad_input_is_refused() -> None:
     rng = np.random.default_rng(1)
     truth, pts, desc = _scene(rng, n_frames=2)
@@ -169,3 +219,5 @@ def test_bad_input_is_refused() -> None:
         bundle_adjust([BundleFrame(0, truth[0], f), BundleFrame(1, truth[1], other)])
     with pytest.raises(GeometryError, match="window"):
         BundleConfig(window=0)
+    with pytest.raises(GeometryError, match="tracks"):
+        BundleConfig(tracks="nearest")  # type: ignore[arg-type]
