@@ -55,11 +55,15 @@ session anchors the map. Scores (definitions in ``wardmap.tools.backend_eval``):
   objects moved between hospital_days' two days are counted apart: two places, two landmarks
   is right for them).
 
+The back-end runs with its defaults, the bundle adjustment after loops included, but in the
+back-end's thread (``bundle_process`` off) so that runs repeat exactly; ``--no-bundle`` turns
+it off, ``--tracks`` picks how its tracks join (``BundleConfig.tracks``).
+
 One core: OpenCV, numba and BLAS threads = 1.
 
     python bench/backend.py [--data out/bench_data] [--seeds 2001 ...] [--tune] [--only SCENARIO ...]
-                            [--scale 5000] [--no-scale | --scale-only] [--objects] [--write BENCHMARKS.md]
-                            [--plot DIR]
+                            [--scale 5000] [--no-scale | --scale-only] [--objects] [--no-bundle]
+                            [--tracks both|ids|descriptors] [--write BENCHMARKS.md] [--plot DIR]
 """
 
 from __future__ import annotations
@@ -749,10 +753,10 @@ def main() -> int:
     ap.add_argument("--no-scale", action="store_true", help="skip the scaled run")
     ap.add_argument("--scale-only", action="store_true", help="only the scaled run (its own section)")
     ap.add_argument("--objects", action="store_true", help="also compare object maps (slower)")
-    ap.add_argument("--bundle", action="store_true",
-                    help="bundle-adjust after loops (BackendConfig.bundle_enabled; off by default)")
+    ap.add_argument("--no-bundle", action="store_true",
+                    help="no bundle adjustment after loops (BackendConfig.bundle_enabled off)")
     ap.add_argument("--tracks", choices=get_args(TrackSource), default=BundleConfig.tracks,
-                    help="with --bundle: how tracks join within a session (BundleConfig.tracks; "
+                    help="how the bundle adjustment's tracks join within a session (BundleConfig.tracks; "
                          "descriptors: the adjustment before map point ids)")
     ap.add_argument("--write", type=Path, help="update this markdown file's backend section")
     ap.add_argument("--plot", type=Path, metavar="DIR",
@@ -767,7 +771,7 @@ def main() -> int:
     with_tum = not args.scale_only and (args.only is None or "tum" in args.only)
     # in the back-end's thread: each adjustment joins the graph at the keyframe whose loop started
     # it, so runs repeat exactly (the server runs it in a child process, joining a few keyframes later)
-    config = BackendConfig(bundle_enabled=args.bundle, bundle_process=False,
+    config = BackendConfig(bundle_enabled=not args.no_bundle, bundle_process=False,
                            bundle=BundleConfig(tracks=args.tracks))
     scores: list[RunScore] = []
     objects: list[ObjectScore] = []
@@ -804,7 +808,7 @@ def main() -> int:
         "python bench/backend.py" + (" --tune" if args.tune else f" --seeds {' '.join(map(str, seeds))}")
         + (f" --only {' '.join(args.only)}" if args.only else "")
         + (" --objects" if args.objects else "")
-        + (" --bundle" if args.bundle else "")
+        + (" --no-bundle" if args.no_bundle else "")
         + (f" --tracks {args.tracks}" if args.tracks != BundleConfig.tracks else "")
         + " --write BENCHMARKS.md"
     )
@@ -828,7 +832,9 @@ def main() -> int:
         "Alignment at the first keyframe: the session's T_map_odom relative to the session that "
         "anchored the map, against ground truth; map pose at the last keyframe: the T_map_odom the "
         "robot holds at its end applied to its last keyframe, against that camera's ground truth. "
-        "Definitions in `wardmap/tools/backend_eval.py` and the script's docstring.",
+        "Definitions in `wardmap/tools/backend_eval.py` and the script's docstring. Bundle adjustment "
+        + (f"after loops on (tracks: {args.tracks}), in the back-end's thread so that runs repeat."
+           if not args.no_bundle else "off."),
         "",
         "**Summary (per scenario over seeds)**; the command also prints each seed's loop closures "
         "and each session's trajectory and anchoring.",

@@ -27,6 +27,7 @@ from wardmap.shared.dataset import Frame
 from wardmap.shared.errors import WardmapError
 from wardmap.shared.se3 import inverse
 from wardmap.shared.wire import (
+    POINT_ID_MODULUS,
     Intrinsics,
     KeyframeMsg,
     Keypoints,
@@ -103,7 +104,8 @@ def build_keyframe_msg(
         angle_deg=np.clip(feats.angle_deg, 0.0, 360.0).astype(np.float32),
         depth_m=kp_depth,
         descriptors=np.ascontiguousarray(feats.descriptors, np.uint8),
-        point_id=None if point_id is None else np.ascontiguousarray(point_id, np.int64),
+        point_id=None if point_id is None else np.where(
+            point_id >= 0, point_id % POINT_ID_MODULUS, -1).astype(np.int32),
     )
     rgb, thermal_k = frame.rgb, frame.thermal_k
     if config.privacy != "off":

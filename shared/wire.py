@@ -50,6 +50,12 @@ MAX_MESSAGE_BYTES: Final = 4 * 2**20
 """Largest payload :func:`decode` accepts by default and :func:`encode` produces (4 MiB)."""
 MAX_KEYPOINTS: Final = 16384
 """Most keypoints one keyframe may carry."""
+POINT_ID_MODULUS: Final = 2**31
+"""Map point ids travel modulo this (int32, ``Keypoints.point_id``)."""
+POINT_ID_SPAN: Final = POINT_ID_MODULUS // MAX_KEYPOINTS
+"""Keypoints with one wire id are one point only in keyframes of a session fewer than this
+many apart in ``seq`` (131072): a robot making fewer than :data:`MAX_KEYPOINTS` points per
+keyframe sent does not come round to an id within that span."""
 MAX_IMAGE_SIDE: Final = 8192
 """Largest width or height in pixels of any image on the wire."""
 MAX_DECODED_BYTES: Final = 48 * 2**20
@@ -92,7 +98,7 @@ _ID_RE: Final = re.compile(r"[A-Za-z0-9_.\-]{1,64}")
 _CALIB_REF_RE: Final = re.compile(r"[A-Za-z0-9_.:\-]{1,128}")
 _UINT63: Final = 2**63
 _DTYPES: Final[Mapping[str, np.dtype[Any]]] = MappingProxyType({
-    name: np.dtype(name).newbyteorder("<") for name in ("float32", "int8", "int16", "int64", "uint8")
+    name: np.dtype(name).newbyteorder("<") for name in ("float32", "int8", "int16", "int32", "uint8")
 })
 """Array dtypes allowed on the wire (little-endian)."""
 _UNPACK_LIMITS: Final = {
@@ -467,9 +473,11 @@ class Keypoints:
         angle_deg: float32 (N,) orientation in degrees, [0, 360].
         depth_m: float32 (N,) depth along the camera's z axis in metres, 0 = none.
         descriptors: uint8 (N, 32) binary descriptors (ORB, 256 bits).
-        point_id: int64 (N,) the tracker's map point each keypoint observed, -1 = none; ids
-            name one point within a session (keypoints of two keyframes with one id saw the
-            same point), or None when the robot does not send them.
+        point_id: int32 (N,) the tracker's map point each keypoint observed or made, -1 =
+            none, else in [0, 2**31): the robot numbers its points modulo 2**31, so an id names
+            one point among the keyframes of a session fewer than :data:`POINT_ID_SPAN` apart
+            (keypoints of two such keyframes with one id saw the same point); None when the
+            robot does not send them.
     """
 
     uv: F32
@@ -477,7 +485,7 @@ class Keypoints:
     angle_deg: F32
     depth_m: F32
     descriptors: NDArray[np.uint8]
-    point_id: NDArray[np.int64] | None = None
+    point_id: NDArray[np.int32] | None = None
 
     def __post_init__(self) -> None:
         uv = _check_array(self.uv, "keypoints.uv", ("float32",), (None, 2))
@@ -498,7 +506,7 @@ class Keypoints:
         if n and checked["depth_m"].min() < 0:
             raise _fail("keypoints.depth_m", "expected values >= 0 (0 = no depth)")
         if self.point_id is not None:
-            checked["point_id"] = _check_array(self.point_id, "keypoints.point_id", ("int64",), (n,))
+            checked["point_id"] = _check_array(self.point_id, "keypoints.point_id", ("int32",), (n,))
             if n and checked["point_id"].min() < -1:
                 raise _fail("keypoints.point_id", "expected values >= -1 (-1 = no map point)")
         for name, arr in checked.items():
@@ -755,7 +763,7 @@ _KEYPOINT_LAYOUT: Final[Mapping[str, tuple[tuple[str, ...], tuple[int | None, ..
     "angle_deg": (("float32",), (None,)),
     "depth_m": (("float32",), (None,)),
     "descriptors": (("uint8",), (None, 32)),
-    "point_id": (("int64",), (None,)),
+    "point_id": (("int32",), (None,)),
 })
 """Wire dtypes and shapes (None = the keypoint count N) of the keypoint arrays."""
 

@@ -116,7 +116,7 @@ def full_keyframe(rng: np.random.Generator, *, thermal: bool = True, intrinsics:
     keypoints; thermal when ``thermal``; intrinsics with distortion when ``intrinsics``, else a
     calibration reference; ``T_odom_base`` and ``T_map_odom`` when ``base``; map point ids on
     the keypoints (every fifth -1)."""
-    ids = np.where(np.arange(n) % 5 == 0, -1, np.arange(n) + 1000).astype(np.int64)
+    ids = np.where(np.arange(n) % 5 == 0, -1, np.arange(n) + 1000).astype(np.int32)
     return KeyframeMsg(
         robot_id="robot_0",
         session_id="2024-05-01T10.00_a",

@@ -37,6 +37,7 @@ from numpy.typing import NDArray
 from wardmap.server.backend.verify import KeyframeFeatures
 from wardmap.shared.errors import GeometryError
 from wardmap.shared.hamming import knn2
+from wardmap.shared.wire import POINT_ID_SPAN
 
 F64 = NDArray[np.float64]
 
@@ -116,6 +117,9 @@ class BundleFrame:
             window pairs only frames of one chain, revisits pair any.
         up: (3,) unit vector, the map's up direction, for a frame of a robot on a level floor
             (adds the level prior, :attr:`BundleConfig.level_sigmas`), or None.
+        seq: the keyframe's number in its chain (the wire's ``seq``): map point ids join
+            keypoints only of frames fewer than :data:`~wardmap.shared.wire.POINT_ID_SPAN`
+            apart (ids travel modulo 2**31).
     """
 
     key: Hashable
@@ -123,6 +127,7 @@ class BundleFrame:
     features: KeyframeFeatures
     chain: Hashable = None
     up: F64 | None = None
+    seq: int = 0
 
 
 @dataclass(frozen=True)
@@ -263,15 +268,21 @@ def _pairs(frames: Sequence[BundleFrame], cfg: BundleConfig) -> list[tuple[int, 
 
 
 def _id_tracks(frames: Sequence[BundleFrame], tracks: _Tracks) -> None:
-    """Join keypoints of one chain with the same map point id (exact tracks)."""
+    """Join keypoints of one chain with the same map point id, in frames fewer than
+    ``POINT_ID_SPAN`` apart (frames of a chain come in ``seq`` order)."""
     first: dict[tuple[Hashable, int], tuple[int, int]] = {}
     for k, f in enumerate(frames):
         pid = f.features.point_id
         if pid is None:
             continue
         for p in np.flatnonzero(pid >= 0).tolist():
-            at = first.setdefault((f.chain, int(pid[p])), (k, p))
-            if at[0] != k:
+            key = (f.chain, int(pid[p]))
+            at = first.setdefault(key, (k, p))
+            if at[0] == k:
+                continue
+            if abs(f.seq - frames[at[0]].seq) >= POINT_ID_SPAN:
+                first[key] = (k, p)  # the id came round: another point
+            else:
                 tracks.join(at, (k, p))
 
 

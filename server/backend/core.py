@@ -109,9 +109,8 @@ class BackendConfig:
         bundle_enabled: after a loop edge between anchored keyframes, bundle-adjust the
             sessions it joins (``bundle``; ground robots' keyframes with a level prior) and tie
             their consecutive keyframes by ``bundle`` edges (ORB-SLAM2's global bundle
-            adjustment after loop closure); off by default: it lowers the error of four
-            evaluation scenarios but raises ward_chairs' on two worlds of five (decisions 0035,
-            0036) ...
+            adjustment after loop closure; tracks from the edge's map point ids and descriptor
+            matches, decision 0044) ...
         bundle_process: ... in a child process while the back-end goes on, its result added
             when it is there (``bundle_worker.py``; one at a time: a loop while one runs starts
             none); False: in the back-end thread, which waits for it (deterministic: for
@@ -146,7 +145,7 @@ class BackendConfig:
     check_deg: float = 30.0
     rebuild_move_m: float = 0.02
     loop_gap: int = 10
-    bundle_enabled: bool = False
+    bundle_enabled: bool = True
     bundle_process: bool = True
     bundle: BundleConfig = field(default_factory=BundleConfig)
     bundle_min_pairs: int = 30
@@ -528,7 +527,7 @@ class BackendCore:
             if est is not None and feats is not None:
                 node = self._nodes[self._row[k]]
                 up = est[:3, :3] @ node.T_odom_camera[:3, :3].T @ _UP if self._on_floor(s) else None
-                frames.append(BundleFrame(k, est, feats, chain=s, up=up))
+                frames.append(BundleFrame(k, est, feats, chain=s, up=up, seq=k[2]))
         if len(frames) < 2:
             return None
         if self._worker is not None:

@@ -78,8 +78,8 @@ class KeyframeFeatures:
         camera: the colour camera's intrinsics and distortion.
         octave: int (N,) ORB pyramid level of each keypoint (0 = full resolution), or None
             (unknown; bundle adjustment then weighs all as level 0).
-        point_id: int64 (N,) the edge tracker's map point each keypoint observed, -1 = none
-            (unique within the keyframe's session), or None when the robot sent none; bundle
+        point_id: int (N,) the edge tracker's map point each keypoint observed, -1 = none
+            (the wire's ``keypoints.point_id``), or None when the robot sent none; bundle
             adjustment joins a session's keypoints into tracks by it.
     """
 
@@ -88,7 +88,7 @@ class KeyframeFeatures:
     descriptors: U8
     camera: PinholeCamera
     octave: NDArray[np.integer] | None = None
-    point_id: NDArray[np.int64] | None = None
+    point_id: NDArray[np.integer] | None = None
 
     def __post_init__(self) -> None:
         uv = np.asarray(self.uv)

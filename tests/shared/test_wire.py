@@ -115,13 +115,13 @@ def test_int16_octaves_round_trip() -> None:
 
 
 def test_point_ids_are_optional_and_round_trip() -> None:
-    """Map point ids travel as int64 when the robot sends them and are absent (not an empty
+    """Map point ids travel as int32 when the robot sends them and are absent (not an empty
     array) when it does not: a keyframe from a robot without them decodes without them."""
     rng = np.random.default_rng(4)
     msg = full_keyframe(rng, n=6)
     assert msg.keypoints.point_id is not None
     back = wire.decode_keyframe(wire.encode(msg))
-    assert back.keypoints.point_id is not None and back.keypoints.point_id.dtype == np.int64
+    assert back.keypoints.point_id is not None and back.keypoints.point_id.dtype == np.int32
     assert back.keypoints.point_id.tolist() == [-1, 1001, 1002, 1003, 1004, -1]
     plain = replace(msg, keypoints=replace(msg.keypoints, point_id=None))
     assert "point_id" not in wire_dict(plain)["keypoints"]
@@ -368,8 +368,9 @@ KEYFRAME_CASES: list[tuple[str, Mutation, str]] = [
     ("keypoints extra field", _set("keypoints.score", 1), "keypoints.score"),
     ("point_id float", _set("keypoints.point_id.dtype", "float32"), "keypoints.point_id.dtype"),
     ("point_id int16", _set("keypoints.point_id.dtype", "int16"), "keypoints.point_id.dtype"),
+    ("point_id int64", _set("keypoints.point_id.dtype", "int64"), "keypoints.point_id.dtype"),
     ("point_id count mismatch", _set("keypoints.point_id.shape", [3]), "keypoints.point_id.data"),
-    ("point_id below -1", _array_values("point_id", "<i8", -2), "keypoints.point_id"),
+    ("point_id below -1", _array_values("point_id", "<i4", -2), "keypoints.point_id"),
     ("unknown top-level field", _set("bogus", 1), "bogus"),
     ("both camera sources", _both_cameras, "intrinsics"),
     ("no camera source", _delete("intrinsics"), "intrinsics"),

@@ -11,6 +11,7 @@ from wardmap.server.backend.verify import KeyframeFeatures
 from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.errors import GeometryError
 from wardmap.shared.se3 import inverse, make_transform, rotation_angle, so3_exp
+from wardmap.shared.wire import POINT_ID_SPAN
 
 CAM = PinholeCamera(640, 480, 525.0, 525.0, 319.5, 239.5)
 
@@ -205,6 +206,19 @@ def test_map_point_ids_join_only_within_their_chain() -> None:
     res = bundle_adjust(frames, BundleConfig(revisit_radius_m=1.0))
     one_chain = sum(bundle_adjust(part, BundleConfig()).landmarks for part in (frames[:4], frames[4:]))
     assert res.landmarks == one_chain
+
+
+def test_map_point_ids_join_only_frames_within_the_id_span() -> None:
+    """Ids travel modulo 2**31: the same id in frames POINT_ID_SPAN or more apart in seq is
+    another point and joins nothing."""
+    rng = np.random.default_rng(9)
+    truth, pts, desc = _scene(rng, n_frames=4)
+    feats = [_features(rng, G, pts, desc, ids=True, scramble=True) for G in truth]
+    near = [BundleFrame(i, G, f, chain="s", seq=i) for i, (G, f) in enumerate(zip(truth, feats, strict=True))]
+    far = [BundleFrame(i, G, f, chain="s", seq=i * POINT_ID_SPAN)
+           for i, (G, f) in enumerate(zip(truth, feats, strict=True))]
+    assert bundle_adjust(near, BundleConfig()).landmarks > 100
+    assert bundle_adjust(far, BundleConfig()).landmarks == 0
 
 
 def test_bad_input_is_refused() -> None:
