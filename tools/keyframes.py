@@ -55,8 +55,8 @@ __all__ = [
 ]
 
 F64 = NDArray[np.float64]
-CACHE_FORMAT = 2
-"""2: keypoints carry the tracker's map point ids (``Keypoints.point_id``)."""
+CACHE_FORMAT = 3
+"""3: keypoints carry the tracker's map point ids (``Keypoints.point_id``, int32)."""
 INDEX = "keyframes.json"
 
 
