@@ -50,7 +50,7 @@ def _track(source: str, out: Path, *extra: str) -> np.ndarray:
 
 def test_sim_scenario_as_ros2_bag_and_mcap_tracks_like_the_folder(sim: Path, tmp_path: Path) -> None:
     """Raw colour with 32FC1 depth in a ROS 2 bag (sqlite3) and one MCAP file: the trajectory is
-    identical to the folder's (same frames, same odometry poses, same camera mount); PNG colour
+    the folder's to its last printed digit (same frames, same odometry poses, same camera mount); PNG colour
     with 16UC1 millimetre depth in a ROS 1 bag is within 1 mm ATE of it (depth quantised)."""
     _ok("dataset", "to-bag", str(sim), "--out", str(tmp_path / "ros2"))
     _ok("dataset", "to-bag", str(sim), "--out", str(tmp_path / "sim.mcap"))
@@ -58,7 +58,10 @@ def test_sim_scenario_as_ros2_bag_and_mcap_tracks_like_the_folder(sim: Path, tmp
     folder = _track(str(sim), tmp_path / "folder.txt")
     assert len(folder) == SIM_FRAMES
     for name in ("ros2", "sim.mcap"):
-        np.testing.assert_array_equal(_track(f"bag:{tmp_path / name}", tmp_path / f"{name}.txt"), folder)
+        # the file's 9 decimals: OpenCV 5 can differ by one ulp between the two decoders' arrays,
+        # which may flip the last printed digit (seen once in 96 values), nothing more
+        np.testing.assert_allclose(_track(f"bag:{tmp_path / name}", tmp_path / f"{name}.txt"), folder,
+                                   rtol=0, atol=1.5e-9)
     mm = _track(f"bag:{tmp_path / 'sim.bag'}", tmp_path / "mm.txt")
     from wardmap.shared.se3 import transform_from_tum
 
