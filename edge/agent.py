@@ -746,10 +746,12 @@ class EdgeAgent:
         out: dict[str, int | float] = {"received": 0, "dropped": 0, "tracked": frames - lost,
                                        "reconnects": int(getattr(self.source, "reconnects", 0)),
                                        "source_up": int(bool(getattr(self.source, "up", True))),
-                                       "source_dropped": int(getattr(self.source, "dropped_frames", 0))}
+                                       "source_dropped": 0}
         stream = self._stream
         if stream is not None:
-            out.update(received=stream.received, dropped=stream.dropped + stream.late)
+            counted = stream.counters()
+            out.update(received=counted["received"], dropped=counted["dropped"] + counted["late"],
+                       source_dropped=counted["source_dropped"])
         T = self._frame_pose
         if T is not None:
             x, y, z = (round(float(v), 3) for v in T[:3, 3])
