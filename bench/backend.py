@@ -106,8 +106,11 @@ from wardmap.tools.backend_eval import (
     alignment_error,
     check_closure,
     duplicated_objects,
+    fit_to_world,
+    fitted_alignment_error,
     frame_rmse,
     majority_object,
+    map_ate,
     pair_landmarks,
     pose_error,
     pose_graph_floor,
@@ -244,6 +247,8 @@ class SessionScore:
     end: tuple[float, float] | None
     floor_cm: float | None = None
     same_place: list[tuple[float, float]] = field(default_factory=list)
+    fitted: tuple[float, float] | None = None
+    """Session alignment, trajectories fitted (m, deg), relative to the map's first session."""
 
 
 @dataclass
@@ -261,6 +266,8 @@ class RunScore:
     rejected: Counter[str]
     bundle_ms: list[float]
     """Bundle adjustments' wall time (ms), one per adjustment run."""
+    map_cm: float | None = None
+    """Map ATE (cm): every session's final keyframes under one rigid fit."""
 
     @property
     def false(self) -> int:
@@ -319,6 +326,11 @@ def score(scenario: str, seed: int, core: BackendCore, steps: list[Step]) -> Run
                              [s.truth for s in posed], core.cfg.graph)
     posed_keys = [s.key for s in posed]
     posed_est = [core.estimate(k) for k in posed_keys]
+    on_map = [(T, s.truth) for T, s in zip(posed_est, posed, strict=True) if T is not None]
+    map_cm = 100 * map_ate([e for e, _ in on_map], [t for _, t in on_map]) if len(on_map) >= 3 else None
+    ref_posed = [(core.estimate(s.key), s.truth) for s in ref if s.truth is not None]
+    ref_fit = (fit_to_world([e for e, _ in ref_posed], [t for _, t in ref_posed], rotation="orientations")
+               if len(ref_posed) >= 3 and all(e is not None for e, _ in ref_posed) else None)
     out = []
     for session, ss in sessions.items():
         posed_ss = [s for s in ss if s.truth is not None]
@@ -353,15 +365,19 @@ def score(scenario: str, seed: int, core: BackendCore, steps: list[Step]) -> Run
         floor_cm = (ate_cm(stamps, list(floor_est), gt)
                     if floor_est is not None and len(floor_est) == len(posed_ss) else None)
         same = same_place_errors(posed_keys, [s.truth for s in posed], posed_est, session)
+        fitted = None
+        if ref_fit is not None and server is not None and session != ref[0].key[:2]:
+            cams = [T for T in final if T is not None]
+            fitted = fitted_alignment_error(fit_to_world(cams, gt, rotation="orientations"), ref_fit, cams)
         out.append(SessionScore(session, len(ss), frontend, server, online, len(on), frontend_map, server_map,
-                                kf, at_s, start, end, floor_cm, same))
+                                kf, at_s, start, end, floor_cm, same, fitted))
     closures: Counter[str] = Counter(c.kind for s in steps for c in s.closures)
     rejected: Counter[str] = Counter()
     for s in steps:
         rejected.update(s.rejected)
     return RunScore(scenario, seed, len(steps), closures, checks, len(events), n_recalled, out,
                     [recog_ms(s.ms) for s in steps], [s.ms.get("graph", 0.0) for s in steps], rejected,
-                    [s.ms["bundle"] for s in steps if "bundle" in s.ms])
+                    [s.ms["bundle"] for s in steps if "bundle" in s.ms], map_cm)
 
 
 @dataclass
@@ -436,6 +452,8 @@ class ObjectScore:
     duplicates: tuple[dict[int, int], dict[int, int]]
     moved: tuple[int, int]  # landmarks whose majority object was moved between runs
     left_out: list[str]  # sessions never anchored (not in map b)
+    fitted_offsets_cm: list[float] = field(default_factory=list)  # (b) placed by all keyframes vs (a)
+    fitted_truth_cm: tuple[float, float] | None = None  # its centre error vs truth (median, max)
 
 
 def write_tum(path: Path, poses: list[tuple[float, F64]]) -> Path:
@@ -504,6 +522,12 @@ def object_maps(scenario: str, seed: int, runs: list[Run], core: BackendCore,
     b = associate(measured_b)
     c = associate(measured_c)
     pairs = pair_landmarks(a, b)
+    # (b) placed in the world by all its keyframes (one rigid fit) instead of the first one's
+    # ground truth: its landmarks moved by the difference of the two placements
+    on_map = [(core.estimate(s.key), s.truth) for s in steps if s.truth is not None]
+    on_map = [(T, G) for T, G in on_map if T is not None]
+    fix = fit_to_world([T for T, _ in on_map], [G for _, G in on_map]) @ inverse(T_world_map)
+    b_fit = [dataclasses.replace(lm, T_world_object=fix @ lm.T_world_object) for lm in b]
     conf_a = [lm for lm in a if lm.confirmed]
     conf_b = [lm for lm in b if lm.confirmed]
     centres = object_centres(runs)
@@ -522,22 +546,28 @@ def object_maps(scenario: str, seed: int, runs: list[Run], core: BackendCore,
         (duplicates(a), duplicates(b)),
         (n_moved(conf_a), n_moved(conf_b)),
         left_out,
+        [100 * p.offset_m for p in pair_landmarks(a, b_fit)],
+        truth_error_cm(b_fit, centres),
     )
 
 
 def object_rows(scores: list[ObjectScore]) -> list[str]:
     lines = [
         "| scenario | seed | landmarks (a) back-end, GT start poses / (b) back-end, none | paired "
-        "| offset (b) vs (a) cm mean / max "
+        "| offset (b) vs (a) cm mean / max | offset (b) placed by all keyframes vs (a) cm mean / max "
         "| unpaired (a) / (b) | centre error vs truth cm, median (max): (a) / (b) / (c) "
         "| duplicated objects, moved ones excepted (a) / (b) "
         "| landmarks of moved objects (a) / (b) | sessions left out of (b) |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for o in scores:
         off = f"{np.mean(o.offsets_cm):.1f} / {max(o.offsets_cm):.1f}" if o.offsets_cm else "-"
+        fit = (f"{np.mean(o.fitted_offsets_cm):.1f} / {max(o.fitted_offsets_cm):.1f}"
+               f"{'' if o.fitted_truth_cm is None else f' (centre error {o.fitted_truth_cm[0]:.1f})'}"
+               if o.fitted_offsets_cm else "-")
         lines.append(
-            f"| {o.scenario} | {o.seed} | {o.landmarks[0]} / {o.landmarks[1]} | {len(o.offsets_cm)} | {off} "
+            f"| {o.scenario} | {o.seed} | {o.landmarks[0]} / {o.landmarks[1]} | {len(o.offsets_cm)} "
+            f"| {off} | {fit} "
             f"| {o.unpaired[0]} / {o.unpaired[1]} "
             f"| {' / '.join('-' if x is None else f'{x[0]:.1f} ({x[1]:.0f})' for x in o.truth_cm)} "
             f"| {len(o.duplicates[0])} / {len(o.duplicates[1])} | {o.moved[0]} / {o.moved[1]} "
@@ -609,9 +639,10 @@ def session_rows(scores: list[RunScore]) -> list[str]:
         "| server ATE cm online (keyframes) | frontend / server error cm, unaligned "
         "| pose-graph floor ATE cm (ground-truth loops) "
         "| anchored at keyframe (s after start) "
-        "| alignment at first keyframe cm / deg | map pose at last keyframe: error cm / deg "
+        "| alignment at first keyframe cm / deg | alignment, trajectories fitted cm / deg "
+        "| map pose at last keyframe: error cm / deg "
         "| same-place agreement with other sessions cm median / max, deg max (keyframes) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for s in scores:
         for i, ss in enumerate(s.sessions):
@@ -620,7 +651,8 @@ def session_rows(scores: list[RunScore]) -> list[str]:
                 f"| {s.scenario} | {s.seed} | {ss.session[0]}/{ss.session[1]} | {ss.keyframes} "
                 f"| {fmt(ss.frontend_cm)} | {fmt(ss.server_cm)} | {fmt(ss.online_cm)} ({ss.online_n}) "
                 f"| {fmt(ss.frontend_map_cm)} / {fmt(ss.server_map_cm)} | {fmt(ss.floor_cm)} | {anchored} "
-                f"| {'(map)' if i == 0 else err(ss.start)} | {err(ss.end)} | {same_place(ss.same_place)} |"
+                f"| {'(map)' if i == 0 else err(ss.start)} | {'(map)' if i == 0 else err(ss.fitted)} "
+                f"| {err(ss.end)} | {same_place(ss.same_place)} |"
             )
     return lines
 
@@ -638,9 +670,10 @@ def summary_rows(scores: list[RunScore]) -> list[str]:
         "| scenario | seeds | false closures (all seeds) | precision % (all seeds) | recall % mean / worst "
         "| server ATE cm mean / worst | frontend ATE cm mean / worst | sessions anchored "
         "| pose-graph floor ATE cm mean / worst "
-        "| alignment at first keyframe cm / deg, worst "
+        "| map ATE cm (all sessions, one fit) mean / worst "
+        "| alignment at first keyframe cm / deg, worst | alignment, trajectories fitted cm / deg, worst "
         "| same-place agreement between sessions cm median (worst seed) / max, deg max | goal |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     goals = {
         "hospital_loop": "precision 100 %, server ATE <= 1.5 cm every seed",
@@ -661,6 +694,10 @@ def summary_rows(scores: list[RunScore]) -> list[str]:
         starts = [x.start for s in ss for x in s.sessions[1:] if x.start is not None]
         worst_start = (f"{100 * max(e[0] for e in starts):.2f} / {max(e[1] for e in starts):.2f}"
                        if starts else "-")
+        fits = [x.fitted for s in ss for x in s.sessions[1:] if x.fitted is not None]
+        worst_fit = f"{100 * max(e[0] for e in fits):.2f} / {max(e[1] for e in fits):.2f}" if fits else "-"
+        maps = [s.map_cm for s in ss if s.map_cm is not None]
+        map_txt = f"{fmt(float(np.mean(maps)))} / {fmt(max(maps))}" if maps else "-"
         floors = [x.floor_cm for s in ss for x in s.sessions if x.floor_cm is not None]
         floor_txt = (f"{fmt(float(np.mean(floors)))} / {fmt(max(floors))}" if floors else "-")
         medians = [float(np.median([100 * e[0] for e in x.same_place])) for s in ss for x in s.sessions
@@ -675,7 +712,8 @@ def summary_rows(scores: list[RunScore]) -> list[str]:
             f"| {fmt(mean_recall, '.0f')} / {fmt(worst_recall, '.0f')} "
             f"| {fmt(float(np.mean(server)) if server else None)} / {fmt(max(server) if server else None)} "
             f"| {fmt(float(np.mean(front)) if front else None)} / {fmt(max(front) if front else None)} "
-            f"| {anchored} of {n_sessions} | {floor_txt} | {worst_start} | {same_txt} "
+            f"| {anchored} of {n_sessions} | {floor_txt} | {map_txt} | {worst_start} | {worst_fit} "
+            f"| {same_txt} "
             f"| {goals.get(scenario, '')} |"
         )
     return lines

@@ -23,6 +23,15 @@ camera ``T_world_camera``; the estimate of the back-end is ``T_map_camera``.
   ``T_map_camera_k @ inv(T_odom_camera_k)``. The alignment error of session s relative to a
   reference session r (the one that anchored the map) is the pose error of
   ``inv(T_map_odom_r) @ T_map_odom_s`` against ``inv(T_world_odom_r) @ T_world_odom_s``.
+- **Session alignment, trajectories fitted** (the alignment of two sessions' maps as wholes,
+  not of two single keyframes): each session's estimated cameras are fitted to ground truth by
+  a rigid motion (rotation: chordal mean of the orientation errors; translation: centroids;
+  :func:`fit_to_world`), ``T_world_map_s`` and ``T_world_map_r``; the
+  error is the RMS over session s's keyframes of how far the two fits place each of them apart
+  (``|T_world_map_s p - T_world_map_r p|``) and the rotation angle between the fits. Zero when
+  both sessions' maps are placed alike, whatever their own shape errors (their ATE).
+- **Map ATE**: the estimated camera centres of all sessions fitted to ground truth by one rigid
+  motion (Umeyama, as ATE), translation RMSE: the error of the shared map as one whole.
 - **Same-place agreement** (relative alignment where it matters for a shared map): for each
   keyframe of a session, the keyframe of *another* session nearest in ground truth (camera
   centres within ``radius_m``, optical axes within ``max_deg``); its error is the pose error of
@@ -47,8 +56,10 @@ import math
 from collections import Counter
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
+from evo.core.geometry import umeyama_alignment
 from numpy.typing import ArrayLike, NDArray
 
 from wardmap.server.association.types import Landmark
@@ -65,8 +76,11 @@ __all__ = [
     "alignment_error",
     "check_closure",
     "duplicated_objects",
+    "fit_to_world",
+    "fitted_alignment_error",
     "frame_rmse",
     "majority_object",
+    "map_ate",
     "pair_landmarks",
     "pose_error",
     "pose_graph_floor",
@@ -214,6 +228,50 @@ def frame_rmse(T_world_frame: ArrayLike, T_frame_camera: Sequence[ArrayLike],
     if est.shape != ref.shape or not len(est):
         raise WardmapError(f"frame_rmse: {len(est)} estimates for {len(ref)} reference poses")
     return float(np.sqrt(np.mean(np.sum((est[:, :3, 3] - ref[:, :3, 3]) ** 2, axis=1))))
+
+
+def fit_to_world(T_est: Sequence[ArrayLike], T_ref: Sequence[ArrayLike], *,
+                 rotation: Literal["positions", "orientations"] = "positions") -> F64:
+    """``T_world_map`` (4, 4): the rigid motion (no scale) that best fits the cameras ``T_est``
+    (each (4, 4), in the map) onto ``T_ref`` (ground truth). ``positions``: least squares over
+    camera centres (Umeyama, evo; as ATE); ``orientations``: the rotation is the chordal mean
+    of ``R_ref @ R_est.T`` (well posed also for a camera that turns on the spot), the
+    translation then fits the centroids. Raises WardmapError with fewer than 3 poses or unequal
+    counts."""
+    est = np.asarray(T_est, np.float64).reshape(-1, 4, 4)
+    ref = np.asarray(T_ref, np.float64).reshape(-1, 4, 4)
+    if est.shape != ref.shape or len(est) < 3:
+        raise WardmapError(f"fit_to_world: {len(est)} estimates for {len(ref)} reference poses (need >= 3)")
+    if rotation == "positions":
+        R, t, _ = umeyama_alignment(est[:, :3, 3].T, ref[:, :3, 3].T, with_scale=False)
+    else:
+        U, _, Vt = np.linalg.svd(np.einsum("nij,nkj->ik", ref[:, :3, :3], est[:, :3, :3]))
+        R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+        t = ref[:, :3, 3].mean(0) - R @ est[:, :3, 3].mean(0)
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    return T
+
+
+def fitted_alignment_error(T_world_map: ArrayLike, T_world_map_ref: ArrayLike,
+                           T_map_camera: Sequence[ArrayLike]) -> tuple[float, float]:
+    """Session alignment, trajectories fitted (module docstring): RMS (m) over the session's
+    cameras ``T_map_camera`` (each (4, 4)) of their distance under the session's own fit
+    ``T_world_map`` and the reference session's ``T_world_map_ref`` (both (4, 4)), and the
+    angle (deg) between the fits."""
+    W, Wr = np.asarray(T_world_map, np.float64), np.asarray(T_world_map_ref, np.float64)
+    p = np.asarray(T_map_camera, np.float64).reshape(-1, 4, 4)[:, :3, 3]
+    if not len(p):
+        raise WardmapError("fitted_alignment_error: no cameras")
+    d = p @ (W[:3, :3] - Wr[:3, :3]).T + (W[:3, 3] - Wr[:3, 3])
+    return float(np.sqrt(np.mean(np.sum(d**2, axis=1)))), pose_error(W, Wr)[1]
+
+
+def map_ate(T_est: Sequence[ArrayLike], T_ref: Sequence[ArrayLike]) -> float:
+    """Map ATE (m, module docstring): translation RMSE of ``T_est`` (all sessions' cameras in
+    the map) against ``T_ref`` after one rigid fit (:func:`fit_to_world`)."""
+    W = fit_to_world(T_est, T_ref)
+    return frame_rmse(W, T_est, T_ref)
 
 
 def trajectory_ate(stamps: Sequence[float], T_est: Sequence[ArrayLike], T_ref: Sequence[ArrayLike]) -> float:

@@ -10,14 +10,18 @@ import pytest
 from factories import MeasurementFactory
 
 from wardmap.server.association.types import Landmark
+from wardmap.shared.errors import WardmapError
 from wardmap.shared.se3 import inverse, se3_exp, yaw_transform
 from wardmap.tools.backend_eval import (
     RevisitEvent,
     alignment_error,
     check_closure,
     duplicated_objects,
+    fit_to_world,
+    fitted_alignment_error,
     frame_rmse,
     majority_object,
+    map_ate,
     pair_landmarks,
     pose_error,
     pose_graph_floor,
@@ -200,3 +204,42 @@ def test_the_pose_graph_floor_removes_drift_where_the_session_revisits() -> None
     assert est.shape == (126, 4, 4)
     drifted = trajectory_ate(stamps, odom, truth)
     assert trajectory_ate(stamps, list(est), truth) < 0.3 * drifted
+
+
+def test_fitted_alignment_is_the_placement_of_whole_trajectories() -> None:
+    """Two sessions in one map: the error is how differently their own best fits place them,
+    not their shape (a bent trajectory placed right scores 0), and a map rotated as a whole is
+    no error; one session rotated against the other by 0.5 deg is."""
+    _, ref_truth = circle(40)
+    _, truth = circle(30, radius=3.0, phase=1.0)
+    W = se3_exp(np.array([0.0, 0.0, 0.3, 4.0, -2.0, 0.1]))  # the map in the world, arbitrary
+    est_ref = [inverse(W) @ T for T in ref_truth]
+    est = [inverse(W) @ T for T in truth]
+    Wr, Ws = fit_to_world(est_ref, ref_truth, rotation="orientations"), fit_to_world(est, truth)
+    np.testing.assert_allclose(Wr, W, atol=1e-9)
+    np.testing.assert_allclose(Ws, W, atol=1e-9)
+    m, deg = fitted_alignment_error(Ws, Wr, est)
+    assert m < 1e-9 and deg < 1e-6
+    assert map_ate(est_ref + est, ref_truth + truth) < 1e-9
+    # session s misplaced by a 0.5 deg turn about its own first camera
+    turn = yaw_transform(0.0, 0.0, math.radians(0.5))
+    P = est[0] @ turn @ inverse(est[0])
+    bad = [P @ T for T in est]
+    m, deg = fitted_alignment_error(fit_to_world(bad, truth, rotation="orientations"), Wr, bad)
+    spread = np.sqrt(np.mean([np.sum((T[:3, 3] - est[0][:3, 3]) ** 2) for T in est]))
+    assert deg == pytest.approx(0.5, abs=1e-6)
+    assert m == pytest.approx(spread * math.radians(0.5), rel=0.01)
+    assert map_ate(est_ref + bad, ref_truth + truth) > 0.2 * m
+    # a bend inside a session (shape error) with the same placement: ATE, not misalignment
+    bent = [T.copy() for T in est]
+    for i, T in enumerate(bent):
+        T[2, 3] += 0.01 * math.sin(i)
+    m, deg = fitted_alignment_error(fit_to_world(bent, truth, rotation="orientations"), Wr, bent)
+    assert m < 0.002 and deg < 0.1
+    # a camera turning on the spot: positions say nothing of the rotation, orientations do
+    spin = [yaw_transform(0.0, 0.0, 0.05 * i) @ se3_exp(np.array([0, 0, 0, 1e-4 * (i % 2), 0, 0]))
+            for i in range(20)]
+    np.testing.assert_allclose(fit_to_world([inverse(W) @ T for T in spin], spin, rotation="orientations"),
+                               W, atol=1e-3)
+    with pytest.raises(WardmapError, match="need >= 3"):
+        fit_to_world(est[:2], truth[:2])
