@@ -28,7 +28,10 @@ session anchors the map. Scores (definitions in ``wardmap.tools.backend_eval``):
   truth at the first session's first keyframe (``tools.backend_eval.frame_rmse``);
 - anchoring: when each session was anchored (its keyframes so far, seconds since its start),
   and its alignment error against ground truth relative to the session that anchored the map
-  (map = that session's odom frame at its first keyframe) at its first keyframe; and the error of
+  (map = that session's odom frame at its first keyframe) at its first keyframe, and of the two
+  sessions' trajectories as wholes (each fitted to ground truth by a rigid motion: how far apart
+  the two fits place the session's keyframes, RMS, and the angle between them); the map ATE
+  (every session's keyframes under one rigid fit); and the error of
   the map pose the robot holds at its last keyframe (``T_map_odom`` at the end applied to that
   keyframe's ``T_odom_camera``, in the world by ground truth of the map's first keyframe, against
   its ground-truth camera; at the camera, so not inflated by the lever arm to the odom origin);
@@ -53,7 +56,10 @@ session anchors the map. Scores (definitions in ``wardmap.tools.backend_eval``):
   objects against the nearer of their places; also for (c), a map at ground-truth poses: the
   measurement's own error), ground-truth objects with more than one landmark (duplicates; the
   objects moved between hospital_days' two days are counted apart: two places, two landmarks
-  is right for them).
+  is right for them). Map (b) is also placed in the world by the rigid fit of all its keyframes
+  to ground truth (its landmarks moved by the difference of the two placements) and compared
+  with (a) again; and (b) moved onto (a) by the rigid fit of its paired landmarks' centres:
+  what is left is the two maps' difference in shape, not in placement.
 
 The back-end runs with its defaults, the bundle adjustment after loops included, but in the
 back-end's thread (``bundle_process`` off) so that runs repeat exactly; ``--no-bundle`` turns
@@ -106,6 +112,7 @@ from wardmap.tools.backend_eval import (
     alignment_error,
     check_closure,
     duplicated_objects,
+    fit_pairs,
     fit_to_world,
     fitted_alignment_error,
     frame_rmse,
@@ -454,6 +461,7 @@ class ObjectScore:
     left_out: list[str]  # sessions never anchored (not in map b)
     fitted_offsets_cm: list[float] = field(default_factory=list)  # (b) placed by all keyframes vs (a)
     fitted_truth_cm: tuple[float, float] | None = None  # its centre error vs truth (median, max)
+    shape_offsets_cm: list[float] = field(default_factory=list)  # (b) fitted onto (a) by its landmarks
 
 
 def write_tum(path: Path, poses: list[tuple[float, F64]]) -> Path:
@@ -527,7 +535,7 @@ def object_maps(scenario: str, seed: int, runs: list[Run], core: BackendCore,
     on_map = [(core.estimate(s.key), s.truth) for s in steps if s.truth is not None]
     on_map = [(T, G) for T, G in on_map if T is not None]
     fix = fit_to_world([T for T, _ in on_map], [G for _, G in on_map]) @ inverse(T_world_map)
-    b_fit = [dataclasses.replace(lm, T_world_object=fix @ lm.T_world_object) for lm in b]
+    b_fit = [shifted(lm, fix) for lm in b]
     conf_a = [lm for lm in a if lm.confirmed]
     conf_b = [lm for lm in b if lm.confirmed]
     centres = object_centres(runs)
@@ -548,26 +556,35 @@ def object_maps(scenario: str, seed: int, runs: list[Run], core: BackendCore,
         left_out,
         [100 * p.offset_m for p in pair_landmarks(a, b_fit)],
         truth_error_cm(b_fit, centres),
+        [100 * p.offset_m for p in pair_landmarks(a, [shifted(lm, fit_pairs(pairs)) for lm in b])],
     )
+
+
+def shifted(landmark: Landmark, T: F64) -> Landmark:
+    """``landmark`` moved by ``T`` (4, 4)."""
+    return dataclasses.replace(landmark, T_world_object=T @ landmark.T_world_object)
 
 
 def object_rows(scores: list[ObjectScore]) -> list[str]:
     lines = [
         "| scenario | seed | landmarks (a) back-end, GT start poses / (b) back-end, none | paired "
         "| offset (b) vs (a) cm mean / max | offset (b) placed by all keyframes vs (a) cm mean / max "
+        "| offset (b) fitted onto (a) by its landmarks cm mean / max "
         "| unpaired (a) / (b) | centre error vs truth cm, median (max): (a) / (b) / (c) "
         "| duplicated objects, moved ones excepted (a) / (b) "
         "| landmarks of moved objects (a) / (b) | sessions left out of (b) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for o in scores:
         off = f"{np.mean(o.offsets_cm):.1f} / {max(o.offsets_cm):.1f}" if o.offsets_cm else "-"
         fit = (f"{np.mean(o.fitted_offsets_cm):.1f} / {max(o.fitted_offsets_cm):.1f}"
                f"{'' if o.fitted_truth_cm is None else f' (centre error {o.fitted_truth_cm[0]:.1f})'}"
                if o.fitted_offsets_cm else "-")
+        shape = (f"{np.mean(o.shape_offsets_cm):.1f} / {max(o.shape_offsets_cm):.1f}"
+                 if o.shape_offsets_cm else "-")
         lines.append(
             f"| {o.scenario} | {o.seed} | {o.landmarks[0]} / {o.landmarks[1]} | {len(o.offsets_cm)} "
-            f"| {off} | {fit} "
+            f"| {off} | {fit} | {shape} "
             f"| {o.unpaired[0]} / {o.unpaired[1]} "
             f"| {' / '.join('-' if x is None else f'{x[0]:.1f} ({x[1]:.0f})' for x in o.truth_cm)} "
             f"| {len(o.duplicates[0])} / {len(o.duplicates[1])} | {o.moved[0]} / {o.moved[1]} "

@@ -76,6 +76,7 @@ __all__ = [
     "alignment_error",
     "check_closure",
     "duplicated_objects",
+    "fit_pairs",
     "fit_to_world",
     "fitted_alignment_error",
     "frame_rmse",
@@ -368,6 +369,20 @@ def pair_landmarks(a: Sequence[Landmark], b: Sequence[Landmark], *, max_m: float
         used_b.add(j)
         pairs.append(LandmarkPair(a[i], b[j], d))
     return pairs
+
+
+def fit_pairs(pairs: Sequence[LandmarkPair]) -> F64:
+    """The rigid motion (4, 4, no scale) that best moves the paired landmarks of map b onto
+    their partners in map a (least squares over centres, Umeyama); identity with fewer than 3
+    pairs."""
+    T = np.eye(4)
+    if len(pairs) < 3:
+        return T
+    b = np.stack([p.b.T_world_object[:3, 3] for p in pairs], 1)
+    a = np.stack([p.a.T_world_object[:3, 3] for p in pairs], 1)
+    R, t, _ = umeyama_alignment(b, a, with_scale=False)
+    T[:3, :3], T[:3, 3] = R, t
+    return T
 
 
 def majority_object(landmark: Landmark) -> int | None:

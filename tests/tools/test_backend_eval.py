@@ -17,6 +17,7 @@ from wardmap.tools.backend_eval import (
     alignment_error,
     check_closure,
     duplicated_objects,
+    fit_pairs,
     fit_to_world,
     fitted_alignment_error,
     frame_rmse,
@@ -162,6 +163,21 @@ def test_landmarks_pair_by_category_and_nearest_centre(make_measurement: Measure
     assert sorted((p.a.id, p.b.id) for p in pairs) == [(1, 12), (2, 11)]
     assert sorted(round(p.offset_m, 6) for p in pairs) == [0.03, 0.08]
     assert pair_landmarks(a, b, max_m=0.05)[0].b.id == 11
+
+
+def test_paired_landmarks_fit_one_map_onto_the_other(make_measurement: MeasurementFactory) -> None:
+    """Map b is map a turned by 1 deg and shifted 5 cm: the fit of the pairs undoes it; fewer
+    than three pairs leave the identity."""
+    m = make_measurement
+    spots = [(0.0, 0.0), (5.0, 0.0), (5.0, 4.0), (0.0, 6.0)]
+    a = [landmark(m, i, "chair", x, y, [i]) for i, (x, y) in enumerate(spots)]
+    D = yaw_transform(0.05, -0.02, math.radians(1.0))
+    b = [landmark(m, 10 + i, "chair", *(D @ np.array([x, y, 0.5, 1.0]))[:2], [i])
+         for i, (x, y) in enumerate(spots)]
+    pairs = pair_landmarks(a, b)
+    assert len(pairs) == 4 and max(p.offset_m for p in pairs) > 0.05
+    np.testing.assert_allclose(fit_pairs(pairs), inverse(D), atol=1e-9)
+    np.testing.assert_array_equal(fit_pairs(pairs[:2]), np.eye(4))
 
 
 def test_duplicated_objects_count_confirmed_landmarks(make_measurement: MeasurementFactory) -> None:
