@@ -1,7 +1,7 @@
 """Frame sources named on the command line: a data-set folder, ``bag:PATH``, ``sim:SCENARIO``,
-a camera (``realsense[:SERIAL]``) or live ROS 2 topics (``ros2:[ENDPOINT]``), optionally with a
-UVC thermal camera (``--thermal INDEX``). Cameras and ROS 2 topics are live: they reconnect when
-they go away (:class:`~wardmap.edge.live.ReconnectingSource`).
+a camera (``realsense[:SERIAL]``, ``orbbec[:N]``) or live ROS 2 topics (``ros2:[ENDPOINT]``),
+optionally with a UVC thermal camera (``--thermal INDEX``). Cameras and ROS 2 topics are live:
+they reconnect when they go away (:class:`~wardmap.edge.live.ReconnectingSource`).
 
 The composition root of sources (``wardmap track`` and ``wardmap edge`` share it): the
 simulator's live run is built here because the edge never imports the simulator.
@@ -19,16 +19,18 @@ if TYPE_CHECKING:
     from wardmap.edge.stream import StreamSource
     from wardmap.shared.dataset import Calibration
 
-SOURCE_METAVAR = "DATASET|bag:PATH|sim:SCENARIO[:SEED[:ROBOT]]|realsense[:SERIAL]|ros2:[ENDPOINT]"
+SOURCE_METAVAR = "DATASET|bag:PATH|sim:SCENARIO[:SEED[:ROBOT]]|realsense[:SERIAL]|orbbec[:N]|ros2:[ENDPOINT]"
 SOURCE_HELP = ("data-set folder, a ROS 1/ROS 2/MCAP recording (bag:PATH; topics by the options below "
                "or the config's [source] table), a simulated robot rendered live "
                "(e.g. sim:aisle_slow_1, sim:two_robots:0:robot_1), a RealSense camera "
-               "(realsense, realsense:SERIAL; extra 'realsense') or a ROS 2 robot's live topics over "
+               "(realsense, realsense:SERIAL; extra 'realsense'), an Orbbec camera (orbbec, orbbec:N; extra "
+               "'orbbec') or a ROS 2 robot's live topics over "
                "Zenoh (ros2: for rmw_zenoh's router at tcp/127.0.0.1:7447, ros2:tcp/HOST:PORT)")
-NOT_AVAILABLE = {  # --source prefix -> (library, extra)
-    "orbbec": ("pyorbbecsdk", "orbbec"),
-    "k4a": ("pyk4a", "k4a"),
+NOT_AVAILABLE = {  # --source prefix -> why not
+    "k4a": "pyk4a needs Microsoft's Azure Kinect SDK (libk4a), which has no Linux package here; record "
+           "with the Azure Kinect ROS driver and use bag:PATH or ros2:",
 }
+LIVE = ("realsense", "orbbec", "ros2")
 
 _FLAGS = {  # option -> BagSourceConfig field
     "rgb_topic": "colour Image or CompressedImage topic",
@@ -96,16 +98,14 @@ def open_source(spec: str, args: argparse.Namespace, config_path: str | None) ->
 
     associations = getattr(args, "associations", None)
     kind = spec.split(":", 1)[0]
-    if associations is not None and (kind in (*NOT_AVAILABLE, "realsense", "ros2", "sim")
+    if associations is not None and (kind in (*NOT_AVAILABLE, *LIVE, "sim")
                                      or is_bag_source(spec)):
         raise DatasetError("--associations is for a data-set folder, not a recording, a camera or a "
                            "simulated robot")
     source: StreamSource
     if kind in NOT_AVAILABLE:
-        lib, extra = NOT_AVAILABLE[kind]
-        raise ConfigError(f"--source {kind} is not available: this build has no {lib} source "
-                          f"(extra {extra!r} is not offered); use realsense or ros2:")
-    if kind in ("realsense", "ros2"):
+        raise ConfigError(f"--source {kind} is not available: {NOT_AVAILABLE[kind]}")
+    if kind in LIVE:
         source = _live_source(kind, spec, args, config_path)
     elif spec.startswith("sim:"):
         from wardmap.sim.live import LiveRun, SimSource
@@ -119,7 +119,8 @@ def open_source(spec: str, args: argparse.Namespace, config_path: str | None) ->
         source = BagSource(path, bag_config(args, config_path))
     elif not Path(spec).is_dir():
         raise DatasetError(f"data set {spec!r} is not a folder (a recording is bag:PATH, a simulated "
-                           "robot sim:SCENARIO, a camera realsense[:SERIAL], ROS 2 topics ros2:)")
+                           "robot sim:SCENARIO, a camera realsense[:SERIAL] or orbbec[:N], ROS 2 topics "
+                           "ros2:)")
     else:
         source = FrameSourceStream(DatasetReader(spec, associations=associations))
     if getattr(args, "thermal", None) is not None:
@@ -138,6 +139,11 @@ def _live_source(kind: str, spec: str, args: argparse.Namespace, config_path: st
 
         calib = load_calibration(cfg.calibration) if cfg.calibration else None
         return ReconnectingSource(realsense_connector(parse_spec(spec), calibration=calib))
+    if kind == "orbbec":
+        from wardmap.edge import orbbec
+
+        calib = load_calibration(cfg.calibration) if cfg.calibration else None
+        return ReconnectingSource(orbbec.orbbec_connector(orbbec.parse_spec(spec), calibration=calib))
     from wardmap.edge import ros2live
 
     return ReconnectingSource(ros2live.ros2_connector(cfg, ros2live.parse_spec(spec, cfg)))

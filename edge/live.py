@@ -31,9 +31,10 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections import Counter
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Final
+from typing import Any, Final
 
 import numpy as np
 
@@ -61,6 +62,84 @@ def _close(source: object) -> None:
 
 class SourceLostError(DatasetError):
     """A live source's device or topics went away (unplugged, no frames); it may come back."""
+
+
+class PolledCamera:
+    """A live camera connection read by polling its SDK for frame sets: the common part of the
+    camera sources (``realsense.py``, ``orbbec.py``), a live
+    :class:`~wardmap.edge.stream.StreamSource` whose events end when ``stop`` is set. A subclass
+    gives :meth:`poll` and :meth:`frame`; ``errors`` are its SDK's exceptions for a camera that
+    went away.
+
+    Attributes:
+        skipped: frame sets not turned into frames, by reason.
+    """
+
+    live = True
+    has_odometry = False
+    frame_count: int | None = None
+    dataset: FrameSource | None = None
+    errors: tuple[type[BaseException], ...] = (RuntimeError,)
+
+    def __init__(self, name: str, calibration: Calibration, stop: threading.Event, *,
+                 close: Callable[[], None] | None, stall_s: float) -> None:
+        """Args:
+            calibration: its ``rgb`` camera is the colour stream's intrinsics.
+            close: releases the camera; called when the events end.
+            stall_s: no frame set for this long (seconds) means the camera is gone.
+        """
+        self.name = name
+        self.calibration = calibration
+        self.skipped: Counter[str] = Counter()
+        self._stop = stop
+        self._close = close
+        self._stall_s = stall_s
+        self._index = 0
+
+    def poll(self) -> object | None:
+        """The SDK's next frame set, or None after a short wait."""
+        raise NotImplementedError
+
+    def frame(self, frames: Any) -> Frame | None:
+        """A frame set -> a :class:`Frame`, or None when it is skipped (counted in ``skipped``)."""
+        raise NotImplementedError
+
+    @property
+    def dropped_frames(self) -> int:
+        """Frame sets left out (``skipped``)."""
+        return sum(self.skipped.values())
+
+    def close(self) -> None:
+        """Release the camera (idempotent)."""
+        close, self._close = self._close, None
+        if close is not None:
+            close()
+
+    def events(self) -> Iterator[SourceEvent]:
+        """Frames as the camera gives them, until ``stop``; the camera is released when they end,
+        however they end.
+
+        Raises:
+            SourceLostError: no frame set for ``stall_s`` seconds, or one of ``errors`` while
+                polling (the camera went away).
+        """
+        last = time.monotonic()
+        try:
+            while not self._stop.is_set():
+                try:
+                    frames = self.poll()
+                except self.errors as exc:
+                    raise SourceLostError(f"camera error: {exc}") from exc
+                if frames is None:
+                    if time.monotonic() - last > self._stall_s:
+                        raise SourceLostError(f"no frames for {self._stall_s:.1f} s")
+                    continue
+                last = time.monotonic()
+                frame = self.frame(frames)
+                if frame is not None:
+                    yield frame
+        finally:
+            self.close()
 
 
 class ReconnectingSource:

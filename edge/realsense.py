@@ -30,17 +30,14 @@ from __future__ import annotations
 
 import logging
 import threading
-import time
-from collections import Counter
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from typing import Any, Final
 
 import numpy as np
 
-from wardmap.edge.live import Connector, SourceLostError
-from wardmap.edge.stream import SourceEvent
+from wardmap.edge.live import Connector, PolledCamera, SourceLostError
 from wardmap.shared.camera import PinholeCamera
-from wardmap.shared.dataset import Calibration, Frame, FrameSource
+from wardmap.shared.dataset import Calibration, Frame
 from wardmap.shared.errors import ConfigError, DatasetError
 
 log = logging.getLogger(__name__)
@@ -77,18 +74,13 @@ def camera_from_intrinsics(rs: Any, intr: Any) -> PinholeCamera:
                          float(intr.ppx), float(intr.ppy), (c[0], c[1], c[2], c[3], c[4]))
 
 
-class RealSenseSource:
+class RealSenseSource(PolledCamera):
     """One connection to a RealSense device (or software device): a live
     :class:`~wardmap.edge.stream.StreamSource` whose events end when ``stop`` is set.
 
     Attributes:
         skipped: frame sets not turned into frames, by reason (``incomplete``).
     """
-
-    live = True
-    has_odometry = False
-    frame_count: int | None = None
-    dataset: FrameSource | None = None
 
     def __init__(self, name: str, poll: Poll, calibration: Calibration, depth_units_m: float,
                  stop: threading.Event, *, close: Callable[[], None] | None = None,
@@ -99,52 +91,15 @@ class RealSenseSource:
             depth_units_m: metres per ``z16`` unit.
             close: releases the device (``pipeline.stop``); called when the events end.
         """
+        super().__init__(name, calibration, stop, close=close, stall_s=stall_s)
         self._rs = import_pyrealsense2()
-        self.name = name
-        self.calibration = calibration
         self.depth_units_m = float(depth_units_m)
-        self.skipped: Counter[str] = Counter()
         self._poll = poll
-        self._stop = stop
-        self._close = close
-        self._stall_s = stall_s
         self._align = self._rs.align(self._rs.stream.color)
-        self._index = 0
 
-    def close(self) -> None:
-        """Release the device (idempotent)."""
-        close, self._close = self._close, None
-        if close is not None:
-            close()
-
-    def events(self) -> Iterator[SourceEvent]:
-        """Frames as the device gives them, until ``stop``.
-
-        Raises:
-            SourceLostError: no frame set for ``stall_s`` or an SDK error (the camera went away).
-        """
-        last = time.monotonic()
-        try:
-            while not self._stop.is_set():
-                try:
-                    ok, frames = self._poll(POLL_MS)
-                except RuntimeError as exc:  # the SDK's error for a device that went away
-                    raise SourceLostError(f"camera error: {exc}") from exc
-                if not ok:
-                    if time.monotonic() - last > self._stall_s:
-                        raise SourceLostError(f"no frames for {self._stall_s:.1f} s")
-                    continue
-                last = time.monotonic()
-                frame = self.frame(frames)
-                if frame is not None:
-                    yield frame
-        finally:
-            self.close()
-
-    @property
-    def dropped_frames(self) -> int:
-        """Frame sets left out because they lacked colour or depth."""
-        return self.skipped["incomplete"]
+    def poll(self) -> Any:
+        ok, frames = self._poll(POLL_MS)  # RuntimeError: the SDK's error for a device that went away
+        return frames if ok else None
 
     def frame(self, frames: Any) -> Frame | None:
         """One SDK frame set -> a :class:`Frame` (depth aligned to colour), or None when it lacks

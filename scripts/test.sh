@@ -10,6 +10,11 @@ if [ ! -x "$VENV/bin/python" ]; then
 fi
 "$VENV/bin/python" -m pip install -q --upgrade pip "setuptools>=68" wheel
 "$VENV/bin/python" -m pip install -q -e '.[dev]'
+# Orbbec SDK v2's bindings for the orbbec source's tests (x86_64 Linux wheel), without the wheel's
+# declared requirements (numpy<2, open3d, pygame: its examples' needs; docs/sources.md).
+if [ "$(uname -sm)" = "Linux x86_64" ]; then
+    "$VENV/bin/python" -m pip install -q --no-deps "pyorbbecsdk2>=2.1"
+fi
 # The web page's browser tests drive Debian's chromium through Playwright (no browser download).
 if ! command -v chromium >/dev/null 2>&1; then
     if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then

@@ -98,6 +98,10 @@ EXTRA_MODULES = {
 }
 """Per optional extra, the only files that may import its packages (inside the function that
 needs them, saying so when missing)."""
+NO_EXTRA_MODULES = {"pyorbbecsdk2": ("edge/orbbec.py",), "pyorbbecsdk": ("edge/orbbec.py",)}
+"""Distributions installed by hand (no extra: their declared requirements would break the
+install; docs/sources.md), and the only files that may import them (by distribution name, or by
+module name where it is not installed)."""
 
 
 def _requirement_names(reqs: list[str]) -> set[str]:
@@ -157,7 +161,8 @@ def test_every_third_party_import_is_a_declared_dependency() -> None:
                         continue
                     dists = set(dist_of.get(top, [top]))
                     rel = f.relative_to(ROOT).as_posix()
-                    if dists & allowed or any(dists & extras[e] and rel in EXTRA_MODULES[e] for e in extras):
+                    if (dists & allowed or any(dists & extras[e] and rel in EXTRA_MODULES[e] for e in extras)
+                            or any(d in dists and rel in files for d, files in NO_EXTRA_MODULES.items())):
                         continue
                     missing.append(f"{rel}:{node.lineno} imports {top} ({sorted(dists)})")
     assert not missing, "not a core dependency:\n" + "\n".join(missing)

@@ -181,3 +181,18 @@ def test_train_seg_names_a_missing_site_path(tmp_path: Path, option: str) -> Non
     p = wardmap("train-seg", "--out", str(tmp_path / "m.onnx"), option, str(tmp_path / "nope"))
     one_line_error(p, str(tmp_path / "nope"), "train-seg")
     assert "not found" in p.stderr and not (tmp_path / "m.onnx").exists()
+
+
+def test_cameras_that_are_not_there_or_not_offered_are_one_line(tmp_path: Path) -> None:
+    """``--source orbbec`` with no camera (or without the SDK's bindings), ``orbbec:x`` and
+    ``k4a``: one line each, exit 1."""
+    out = str(tmp_path / "traj.txt")
+    try:
+        import pyorbbecsdk  # noqa: F401
+
+        why = "no Orbbec camera is connected"
+    except ImportError:
+        why = "pip install"
+    one_line_error(wardmap("track", "--source", "orbbec", "--out", out), why)
+    one_line_error(wardmap("track", "--source", "orbbec:front", "--out", out), "orbbec:N")
+    one_line_error(wardmap("track", "--source", "k4a", "--out", out), "Azure Kinect SDK")

@@ -14,9 +14,9 @@ from typing import Any
 
 import numpy as np
 import pytest
+from cameras import T0, check_unplug_and_replug
 
-from wardmap.edge.live import ReconnectingSource, SourceLostError
-from wardmap.edge.stream import FrameStream
+from wardmap.edge.live import SourceLostError
 from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.dataset import Calibration, DatasetReader, Frame
 
@@ -26,7 +26,6 @@ from wardmap.edge.realsense import RealSenseSource, camera_from_intrinsics, pars
 
 TUM_DIR = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "tum_fr1_rpy_s3_first100"
 DEPTH_UNITS = 0.001
-T0 = 1.7e9
 
 
 class SoftCamera:
@@ -167,16 +166,5 @@ def test_unplug_and_replug_of_the_camera_is_survived_and_a_slow_tracker_drops_wi
         _feed(cam, [(start + k / 30, *_small(k)) for k in range(30)], 1 / 30)  # then it is unplugged
         return cam.source(stop, stall_s=0.4)
 
-    source = ReconnectingSource(connect, backoff_first_s=0.05)
-    taken: list[float] = []
-    with FrameStream(source, capacity=1) as stream:
-        for item in stream:
-            taken.append(item.stamp)
-            time.sleep(0.05)  # tracking at 20 Hz behind a 30 Hz camera
-            if source.reconnects == 1 and item.stamp > T0 + 20.5:
-                stream.close()
-    assert source.reconnects == 1 and len(devices) == 2
-    assert any(s < T0 + 11 for s in taken) and any(s > T0 + 20 for s in taken)  # before and after
-    assert stream.dropped > 0  # the tracker was behind: the oldest frames were dropped, counted
-    assert np.all(np.diff(taken) > 0)
-    assert all(not d.sensors for d in devices)  # both connections were released
+    check_unplug_and_replug(connect)
+    assert len(devices) == 2 and all(not d.sensors for d in devices)  # both released
