@@ -396,9 +396,10 @@ def main() -> None:
         *rows,
     ])
     if parts:
+        stored = args.robots[0] * max(1, args.backlog // args.robots[0])
         body += "\n".join([
             "", "",
-            f"Mapping stage parts apart (`--backlog`): {args.backlog} keyframes of "
+            f"Mapping stage parts apart (`--backlog`): {stored} keyframes of "
             f"{args.robots[0]} robots stored beforehand in a fresh PostgreSQL database, no servers, "
             "no ingest. Perception workers: processes with the packaged network, started after the "
             "keyframes were stored, timed from the moment every one of them works (its segmenter "

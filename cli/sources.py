@@ -23,8 +23,8 @@ SOURCE_METAVAR = "DATASET|bag:PATH|sim:SCENARIO[:SEED[:ROBOT]]|realsense[:SERIAL
 SOURCE_HELP = ("data-set folder, a ROS 1/ROS 2/MCAP recording (bag:PATH; topics by the options below "
                "or the config's [source] table), a simulated robot rendered live "
                "(e.g. sim:aisle_slow_1, sim:two_robots:0:robot_1), a RealSense camera "
-               "(realsense, realsense:SERIAL; extra 'realsense'), an Orbbec camera (orbbec, orbbec:N; extra "
-               "'orbbec') or a ROS 2 robot's live topics over "
+               "(realsense, realsense:SERIAL; extra 'realsense'), an Orbbec camera (orbbec, orbbec:N; "
+               "pyorbbecsdk2, docs/sources.md) or a ROS 2 robot's live topics over "
                "Zenoh (ros2: for rmw_zenoh's router at tcp/127.0.0.1:7447, ros2:tcp/HOST:PORT)")
 NOT_AVAILABLE = {  # --source prefix -> why not
     "k4a": "pyk4a needs Microsoft's Azure Kinect SDK (libk4a), which has no Linux package here; record "

@@ -1,8 +1,9 @@
 """Orbbec cameras as a live source (``--source orbbec[:N]``), with Orbbec SDK v2's Python bindings.
 
-The bindings are the optional extra ``orbbec`` (``pip install 'wardmap[orbbec]'``: the
-``pyorbbecsdk2`` wheel, which bundles the SDK; the older ``pyorbbecsdk`` 1.x wheel on the index
-holds macOS binaries only), imported only when this source is chosen. What the source takes from
+The bindings are the ``pyorbbecsdk2`` wheel, which bundles the SDK, installed by hand with
+``pip install --no-deps 'pyorbbecsdk2>=2.1'`` (no extra: the wheel declares numpy < 2 and its
+examples' packages, which would break this install; the older ``pyorbbecsdk`` 1.x wheel on the
+index holds macOS binaries only); imported only when this source is chosen. What the source takes from
 the SDK:
 
 - the colour stream at ``width`` x ``height`` and ``fps`` (default 640x480 at 30 Hz) in ``RGB``,
@@ -49,7 +50,8 @@ from wardmap.shared.errors import ConfigError, DatasetError
 log = logging.getLogger(__name__)
 
 SOURCE_PREFIX: Final = "orbbec"
-INSTALL_HINT: Final = "--source orbbec needs Orbbec SDK v2's bindings: pip install 'wardmap[orbbec]'"
+INSTALL_HINT: Final = ("--source orbbec needs Orbbec SDK v2's bindings: pip install --no-deps "
+                       "'pyorbbecsdk2>=2.1' (docs/sources.md)")
 STALL_S: Final = 3.0
 """No frameset for this long (seconds) means the camera is gone."""
 POLL_MS: Final = 200
@@ -120,6 +122,7 @@ class OrbbecSource(PolledCamera):
         self._ob = import_pyorbbecsdk()
         self._poll = poll
         self.errors = (RuntimeError, self._ob.OBError)
+        self._arrival_stamps = False  # said once: the device gives no global timestamps
 
     def poll(self) -> Any:
         return self._poll(POLL_MS)
@@ -169,7 +172,8 @@ class OrbbecSource(PolledCamera):
         """Seconds on the host clock: the global timestamp, else the time of arrival."""
         us = int(frame.get_global_timestamp_us())
         if us <= 0:
-            if self._index == 0:
+            if not self._arrival_stamps:
+                self._arrival_stamps = True
                 log.warning("%s: no global timestamps: frames are stamped on arrival at the host",
                             self.name)
             us = int(frame.get_system_timestamp_us())

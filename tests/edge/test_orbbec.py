@@ -143,15 +143,10 @@ def test_a_frameset_without_an_image_is_skipped_and_counted_and_a_wrong_size_is_
 def test_unplug_and_replug_of_the_camera_is_survived_and_a_slow_tracker_drops_with_a_count() -> None:
     camera = PinholeCamera(32, 24, 30.0, 30.0, 16.0, 12.0)
     feeds: list[Feed] = []
-    tries = [0]
 
-    def connect(stop: threading.Event) -> OrbbecSource:
-        tries[0] += 1
-        if tries[0] == 2:  # the first try after the unplug finds no camera
-            raise SourceLostError("no Orbbec camera is connected")
+    def plug_in(stop: threading.Event, start: float) -> OrbbecSource:
         feed = Feed()
         feeds.append(feed)
-        start = T0 + 10.0 * len(feeds)
 
         def produce() -> None:  # 30 Hz for one second, then the camera is unplugged
             for k in range(30):
@@ -164,5 +159,17 @@ def test_unplug_and_replug_of_the_camera_is_survived_and_a_slow_tracker_drops_wi
         return OrbbecSource(f"orbbec:{len(feeds)}", feed, Calibration(rgb=camera), stop, close=feed.close,
                             stall_s=0.4)
 
-    check_unplug_and_replug(connect)
+    check_unplug_and_replug(plug_in)
     assert len(feeds) == 2 and all(f.closed for f in feeds)  # both released
+
+
+def test_arrival_stamps_are_said_once(caplog: pytest.LogCaptureFixture) -> None:
+    """Software frames carry no global timestamp, as a camera without: the source stamps them on
+    arrival and says so once, not per image or per frame."""
+    cam = PinholeCamera(32, 24, 30.0, 30.0, 16.0, 12.0)
+    rgb, depth = np.zeros((24, 32, 3), np.uint8), np.ones((24, 32), np.float32)
+    source = OrbbecSource("orbbec:test", Feed(), Calibration(rgb=cam), threading.Event())
+    with caplog.at_level("WARNING", logger="wardmap.edge.orbbec"):
+        frames = [source.frame(frameset(rgb, depth, T0 + k)) for k in range(3)]
+    assert [f.stamp for f in frames if f is not None] == [T0, T0 + 1, T0 + 2]
+    assert sum("no global timestamps" in r.getMessage() for r in caplog.records) == 1
