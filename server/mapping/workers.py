@@ -81,6 +81,8 @@ class MappingConfig:
             needs next before measuring it itself (seconds; 0 when this server has no workers).
         poll_s: how long an idle worker sleeps before it looks for keyframes again (seconds).
         retry_s: how long a worker waits after a store error (seconds).
+        nice: added to each worker process's niceness (0-19; Unix): perception, which can wait,
+            yields the cores to ingest, whose acks robots wait for, and to the mapping stage.
     """
 
     perception_workers: int = 0
@@ -88,11 +90,14 @@ class MappingConfig:
     wait_s: float = 2.0
     poll_s: float = 0.05
     retry_s: float = 1.0
+    nice: int = 10
 
     def __post_init__(self) -> None:
         if not (isinstance(self.perception_workers, int) and 0 <= self.perception_workers <= 64):
             raise ConfigError("mapping.perception_workers must be an int in [0, 64], "
                               f"got {self.perception_workers!r}")
+        if not (isinstance(self.nice, int) and not isinstance(self.nice, bool) and 0 <= self.nice <= 19):
+            raise ConfigError(f"mapping.nice must be an int in [0, 19], got {self.nice!r}")
         for name in ("claim_s", "poll_s", "retry_s"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
@@ -159,6 +164,7 @@ class _Spec:
     poll_s: float
     retry_s: float
     max_attempts: int
+    nice: int
 
 
 class PerceptionWorkers:
@@ -180,7 +186,7 @@ class PerceptionWorkers:
         n = config.perception_workers
         threads = worker_threads(perception.threads, n)
         self._specs = [_Spec(db_url, password, perception, f"{name}/p{i}", threads, config.claim_s,
-                             config.poll_s, config.retry_s, max_attempts) for i in range(n)]
+                             config.poll_s, config.retry_s, max_attempts, config.nice) for i in range(n)]
         self._ctx = multiprocessing.get_context("spawn")  # the server has zenoh and HTTP threads: never fork
         self._reports: Any = self._ctx.Queue(REPORT_QUEUE)
         self._logs: Any = self._ctx.Queue(LOG_QUEUE)
@@ -205,8 +211,8 @@ class PerceptionWorkers:
             self._spawn(i)
         self._thread = threading.Thread(target=self._monitor, name="perception-workers", daemon=True)
         self._thread.start()
-        log.info("perception: %d worker process(es), %d onnxruntime thread(s) each", len(self._specs),
-                 self._specs[0].threads)
+        log.info("perception: %d worker process(es), %d onnxruntime thread(s) each, niceness +%d",
+                 len(self._specs), self._specs[0].threads, self.config.nice)
 
     def stop(self) -> None:
         """Stop the workers after their keyframe in progress (killed after ``STOP_JOIN_S``; their
@@ -314,6 +320,8 @@ def _worker_main(spec: _Spec, stop: Any, reports: Any, logs: Any) -> None:
     root = logging.getLogger()
     root.handlers[:] = [logging.handlers.QueueHandler(logs)]
     root.setLevel(logging.INFO)
+    if spec.nice and hasattr(os, "nice"):  # before onnxruntime starts its threads: they inherit it
+        os.nice(spec.nice)
     from wardmap.server.perception.models import make_segmenter
     from wardmap.server.store import open_store
 

@@ -79,10 +79,11 @@ def test_two_workers_give_the_map_the_stage_makes_alone(tmp_path: Path,
     """Eight keyframes of ward_chairs: once mapped by the stage alone (no workers), once with two
     worker processes running beside the stage, which waits for them (``wait_s`` long): the
     workers measure every keyframe, and the object map is the same object for object (ids,
-    categories, observations, poses, sizes, colours)."""
+    categories, observations, poses, sizes, colours). The workers run ``nice`` steps nicer than
+    this process."""
     alone = _map(tmp_path / "alone.db", keyframes, MappingConfig())
     assert alone, "the scene has objects"
-    shared = MappingConfig(perception_workers=2, wait_s=50.0, poll_s=0.02)
+    shared = MappingConfig(perception_workers=2, wait_s=50.0, poll_s=0.02, nice=7)
     path = tmp_path / "shared.db"
     SqliteMapStore.open(path).close()
     workers = PerceptionWorkers(f"sqlite:///{path}", config=shared, perception=PerceptionConfig(), name="t")
@@ -90,6 +91,10 @@ def test_two_workers_give_the_map_the_stage_makes_alone(tmp_path: Path,
     try:
         with_workers = _map(path, keyframes, shared)
         counters = _settled(workers, len(keyframes))
+        if hasattr(os, "getpriority"):
+            want = min(19, os.getpriority(os.PRIO_PROCESS, 0) + 7)
+            pids = [p.pid for p in workers._procs if p is not None and p.pid is not None]
+            assert [os.getpriority(os.PRIO_PROCESS, pid) for pid in pids] == [want] * 2
     finally:
         workers.stop()
     assert counters.workers == 2
@@ -139,7 +144,8 @@ def test_worker_threads_share_the_cores() -> None:
 
 
 @pytest.mark.parametrize("kwargs", [{"perception_workers": -1}, {"claim_s": 0.0}, {"wait_s": -1.0},
-                                    {"wait_s": 60.0, "claim_s": 60.0}, {"poll_s": float("nan")}])
+                                    {"wait_s": 60.0, "claim_s": 60.0}, {"poll_s": float("nan")},
+                                    {"nice": -1}, {"nice": 20}, {"nice": True}, {"nice": 2.5}])
 def test_bad_mapping_config_is_rejected(kwargs: dict) -> None:
     with pytest.raises(ConfigError):
         MappingConfig(**kwargs)
