@@ -7,7 +7,10 @@ import os
 import platform
 import re
 import subprocess
+import tomllib
+from dataclasses import fields
 from pathlib import Path
+from typing import Any
 
 
 def machine() -> str:
@@ -78,3 +81,20 @@ def add_seed_arguments(ap: argparse.ArgumentParser, data: Path) -> None:
                     help=f"world seeds (default {' '.join(map(str, EVAL_SEEDS))}, the evaluation worlds; "
                     f"{' '.join(map(str, TUNE_SEEDS))} are tuning worlds, < 1000 the segmentation "
                     "network's training worlds)")
+
+
+def tracker_overrides(items: list[str]) -> dict[str, Any]:
+    """``KEY=VALUE`` items (``--set``; TOML values) for top-level ``TrackerConfig`` fields."""
+    from wardmap.edge.tracker import TrackerConfig
+
+    names = {f.name for f in fields(TrackerConfig)}
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or key not in names:
+            raise SystemExit(f"--set {item!r}: expected KEY=VALUE with KEY a [tracker] setting")
+        try:
+            out[key] = tomllib.loads(f"v = {value}")["v"]
+        except tomllib.TOMLDecodeError as exc:
+            raise SystemExit(f"--set {item!r}: the value is not a TOML value ({exc})") from None
+    return out

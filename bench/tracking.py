@@ -7,6 +7,12 @@ when present, out of the box (the readout model its folder gives) and as a globa
 With several seeds a second table gives each scenario's mean and worst over the seeds.
 One core (numba/OpenCV threads = 1).
 
+``--tum-subsequences`` tracks eleven sub-sequences of the TUM sample instead (starts 0, 5, ... 25
+at every frame; every 2nd frame from 0 and 1; every 3rd from 0, 1 and 2: the camera turns two and
+three times as far between frames) and reports each one's ATE, RPE, relocalisations and CPU time,
+with the mean and the worst. ``--set KEY=VALUE`` overrides a ``[tracker]`` setting (TOML value),
+e.g. ``--set sbi_scale=0`` for a before/after on the same tree.
+
 Each sequence is tracked ``--repeats`` times (default 3): tracking is deterministic, so the
 trajectory (and ATE) is the same every time, while a shared host's speed is not; the
 ms/frame columns pool the per-frame times of all repeats, and each repeat's own median is
@@ -34,10 +40,11 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _report import add_seed_arguments, git_rev, machine, write_section
+from _report import add_seed_arguments, git_rev, machine, tracker_overrides, write_section
 
 from wardmap.edge.localba import LocalBaConfig
-from wardmap.edge.offline import track_dataset
+from wardmap.edge.offline import track_dataset, track_source
+from wardmap.edge.stream import FrameSourceStream
 from wardmap.edge.tracker import TrackerConfig, TrackResult
 from wardmap.shared.dataset import Calibration, DatasetReader
 from wardmap.shared.metrics import ate, rpe
@@ -69,21 +76,27 @@ def read_tum(path: Path) -> tuple[list[float], list]:
 
 
 def run_one(folder: Path, labels: str, tmp: Path, calibration: Calibration | None = None,
-            repeats: int = 1, config: TrackerConfig | None = None) -> dict:
+            repeats: int = 1, config: TrackerConfig | None = None, associations: Path | None = None) -> dict:
     traj = tmp / f"{folder.name}_{labels.split(':')[0]}.txt"
     total: list[float] = []
     cpu: list[float] = []
     run_medians: list[float] = []
+    thumbs = [0]  # frames tracked from the thumbnails' rotation (first run)
     for k in range(repeats):
         times: list[float] = []
 
-        def keep(_i: int, _n: int, result: TrackResult, times: list[float] = times) -> None:
+        def keep(_i: int, _n: int, result: TrackResult, times: list[float] = times, k: int = k) -> None:
             times.append(result.timings_ms["total"])
             cpu.append(result.timings_ms["cpu_total"])
+            thumbs[0] += int(k == 0 and result.source == "rgb" and "sbi" in result.timings_ms)
 
         out = traj if k == 0 else tmp / f"repeat_{traj.name}"
-        summary = track_dataset(folder, out, labels=labels, calibration=calibration, progress=keep,
-                                config=config)
+        if associations is None:
+            summary = track_dataset(folder, out, labels=labels, calibration=calibration, progress=keep,
+                                    config=config)
+        else:
+            summary = track_source(FrameSourceStream(DatasetReader(folder, associations=associations)), out,
+                                   labels=labels, calibration=calibration, progress=keep, config=config)
         if k == 0:
             first = summary
         elif out.read_text() != traj.read_text():
@@ -105,6 +118,8 @@ def run_one(folder: Path, labels: str, tmp: Path, calibration: Calibration | Non
         "med": float(np.median(total)),
         "p95": float(np.percentile(total, 95)),
         "cpu": float(np.median(cpu)),
+        "cpu_p95": float(np.percentile(cpu, 95)),
+        "thumbs": thumbs[0],
         "runs": run_medians,
         "labels": "-" if lab is None else f"{lab['median']:.1f}",
         "sources": first["sources"],
@@ -117,6 +132,8 @@ def _row(label: str, seed: str, kind: str, r: dict, ratio: str, goal: str) -> st
     ro = r["readout"]
     readout = f"{1e3 * ro['readout_s']:.1f} ms{' (guess)' if ro['assumed'] else ''}"
     src = ", ".join(f"{k} {v}" for k, v in sorted(r["sources"].items()))
+    if r["thumbs"]:
+        src += f" (rgb from thumbnails {r['thumbs']})"
     ba = r["ba"]
     if ba is not None:  # the bundle adjuster's CPU time per keyframe (inline: outside the frame's)
         src += (f"; BA {ba['solved']}/{ba['submitted']} solved, "
@@ -127,6 +144,38 @@ def _row(label: str, seed: str, kind: str, r: dict, ratio: str, goal: str) -> st
         f"| {r['ate_cm']:.2f} | {r['rpe_cm']:.2f} | {ratio} | {goal} | {r['med']:.1f} | {runs} "
         f"| {r['p95']:.1f} | {r['cpu']:.1f} | {r['labels']} | {src} |"
     )
+
+
+SUBSEQUENCES = [*((k, 1) for k in (0, 5, 10, 15, 20, 25)), *((k, 2) for k in (0, 1)),
+                *((k, 3) for k in (0, 1, 2))]
+"""(first frame, stride) of the TUM sample's sub-sequences (``--tum-subsequences``)."""
+
+
+def tum_subsequences(tmp: Path, config: TrackerConfig | None) -> str:
+    """Markdown table: the TUM sample's sub-sequences (:data:`SUBSEQUENCES`) tracked out of the box."""
+    text = (TUM / "associations.txt").read_text()
+    lines = [ln for ln in text.splitlines() if ln and not ln.startswith("#")]
+    rows, res = [], []
+    for start, stride in SUBSEQUENCES:
+        assoc = tmp / f"associations_{start}_{stride}.txt"
+        assoc.write_text("\n".join(lines[start::stride]) + "\n")
+        print(f"tracking the TUM sample from frame {start}, every {stride}", file=sys.stderr)
+        r = run_one(TUM, "none", tmp, None, 1, config, associations=assoc)
+        reloc = r["sources"].get("relocalised", 0)
+        res.append((r["ate_cm"], r["rpe_cm"], reloc, r["lost"], r["thumbs"]))
+        rows.append(f"| {start} | {stride} | {r['frames']} | {r['ate_cm']:.2f} | {r['rpe_cm']:.2f} | {reloc} "
+                    f"| {r['thumbs']} | {r['lost']} | {r['cpu']:.1f} / {r['cpu_p95']:.1f} |")
+        print(rows[-1])
+    a = np.array(res)
+    return "\n".join([
+        "| first frame | every | frames | ATE RMSE cm | RPE cm/frame | relocalised | rgb from thumbnails "
+        "| lost | CPU ms/frame median / p95 |",
+        "|---|---|---|---|---|---|---|---|---|",
+        *rows,
+        f"| **mean** | | | **{a[:, 0].mean():.2f}** | {a[:, 1].mean():.2f} | {a[:, 2].sum():.0f} (all) "
+        f"| {a[:, 4].sum():.0f} (all) | {a[:, 3].sum():.0f} (all) | |",
+        f"| **worst** | | | **{a[:, 0].max():.2f}** | {a[:, 1].max():.2f} | | | | |",
+    ])
 
 
 def main() -> int:
@@ -141,14 +190,28 @@ def main() -> int:
     ap.add_argument("--repeats", type=int, default=3, help="times each sequence is tracked (default 3)")
     ap.add_argument("--local-ba", choices=["on", "off"], default=None,
                     help="local bundle adjustment on or off (default: the tracker's default)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="override a [tracker] setting, e.g. sbi_scale=0 (repeatable)")
+    ap.add_argument("--tum-subsequences", action="store_true",
+                    help="only the TUM sample's eleven sub-sequences (docstring), one table")
     ap.add_argument("--write", type=Path, help="update this markdown file's tracking section")
     args = ap.parse_args()
     if args.repeats < 1:
         ap.error("--repeats must be at least 1")
     cv2.setNumThreads(1)
-    config = None
+    overrides = tracker_overrides(args.set)
     if args.local_ba is not None:
-        config = TrackerConfig(local_ba=LocalBaConfig(enabled=args.local_ba == "on"))
+        overrides["local_ba"] = LocalBaConfig(enabled=args.local_ba == "on")
+    config = TrackerConfig(**overrides) if overrides else None
+    if args.tum_subsequences:
+        if not TUM.is_dir():
+            raise SystemExit(f"no TUM sample at {TUM}")
+        with tempfile.TemporaryDirectory() as tmpd:
+            table = tum_subsequences(Path(tmpd), config)
+        sets = "".join(f" --set {x}" for x in args.set)
+        print(f"\nCommand: `python bench/tracking.py --tum-subsequences{sets}`  \n"
+              f"Machine: {machine()}; one core; commit {git_rev()}.\n\n{table}")
+        return 0
     names = args.only or [*SCENARIOS, "tum"]
     rows = []
     skipped: list[str] = []  # --no-generate: scenarios without data
@@ -239,7 +302,8 @@ def main() -> int:
         "## Tracking frontend (issues 3, 41)\n\n"
         f"Command: `python bench/tracking.py --seeds {' '.join(map(str, args.seeds))}{only}"
         f"{' --no-generate' if args.no_generate else ''}"
-        f"{f' --local-ba {args.local_ba}' if args.local_ba else ''} "
+        f"{f' --local-ba {args.local_ba}' if args.local_ba else ''}"
+        f"{''.join(f' --set {x}' for x in args.set)} "
         f"--repeats {args.repeats} --write BENCHMARKS.md`  \n"
         f"Machine: {machine()}; one core (numba/OpenCV threads = 1); commit {git_rev()}.\n"
         "ATE: evo, SE3 (Umeyama) alignment, translation RMSE. RPE: evo, translation error of each "

@@ -46,6 +46,7 @@ from wardmap.edge.localba import (
 )
 from wardmap.edge.mapstore import Keyframe, MapPoints
 from wardmap.edge.pose import refine_pose_huber, refine_pose_rolling_shutter, solve_pnp_ransac
+from wardmap.edge.sbi import SmallBlurryImage, rotation_between
 from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.dataset import Calibration
 from wardmap.shared.errors import ConfigError
@@ -134,6 +135,11 @@ class TrackerConfig:
             deviation (radians) of its prior, the motion model's spin times the readout.
         local_ba: local bundle adjustment of the keyframes covisible with each new one
             (:mod:`wardmap.edge.localba`).
+        sbi_scale: when the motion model's prior finds no pose, the camera's rotation since
+            the last tracked frame is measured on thumbnails of this scale
+            (:mod:`wardmap.edge.sbi`, 1/16: 40x30 from VGA) and the local map matched again
+            from that prior before relocalising; 0 turns it off.
+        sbi_blur_px: Gaussian sigma of the thumbnails, in thumbnail pixels.
     """
 
     orb: OrbConfig = field(default_factory=OrbConfig)
@@ -165,8 +171,14 @@ class TrackerConfig:
     floor_level_tau_s: float = 2.0
     rs_shear_sigma_rad: float = 0.02
     local_ba: LocalBaConfig = field(default_factory=LocalBaConfig)
+    sbi_scale: float = 1 / 16
+    sbi_blur_px: float = 0.75
 
     def __post_init__(self) -> None:
+        if not (np.isfinite(self.sbi_scale) and 0 <= self.sbi_scale <= 1):
+            raise ConfigError(f"tracker.sbi_scale must be in [0, 1] (0 = off), got {self.sbi_scale}")
+        if not (np.isfinite(self.sbi_blur_px) and self.sbi_blur_px >= 0):
+            raise ConfigError(f"tracker.sbi_blur_px must be >= 0, got {self.sbi_blur_px}")
         if self.min_inliers < 6:
             raise ConfigError("tracker.min_inliers must be at least 6 (EPnP needs >= 4 + RANSAC)")
         if not 0 < self.min_depth_m < self.max_depth_m:
@@ -257,6 +269,10 @@ class Tracker:
         # Last RGB-tracked frame, for relocalisation; made into a Keyframe only when needed.
         self._last_frame_raw: tuple[float, F64, Features, NDArray[np.float64]] | None = None
         self._rgb_failures = 0  # consecutive frames whose RGB image did not fit the map
+        self._sbi = (SmallBlurryImage(self.cam, self.cfg.sbi_scale, self.cfg.sbi_blur_px)
+                     if self.cfg.sbi_scale else None)
+        # The last RGB-tracked frame's thumbnail and pose, for the rotation fallback.
+        self._sbi_ref: tuple[NDArray[np.float32], F64] | None = None
         self._frame_index = -1
         self._T_world_cam: F64 | None = None
         self._velocity: F64 = np.eye(4)  # T_prev_cur of the last step (camera frames)
@@ -414,6 +430,12 @@ class Tracker:
         t0 = time.perf_counter()
         T_cw, inl = self._pose_from_matches(m_idx, f_idx, feats, kp_depth, T_cw_prior)
         timings["pose"] = _ms(t0)
+        thumb = self._sbi.make(gray) if self._sbi is not None else None
+        if T_cw is None and thumb is not None and self._sbi_ref is not None:
+            t0 = time.perf_counter()
+            T_cw, inl, m_idx, f_idx = self._track_from_rotation(thumb, prior, feats, sem, kp_depth,
+                                                                 (m_idx, f_idx))
+            timings["sbi"] = _ms(t0)
         source: PoseSource = "rgb"
         if T_cw is None:
             t0 = time.perf_counter()
@@ -482,6 +504,8 @@ class Tracker:
                                         observed=(m_idx[inl], f_idx[inl]))
             self._maybe_thermal_ref(inp, depth, T, timings)
         self._last_frame_raw = (inp.stamp, T, feats, kp_depth)
+        if thumb is not None:
+            self._sbi_ref = (thumb, T)
         self._rgb_failures = 0
         timings["map"] = _ms(t0)
         self._accept(inp, T, n_inliers=n_inl, keyframe=is_kf)
@@ -525,6 +549,29 @@ class Tracker:
         if ratio < GAP_RATIO:
             return self._velocity
         return se3_exp(ratio * se3_log(self._velocity))
+
+    def _track_from_rotation(
+        self, thumb: NDArray[np.float32], prior: F64, feats: Features, sem: NDArray[np.uint8] | None,
+        kp_depth: NDArray[np.float64], failed: tuple[NDArray[np.intp], NDArray[np.intp]],
+    ) -> tuple[F64 | None, NDArray[np.bool_], NDArray[np.intp], NDArray[np.intp]]:
+        """The local map matched from a second prior: the last RGB-tracked frame's pose turned by
+        the rotation its thumbnail and this frame's give (:func:`~wardmap.edge.sbi.rotation_between`,
+        from the prior's rotation), the prior's translation kept. ``(T_cw, inliers, m_idx, f_idx)``;
+        ``T_cw`` None (and ``failed``'s matches) when that finds no pose either."""
+        assert self._sbi is not None and self._sbi_ref is not None
+        ref_thumb, T_world_ref = self._sbi_ref
+        T_ref_cur = inverse(T_world_ref) @ prior
+        R_cur_ref = rotation_between(self._sbi, ref_thumb, thumb, T_ref_cur[:3, :3].T)
+        no = (None, np.zeros(0, bool), *failed)
+        if R_cur_ref is None:
+            return no
+        T_ref_cur[:3, :3] = R_cur_ref.T
+        T_cw_prior = inverse(T_world_ref @ T_ref_cur)
+        m_idx, f_idx = self._match_map(T_cw_prior, feats, sem, self.cfg.match_radius_px)
+        if len(m_idx) < self.cfg.min_inliers:
+            return no
+        T_cw, inl = self._pose_from_matches(m_idx, f_idx, feats, kp_depth, T_cw_prior)
+        return no if T_cw is None else (T_cw, inl, m_idx, f_idx)
 
     # ------------------------------------------------------------------ matching / pose
     def _match_map(
