@@ -12,7 +12,10 @@ phase of its own within the period (uniform, seeded), as independent robots are 
 a server sees bursts of every robot's keyframe at once).
 
 Reported per run: keyframes offered and acked per second (an ack comes after the commit; with
-two servers the first ``stored``/``duplicate`` ack counts), ack latency from the put (p50, p99),
+two servers the first ``stored``/``duplicate`` ack counts), ack latency from the put (p50, p99;
+in brackets the p99 of the keyframes put after the first :data:`WARMUP_S` seconds: every robot's
+first keyframe comes while the servers' mapping stage runs for the first time, and the acks of
+that second (up to 150 ms, measured) can be most of a run's worst percent),
 the writer's mapping throughput (keyframes its mapping stage took in per second, from its
 ``/metrics``) and its mapping backlog at the start and the end of the run (growing: mapping
 cannot keep up with this load), and the time per keyframe of each mapping step during the run
@@ -126,6 +129,10 @@ def _writer(urls: list[str]) -> str:
     raise SystemExit("no server holds the writer lease")
 
 
+WARMUP_S = 1.0
+"""Seconds at the start of a run left out of the bracketed p99 (module docstring)."""
+
+
 def run_once(db: str, servers: int, robots: int, rate: float, seconds: float,
              messages: list[list[bytes]], config: Path | None = None, workers: int = 0) -> dict[str, Any]:
     """One run; its figures (see the module docstring)."""
@@ -192,10 +199,12 @@ def run_once(db: str, servers: int, robots: int, rate: float, seconds: float,
             for pub in pubs:
                 pub.undeclare()
         latency_ms = np.asarray([acked[k] - sent[k] for k in acked]) * 1e3
+        steady_ms = np.asarray([acked[k] - sent[k] for k in acked if sent[k] - t0 >= WARMUP_S]) * 1e3
         return {"offered": len(sent) / (n / rate), "acked": len(acked), "sent": len(sent),
                 "acked_rate": len(acked) / max(last - t0, 1e-9),
                 "p50": float(np.percentile(latency_ms, 50)) if len(latency_ms) else float("nan"),
                 "p99": float(np.percentile(latency_ms, 99)) if len(latency_ms) else float("nan"),
+                "p99_steady": float(np.percentile(steady_ms, 99)) if len(steady_ms) else float("nan"),
                 "mapping_rate": (mapped - mapped0) / elapsed, "backlog": (backlog0, backlog), "steps": steps,
                 "load": os.getloadavg()[0]}
     finally:
@@ -357,7 +366,7 @@ def main() -> None:
                 rows.append(f"| {kind} | {servers} | {workers} | {robots} x {args.rate:g}/s | "
                             f"{r['offered']:.1f} | "
                             f"{r['acked']}/{r['sent']} | {r['acked_rate']:.1f} | {r['p50']:.0f} | "
-                            f"{r['p99']:.0f} | "
+                            f"{r['p99']:.0f} ({r['p99_steady']:.0f}) | "
                             + ("off | off | off |" if args.no_mapping else
                                f"{r['mapping_rate']:.2f} | {r['backlog'][0]:.0f} -> {r['backlog'][1]:.0f} | "
                                f"{steps['backend']:.0f} / {steps['perception']:.0f} / "
@@ -390,8 +399,8 @@ def main() -> None:
         "back-end / perception (wherever it ran) / association; load avg: 1-minute, at the end of the run.",
         "",
         "| store | servers | perception workers per server | robots | offered kf/s | acked | acked kf/s | "
-        "ack p50 ms | ack p99 ms | writer mapping kf/s | writer backlog start -> end | mapping ms/kf | "
-        "load avg |",
+        f"ack p50 ms | ack p99 ms (after {WARMUP_S:g} s) | writer mapping kf/s | "
+        "writer backlog start -> end | mapping ms/kf | load avg |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
         *rows,
     ])
