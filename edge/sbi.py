@@ -38,7 +38,7 @@ class SmallBlurryImage:
 
     Args:
         cam: the full-size camera (its intrinsics give the thumbnail's, scaled).
-        scale: thumbnail size / image size (1/16: 40x30 from 640x480, the paper's size).
+        scale: thumbnail size / image size (1/16: 40x30 from 640x480, PTAM's size).
         blur_px: Gaussian sigma in thumbnail pixels.
     """
 
