@@ -8,7 +8,6 @@ import platform
 import re
 import subprocess
 import tomllib
-from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
@@ -83,18 +82,14 @@ def add_seed_arguments(ap: argparse.ArgumentParser, data: Path) -> None:
                     "network's training worlds)")
 
 
-def tracker_overrides(items: list[str]) -> dict[str, Any]:
-    """``KEY=VALUE`` items (``--set``; TOML values) for top-level ``TrackerConfig`` fields."""
+def tracker_config(items: list[str]) -> Any:
+    """The ``TrackerConfig`` with ``--set`` items applied: each a TOML ``KEY=VALUE`` line of the
+    ``[tracker]`` table (dotted keys for its sub-tables), validated as a config file is."""
     from wardmap.edge.tracker import TrackerConfig
+    from wardmap.shared.config import from_mapping
+    from wardmap.shared.errors import ConfigError
 
-    names = {f.name for f in fields(TrackerConfig)}
-    out: dict[str, Any] = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep or key not in names:
-            raise SystemExit(f"--set {item!r}: expected KEY=VALUE with KEY a [tracker] setting")
-        try:
-            out[key] = tomllib.loads(f"v = {value}")["v"]
-        except tomllib.TOMLDecodeError as exc:
-            raise SystemExit(f"--set {item!r}: the value is not a TOML value ({exc})") from None
-    return out
+    try:
+        return from_mapping(TrackerConfig, tomllib.loads("\n".join(items)), "tracker")
+    except (tomllib.TOMLDecodeError, ConfigError) as exc:
+        raise SystemExit(f"--set {' '.join(items)!r}: {exc}") from None

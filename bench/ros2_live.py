@@ -36,7 +36,7 @@ from typing import Any
 import _one_core  # noqa: F401  (one thread per library, before numba and OpenCV load)
 import cv2
 import numpy as np
-from _report import git_rev, machine, publish, tracker_overrides
+from _report import git_rev, machine, publish, tracker_config
 
 ROOT = Path(__file__).resolve().parents[1]
 TUM = ROOT.parent / "shared" / "data" / "tum_fr1_rpy_s3_first100"
@@ -114,18 +114,17 @@ def camera_main(core: int, data: Path) -> int:
 # --------------------------------------------------------------------------- edge process
 
 
-def edge_run(core: int | None, capacity: int, data: Path,
-             tracker: dict[str, Any] | None = None) -> dict[str, Any]:
+def edge_run(core: int | None, capacity: int, data: Path, tracker: Any = None) -> dict[str, Any]:
     """Start the camera process, run the edge daemon on its topics (pinned to ``core`` unless
-    None; a stream slot of ``capacity`` frames; ``tracker``: [tracker] settings overridden),
-    return the figures."""
+    None; a stream slot of ``capacity`` frames; ``tracker``: its TrackerConfig, the default when
+    None), return the figures."""
     where = pin(core) if core is not None else "not pinned"
     from wardmap.edge import agent as agent_mod
     from wardmap.edge.agent import AgentConfig, EdgeAgent
     from wardmap.edge.bag import BagSourceConfig
     from wardmap.edge.live import ReconnectingSource
     from wardmap.edge.ros2live import parse_spec, ros2_connector
-    from wardmap.edge.tracker import Tracker, TrackerConfig, TrackInput, TrackResult
+    from wardmap.edge.tracker import Tracker, TrackInput, TrackResult
     from wardmap.shared.dataset import DatasetReader
 
     reader = DatasetReader(data)
@@ -163,7 +162,7 @@ def edge_run(core: int | None, capacity: int, data: Path,
             agent = EdgeAgent("bench", source, [endpoint], Path(tmp) / "outbox.db",
                               config=AgentConfig(labels="none", privacy="off", flush_timeout_s=10.0,
                                                  stream_capacity=capacity),
-                              tracker_config=TrackerConfig(**(tracker or {})))
+                              tracker_config=tracker)
 
             def on_ready(_session: str, _pending: int) -> None:
                 cam.stdin.write("go\n")  # type: ignore[union-attr]
@@ -217,7 +216,7 @@ def main() -> int:
     if args.capacity < 1:
         print(f"--capacity must be >= 1, got {args.capacity}", file=sys.stderr)
         return 1
-    r = edge_run(None if args.no_pin else 1, args.capacity, args.data, tracker_overrides(args.set))
+    r = edge_run(None if args.no_pin else 1, args.capacity, args.data, tracker_config(args.set))
     s = r["summary"]
     tracked = s["frames"] - s["lost_frames"]
     row = (f"| {r['published']} | {s['frames_received']} | {tracked} | {s['frames_dropped']} "

@@ -40,10 +40,9 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _report import add_seed_arguments, git_rev, machine, tracker_overrides, write_section
+from _report import add_seed_arguments, git_rev, machine, tracker_config, write_section
 
-from wardmap.edge.localba import LocalBaConfig
-from wardmap.edge.offline import track_dataset, track_source
+from wardmap.edge.offline import track_source
 from wardmap.edge.stream import FrameSourceStream
 from wardmap.edge.tracker import TrackerConfig, TrackResult
 from wardmap.shared.dataset import Calibration, DatasetReader
@@ -91,12 +90,8 @@ def run_one(folder: Path, labels: str, tmp: Path, calibration: Calibration | Non
             thumbs[0] += int(k == 0 and result.source == "rgb" and "sbi" in result.timings_ms)
 
         out = traj if k == 0 else tmp / f"repeat_{traj.name}"
-        if associations is None:
-            summary = track_dataset(folder, out, labels=labels, calibration=calibration, progress=keep,
-                                    config=config)
-        else:
-            summary = track_source(FrameSourceStream(DatasetReader(folder, associations=associations)), out,
-                                   labels=labels, calibration=calibration, progress=keep, config=config)
+        summary = track_source(FrameSourceStream(DatasetReader(folder, associations=associations)), out,
+                               labels=labels, calibration=calibration, progress=keep, config=config)
         if k == 0:
             first = summary
         elif out.read_text() != traj.read_text():
@@ -199,10 +194,8 @@ def main() -> int:
     if args.repeats < 1:
         ap.error("--repeats must be at least 1")
     cv2.setNumThreads(1)
-    overrides = tracker_overrides(args.set)
-    if args.local_ba is not None:
-        overrides["local_ba"] = LocalBaConfig(enabled=args.local_ba == "on")
-    config = TrackerConfig(**overrides) if overrides else None
+    local_ba = [] if args.local_ba is None else [f"local_ba.enabled = {str(args.local_ba == 'on').lower()}"]
+    config = tracker_config(args.set + local_ba)
     if args.tum_subsequences:
         if not TUM.is_dir():
             raise SystemExit(f"no TUM sample at {TUM}")

@@ -271,8 +271,9 @@ class Tracker:
         self._rgb_failures = 0  # consecutive frames whose RGB image did not fit the map
         self._sbi = (SmallBlurryImage(self.cam, self.cfg.sbi_scale, self.cfg.sbi_blur_px)
                      if self.cfg.sbi_scale else None)
-        # The last RGB-tracked frame's thumbnail and pose, for the rotation fallback.
-        self._sbi_ref: tuple[NDArray[np.float32], F64] | None = None
+        # The last RGB-tracked frame's grey image and pose, for the rotation fallback (thumbnails
+        # are made only when it runs).
+        self._sbi_ref: tuple[NDArray[np.uint8], F64] | None = None
         self._frame_index = -1
         self._T_world_cam: F64 | None = None
         self._velocity: F64 = np.eye(4)  # T_prev_cur of the last step (camera frames)
@@ -430,10 +431,9 @@ class Tracker:
         t0 = time.perf_counter()
         T_cw, inl = self._pose_from_matches(m_idx, f_idx, feats, kp_depth, T_cw_prior)
         timings["pose"] = _ms(t0)
-        thumb = self._sbi.make(gray) if self._sbi is not None else None
-        if T_cw is None and thumb is not None and self._sbi_ref is not None:
+        if T_cw is None and self._sbi is not None and self._sbi_ref is not None:
             t0 = time.perf_counter()
-            T_cw, inl, m_idx, f_idx = self._track_from_rotation(thumb, prior, feats, sem, kp_depth,
+            T_cw, inl, m_idx, f_idx = self._track_from_rotation(gray, prior, feats, sem, kp_depth,
                                                                  (m_idx, f_idx))
             timings["sbi"] = _ms(t0)
         source: PoseSource = "rgb"
@@ -504,8 +504,8 @@ class Tracker:
                                         observed=(m_idx[inl], f_idx[inl]))
             self._maybe_thermal_ref(inp, depth, T, timings)
         self._last_frame_raw = (inp.stamp, T, feats, kp_depth)
-        if thumb is not None:
-            self._sbi_ref = (thumb, T)
+        if self._sbi is not None:
+            self._sbi_ref = (gray, T)
         self._rgb_failures = 0
         timings["map"] = _ms(t0)
         self._accept(inp, T, n_inliers=n_inl, keyframe=is_kf)
@@ -551,17 +551,19 @@ class Tracker:
         return se3_exp(ratio * se3_log(self._velocity))
 
     def _track_from_rotation(
-        self, thumb: NDArray[np.float32], prior: F64, feats: Features, sem: NDArray[np.uint8] | None,
+        self, gray: NDArray[np.uint8], prior: F64, feats: Features, sem: NDArray[np.uint8] | None,
         kp_depth: NDArray[np.float64], failed: tuple[NDArray[np.intp], NDArray[np.intp]],
     ) -> tuple[F64 | None, NDArray[np.bool_], NDArray[np.intp], NDArray[np.intp]]:
         """The local map matched from a second prior: the last RGB-tracked frame's pose turned by
-        the rotation its thumbnail and this frame's give (:func:`~wardmap.edge.sbi.rotation_between`,
-        from the prior's rotation), the prior's translation kept. ``(T_cw, inliers, m_idx, f_idx)``;
+        the rotation between its thumbnail and that of this frame's ``gray`` (H, W)
+        (:func:`~wardmap.edge.sbi.rotation_between`, from the prior's rotation), the prior's
+        translation kept. ``(T_cw, inliers, m_idx, f_idx)``;
         ``T_cw`` None (and ``failed``'s matches) when that finds no pose either."""
         assert self._sbi is not None and self._sbi_ref is not None
-        ref_thumb, T_world_ref = self._sbi_ref
+        ref_gray, T_world_ref = self._sbi_ref
         T_ref_cur = inverse(T_world_ref) @ prior
-        R_cur_ref = rotation_between(self._sbi, ref_thumb, thumb, T_ref_cur[:3, :3].T)
+        R_cur_ref = rotation_between(self._sbi, self._sbi.make(ref_gray), self._sbi.make(gray),
+                                     T_ref_cur[:3, :3].T)
         no = (None, np.zeros(0, bool), *failed)
         if R_cur_ref is None:
             return no
