@@ -30,9 +30,12 @@ def free_port() -> int:
 
 
 def child_env() -> dict[str, str]:
-    """The environment for a child process: zenoh's RUST_LOG removed so stderr is wardmap's own."""
+    """The environment for a child process: zenoh's RUST_LOG removed so stderr is wardmap's own;
+    Python's fault handler on, so a crash (e.g. an abort in a native thread) leaves every
+    thread's stack on stderr for :func:`assert_stops_cleanly` to show."""
     env = dict(os.environ)
     env.pop("RUST_LOG", None)
+    env["PYTHONFAULTHANDLER"] = "1"
     return env
 
 
@@ -182,6 +185,12 @@ def stop_proc(proc: Proc, timeout_s: float = 15.0) -> int:
     if proc.popen.stdout is not None:
         proc.popen.stdout.close()
     return int(proc.popen.returncode)
+
+
+def assert_stops_cleanly(proc: Proc, timeout_s: float = 15.0) -> None:
+    """:func:`stop_proc`, then fail with the end of its stderr unless it exited 0."""
+    code = stop_proc(proc, timeout_s)
+    assert code == 0, f"exit code {code}; stderr ends: {proc.stderr()[-3000:]!r}"
 
 
 def edge_summary(proc: Proc, timeout_s: float) -> dict[str, Any]:

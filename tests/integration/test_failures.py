@@ -26,7 +26,16 @@ import numpy as np
 import pytest
 from factories import FUZZ_LEAVES, keyframe, mutate, raster_bomb, walk
 from peers import ALL_ACKS, matched_publisher, open_client
-from procs import Proc, edge_summary, kill_proc, prometheus_samples, spawn_logged, stop_proc, wardmap_cmd
+from procs import (
+    Proc,
+    assert_stops_cleanly,
+    edge_summary,
+    kill_proc,
+    prometheus_samples,
+    spawn_logged,
+    stop_proc,
+    wardmap_cmd,
+)
 from procs import free_port as _free_port
 from procs import read_line as _read_line
 
@@ -229,7 +238,7 @@ def test_server_sigkill_mid_stream_loses_and_duplicates_nothing(
     assert summary["frames"] == FRAMES  # the kill happened mid-stream, not after the last frame
     assert summary["resent"] >= 1, summary
     _assert_delivered_exactly_once(stack, robot, summary, outbox)
-    assert stop_proc(stack.server) == 0
+    assert_stops_cleanly(stack.server)
     assert "Traceback" not in stack.server.stderr()
 
 
@@ -307,7 +316,7 @@ def test_router_restart_agents_reconnect_and_deliver_exactly_once(
     edge, outbox = _start_edge(robot, dataset, stack, tmp_path)
     try:
         stored_before = _wait_stored(stack.url, robot, 3)
-        assert stop_proc(stack.router) == 0
+        assert_stops_cleanly(stack.router)
         stack.router = _start_router(stack.endpoint, stack.log_dir)
         summary = edge_summary(edge, RUN_TIMEOUT_S)
     finally:
@@ -315,7 +324,7 @@ def test_router_restart_agents_reconnect_and_deliver_exactly_once(
     assert stored_before < summary["keyframes"]  # some keyframes had to cross the new router
     _assert_delivered_exactly_once(stack, robot, summary, outbox)
     assert stack.server.popen.poll() is None, "the server must survive a router restart"
-    assert stop_proc(stack.server) == 0
+    assert_stops_cleanly(stack.server)
     assert "Traceback" not in stack.server.stderr()
 
 
@@ -401,7 +410,7 @@ def test_malformed_and_mutated_payloads_are_rejected_and_counted(stack: Stack) -
         assert set(robots) <= {FUZZ_ROBOT}
         assert robots.get(FUZZ_ROBOT, 0) == metrics["wardmap_keyframes_stored_total"]
 
-    assert stop_proc(stack.server) == 0
+    assert_stops_cleanly(stack.server)
     assert "Traceback" not in stack.server.stderr()
     with contextlib.closing(sqlite3.connect(stack.db)) as con:
         assert con.execute("PRAGMA integrity_check").fetchall() == [("ok",)]
@@ -449,4 +458,4 @@ def test_raster_bombs_and_a_50mb_flood_keep_the_server_small(stack: Stack) -> No
         assert robots == {FUZZ_ROBOT: 20}
         peak = _peak_rss_mb(stack.server.popen.pid)
         assert peak <= 600, f"server peak RSS {peak:.0f} MiB"
-    assert stop_proc(stack.server) == 0
+    assert_stops_cleanly(stack.server)

@@ -24,6 +24,7 @@ from factories import keyframe
 from peers import ALL_ACKS, matched_publisher, open_client
 from procs import (
     Proc,
+    assert_stops_cleanly,
     child_env,
     free_port,
     kill_proc,
@@ -151,7 +152,7 @@ def test_a_server_started_before_its_router_waits_for_it(endpoint: str, tmp_path
             assert line == f"server ready: http://127.0.0.1:{port}\n", server.stderr()
             with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=5) as http:
                 _until(lambda: _ready(http)[0] == 200, 30)
-            assert stop_proc(server) == 0
+            assert_stops_cleanly(server)
         finally:
             stop(router)
     finally:

@@ -29,7 +29,7 @@ from typing import Any
 import httpx
 import pytest
 from faults import garble_index_page, repair_by_dump, small_keyframes
-from procs import Proc, edge_summary, kill_proc, spawn_logged, stop_proc
+from procs import Proc, assert_stops_cleanly, edge_summary, kill_proc, spawn_logged, stop_proc
 from procs import free_port as _free_port
 from procs import read_line as _read_line
 
@@ -239,7 +239,7 @@ def test_disk_full_keeps_keyframes_on_the_robot_until_the_store_has_room(
             edge = _start_edge(router, dataset, tmp_path)
             try:
                 watch.wait("3 retry acks", lambda w: w.statuses()["retry"] >= 3)
-                assert stop_proc(server) == 0
+                assert_stops_cleanly(server)
                 assert "Traceback" not in server.stderr()
                 assert "cannot store" in server.stderr()
                 rows, in_db = _db_keys(db)
@@ -252,7 +252,7 @@ def test_disk_full_keeps_keyframes_on_the_robot_until_the_store_has_room(
                 kill_proc(edge)
         _report(record_property, "disk full", summary, db, watch)
     finally:
-        assert stop_proc(server) == 0
+        assert_stops_cleanly(server)
     assert "Traceback" not in server.stderr()
 
 
@@ -291,7 +291,7 @@ def test_database_locked_past_the_busy_timeout_loses_nothing(
         _report(record_property, "database locked", summary, db, watch)
         assert "database is locked" in server.stderr()
     finally:
-        assert stop_proc(server) == 0
+        assert_stops_cleanly(server)
     assert "Traceback" not in server.stderr()
 
 
@@ -327,7 +327,7 @@ def test_corrupted_index_page_is_never_acked_rejected_and_the_edge_keeps_its_key
                 kept = [h for h in watch.heartbeats if h["keyframes"] >= 3]
                 assert all(h["pending"] == h["keyframes"] and h["acked"] == 0 for h in kept), kept
                 assert set(watch.statuses()) == {"retry"}
-                assert stop_proc(server) == 0
+                assert_stops_cleanly(server)
                 damage_lines = [ln for ln in server.stderr().splitlines() if "database file is damaged" in ln]
                 assert len(damage_lines) == 1, damage_lines
                 assert ".recover" in damage_lines[0] and "backup" in damage_lines[0]
@@ -339,7 +339,7 @@ def test_corrupted_index_page_is_never_acked_rejected_and_the_edge_keeps_its_key
         _report(record_property, "corrupted index", summary, db, watch)
         assert _db_keys(db, "seed")[0] == 5
     finally:
-        assert stop_proc(server) == 0
+        assert_stops_cleanly(server)
     assert "Traceback" not in server.stderr()
 
 

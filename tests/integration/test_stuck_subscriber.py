@@ -31,6 +31,7 @@ from factories import keyframe
 from peers import ALL_ACKS, open_client
 from procs import (
     Proc,
+    assert_stops_cleanly,
     child_env,
     edge_summary,
     free_port,
@@ -207,7 +208,7 @@ def test_a_stuck_subscriber_on_every_key_loses_no_keyframe(
             finally:
                 kill_proc(edge)
             seconds = time.monotonic() - t0
-        assert stop_proc(server) == 0
+        assert_stops_cleanly(server)
     finally:
         if server is not None:
             stop_proc(server)
