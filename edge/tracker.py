@@ -140,6 +140,12 @@ class TrackerConfig:
             (:mod:`wardmap.edge.sbi`, 1/16: 40x30 from VGA) and the local map matched again
             from that prior before relocalising; 0 turns it off.
         sbi_blur_px: Gaussian sigma of the thumbnails, in thumbnail pixels.
+        fuse_radius_px: at each keyframe, a map point this frame did not match that projects
+            within this many pixels of a keypoint about to make a new point, with a close
+            descriptor and depth, takes that observation instead (ORB-SLAM2's Fuse, whose
+            ``th`` is 3); 0 (the default) turns it off.
+        fuse_max_hamming: largest ORB descriptor distance of such a match (ORB-SLAM2's
+            ``TH_LOW = 50``).
     """
 
     orb: OrbConfig = field(default_factory=OrbConfig)
@@ -173,12 +179,18 @@ class TrackerConfig:
     local_ba: LocalBaConfig = field(default_factory=LocalBaConfig)
     sbi_scale: float = 1 / 16
     sbi_blur_px: float = 0.75
+    fuse_radius_px: float = 0.0
+    fuse_max_hamming: int = 50
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.sbi_scale) and 0 <= self.sbi_scale <= 1):
             raise ConfigError(f"tracker.sbi_scale must be in [0, 1] (0 = off), got {self.sbi_scale}")
         if not (np.isfinite(self.sbi_blur_px) and self.sbi_blur_px >= 0):
             raise ConfigError(f"tracker.sbi_blur_px must be >= 0, got {self.sbi_blur_px}")
+        if not (np.isfinite(self.fuse_radius_px) and self.fuse_radius_px >= 0):
+            raise ConfigError(f"tracker.fuse_radius_px must be >= 0 (0 = off), got {self.fuse_radius_px}")
+        if not 0 <= self.fuse_max_hamming <= 256:
+            raise ConfigError(f"tracker.fuse_max_hamming must be in [0, 256], got {self.fuse_max_hamming}")
         if self.min_inliers < 6:
             raise ConfigError("tracker.min_inliers must be at least 6 (EPnP needs >= 4 + RANSAC)")
         if not 0 < self.min_depth_m < self.max_depth_m:
@@ -266,6 +278,7 @@ class Tracker:
         self.map = MapPoints()
         self.keyframes: list[Keyframe] = []  # the most recent ones, for relocalisation
         self._kf_count = 0  # keyframes made so far (indexes never repeat)
+        self.fused_points = 0
         # Last RGB-tracked frame, for relocalisation; made into a Keyframe only when needed.
         self._last_frame_raw: tuple[float, F64, Features, NDArray[np.float64]] | None = None
         self._rgb_failures = 0  # consecutive frames whose RGB image did not fit the map
@@ -851,6 +864,8 @@ class Tracker:
         )
         self.keyframes = self.keyframes[-max(self.cfg.reloc_keyframes, 2) :]
         new = ok & ~skip if skip is not None and not new_all else ok
+        if skip is not None and not new_all and self.cfg.fuse_radius_px > 0:
+            observed = self._fuse_duplicates(T, feats, kp_depth, ok, new, observed, kf_index)
         z = kp_depth[new]
         pts_new = transform_points(T, self.cam.unproject(feats.uv[new].astype(np.float64), z))
         ids = np.full(len(feats.uv), -1, np.int64)
@@ -884,6 +899,57 @@ class Tracker:
             self._ba_problem = self._ba_graph.problem(kf_index, self._map_epoch, self.map.pid,
                                                       self.map.pos_world)
         return ids
+
+    def _fuse_duplicates(
+        self, T: F64, feats: Features, kp_depth: NDArray[np.float64], ok: NDArray[np.bool_],
+        new: NDArray[np.bool_], observed: tuple[NDArray[np.intp], NDArray[np.intp]] | None, kf_index: int,
+    ) -> tuple[NDArray[np.intp], NDArray[np.intp]] | None:
+        """ORB-SLAM2's Fuse at keyframe ``kf_index`` (pose ``T``), half of it: a map point this
+        frame did not match that projects onto one of its keypoints with depth (within
+        ``fuse_radius_px``, Hamming distance <= ``fuse_max_hamming``, stereo chi-square
+        ``|(du, dv, du_right)|^2 / sigma^2 < 7.815`` at ``sigma = 1.2^octave``) is the point that
+        keypoint sees. On a keypoint about to make a new point (``new``, cleared there) the old
+        point takes the observation (position averaged in, last seen now) instead of a twin being
+        made; a keypoint matched as an inlier keeps its point (dropping the unmatched twin there,
+        the other half, made tracking worse: docs/decisions/0049). Returns ``observed`` (map
+        rows, keypoint rows) with the taken observations added."""
+        m_obs = np.zeros(0, np.intp) if observed is None else observed[0]
+        f_obs = np.zeros(0, np.intp) if observed is None else observed[1]
+        if len(self.map) == 0:
+            return observed
+        free = np.ones(len(self.map), bool)
+        free[m_obs] = False
+        T_cw = inverse(T)
+        pts_c = transform_points(T_cw, self.map.pos_world)
+        uv, vis_ok = self.cam.project(pts_c)
+        vis_ok &= free & self.cam.in_image(uv, margin=2.0) & (pts_c[:, 2] > 0.1)
+        vis = np.flatnonzero(vis_ok)
+        cand = np.flatnonzero(ok)
+        if len(vis) == 0 or len(cand) == 0:
+            return observed
+        sub = Features(feats.uv[cand], feats.angle_deg[cand], feats.response[cand], feats.octave[cand],
+                       feats.size[cand], np.asarray(feats.descriptors, np.uint8)[cand], feats.kind)
+        mi, fi = match_projected(self.map.desc[vis], uv[vis], sub, self.cfg.fuse_radius_px,
+                                 max_hamming=self.cfg.fuse_max_hamming)
+        rows, kps = vis[mi], cand[fi]
+        if len(rows) == 0:
+            return observed
+        bf = self.cfg.rgbd_bf
+        z_pred, z_kp = pts_c[rows, 2], kp_depth[kps]
+        e = uv[rows] - feats.uv[kps].astype(np.float64)
+        e_r = e[:, 0] - bf / z_pred + bf / z_kp
+        sigma = np.power(self.cfg.orb.scale_factor, feats.octave[kps].astype(np.float64))
+        good = (np.sum(e**2, axis=1) + e_r**2) / sigma**2 < 7.815
+        rows, kps = rows[good], kps[good]
+        takes = new[kps]  # a keypoint already matched as an inlier keeps its point
+        t_rows, t_kps = rows[takes], kps[takes]
+        new[t_kps] = False
+        self.map.kf_last[t_rows] = kf_index
+        self._fuse(T_cw, t_rows, feats.uv[t_kps], kp_depth[t_kps])
+        self.fused_points += len(t_rows)
+        m_all = np.concatenate([m_obs, t_rows]).astype(np.intp)
+        f_all = np.concatenate([f_obs, t_kps]).astype(np.intp)
+        return m_all, f_all
 
     # ------------------------------------------------------------------ local bundle adjustment
     def _record_keyframe(
