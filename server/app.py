@@ -306,7 +306,8 @@ class MapServer:
         def make_pipeline(store: MapStore, objects: ObjectMap, decoded: DecodedCache) -> MapPipeline:
             return MapPipeline(store, objects, config=pipeline_cfg, perception=perception_cfg,
                                association=association_cfg, segmenter=segmenter,
-                               backend=BackendStage(store, backend_cfg, telemetry=telemetry, decoded=decoded),
+                               backend=BackendStage(store, backend_cfg, telemetry=telemetry, decoded=decoded,
+                                                    nice=mapping_cfg.nice),
                                telemetry=telemetry, shared=mapping_cfg)
 
         def make_workers(url: str, password: str | None, server: str) -> PerceptionWorkers:

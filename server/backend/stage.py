@@ -43,9 +43,11 @@ from wardmap.server.backend.core import BackendConfig, BackendCore, Closure, Key
 from wardmap.server.backend.graph import EdgeRecord, GraphUpdate, NodeRecord, PoseGraph
 from wardmap.server.backend.verify import KeyframeFeatures
 from wardmap.server.decoded import DecodedCache, DecodedKeyframe
+from wardmap.server.priority import nice_this_thread
 from wardmap.server.store import GraphChange, GraphEdgeRow, GraphNodeRow, MapStore, SessionAnchor
 from wardmap.server.telemetry import ServerTelemetry
 from wardmap.shared.errors import WardmapError, WireError
+from wardmap.shared.hamming import knn2
 from wardmap.shared.wire import KeyframeMsg, PoseSource, decode_keyframe
 
 log = logging.getLogger(__name__)
@@ -90,6 +92,14 @@ class BackendCounters:
 Publish = Callable[[SessionAnchor], object]
 
 
+def warm_up_kernels() -> None:
+    """Load (or compile) the numba kernels place recognition runs, now. The first call holds the
+    interpreter lock for about 0.15 s (numba's target context, then the cached kernel), which
+    under the first keyframes stalled every thread of the server, ingest's acks included."""
+    probe = np.zeros((1, 32), np.uint8)
+    knn2(probe, probe)
+
+
 class BackendStage:
     """The back-end thread (see the module docstring).
 
@@ -103,13 +113,14 @@ class BackendStage:
         telemetry: where each keyframe's time in the back-end goes (stage ``backend``), or None.
         decoded: the keyframes ingest decoded (``server/decoded.py``), shared with the mapping
             stage; None: a private one (every keyframe is then decoded from the store).
+        nice: added to this stage's thread's niceness (``[mapping] nice``; ``server/priority.py``).
     """
 
     def __init__(self, store: MapStore, config: BackendConfig | None = None, *,
                  publish: Publish | None = None, poll_s: float = 0.1, batch: int = 16, retry_s: float = 1.0,
                  max_retry_s: float = 60.0, max_attempts: int = 3,
                  clock: Callable[[], float] = time.time, telemetry: ServerTelemetry | None = None,
-                 decoded: DecodedCache | None = None) -> None:
+                 decoded: DecodedCache | None = None, nice: int = 0) -> None:
         self.store = store
         self.decoded = decoded if decoded is not None else DecodedCache()
         """Decoded keyframes from ingest; this stage reads them, the mapping stage discards them."""
@@ -119,6 +130,7 @@ class BackendStage:
         self._poll_s, self._batch = poll_s, batch
         self._retry_s, self._max_retry_s, self._max_attempts = retry_s, max_retry_s, max_attempts
         self._clock = clock
+        self._nice = nice
         self._lock = threading.Lock()
         self._counts: Counter[str] = Counter()
         self._rejected: Counter[str] = Counter()
@@ -138,6 +150,7 @@ class BackendStage:
     # ------------------------------------------------------------------ life cycle
 
     def start(self) -> None:
+        warm_up_kernels()
         self._thread = threading.Thread(target=self._main, name="backend", daemon=True)
         self._thread.start()
         log.info("back-end started (%d nodes restored)", len(self.core))
@@ -187,6 +200,7 @@ class BackendStage:
     # ------------------------------------------------------------------ thread
 
     def _main(self) -> None:
+        nice_this_thread(self._nice)
         delay = self._retry_s
         failing: tuple[int, int] | None = None
         while not self._stop.is_set():

@@ -70,6 +70,7 @@ from wardmap.server.objectmap import ObjectMap
 from wardmap.server.perception.config import PerceptionConfig, measure_config_for
 from wardmap.server.perception.models import Segmenter, make_segmenter
 from wardmap.server.perception.types import ObjectMeasurement
+from wardmap.server.priority import nice_this_thread
 from wardmap.server.store import Checkpoint, MapStore, Perceived, PerceptionSlot
 from wardmap.server.telemetry import ServerTelemetry
 from wardmap.shared.errors import ConfigError, WardmapError, WireError
@@ -347,6 +348,7 @@ class MapPipeline:
     # ------------------------------------------------------------------ thread
 
     def _main(self) -> None:
+        nice_this_thread(self.shared.nice)  # ingest, in this process too, comes first
         delay = self.cfg.retry_s
         failing: tuple[int, int] | None = None  # (cursor, consecutive failures there)
         settled = True  # the writer holds exactly the keyframes up to the cursor

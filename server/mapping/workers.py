@@ -81,8 +81,9 @@ class MappingConfig:
             needs next before measuring it itself (seconds; 0 when this server has no workers).
         poll_s: how long an idle worker sleeps before it looks for keyframes again (seconds).
         retry_s: how long a worker waits after a store error (seconds).
-        nice: added to each worker process's niceness (0-19; Unix): perception, which can wait,
-            yields the cores to ingest, whose acks robots wait for, and to the mapping stage.
+        nice: added to each worker process's niceness (0-19; Unix), and to the threads of the
+            mapping stage and the back-end in the server process (Linux; ``server/priority.py``):
+            mapping, which can wait, yields the cores to ingest, whose acks robots wait for.
     """
 
     perception_workers: int = 0
