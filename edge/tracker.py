@@ -278,7 +278,7 @@ class Tracker:
         self.map = MapPoints()
         self.keyframes: list[Keyframe] = []  # the most recent ones, for relocalisation
         self._kf_count = 0  # keyframes made so far (indexes never repeat)
-        self.fused_points = 0
+        self.fused_points = 0  # observations old points took instead of twins (fuse_radius_px)
         # Last RGB-tracked frame, for relocalisation; made into a Keyframe only when needed.
         self._last_frame_raw: tuple[float, F64, Features, NDArray[np.float64]] | None = None
         self._rgb_failures = 0  # consecutive frames whose RGB image did not fit the map
@@ -865,7 +865,7 @@ class Tracker:
         self.keyframes = self.keyframes[-max(self.cfg.reloc_keyframes, 2) :]
         new = ok & ~skip if skip is not None and not new_all else ok
         if skip is not None and not new_all and self.cfg.fuse_radius_px > 0:
-            observed = self._fuse_duplicates(T, feats, kp_depth, ok, new, observed, kf_index)
+            observed = self._fuse_unmatched_points(T, feats, kp_depth, ok, new, observed, kf_index)
         z = kp_depth[new]
         pts_new = transform_points(T, self.cam.unproject(feats.uv[new].astype(np.float64), z))
         ids = np.full(len(feats.uv), -1, np.int64)
@@ -900,7 +900,7 @@ class Tracker:
                                                       self.map.pos_world)
         return ids
 
-    def _fuse_duplicates(
+    def _fuse_unmatched_points(
         self, T: F64, feats: Features, kp_depth: NDArray[np.float64], ok: NDArray[np.bool_],
         new: NDArray[np.bool_], observed: tuple[NDArray[np.intp], NDArray[np.intp]] | None, kf_index: int,
     ) -> tuple[NDArray[np.intp], NDArray[np.intp]] | None:
