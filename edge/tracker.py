@@ -590,17 +590,24 @@ class Tracker:
 
     # ------------------------------------------------------------------ matching / pose
     def _match_map(
-        self, T_cw: F64, feats: Features, sem: NDArray[np.uint8] | None, radius: float
+        self, T_cw: F64, feats: Features, sem: NDArray[np.uint8] | None, radius: float, *,
+        among: NDArray[np.bool_] | None = None, max_hamming: int | None = None,
     ) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+        """Map points (rows; only those in ``among`` (M,) when given) that project within
+        ``radius`` px of a feature with a close descriptor (``max_hamming``, default the
+        config's) and, with ``sem``, a close semantic descriptor: ``(map rows, feature rows)``."""
         if len(self.map) == 0:
             return np.zeros(0, np.intp), np.zeros(0, np.intp)
         pts_c = transform_points(T_cw, self.map.pos_world)
         uv, ok = self.cam.project(pts_c)
         ok &= self.cam.in_image(uv, margin=2.0) & (pts_c[:, 2] > 0.1)
+        if among is not None:
+            ok &= among
         vis = np.flatnonzero(ok)
         if len(vis) == 0:
             return np.zeros(0, np.intp), np.zeros(0, np.intp)
-        mi, fi = match_projected(self.map.desc[vis], uv[vis], feats, radius, max_hamming=self.cfg.max_hamming)
+        mi, fi = match_projected(self.map.desc[vis], uv[vis], feats, radius,
+                                 max_hamming=self.cfg.max_hamming if max_hamming is None else max_hamming)
         m_idx, f_idx = vis[mi], np.asarray(fi, np.intp)
         if sem is not None and self.map.sem is not None and len(m_idx):
             d = semantic_distance(self.map.sem[m_idx], sem[f_idx])
@@ -865,7 +872,7 @@ class Tracker:
         self.keyframes = self.keyframes[-max(self.cfg.reloc_keyframes, 2) :]
         new = ok & ~skip if skip is not None and not new_all else ok
         if skip is not None and not new_all and self.cfg.fuse_radius_px > 0:
-            observed = self._fuse_unmatched_points(T, feats, kp_depth, ok, new, observed, kf_index)
+            observed = self._fuse_unmatched_points(T, feats, kp_depth, sem, ok, new, observed, kf_index)
         z = kp_depth[new]
         pts_new = transform_points(T, self.cam.unproject(feats.uv[new].astype(np.float64), z))
         ids = np.full(len(feats.uv), -1, np.int64)
@@ -901,12 +908,14 @@ class Tracker:
         return ids
 
     def _fuse_unmatched_points(
-        self, T: F64, feats: Features, kp_depth: NDArray[np.float64], ok: NDArray[np.bool_],
-        new: NDArray[np.bool_], observed: tuple[NDArray[np.intp], NDArray[np.intp]] | None, kf_index: int,
+        self, T: F64, feats: Features, kp_depth: NDArray[np.float64], sem: NDArray[np.uint8] | None,
+        ok: NDArray[np.bool_], new: NDArray[np.bool_],
+        observed: tuple[NDArray[np.intp], NDArray[np.intp]] | None, kf_index: int,
     ) -> tuple[NDArray[np.intp], NDArray[np.intp]] | None:
         """ORB-SLAM2's Fuse at keyframe ``kf_index`` (pose ``T``), half of it: a map point this
         frame did not match that projects onto one of its keypoints with depth (within
-        ``fuse_radius_px``, Hamming distance <= ``fuse_max_hamming``, stereo chi-square
+        ``fuse_radius_px``, Hamming distance <= ``fuse_max_hamming``, with labels a close semantic
+        descriptor, stereo chi-square
         ``|(du, dv, du_right)|^2 / sigma^2 < 7.815`` at ``sigma = 1.2^octave``) is the point that
         keypoint sees. On a keypoint about to make a new point (``new``, cleared there) the old
         point takes the observation (position averaged in, last seen now) instead of a twin being
@@ -915,28 +924,20 @@ class Tracker:
         rows, keypoint rows) with the taken observations added."""
         m_obs = np.zeros(0, np.intp) if observed is None else observed[0]
         f_obs = np.zeros(0, np.intp) if observed is None else observed[1]
-        if len(self.map) == 0:
-            return observed
+        cand = np.flatnonzero(ok)
         free = np.ones(len(self.map), bool)
         free[m_obs] = False
         T_cw = inverse(T)
-        pts_c = transform_points(T_cw, self.map.pos_world)
-        uv, vis_ok = self.cam.project(pts_c)
-        vis_ok &= free & self.cam.in_image(uv, margin=2.0) & (pts_c[:, 2] > 0.1)
-        vis = np.flatnonzero(vis_ok)
-        cand = np.flatnonzero(ok)
-        if len(vis) == 0 or len(cand) == 0:
-            return observed
-        sub = Features(feats.uv[cand], feats.angle_deg[cand], feats.response[cand], feats.octave[cand],
-                       feats.size[cand], np.asarray(feats.descriptors, np.uint8)[cand], feats.kind)
-        mi, fi = match_projected(self.map.desc[vis], uv[vis], sub, self.cfg.fuse_radius_px,
-                                 max_hamming=self.cfg.fuse_max_hamming)
-        rows, kps = vis[mi], cand[fi]
+        mi, fi = self._match_map(T_cw, feats.select(cand), None if sem is None else sem[cand],
+                                 self.cfg.fuse_radius_px, among=free, max_hamming=self.cfg.fuse_max_hamming)
+        rows, kps = mi, cand[fi]
         if len(rows) == 0:
             return observed
+        pts_c = transform_points(T_cw, self.map.pos_world[rows])
+        uv, _ = self.cam.project(pts_c)
         bf = self.cfg.rgbd_bf
-        z_pred, z_kp = pts_c[rows, 2], kp_depth[kps]
-        e = uv[rows] - feats.uv[kps].astype(np.float64)
+        z_pred, z_kp = pts_c[:, 2], kp_depth[kps]
+        e = uv - feats.uv[kps].astype(np.float64)
         e_r = e[:, 0] - bf / z_pred + bf / z_kp
         sigma = np.power(self.cfg.orb.scale_factor, feats.octave[kps].astype(np.float64))
         good = (np.sum(e**2, axis=1) + e_r**2) / sigma**2 < 7.815
