@@ -34,6 +34,12 @@ if [ ! -x /usr/lib/postgresql/15/bin/initdb ] || [ ! -f /usr/share/postgresql/15
         echo "scripts/test.sh: no PostgreSQL 15 + PostGIS and no root apt-get to install them; those tests will skip" >&2
     fi
 fi
+# The suite writes up to about 3 GB at a time (map databases, outboxes, bags, PostgreSQL clusters);
+# say so up front instead of failing later with "No space left on device".
+TMP_FREE_MB=$(df -Pm "${TMPDIR:-/tmp}" | awk 'NR == 2 {print $4}')
+if [ "${TMP_FREE_MB:-0}" -lt 4096 ]; then
+    echo "scripts/test.sh: only ${TMP_FREE_MB} MB free under ${TMPDIR:-/tmp}; the tests need about 3 GB" >&2
+fi
 "$VENV/bin/ruff" check .
 # mypy sees the source folders under their installed names (wardmap.shared, ...).
 TYPECHECK=build/typecheck
