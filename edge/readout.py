@@ -23,7 +23,7 @@ Online (:class:`OnlineReadout`), when the recording says nothing of its readout 
 readout_s``, no sensor with a known default): the tracking loop offers each frame with its
 tracked pose; frames are kept in a window of ``window`` frames, and once a window has turned
 ``min_turn_deg`` the candidates (0-40 ms every 10 ms, parabola between them) are scored on it,
-in a child process for a live source (the tracker keeps its core) or in line for a recording
+in a child process at niceness 19 for a live source (the tracker keeps its core) or in line for a recording
 (the result does not depend on timing). A decisive result replaces the tracker's readout from
 the next frame on; an undecided window is dropped and the next one tried, ``max_attempts``
 times at most. Earlier frames keep the global-shutter model they were tracked with.
@@ -34,17 +34,25 @@ from __future__ import annotations
 import logging
 import math
 import multiprocessing
+import os
+import shutil
+import tempfile
+import threading
 from collections import deque
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
 
 import numpy as np
+from numpy.lib.format import open_memmap
 from numpy.typing import NDArray
 
 from wardmap.edge.tracker import Tracker, TrackerConfig, TrackInput, TrackResult
 from wardmap.shared.dataset import MAX_READOUT_S, Calibration, DatasetReader, odom_at
 from wardmap.shared.errors import WardmapError
+from wardmap.shared.priority import nice_this_thread
 from wardmap.shared.se3 import rotation_angle
 from wardmap.shared.sensors import ReadoutModel
 
@@ -214,6 +222,7 @@ class OnlineReadout:
         self._prev: NDArray[np.float64] | None = None
         self._pool: ProcessPoolExecutor | None = None
         self._job: Future[list[float]] | None = None
+        self._starter: threading.Thread | None = None
         self.attempts = 0
         self.estimate: ReadoutEstimate | None = None
         """The last scored window's estimate (None: none scored yet)."""
@@ -246,11 +255,46 @@ class OnlineReadout:
         cands = [0.0, *self.cfg.candidates_s]
         if not self._background:
             return self._scored(score_candidates(self._window, self._cal, self._tracker_cfg, cands))
-        if self._pool is None:
-            self._pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
-        self._job = self._pool.submit(score_candidates, list(self._window), self._cal, self._tracker_cfg,
-                                      cands)
+        job: Future[list[float]] = Future()
+        self._job = job
+        self._starter = threading.Thread(target=self._submit, args=(list(self._window), cands, job),
+                                         name="readout-start", daemon=True)
+        self._starter.start()
         return None
+
+    def _submit(self, window: list[TrackInput], cands: list[float], job: Future[list[float]]) -> None:
+        """Hand ``window`` to the scoring child; ``job`` gets its scores or its error.
+
+        Runs on a thread of its own made :data:`CHILD_NICE` nicer first, so that the copy of the
+        frames, the executor's threads and the child it spawns (which inherit the value) all
+        yield to the tracker. The frames go through files in shared memory (one copy; pickling
+        them, about 100 MB for 50 VGA frames, held the interpreter lock for over 0.1 s).
+        """
+        nice_this_thread(CHILD_NICE)
+        folder: Path | None = None
+        try:
+            folder, rest = _write_window(window)
+            if self._pool is None:
+                self._pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
+                                                 initializer=_yield_cpu)
+            inner = self._pool.submit(_score_window_files, folder, rest, self._cal, self._tracker_cfg,
+                                      cands)
+        except Exception as exc:  # no shared memory left, the child did not start: the job fails
+            if folder is not None:
+                shutil.rmtree(folder, ignore_errors=True)
+            job.set_exception(exc)
+            return
+
+        def done(f: Future[list[float]]) -> None:
+            shutil.rmtree(folder, ignore_errors=True)
+            if f.cancelled():
+                job.cancel()
+            elif (exc := f.exception()) is not None:
+                job.set_exception(exc)
+            else:
+                job.set_result(f.result())
+
+        inner.add_done_callback(done)
 
     def _collect(self) -> ReadoutModel | None:
         if self._job is None or not self._job.done():
@@ -297,9 +341,66 @@ class OnlineReadout:
 
     def close(self) -> None:
         """Stop a child process still scoring (its result is dropped)."""
+        if self._starter is not None:
+            self._starter.join()
+            self._starter = None
         if self._pool is not None:
             self._pool.shutdown(wait=False, cancel_futures=True)
             self._pool = None
+
+
+CHILD_NICE = 19
+"""Niceness of the scoring child: it tracks the window once per candidate (several seconds of
+CPU) and must not take the tracker's core when the two share one (a pinned edge, a busy board)."""
+
+
+def _yield_cpu() -> None:
+    """The scoring child's initializer: run at :data:`CHILD_NICE` (a refusal is only logged)."""
+    try:
+        os.nice(max(0, CHILD_NICE - os.nice(0)))
+    except OSError as exc:
+        log.warning("online readout: cannot lower the scoring child's priority: %s", exc)
+
+
+_FRAME_ARRAYS = ("rgb", "depth_m", "class_image")
+"""The per-frame images that go to the scoring child through files; the rest is pickled."""
+
+
+def _write_window(window: Sequence[TrackInput]) -> tuple[Path, list[TrackInput]]:
+    """Write the window's images to a new folder in shared memory (``/dev/shm``; the temporary
+    folder where there is none), one ``(N, ...)`` array file per field present in every frame.
+    Returns the folder and the frames with those fields set to None."""
+    shm = Path("/dev/shm")
+    folder = Path(tempfile.mkdtemp(prefix="wardmap-readout-", dir=shm if shm.is_dir() else None))
+    try:
+        fields = [f for f in _FRAME_ARRAYS if all(getattr(inp, f) is not None for inp in window)]
+        for name in fields:
+            first = getattr(window[0], name)
+            out = open_memmap(folder / f"{name}.npy", mode="w+", dtype=first.dtype,
+                              shape=(len(window), *first.shape))
+            for i, inp in enumerate(window):
+                out[i] = getattr(inp, name)
+            out.flush()
+            del out
+    except BaseException:
+        shutil.rmtree(folder, ignore_errors=True)
+        raise
+    cleared: dict[str, Any] = dict.fromkeys(fields)
+    return folder, [replace(inp, **cleared) for inp in window]
+
+
+def _score_window_files(folder: Path, rest: Sequence[TrackInput], calibration: Calibration,
+                        config: TrackerConfig | None, candidates_s: Sequence[float]) -> list[float]:
+    """:func:`score_candidates` in the child on a window written by :func:`_write_window`. The
+    files are removed once mapped (their memory lives as long as the maps), so nothing is left
+    in shared memory whatever happens to either process afterwards."""
+    arrays = {p.stem: np.load(p, mmap_mode="r") for p in folder.glob("*.npy")}
+    shutil.rmtree(folder, ignore_errors=True)
+    inputs = []
+    for i, inp in enumerate(rest):
+        images: dict[str, Any] = {name: np.array(a[i]) for name, a in arrays.items()}
+        inputs.append(replace(inp, **images))
+    return score_candidates(inputs, calibration, config, candidates_s)
 
 
 def _peak(x: Sequence[float], y: Sequence[float]) -> float:

@@ -43,11 +43,11 @@ from wardmap.server.backend.core import BackendConfig, BackendCore, Closure, Key
 from wardmap.server.backend.graph import EdgeRecord, GraphUpdate, NodeRecord, PoseGraph
 from wardmap.server.backend.verify import KeyframeFeatures
 from wardmap.server.decoded import DecodedCache, DecodedKeyframe
-from wardmap.server.priority import nice_this_thread
 from wardmap.server.store import GraphChange, GraphEdgeRow, GraphNodeRow, MapStore, SessionAnchor
 from wardmap.server.telemetry import ServerTelemetry
 from wardmap.shared.errors import WardmapError, WireError
 from wardmap.shared.hamming import knn2
+from wardmap.shared.priority import nice_this_thread
 from wardmap.shared.wire import KeyframeMsg, PoseSource, decode_keyframe
 
 log = logging.getLogger(__name__)

@@ -70,11 +70,11 @@ from wardmap.server.objectmap import ObjectMap
 from wardmap.server.perception.config import PerceptionConfig, measure_config_for
 from wardmap.server.perception.models import Segmenter, make_segmenter
 from wardmap.server.perception.types import ObjectMeasurement
-from wardmap.server.priority import nice_this_thread
 from wardmap.server.store import Checkpoint, MapStore, Perceived, PerceptionSlot
 from wardmap.server.telemetry import ServerTelemetry
 from wardmap.shared.errors import ConfigError, WardmapError, WireError
 from wardmap.shared.knowledge import KnowledgeGraph
+from wardmap.shared.priority import nice_this_thread
 from wardmap.shared.wire import KeyframeMsg, decode_keyframe
 
 log = logging.getLogger(__name__)

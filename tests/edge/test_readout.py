@@ -8,6 +8,9 @@ from ../shared and those tests skip when it is absent.
 from __future__ import annotations
 
 import json
+import os
+import sys
+import threading
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -255,3 +258,66 @@ def test_online_readout_counts_the_turn_within_its_window(
         if calls:
             break
     assert (i if calls else None) == scored_at and calls in ([], [10])
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="per-thread niceness is Linux's")
+def test_the_scoring_child_is_started_nice_and_gets_the_frames_through_shared_memory(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A live source's window goes to the child from a thread 19 steps nice (the child and the
+    executor's threads inherit it: the tracker keeps its core), as files in shared memory that
+    are gone once the child has them; the child sees the frames as they were. (The executor is
+    replaced by one that runs the child's function in the submitting thread.)"""
+    from concurrent.futures import Future
+
+    from wardmap.edge import readout
+
+    seen: dict[str, object] = {}
+
+    class InlineExecutor:
+        def __init__(self, *_: object, initializer: object = None, **__: object) -> None:
+            seen["initializer"] = initializer
+
+        def submit(self, fn, *args):  # type: ignore[no-untyped-def]
+            seen["nice"] = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+            seen["files"] = sorted(p.name for p in args[0].iterdir())
+            fut: Future[list[float]] = Future()
+            fut.set_result(fn(*args))
+            return fut
+
+        def shutdown(self, **_: object) -> None:
+            pass
+
+    def fake_score(inputs, *_):  # type: ignore[no-untyped-def]
+        seen["inputs"] = list(inputs)
+        return [1.0, 1.1, 1.3, 1.1, 1.0]  # 0-40 ms: the peak at 20 ms
+
+    monkeypatch.setattr(readout, "ProcessPoolExecutor", InlineExecutor)
+    monkeypatch.setattr(readout, "score_candidates", fake_score)
+    rng = np.random.default_rng(0)
+    frames = [TrackInput(float(i), rng.integers(0, 255, (6, 8, 3), dtype=np.uint8),
+                         rng.random((6, 8), dtype=np.float32), thermal_k=np.full((2, 2), 300.0, np.float32))
+              for i in range(10)]
+    from types import SimpleNamespace
+
+    from wardmap.shared.se3 import yaw_transform
+    online = OnlineReadout(None, None, OnlineReadoutConfig(window=10, min_turn_deg=15.0))  # type: ignore[arg-type]
+    found = None
+    try:
+        for i, inp in enumerate(frames):
+            pose = yaw_transform(0.0, 0.0, np.radians(3.0 * i))
+            online.offer(inp, SimpleNamespace(lost=False, T_world_camera=pose))  # type: ignore[arg-type]
+        deadline = time.monotonic() + 10
+        while found is None and online.state == "scoring" and time.monotonic() < deadline:
+            found = online.offer(frames[-1], SimpleNamespace(lost=False, T_world_camera=pose))  # type: ignore[arg-type]
+            time.sleep(0.01)
+    finally:
+        online.close()
+    assert seen["nice"] == 19 and seen["initializer"] is readout._yield_cpu
+    assert seen["files"] == ["depth_m.npy", "rgb.npy"]  # class_image: None in every frame
+    got = seen["inputs"]
+    assert [g.stamp for g in got] == [f.stamp for f in frames]  # type: ignore[attr-defined]
+    for g, f in zip(got, frames, strict=True):  # type: ignore[call-overload]
+        assert np.array_equal(g.rgb, f.rgb) and np.array_equal(g.depth_m, f.depth_m)
+        assert np.array_equal(g.thermal_k, f.thermal_k) and g.class_image is None
+    assert found is not None and found.readout_s == pytest.approx(0.02, abs=0.005)
+    assert not list(Path("/dev/shm").glob("wardmap-readout-*"))  # nothing left in shared memory

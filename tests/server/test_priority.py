@@ -1,4 +1,4 @@
-"""Ingest first: the mapping stage's threads run nicer than ingest (``server/priority.py``,
+"""Ingest first: the mapping stage's threads run nicer than ingest (``shared/priority.py``,
 ``[mapping] nice``), and the back-end loads its numba kernel before the first keyframe."""
 
 from __future__ import annotations
@@ -15,8 +15,8 @@ from wardmap.server.backend.stage import BackendStage
 from wardmap.server.mapping import MapPipeline, PipelineConfig
 from wardmap.server.mapping.workers import MappingConfig
 from wardmap.server.objectmap import ObjectMap
-from wardmap.server.priority import nice_this_thread
 from wardmap.server.store import SqliteMapStore
+from wardmap.shared.priority import nice_this_thread
 
 pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="per-thread niceness is Linux's")
 

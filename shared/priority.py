@@ -1,10 +1,9 @@
-"""CPU priority of the server's background work: mapping yields the cores to ingest.
+"""CPU priority of background work: it yields the cores to what someone waits for.
 
-Robots wait for ingest's acks; the mapping stage (back-end, perception, association) can fall
-behind and catch up. On Linux niceness is per thread, so the mapping stage's threads are made
-nicer than the ingest thread of the same process (``[mapping] nice``; perception worker
-processes get the same value for the whole process). Measured: BENCHMARKS.md, "32 robots with
-the mapping stage on".
+On Linux niceness is per thread, and threads and processes a thread starts inherit its value.
+The server's mapping stage (back-end, perception, association) runs nicer than ingest, whose
+acks robots wait for (``[mapping] nice``; measured: BENCHMARKS.md, "32 robots with the mapping
+stage on"); the edge's online readout estimate runs its child nicer than the tracker.
 """
 
 from __future__ import annotations
