@@ -32,7 +32,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from wardmap.shared.camera import PinholeCamera
 from wardmap.shared.errors import GeometryError
-from wardmap.shared.se3 import check_transform, hat, make_transform, se3_exp
+from wardmap.shared.se3 import check_transform, make_transform, se3_exp
 
 F64 = NDArray[np.float64]
 Mask = NDArray[np.bool_]
@@ -619,48 +619,17 @@ def refine_pose_rolling_shutter(
         return RollingShutterResult(T0, s0, False)
     P, xy, w, izm = P_all[valid], xy[valid], 1.0 / sigma[valid], izm[valid]
     tau = (uv_all[valid, 1] - camera.cy) / camera.height
-    stereo = izm > 0
     fx, fy = camera.fx, camera.fy
-
-    def residuals_and_jacobian(T: F64, shear: F64) -> tuple[F64, F64]:
-        """Whitened residuals (2N + N_stereo + 3,) and their Jacobian in (rho, omega, shear),
-        the pose perturbed on the left (``exp(xi) T``)."""
-        X = P @ T[:3, :3].T + T[:3, 3]
-        Y = X - tau[:, None] * np.cross(shear, X)  # the point in the row's camera frame
-        iz = 1.0 / np.maximum(Y[:, 2], _MIN_DEPTH)
-        a, b = Y[:, 0] * iz, Y[:, 1] * iz
-        ru = w * fx * (a - xy[:, 0])
-        rv = w * fy * (b - xy[:, 1])
-        rr = w[stereo] * (fx * (a[stereo] - xy[stereo, 0]) - bf * (iz[stereo] - izm[stereo]))
-        # dY/dX = I - tau [s]x; dX/d(rho, omega) = [I | -[X]x]; dY/ds = tau [X]x.
-        m = len(X)
-        eye = np.broadcast_to(np.eye(3), (m, 3, 3))
-        dY_dX = eye - tau[:, None, None] * hat(shear)
-        dX_dxi = np.concatenate([eye, -hat(X)], axis=2)
-        dY = np.concatenate([dY_dX @ dX_dxi, tau[:, None, None] * hat(X)], axis=2)  # (m, 3, 9)
-        da = (dY[:, 0] - a[:, None] * dY[:, 2]) * iz[:, None]
-        db = (dY[:, 1] - b[:, None] * dY[:, 2]) * iz[:, None]
-        diz = -(iz * iz)[:, None] * dY[:, 2]
-        J = np.concatenate([
-            (w * fx)[:, None] * da,
-            (w * fy)[:, None] * db,
-            w[stereo, None] * (fx * da[stereo] - bf * diz[stereo]),
-            np.hstack([np.zeros((3, 6)), np.eye(3) / shear_sigma_rad]),
-        ])
-        r = np.concatenate([ru, rv, rr, (shear - s0) / shear_sigma_rad])
-        return r, J
 
     # Gauss-Newton with Huber weights (iteratively reweighted): 9 unknowns, a 9 x 9 solve per
     # step; the pose is re-linearised at each step.
     T, shear = T0, s0.copy()
     for _ in range(iterations):
-        r, J = residuals_and_jacobian(T, shear)
-        a_r = np.abs(r)
-        wt = np.where(a_r <= huber_px, 1.0, huber_px / np.maximum(a_r, 1e-12))
-        wt[-3:] = 1.0  # the prior is Gaussian
-        H = J.T @ (wt[:, None] * J)
+        H, g = _rolling_shutter_system(np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]),
+                                       shear, s0, P, xy, w, izm, tau, float(bf), fx, fy,
+                                       float(huber_px), float(shear_sigma_rad))
         try:
-            step = np.linalg.solve(H, -(J.T @ (wt * r)))
+            step = np.linalg.solve(H, -g)
         except np.linalg.LinAlgError:
             return RollingShutterResult(T0, s0, False)
         if not np.all(np.isfinite(step)):
@@ -670,6 +639,86 @@ def refine_pose_rolling_shutter(
         if float(np.abs(step).max()) < 1e-7:
             break
     return RollingShutterResult(T, shear, True)
+
+
+@njit(cache=True, nogil=True)
+def _rolling_shutter_system(
+    R: F64, t: F64, shear: F64, s0: F64, P: F64, xy: F64, w: F64, izm: F64, tau: F64, bf: float,
+    fx: float, fy: float, huber: float, shear_sigma: float,
+) -> tuple[F64, F64]:
+    """Normal equations ``H = J^T W J`` (9, 9) and ``g = J^T W r`` (9,) of
+    :func:`refine_pose_rolling_shutter`'s whitened residuals, ``W`` their Huber weights (each
+    residual its own; the shear prior Gaussian), unknowns ``(rho, omega, shear)`` with the pose
+    perturbed on the left.
+
+    Per point: ``X = R p + t``, ``Y = X - tau s x X`` (the row's camera frame), ``a, b = Y_x / Y_z,
+    Y_y / Y_z``; residuals ``w fx (a - x)``, ``w fy (b - y)`` and, with depth, ``w (fx (a - x) -
+    bf (1 / Y_z - 1 / z))``. ``dY/dX = I - tau [s]x``, ``dX/d(rho, omega) = [I | -[X]x]``,
+    ``dY/ds = tau [X]x``.
+    """
+    H = np.zeros((9, 9))
+    g = np.zeros(9)
+    dY = np.zeros((3, 9))
+    M = np.zeros((3, 3))  # dY/dX
+    jr = np.zeros(9)
+    s_x, s_y, s_z = shear[0], shear[1], shear[2]
+    for i in range(P.shape[0]):
+        X0 = R[0, 0] * P[i, 0] + R[0, 1] * P[i, 1] + R[0, 2] * P[i, 2] + t[0]
+        X1 = R[1, 0] * P[i, 0] + R[1, 1] * P[i, 1] + R[1, 2] * P[i, 2] + t[1]
+        X2 = R[2, 0] * P[i, 0] + R[2, 1] * P[i, 1] + R[2, 2] * P[i, 2] + t[2]
+        ti = tau[i]
+        # s x X
+        c0 = s_y * X2 - s_z * X1
+        c1 = s_z * X0 - s_x * X2
+        c2 = s_x * X1 - s_y * X0
+        Y0, Y1, Y2 = X0 - ti * c0, X1 - ti * c1, X2 - ti * c2
+        iz = 1.0 / max(Y2, 1e-6)
+        a, b = Y0 * iz, Y1 * iz
+        # M = I - tau [s]x
+        M[0, 0], M[0, 1], M[0, 2] = 1.0, ti * s_z, -ti * s_y
+        M[1, 0], M[1, 1], M[1, 2] = -ti * s_z, 1.0, ti * s_x
+        M[2, 0], M[2, 1], M[2, 2] = ti * s_y, -ti * s_x, 1.0
+        for r in range(3):
+            # M @ [I | -[X]x]: columns 0-2 are M; column 3+k is -M @ hat(X)[:, k]
+            m0, m1, m2 = M[r, 0], M[r, 1], M[r, 2]
+            dY[r, 0], dY[r, 1], dY[r, 2] = m0, m1, m2
+            dY[r, 3] = -(m1 * X2 - m2 * X1)
+            dY[r, 4] = -(-m0 * X2 + m2 * X0)
+            dY[r, 5] = -(m0 * X1 - m1 * X0)
+        # tau [X]x
+        dY[0, 6], dY[0, 7], dY[0, 8] = 0.0, -ti * X2, ti * X1
+        dY[1, 6], dY[1, 7], dY[1, 8] = ti * X2, 0.0, -ti * X0
+        dY[2, 6], dY[2, 7], dY[2, 8] = -ti * X1, ti * X0, 0.0
+        wi = w[i]
+        stereo = izm[i] > 0.0
+        n_res = 3 if stereo else 2
+        for k in range(n_res):
+            if k == 0:
+                res = wi * fx * (a - xy[i, 0])
+                for c in range(9):
+                    jr[c] = wi * fx * (dY[0, c] - a * dY[2, c]) * iz
+            elif k == 1:
+                res = wi * fy * (b - xy[i, 1])
+                for c in range(9):
+                    jr[c] = wi * fy * (dY[1, c] - b * dY[2, c]) * iz
+            else:
+                res = wi * (fx * (a - xy[i, 0]) - bf * (iz - izm[i]))
+                for c in range(9):
+                    jr[c] = wi * (fx * (dY[0, c] - a * dY[2, c]) * iz + bf * iz * iz * dY[2, c])
+            ar = abs(res)
+            wt = 1.0 if ar <= huber else huber / max(ar, 1e-12)
+            for c in range(9):
+                g[c] += wt * jr[c] * res
+                for d in range(c, 9):
+                    H[c, d] += wt * jr[c] * jr[d]
+    for c in range(9):
+        for d in range(c):
+            H[c, d] = H[d, c]
+    inv_var = 1.0 / (shear_sigma * shear_sigma)
+    for k in range(3):  # the Gaussian prior N(s0, shear_sigma^2) on the shear
+        H[6 + k, 6 + k] += inv_var
+        g[6 + k] += (shear[k] - s0[k]) * inv_var
+    return H, g
 
 
 

@@ -331,3 +331,42 @@ def test_rolling_shutter_fit_needs_points() -> None:
     uv[5:] = np.nan
     fit = refine_pose_rolling_shutter(P, uv, PINHOLE, T_TRUE, np.ones(3) * 0.01)
     assert not fit.ok and np.array_equal(fit.T_cam_world, T_TRUE) and np.allclose(fit.shear_rad, 0.01)
+
+
+def test_rolling_shutter_normal_equations_match_a_numerical_jacobian() -> None:
+    """The fit's normal equations (``H = J^T W J``, ``g = J^T W r``, a Huber weight per residual,
+    the shear prior Gaussian) against ``J`` by central differences of the residuals written
+    out here (pose perturbed on the left, ``exp(xi) T``): equal to 1e-6 relative, with some
+    residuals beyond the Huber threshold and some points without depth."""
+    from wardmap.edge.pose import _rolling_shutter_system
+    shear, s0 = np.radians([-1.5, 2.0, 0.8]), np.radians([0.5, -0.3, 0.2])
+    P, uv, z = _rolling_shutter_scene(shear, seed=3)
+    rng = np.random.default_rng(4)
+    xy = np.stack([(uv[:, 0] - PINHOLE.cx) / PINHOLE.fx, (uv[:, 1] - PINHOLE.cy) / PINHOLE.fy], axis=1)
+    xy[::7] += 0.01  # outliers: beyond the Huber threshold
+    w = 1.0 / (1.2 ** rng.integers(0, 4, len(P)))
+    izm = np.where(np.arange(len(P)) % 3 == 0, 0.0, 1.0 / z)  # a third without depth
+    tau = (uv[:, 1] - PINHOLE.cy) / PINHOLE.height
+    bf, huber, sigma = 40.0, 2.45, 0.02
+    T = se3_exp([0.01, -0.01, 0.02, 0.01, 0.005, -0.01]) @ T_TRUE
+
+    def residuals(v: NDArray[np.float64]) -> NDArray[np.float64]:
+        Tv, s = se3_exp(v[:6]) @ T, shear + v[6:]
+        X = transform_points(Tv, P)
+        Y = X - tau[:, None] * np.cross(s, X)
+        iz = 1.0 / Y[:, 2]
+        a, b = Y[:, 0] * iz, Y[:, 1] * iz
+        st = izm > 0
+        rr = w[st] * (PINHOLE.fx * (a[st] - xy[st, 0]) - bf * (iz[st] - izm[st]))
+        return np.concatenate([w * PINHOLE.fx * (a - xy[:, 0]), w * PINHOLE.fy * (b - xy[:, 1]), rr,
+                               (s - s0) / sigma])
+
+    r = residuals(np.zeros(9))
+    J = np.stack([(residuals(e) - residuals(-e)) / 2e-7 for e in np.eye(9) * 1e-7], axis=1)
+    wt = np.where(np.abs(r) <= huber, 1.0, huber / np.abs(r))
+    wt[-3:] = 1.0
+    assert (wt < 1).sum() > 10
+    H, g = _rolling_shutter_system(np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]), shear,
+                                   s0, P, xy, w, izm, tau, bf, PINHOLE.fx, PINHOLE.fy, huber, sigma)
+    assert np.allclose(H, J.T @ (wt[:, None] * J), rtol=1e-6, atol=1e-6 * np.abs(H).max())
+    assert np.allclose(g, J.T @ (wt * r), rtol=1e-6, atol=1e-6 * np.abs(g).max())
