@@ -268,11 +268,6 @@ def _huber_cost(e2: F64, delta: float) -> float:
     return float(np.where(e <= delta, e2, 2.0 * delta * e - delta * delta).sum())
 
 
-def _whitened_error2(T: F64, P: F64, xy: F64, info: F64, fx: float, fy: float,
-                     inv_depth: F64 | None = None, bf: float = 0.0) -> F64:
-    return info * _ideal_pixel_error2(T, P, xy, fx, fy, inv_depth, bf)
-
-
 @njit(cache=True, nogil=True)
 def _robust_system(
     R: F64, t: F64, P: F64, xy: F64, info: F64, izm: F64, bf: float, fx: float, fy: float, delta: float,
@@ -408,28 +403,53 @@ def _levenberg(
     return R, t
 
 
-def _optimize(T: F64, P: F64, xy: F64, info: F64, izm: F64, bf: float, fx: float, fy: float, delta: float,
-              iterations: int) -> F64:
-    """Robust LM refinement of ``T`` (4, 4) on the given correspondences (see :func:`_levenberg`)."""
-    R, t = _levenberg(
-        np.ascontiguousarray(T[:3, :3]),
-        np.ascontiguousarray(T[:3, 3]),
-        np.ascontiguousarray(P),
-        np.ascontiguousarray(xy),
-        np.ascontiguousarray(info),
-        np.ascontiguousarray(izm),
-        float(bf),
-        float(fx),
-        float(fy),
-        float(delta),
-        int(iterations),
-    )
-    # Re-orthonormalise against drift (SVD projection onto SO(3)).
-    U, _, Vt = np.linalg.svd(R)
-    R_ortho = U @ Vt
-    if np.linalg.det(R_ortho) < 0:
-        R_ortho = U @ np.diag([1.0, 1.0, -1.0]) @ Vt
-    return make_transform(R_ortho, t)
+@njit(cache=True, nogil=True)
+def _error2_nb(R: F64, t: F64, P: F64, xy: F64, info: F64, izm: F64, bf: float, fx: float,
+               fy: float) -> F64:
+    """``info`` times :func:`_ideal_pixel_error2` (the virtual right coordinate where ``izm > 0``
+    and ``bf > 0``), inf behind the camera."""
+    e2 = np.empty(P.shape[0])
+    for i in range(P.shape[0]):
+        X = R[0, 0] * P[i, 0] + R[0, 1] * P[i, 1] + R[0, 2] * P[i, 2] + t[0]
+        Y = R[1, 0] * P[i, 0] + R[1, 1] * P[i, 1] + R[1, 2] * P[i, 2] + t[1]
+        Z = R[2, 0] * P[i, 0] + R[2, 1] * P[i, 1] + R[2, 2] * P[i, 2] + t[2]
+        if not Z > 1e-6:
+            e2[i] = np.inf
+            continue
+        du = fx * (X / Z - xy[i, 0])
+        dv = fy * (Y / Z - xy[i, 1])
+        v = du * du + dv * dv
+        if bf > 0.0 and izm[i] > 0.0:
+            dr = du - bf * (1.0 / Z - izm[i])
+            v += dr * dr
+        e2[i] = info[i] * v
+    return e2
+
+
+@njit(cache=True, nogil=True)
+def _refine_rounds(
+    R: F64, t: F64, P: F64, xy: F64, info: F64, izm: F64, gate: F64, bf: float, fx: float, fy: float,
+    huber: float, iterations: int, rounds: int,
+) -> tuple[F64, F64, F64]:
+    """:func:`refine_pose_huber`'s rounds: Levenberg-Marquardt (:func:`_levenberg`) on the
+    current inliers, the rotation projected back onto SO(3) (SVD), every correspondence
+    re-classified by its whitened squared error against ``gate`` (N,). The last of several
+    rounds drops the Huber kernel. Returns (R, t) and the final whitened errors (N,)."""
+    active = np.ones(P.shape[0], np.bool_)
+    for rnd in range(rounds):
+        idx = np.nonzero(active)[0]
+        if idx.shape[0] < 3:
+            break
+        delta = huber if (rnd < rounds - 1 or rounds == 1) else np.inf
+        R, t = _levenberg(R, t, P[idx], xy[idx], info[idx], izm[idx], bf, fx, fy, delta, iterations)
+        U, _, Vt = np.linalg.svd(R)
+        R_ortho = U @ Vt
+        if np.linalg.det(R_ortho) < 0:
+            U[:, 2] = -U[:, 2]
+            R_ortho = U @ Vt
+        R = R_ortho
+        active = _error2_nb(R, t, P, xy, info, izm, bf, fx, fy) <= gate  # inf is never an inlier
+    return R, t, _error2_nb(R, t, P, xy, info, izm, bf, fx, fy)
 
 
 def refine_pose_huber(
@@ -523,15 +543,13 @@ def refine_pose_huber(
     P, xy, info, izm, gate = P_all[idx], xy_all[idx], info_all[idx], izm_all[idx], gate_all[idx]
     fx, fy = camera.fx, camera.fy
 
-    active = np.ones(idx.size, np.bool_)
-    for rnd in range(rounds):
-        if int(active.sum()) < 3:
-            break
-        delta = float(huber_px) if rnd < rounds - 1 or rounds == 1 else math.inf
-        T = _optimize(T, P[active], xy[active], info[active], izm[active], bf, fx, fy, delta, iterations)
-        e2 = _whitened_error2(T, P, xy, info, fx, fy, izm, bf)
-        active = e2 <= gate  # inf (behind the camera) is never an inlier
-    e2 = _whitened_error2(T, P, xy, info, fx, fy, izm, bf)
+    R, t, e2 = _refine_rounds(
+        np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]), np.ascontiguousarray(P),
+        np.ascontiguousarray(xy), np.ascontiguousarray(info), np.ascontiguousarray(izm),
+        np.ascontiguousarray(gate), float(bf), float(fx), float(fy), float(huber_px), int(iterations),
+        int(rounds),
+    )
+    T = make_transform(R, t)
     inliers[idx] = e2 <= gate
     cost = _huber_cost(e2[np.isfinite(e2)], float(huber_px))
     return RefineResult(T, inliers, cost)
