@@ -46,7 +46,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from numpy.lib.format import open_memmap
 from numpy.typing import NDArray
 
 from wardmap.edge.tracker import Tracker, TrackerConfig, TrackInput, TrackResult
@@ -267,8 +266,9 @@ class OnlineReadout:
 
         Runs on a thread of its own made :data:`CHILD_NICE` nicer first, so that the copy of the
         frames, the executor's threads and the child it spawns (which inherit the value) all
-        yield to the tracker. The frames go through files in shared memory (one copy; pickling
-        them, about 100 MB for 50 VGA frames, held the interpreter lock for over 0.1 s).
+        yield to the tracker. The frames go through files (in shared memory where it has room;
+        one copy; pickling them, about 100 MB for 50 VGA frames, held the interpreter lock for
+        over 0.1 s).
         """
         nice_this_thread(CHILD_NICE)
         folder: Path | None = None
@@ -367,21 +367,29 @@ _FRAME_ARRAYS = ("rgb", "depth_m", "class_image")
 
 
 def _write_window(window: Sequence[TrackInput]) -> tuple[Path, list[TrackInput]]:
-    """Write the window's images to a new folder in shared memory (``/dev/shm``; the temporary
-    folder where there is none), one ``(N, ...)`` array file per field present in every frame.
-    Returns the folder and the frames with those fields set to None."""
+    """Write the window's images to a new folder, one ``.npy`` file of ``(N, ...)`` per field
+    present in every frame; in shared memory (``/dev/shm``) when it has room for them twice
+    over (a container's is often 64 MB), else in the temporary folder. Plain writes, not a
+    memory map: a full file system is an ``OSError`` here, never a crash. Returns the folder
+    and the frames with those fields set to None."""
+    fields = [f for f in _FRAME_ARRAYS if all(getattr(inp, f) is not None for inp in window)]
+    need = sum(getattr(inp, f).nbytes for f in fields for inp in window)
     shm = Path("/dev/shm")
-    folder = Path(tempfile.mkdtemp(prefix="wardmap-readout-", dir=shm if shm.is_dir() else None))
+    roomy = shm.is_dir() and os.access(shm, os.W_OK) and shutil.disk_usage(shm).free > 2 * need
+    folder = Path(tempfile.mkdtemp(prefix="wardmap-readout-", dir=shm if roomy else None))
     try:
-        fields = [f for f in _FRAME_ARRAYS if all(getattr(inp, f) is not None for inp in window)]
         for name in fields:
-            first = getattr(window[0], name)
-            out = open_memmap(folder / f"{name}.npy", mode="w+", dtype=first.dtype,
-                              shape=(len(window), *first.shape))
-            for i, inp in enumerate(window):
-                out[i] = getattr(inp, name)
-            out.flush()
-            del out
+            first = np.asarray(getattr(window[0], name))
+            header = {"descr": np.lib.format.dtype_to_descr(first.dtype), "fortran_order": False,
+                      "shape": (len(window), *first.shape)}
+            with open(folder / f"{name}.npy", "wb") as fh:
+                np.lib.format.write_array_header_1_0(fh, header)
+                for inp in window:
+                    a = np.ascontiguousarray(getattr(inp, name), dtype=first.dtype)
+                    if a.shape != first.shape:
+                        raise WardmapError(f"online readout: {name} of frame {inp.stamp:.6f} is "
+                                           f"{a.shape}, the window's first is {first.shape}")
+                    fh.write(a.data.cast("B"))
     except BaseException:
         shutil.rmtree(folder, ignore_errors=True)
         raise

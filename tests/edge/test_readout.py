@@ -321,3 +321,35 @@ def test_the_scoring_child_is_started_nice_and_gets_the_frames_through_shared_me
         assert np.array_equal(g.thermal_k, f.thermal_k) and g.class_image is None
     assert found is not None and found.readout_s == pytest.approx(0.02, abs=0.005)
     assert not list(Path("/dev/shm").glob("wardmap-readout-*"))  # nothing left in shared memory
+
+
+def test_a_window_goes_to_the_temporary_folder_when_shared_memory_is_short(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """A container's /dev/shm is often 64 MB, less than a VGA window: the files then go to the
+    temporary folder (written, not memory-mapped: a full disk is an error, not a crash); the
+    child gets the same frames and the files are gone after. A frame of another size in the
+    window is a clear error and leaves nothing behind."""
+    import tempfile
+    from collections import namedtuple
+
+    from wardmap.edge import readout
+
+    usage = namedtuple("usage", "total used free")
+    monkeypatch.setattr(readout.shutil, "disk_usage", lambda _p: usage(64 << 20, 64 << 20, 0))
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    rng = np.random.default_rng(1)
+    frames = [TrackInput(float(i), rng.integers(0, 255, (4, 5, 3), dtype=np.uint8),
+                         rng.random((4, 5), dtype=np.float32)) for i in range(3)]
+    folder, rest = readout._write_window(frames)
+    assert folder.parent == tmp_path and all(f.rgb is None and f.depth_m is None for f in rest)
+    got: list[TrackInput] = []
+    monkeypatch.setattr(readout, "score_candidates", lambda inputs, *_: got.extend(inputs) or [1.0])
+    readout._score_window_files(folder, rest, None, None, [0.0])  # type: ignore[arg-type]
+    assert not folder.exists()
+    for g, f in zip(got, frames, strict=True):
+        assert np.array_equal(g.rgb, f.rgb) and np.array_equal(g.depth_m, f.depth_m)
+
+    odd = [*frames, TrackInput(9.0, np.zeros((4, 6, 3), np.uint8), np.zeros((4, 6), np.float32))]
+    with pytest.raises(WardmapError, match=r"rgb of frame 9\.000000 is"):
+        readout._write_window(odd)
+    assert list(tmp_path.iterdir()) == []
