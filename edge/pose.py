@@ -112,26 +112,6 @@ def _normalized(camera: PinholeCamera, uv: F64) -> F64:
         return camera.undistort_normalized(xy_d)
 
 
-def _ideal_pixel_error2(T_cam_world: F64, P: F64, xy: F64, fx: float, fy: float,
-                        inv_depth: F64 | None = None, bf: float = 0.0) -> F64:
-    """Squared reprojection error (N,) in ideal-camera pixels; inf behind the camera.
-
-    Rows with a measured inverse depth ``inv_depth > 0`` add the virtual right coordinate's
-    error ``(du - bf (1/Z - inv_depth))^2`` (ORB-SLAM2's RGB-D observation).
-    """
-    pc = P @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
-    z = pc[:, 2]
-    front = z > _MIN_DEPTH
-    zs = np.where(front, z, 1.0)
-    du = fx * (pc[:, 0] / zs - xy[:, 0])
-    dv = fy * (pc[:, 1] / zs - xy[:, 1])
-    e2 = du * du + dv * dv
-    if inv_depth is not None and bf > 0:
-        dr = du - bf * (1.0 / zs - inv_depth)
-        e2 = e2 + np.where(inv_depth > 0, dr * dr, 0.0)
-    return np.where(front, e2, np.inf)
-
-
 def _degenerate(P: F64, xy: F64) -> str:
     """Why the correspondences cannot fix a pose, or "" if they may."""
     s = np.linalg.svd(P - P.mean(axis=0), compute_uv=False)
@@ -242,7 +222,8 @@ def solve_pnp_ransac(
     for T in (T_ransac, guess):
         if T is None:
             continue
-        inl = _ideal_pixel_error2(T, P, xy, camera.fx, camera.fy) <= thr2
+        inl = _pixel_error2(np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]), P, xy,
+                            np.ones(len(P)), np.zeros(len(P)), 0.0, camera.fx, camera.fy) <= thr2
         if best is None or int(inl.sum()) > int(best[1].sum()):
             best = (T, inl)
     if best is None:
@@ -404,16 +385,18 @@ def _levenberg(
 
 
 @njit(cache=True, nogil=True)
-def _error2_nb(R: F64, t: F64, P: F64, xy: F64, info: F64, izm: F64, bf: float, fx: float,
-               fy: float) -> F64:
-    """``info`` times :func:`_ideal_pixel_error2` (the virtual right coordinate where ``izm > 0``
-    and ``bf > 0``), inf behind the camera."""
+def _pixel_error2(R: F64, t: F64, P: F64, xy: F64, info: F64, izm: F64, bf: float, fx: float,
+                  fy: float) -> F64:
+    """Whitened squared reprojection error (N,) in ideal-camera pixels of ``p`` seen at ``xy``
+    (normalised) from ``(R, t)``: ``info (du^2 + dv^2)``, plus ORB-SLAM2's virtual right
+    coordinate's ``(du - bf (1/Z - izm))^2`` where ``izm > 0`` and ``bf > 0``; inf behind the
+    camera."""
     e2 = np.empty(P.shape[0])
     for i in range(P.shape[0]):
         X = R[0, 0] * P[i, 0] + R[0, 1] * P[i, 1] + R[0, 2] * P[i, 2] + t[0]
         Y = R[1, 0] * P[i, 0] + R[1, 1] * P[i, 1] + R[1, 2] * P[i, 2] + t[1]
         Z = R[2, 0] * P[i, 0] + R[2, 1] * P[i, 1] + R[2, 2] * P[i, 2] + t[2]
-        if not Z > 1e-6:
+        if not Z > _MIN_DEPTH:
             e2[i] = np.inf
             continue
         du = fx * (X / Z - xy[i, 0])
@@ -436,6 +419,7 @@ def _refine_rounds(
     re-classified by its whitened squared error against ``gate`` (N,). The last of several
     rounds drops the Huber kernel. Returns (R, t) and the final whitened errors (N,)."""
     active = np.ones(P.shape[0], np.bool_)
+    e2 = np.empty(0)  # the errors at the current pose, once a round has run
     for rnd in range(rounds):
         idx = np.nonzero(active)[0]
         if idx.shape[0] < 3:
@@ -448,8 +432,11 @@ def _refine_rounds(
             U[:, 2] = -U[:, 2]
             R_ortho = U @ Vt
         R = R_ortho
-        active = _error2_nb(R, t, P, xy, info, izm, bf, fx, fy) <= gate  # inf is never an inlier
-    return R, t, _error2_nb(R, t, P, xy, info, izm, bf, fx, fy)
+        e2 = _pixel_error2(R, t, P, xy, info, izm, bf, fx, fy)
+        active = e2 <= gate  # inf is never an inlier
+    if e2.shape[0] != P.shape[0]:  # no round ran: the start pose's errors
+        e2 = _pixel_error2(R, t, P, xy, info, izm, bf, fx, fy)
+    return R, t, e2
 
 
 def refine_pose_huber(
@@ -690,7 +677,7 @@ def _rolling_shutter_system(
         c1 = s_z * X0 - s_x * X2
         c2 = s_x * X1 - s_y * X0
         Y0, Y1, Y2 = X0 - ti * c0, X1 - ti * c1, X2 - ti * c2
-        iz = 1.0 / max(Y2, 1e-6)
+        iz = 1.0 / max(Y2, _MIN_DEPTH)
         a, b = Y0 * iz, Y1 * iz
         # M = I - tau [s]x
         M[0, 0], M[0, 1], M[0, 2] = 1.0, ti * s_z, -ti * s_y
@@ -737,7 +724,6 @@ def _rolling_shutter_system(
         H[6 + k, 6 + k] += inv_var
         g[6 + k] += (shear[k] - s0[k]) * inv_var
     return H, g
-
 
 
 __all__ = [
