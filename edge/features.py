@@ -30,6 +30,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
+from wardmap.edge.orb_pattern import ORB_PATTERN
 from wardmap.shared.errors import ConfigError, GeometryError
 from wardmap.shared.hamming import popcount64
 
@@ -45,6 +46,10 @@ SIFT_DESCRIPTOR_LEN = 128
 _ORB_PATCH_SIZE = 31  # rBRIEF patch; the intensity-centroid radius is half of it
 _HARRIS_BLOCK = 7  # Harris window of ORB (OpenCV's HarrisResponses)
 _HARRIS_K = 0.04
+_PATTERN = np.array(ORB_PATTERN, np.int32)  # (256, 4): x1, y1, x2, y2 of each rBRIEF test
+_PATTERN_REACH = 18  # px: the farthest a rotated test point lies from its corner (13 sqrt 2, rounded)
+_DEG2RAD_F32 = np.float32(math.pi / 180.0)  # OpenCV ORB's factorPI, a float
+_BLUR_KERNEL = cv2.getGaussianKernel(7, 2, ktype=cv2.CV_32F)  # ORB's 7x7, sigma 2 smoothing
 
 
 # --------------------------------------------------------------------------- containers
@@ -226,6 +231,41 @@ def _orb_umax(half_patch: int) -> NDArray[np.int32]:
     return umax[: half_patch + 1]
 
 
+# The 16 pixels of the FAST circle (Bresenham, radius 3) in order around it: (dx, dy).
+_FAST_CIRCLE = np.array(
+    [(0, -3), (1, -3), (2, -2), (3, -1), (3, 0), (3, 1), (2, 2), (1, 3),
+     (0, 3), (-1, 3), (-2, 2), (-3, 1), (-3, 0), (-3, -1), (-2, -2), (-1, -3)],
+    np.int64,
+)  # fmt: skip
+
+
+@njit(cache=True, nogil=True)
+def _fast_score(img: NDArray[np.uint8], xy: NDArray[np.int32], circle: I64) -> F32:
+    """FAST-9 scores (n,) float32 of corners ``xy`` (n, 2) int32 of ``img``: the largest t
+    for which 9 contiguous circle pixels are all brighter than centre + t or all darker than
+    centre - t, minus one (what ``cv2.FastFeatureDetector`` reports for a corner it found)."""
+    n = xy.shape[0]
+    out = np.empty(n, np.float32)
+    d = np.empty(16, np.int64)
+    for i in range(n):
+        x = xy[i, 0]
+        y = xy[i, 1]
+        v = np.int64(img[y, x])
+        for k in range(16):
+            d[k] = v - np.int64(img[y + circle[k, 1], x + circle[k, 0]])
+        best = 0
+        for start in range(16):
+            lo = 255
+            hi = -255
+            for j in range(9):
+                e = d[(start + j) & 15]
+                lo = min(lo, e)
+                hi = max(hi, e)
+            best = max(best, lo, -hi)
+        out[i] = best - 1
+    return out
+
+
 @njit(cache=True, nogil=True)
 def _harris_response(img: NDArray[np.uint8], xy: NDArray[np.int32]) -> NDArray[np.float32]:
     """Harris response (n,) at integer pixels (n, 2) of one pyramid level (paper 003 Step 4).
@@ -300,6 +340,49 @@ def _ic_angle(img: NDArray[np.uint8], xy: NDArray[np.int32], umax: NDArray[np.in
             deg -= 360.0
         out[i] = deg
     return out
+
+
+@njit(cache=True, nogil=True)
+def _rbrief(
+    img: U8, xy: NDArray[np.int32], angle_deg: F32, pattern: NDArray[np.int32], out: U8, first: int
+) -> None:
+    """rBRIEF descriptors of keypoints of one blurred level into ``out[first:first + n]``.
+
+    ``img`` (h, w) uint8 is the level smoothed by ORB's 7x7, sigma 2 Gaussian; ``xy`` (n, 2)
+    int32 the keypoints in level pixels; ``angle_deg`` (n,) float32 their orientation.
+    Bit k is ``img[p1] < img[p2]`` with the pair ``pattern[k]`` rotated by the angle
+    (steered BRIEF, paper 003's rBRIEF), rounded to the nearest pixel in float32
+    arithmetic as OpenCV's ORB does, so the bits are OpenCV's.
+    """
+    n_bits = pattern.shape[0]
+    magic = np.float32(12582912.0)  # 1.5 * 2**23: (x + magic) - magic rounds half to even
+    px = np.empty(2 * n_bits, np.float32)  # the 512 test points, p1 and p2 of bit k at 2k, 2k + 1
+    py = np.empty(2 * n_bits, np.float32)
+    for k in range(n_bits):
+        px[2 * k] = pattern[k, 0]
+        py[2 * k] = pattern[k, 1]
+        px[2 * k + 1] = pattern[k, 2]
+        py[2 * k + 1] = pattern[k, 3]
+    flat = img.ravel()
+    step = img.shape[1]
+    offset = np.empty(2 * n_bits, np.int64)
+    for i in range(xy.shape[0]):
+        ang = np.float32(angle_deg[i]) * _DEG2RAD_F32
+        a = np.float32(math.cos(np.float64(ang)))
+        b = np.float32(math.sin(np.float64(ang)))
+        for k in range(2 * n_bits):
+            u = ((px[k] * a - py[k] * b) + magic) - magic
+            v = ((px[k] * b + py[k] * a) + magic) - magic
+            offset[k] = np.int64(v) * step + np.int64(u)
+        centre = np.int64(xy[i, 1]) * step + xy[i, 0]
+        row = out[first + i]
+        for byte in range(n_bits // 8):
+            val = 0
+            for j in range(8):
+                k = 2 * (byte * 8 + j)
+                if flat[centre + offset[k]] < flat[centre + offset[k + 1]]:
+                    val |= 1 << j
+            row[byte] = val
 
 
 def _level_quotas(cfg: OrbConfig) -> F64:
@@ -411,8 +494,10 @@ class OrbExtractor:
        only fill what they leave (ORB-SLAM2's per-cell fallback, Step 3). A bin with
        more corners than its allotment keeps the strongest by Harris response (Step 4),
        evaluated, as in OpenCV's ORB, on the best 2x allotment by FAST score.
-    5. Orientation by intensity centroid, then rBRIEF descriptors by ``cv2.ORB.compute``
-       on OpenCV's own (blurred) pyramid with the same scale factor.
+    5. Orientation by intensity centroid, then rBRIEF descriptors (:func:`_rbrief`) on
+       OpenCV ORB's own smoothed pyramid (:meth:`_orb_levels`): the bits ``cv2.ORB.compute``
+       gives for these keypoints, which the shipped vocabularies were trained on, without
+       building a cv2.KeyPoint per corner.
     """
 
     def __init__(self, cfg: OrbConfig | None = None) -> None:
@@ -422,18 +507,9 @@ class OrbExtractor:
             nonmaxSuppression=True,
             type=cv2.FAST_FEATURE_DETECTOR_TYPE_9_16,
         )
-        self._orb = cv2.ORB.create(
-            nfeatures=self.cfg.n_features,
-            scaleFactor=self.cfg.scale_factor,
-            nlevels=self.cfg.n_levels,
-            edgeThreshold=self.cfg.edge_margin,
-            firstLevel=0,
-            WTA_K=2,
-            scoreType=cv2.ORB_HARRIS_SCORE,
-            patchSize=_ORB_PATCH_SIZE,
-            fastThreshold=self.cfg.fast_threshold,
-        )
         self._umax = _orb_umax(_ORB_PATCH_SIZE // 2)
+        # Below the reach, tests read pixels outside the level (cv2: its reflected border).
+        self._pad = max(0, _PATTERN_REACH - self.cfg.edge_margin)
         self._n_cells = self.cfg.grid_cols * self.cfg.grid_rows
         # Eq. 3: quota of every (level, cell) bin, level-major.
         self._bin_quota = np.repeat(_level_quotas(self.cfg) / self._n_cells, self._n_cells)
@@ -463,7 +539,7 @@ class OrbExtractor:
         if not kps:
             return np.zeros((0, 2), np.int32), np.zeros(0, np.float32)
         xy = np.asarray(cv2.KeyPoint.convert(kps), np.float32).astype(np.int32) + (m - 3)
-        score = np.array([k.response for k in kps], np.float32)
+        score = _fast_score(img, xy, _FAST_CIRCLE)
         inside = (xy[:, 0] >= m) & (xy[:, 0] < lw - m) & (xy[:, 1] >= m) & (xy[:, 1] < lh - m)
         if not inside.all():
             xy, score = xy[inside], score[inside]
@@ -560,36 +636,56 @@ class OrbExtractor:
             a, b = bounds[lv], bounds[lv + 1]
             if b > a:
                 angle[a:b] = _ic_angle(pyramid[lv], np.ascontiguousarray(xy_all[keep[a:b]]), self._umax)
-        return self._describe(gray, uv0[keep], level[keep], angle, response)
+        return self._describe(gray, xy_all[keep], uv0[keep], level[keep], angle, response)
 
-    def _describe(self, gray: U8, uv0: F64, level: I64, angle: F32, response: F32) -> Features:
-        """rBRIEF descriptors by cv2 for the selected corners; drops any cv2 rejects."""
-        sizes = (_ORB_PATCH_SIZE * self._scales[level]).astype(np.float32)
-        kps = [
-            cv2.KeyPoint(u, v, sz, a, r, o, i)
-            for i, (u, v, sz, a, r, o) in enumerate(
-                zip(
-                    uv0[:, 0].tolist(),
-                    uv0[:, 1].tolist(),
-                    sizes.tolist(),
-                    angle.tolist(),
-                    response.tolist(),
-                    level.tolist(),
-                    strict=True,
-                )
-            )
+    def _orb_levels(self, gray: U8, n_levels: int) -> list[U8]:
+        """OpenCV ORB's own pyramid of the image, smoothed for the descriptors.
+
+        As ``cv2.ORB`` builds it: level l has size round(W / s_l) x round(H / s_l) with
+        s_l = scale_factor**l in float32, resized (INTER_LINEAR_EXACT) from level l - 1;
+        each level smoothed by a 7x7 Gaussian of sigma 2 (reflected border). With
+        ``edge_margin`` below 18 (the pattern's reach) the tests read outside a level, where
+        cv2 reads its reflected, unsmoothed border: the levels then get ``_pad`` px of it.
+        """
+        h, w = gray.shape
+        levels = [gray]
+        for lv in range(1, n_levels):
+            s = np.float32(self.cfg.scale_factor**lv)
+            size = (int(np.rint(np.float32(w) / s)), int(np.rint(np.float32(h) / s)))
+            levels.append(cast(U8, cv2.resize(levels[-1], size, interpolation=cv2.INTER_LINEAR_EXACT)))
+        blurred = [
+            cv2.sepFilter2D(img, cv2.CV_8U, _BLUR_KERNEL, _BLUR_KERNEL, borderType=cv2.BORDER_REFLECT_101)
+            for img in levels
         ]
-        kps_out, desc = self._orb.compute(gray, kps)
-        if desc is None or len(kps_out) == 0:
-            return Features.empty("orb")
-        idx = np.array([k.class_id for k in kps_out], np.int64)
+        pad = self._pad
+        if pad:
+            for i, (img, b) in enumerate(zip(levels, blurred, strict=True)):
+                ext = cv2.copyMakeBorder(img, pad, pad, pad, pad, cv2.BORDER_REFLECT_101)
+                ext[pad:-pad, pad:-pad] = b
+                blurred[i] = ext
+        return cast(list[U8], blurred)
+
+    def _describe(
+        self, gray: U8, xy: NDArray[np.int32], uv0: F64, level: I64, angle: F32, response: F32
+    ) -> Features:
+        """rBRIEF descriptors (the bits ``cv2.ORB.compute`` gives) of the selected corners,
+        ``xy`` (n, 2) in their level's pixels, ordered by level."""
+        sizes = (_ORB_PATCH_SIZE * self._scales[level]).astype(np.float32)
+        n = xy.shape[0]
+        desc = np.empty((n, ORB_DESCRIPTOR_BYTES), np.uint8)
+        levels = self._orb_levels(gray, int(level[-1]) + 1)
+        bounds = np.searchsorted(level, np.arange(len(levels) + 1), side="left")
+        for lv, img in enumerate(levels):
+            a, b = int(bounds[lv]), int(bounds[lv + 1])
+            if b > a:
+                _rbrief(img, np.ascontiguousarray(xy[a:b] + self._pad), angle[a:b], _PATTERN, desc, a)
         return Features(
-            uv=uv0[idx].astype(np.float32),
-            angle_deg=angle[idx],
-            response=response[idx].astype(np.float32),
-            octave=level[idx].astype(np.int32),
-            size=sizes[idx],
-            descriptors=np.ascontiguousarray(desc, dtype=np.uint8),
+            uv=uv0.astype(np.float32),
+            angle_deg=angle,
+            response=response.astype(np.float32),
+            octave=level.astype(np.int32),
+            size=sizes,
+            descriptors=desc,
             kind="orb",
         )
 

@@ -6,6 +6,8 @@ give corners everywhere they are drawn; blank regions give none.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
@@ -16,6 +18,8 @@ from wardmap.edge.features import (
     OrbConfig,
     OrbExtractor,
     SiftConfig,
+    _FAST_CIRCLE,
+    _fast_score,
     _water_fill,
     extract_orb,
     extract_sift_adaptive,
@@ -26,6 +30,7 @@ from wardmap.edge.features import (
 from wardmap.shared.errors import ConfigError, GeometryError
 
 U8 = NDArray[np.uint8]
+TUM_RGB = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "tum_fr1_rpy_s3_first100" / "rgb"
 
 
 # --------------------------------------------------------------------------- helpers
@@ -199,6 +204,69 @@ def test_orb_rejects_bad_input() -> None:
         extract_orb(np.zeros((480, 640), np.uint8), mask=np.zeros((10, 10), np.uint8))
     with pytest.raises(ConfigError):
         OrbConfig(min_fast_threshold=30, fast_threshold=20)
+
+
+def _opencv_descriptors(img: U8, f: Features, cfg: OrbConfig) -> tuple[NDArray[np.int64], U8]:
+    """cv2.ORB's descriptors for the keypoints of ``f`` (the indices cv2 kept, their bits)."""
+    orb = cv2.ORB.create(
+        nfeatures=cfg.n_features,
+        scaleFactor=cfg.scale_factor,
+        nlevels=cfg.n_levels,
+        edgeThreshold=cfg.edge_margin,
+        patchSize=31,
+    )
+    kps = [
+        cv2.KeyPoint(float(u), float(v), float(sz), float(a), float(r), int(o), i)
+        for i, ((u, v), sz, a, r, o) in enumerate(
+            zip(f.uv, f.size, f.angle_deg, f.response, f.octave, strict=True)
+        )
+    ]
+    kept, desc = orb.compute(img, kps)
+    return np.array([k.class_id for k in kept], np.int64), desc
+
+
+def _frames_for_bits() -> list[U8]:
+    frames = [_textured(seed=11), cv2.GaussianBlur(_textured(seed=12), (0, 0), 2.0)]
+    frames.append(
+        cv2.warpAffine(_textured(seed=13), cv2.getRotationMatrix2D((320, 240), 37.0, 1.0), (640, 480))
+    )
+    if TUM_RGB.is_dir():  # real frames when ../shared is there (motion blur, low texture)
+        for path in sorted(TUM_RGB.glob("*.png"))[::25]:
+            frames.append(cv2.cvtColor(cv2.imread(str(path)), cv2.COLOR_BGR2GRAY))
+    return frames
+
+
+@pytest.mark.parametrize("edge_margin", [19, 16])
+def test_orb_descriptors_are_opencvs_bits(edge_margin: int) -> None:
+    """Our rBRIEF gives, bit for bit, what cv2.ORB.compute gives for the same keypoints
+    (the vocabularies were trained on those bits); margin 16 reads cv2's reflected border."""
+    cfg = OrbConfig(edge_margin=edge_margin)
+    ex = OrbExtractor(cfg)
+    n_checked = 0
+    for img in _frames_for_bits():
+        f = ex.extract(img)
+        assert len(f) > 300
+        kept, desc = _opencv_descriptors(img, f, cfg)
+        np.testing.assert_array_equal(np.sort(kept), np.arange(len(f)))
+        np.testing.assert_array_equal(f.descriptors[kept], desc)
+        n_checked += len(f)
+    assert n_checked > 1500
+    assert set(np.unique(f.octave)) == set(range(cfg.n_levels))
+
+
+def test_fast_scores_are_opencvs() -> None:
+    """Our FAST-9 score of each corner cv2 finds is the response cv2 gives it, on every
+    threshold the extractor uses (the two tiers and the ranking rest on it)."""
+    for img in _frames_for_bits()[:4]:
+        for threshold in (7, 20):
+            det = cv2.FastFeatureDetector.create(threshold=threshold, nonmaxSuppression=True)
+            kps = det.detect(img, None)
+            xy = np.asarray(cv2.KeyPoint.convert(kps), np.float32).astype(np.int32)
+            inside = np.all((xy >= 3) & (xy < np.array(img.shape[::-1]) - 3), axis=1)
+            assert inside.sum() > 200
+            want = np.array([k.response for k in kps], np.float32)[inside]
+            np.testing.assert_array_equal(_fast_score(img, xy[inside], _FAST_CIRCLE), want)
+            assert want.min() >= threshold
 
 
 def test_orb_descriptors_match_across_rotation() -> None:
