@@ -231,41 +231,6 @@ def _orb_umax(half_patch: int) -> NDArray[np.int32]:
     return umax[: half_patch + 1]
 
 
-# The 16 pixels of the FAST circle (Bresenham, radius 3) in order around it: (dx, dy).
-_FAST_CIRCLE = np.array(
-    [(0, -3), (1, -3), (2, -2), (3, -1), (3, 0), (3, 1), (2, 2), (1, 3),
-     (0, 3), (-1, 3), (-2, 2), (-3, 1), (-3, 0), (-3, -1), (-2, -2), (-1, -3)],
-    np.int64,
-)  # fmt: skip
-
-
-@njit(cache=True, nogil=True)
-def _fast_score(img: NDArray[np.uint8], xy: NDArray[np.int32], circle: I64) -> F32:
-    """FAST-9 scores (n,) float32 of corners ``xy`` (n, 2) int32 of ``img``: the largest t
-    for which 9 contiguous circle pixels are all brighter than centre + t or all darker than
-    centre - t, minus one (what ``cv2.FastFeatureDetector`` reports for a corner it found)."""
-    n = xy.shape[0]
-    out = np.empty(n, np.float32)
-    d = np.empty(16, np.int64)
-    for i in range(n):
-        x = xy[i, 0]
-        y = xy[i, 1]
-        v = np.int64(img[y, x])
-        for k in range(16):
-            d[k] = v - np.int64(img[y + circle[k, 1], x + circle[k, 0]])
-        best = 0
-        for start in range(16):
-            lo = 255
-            hi = -255
-            for j in range(9):
-                e = d[(start + j) & 15]
-                lo = min(lo, e)
-                hi = max(hi, e)
-            best = max(best, lo, -hi)
-        out[i] = best - 1
-    return out
-
-
 @njit(cache=True, nogil=True)
 def _harris_response(img: NDArray[np.uint8], xy: NDArray[np.int32]) -> NDArray[np.float32]:
     """Harris response (n,) at integer pixels (n, 2) of one pyramid level (paper 003 Step 4).
@@ -539,7 +504,7 @@ class OrbExtractor:
         if not kps:
             return np.zeros((0, 2), np.int32), np.zeros(0, np.float32)
         xy = np.asarray(cv2.KeyPoint.convert(kps), np.float32).astype(np.int32) + (m - 3)
-        score = _fast_score(img, xy, _FAST_CIRCLE)
+        score = np.array([k.response for k in kps], np.float32)
         inside = (xy[:, 0] >= m) & (xy[:, 0] < lw - m) & (xy[:, 1] >= m) & (xy[:, 1] < lh - m)
         if not inside.all():
             xy, score = xy[inside], score[inside]
