@@ -168,7 +168,7 @@ class TrackerConfig:
     max_map_points: int = 6000
     reloc_keyframes: int = 8
     thermal: bool = True
-    thermal_odometry_blend: float = 0.3
+    thermal_odometry_blend: float = 0.15
     max_lost_before_restart: int = 5
     direct_from_prior: bool = True
     max_fuse_weight: float = 20.0
