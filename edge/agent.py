@@ -102,7 +102,7 @@ from wardmap.edge.outbox import Outbox, OutboxFull, OutboxItem, SessionIds
 from wardmap.edge.privacy import PRIVACY_MODES, person_mask
 from wardmap.edge.readout import OnlineReadout
 from wardmap.edge.stream import FrameSourceStream, FrameStream, StreamSource
-from wardmap.edge.tracker import Tracker, TrackerConfig, TrackInput
+from wardmap.edge.tracker import Tracker, TrackerConfig, TrackInput, warm_up
 from wardmap.shared.dataset import DatasetReader, Frame, FrameSource
 from wardmap.shared.errors import ConfigError, DatasetError, WardmapError, WireError
 from wardmap.shared.knowledge import KnowledgeGraph
@@ -374,6 +374,9 @@ class EdgeAgent:
         labels = make_label_source(self.cfg.labels, dataset=source.dataset, kg=kg,
                                    threads=self.cfg.label_threads)
         mobility_lut = kg.mobility_lut()
+        if source.live or self.cfg.drop_when_behind:  # a frame missed while compiling is lost
+            spent = warm_up(source.calibration, self.tracker_cfg, mobility_lut)
+            log.info("tracker kernels ready in %.1f s", spent)
         tracker = Tracker(source.calibration, self.tracker_cfg, mobility_lut)
         stream = FrameStream(source, capacity=self.cfg.stream_capacity, rate_hz=self.cfg.rate_hz,
                              drop_when_behind=self.cfg.drop_when_behind, max_frames=self.cfg.max_frames)

@@ -1149,6 +1149,39 @@ def _near(T_a: F64, T_b: F64, max_m: float, max_deg: float) -> bool:
     return bool(np.linalg.norm(rel[:3, 3]) <= max_m and np.degrees(rotation_angle(rel[:3, :3])) <= max_deg)
 
 
+def warm_up(
+    calibration: Calibration,
+    config: TrackerConfig | None = None,
+    mobility_lut: NDArray[np.uint8] | None = None,
+) -> float:
+    """Compile the tracker's numba kernels before a camera starts streaming; seconds spent.
+
+    A throwaway tracker (local bundle adjustment off) tracks four synthetic frames of the
+    colour camera's size: a textured wall 2 m ahead, still, then moving 3 px a frame
+    sideways (initialisation, tracking with the rolling-shutter fit when the camera has a
+    readout, a keyframe). Numba keeps what it compiles (``NUMBA_CACHE_DIR``), so after the
+    first start this costs a fraction of a second; without it, the first run of a live
+    camera would drop its frames for as long as the kernels take to compile (about 20 s on
+    this project's 2-core x86 machine, more on an ARM board).
+    """
+    cfg = config or TrackerConfig()
+    cfg = replace(cfg, local_ba=replace(cfg.local_ba, enabled=False))
+    cam = calibration.rgb
+    rng = np.random.default_rng(0)
+    wall = np.full((cam.height, cam.width + 16, 3), 128, np.uint8)
+    for _ in range(400):
+        x, y = int(rng.integers(0, cam.width + 16)), int(rng.integers(0, cam.height))
+        w, h = (int(v) for v in rng.integers(6, 40, size=2))
+        cv2.rectangle(wall, (x, y), (x + w, y + h), tuple(int(c) for c in rng.integers(0, 256, 3)), -1)
+    depth = np.full((cam.height, cam.width), 2.0, np.float32)
+    t0 = time.perf_counter()
+    with Tracker(calibration, cfg, mobility_lut) as tracker:
+        for i, shift in enumerate((0, 0, 3, 6)):
+            rgb = np.ascontiguousarray(wall[:, shift : shift + cam.width])
+            tracker.track(TrackInput(float(i) / 30.0, rgb, depth))
+    return time.perf_counter() - t0
+
+
 def unroll_keypoints(
     cam: PinholeCamera, readout_s: float, omega_cam: F64, feats: Features, kp_depth: NDArray[np.float64]
 ) -> tuple[Features, NDArray[np.float64]]:

@@ -91,3 +91,29 @@ def test_rejected_keyframes_leave_the_outbox_and_are_counted_by_reason(tmp_path:
     assert summary["pending"] == 0 and summary["flushed"] is True
     with Outbox.open(path) as outbox:
         assert len(outbox) == 0
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("drop_when_behind", [True, False])
+def test_a_stream_that_drops_frames_warms_the_tracker_up_first(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, drop_when_behind: bool
+) -> None:
+    """A source whose frames are lost when the tracker is behind (a camera, or a replay told to
+    behave like one) has the tracker's kernels readied before the first frame; a replay that
+    waits for the tracker does not pay for it."""
+    pytest.importorskip("zenoh")
+    from peers import Acker, router_on_thread
+
+    from wardmap.sim.live import LiveRun
+
+    config = AgentConfig(max_frames=2, flush_timeout_s=20.0, privacy="off", drop_when_behind=drop_when_behind)
+    with (
+        caplog.at_level("INFO", logger="wardmap.edge.agent"),
+        router_on_thread() as endpoint,
+        Acker(endpoint),
+    ):
+        agent = EdgeAgent("r1", LiveRun("aisle_slow_1", 0), [endpoint], tmp_path / "o.sqlite", config=config)
+        summary = agent.run()
+    assert summary["frames"] + summary.get("frames_dropped", 0) >= 1
+    warmed = [r.getMessage() for r in caplog.records if "tracker kernels ready" in r.getMessage()]
+    assert len(warmed) == (1 if drop_when_behind else 0), warmed

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -343,3 +345,39 @@ def test_map_point_fusion_gives_old_points_the_new_observations(aisle_clip: Path
     assert off.fused_points == 0 and on.fused_points >= 10, on.fused_points
     assert _duplicate_pairs(on) < _duplicate_pairs(off), (_duplicate_pairs(on), _duplicate_pairs(off))
     assert runs[3.0][1] < 0.02
+
+
+_WARM_UP_PROBE = """
+import sys
+from wardmap.edge import features, pose
+from wardmap.edge.tracker import warm_up
+from wardmap.shared.dataset import DatasetReader
+kernels = {"rbrief": features._rbrief, "match": features._match_projected_kernel,
+           "refine": pose._refine_rounds, "rolling_shutter": pose._rolling_shutter_system}
+before = sorted(k for k, f in kernels.items() if f.signatures)
+warm_up(DatasetReader(sys.argv[1]).calibration)
+after = sorted(k for k, f in kernels.items() if f.signatures)
+print(",".join(before) + "|" + ",".join(after))
+"""
+
+
+def test_warm_up_readies_the_kernels_a_frame_needs(aisle_clip: Path, tmp_path: Path) -> None:
+    """In a fresh process no tracking kernel is ready; after warm_up (synthetic frames of the
+    camera's size, readout set so the rolling-shutter fit runs) the ones every frame uses are,
+    so a live camera's first frames are not dropped while numba compiles."""
+    cal = aisle_clip / "calibration.toml"
+    text = cal.read_text(encoding="utf-8")
+    rolling = tmp_path / "clip"
+    rolling.mkdir()
+    for item in aisle_clip.iterdir():
+        (rolling / item.name).symlink_to(item)
+    (rolling / "calibration.toml").unlink()
+    rolled = text.replace("readout_s = 0.0", "readout_s = 0.02")
+    (rolling / "calibration.toml").write_text(rolled, encoding="utf-8")
+    assert "readout_s = 0.02" in (rolling / "calibration.toml").read_text(encoding="utf-8")
+    p = subprocess.run([sys.executable, "-c", _WARM_UP_PROBE, str(rolling)], capture_output=True, text=True,
+                       timeout=300)
+    assert p.returncode == 0, p.stderr
+    before, after = p.stdout.strip().splitlines()[-1].split("|")
+    assert before == ""
+    assert after == "match,rbrief,refine,rolling_shutter"
