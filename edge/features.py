@@ -46,7 +46,9 @@ SIFT_DESCRIPTOR_LEN = 128
 _ORB_PATCH_SIZE = 31  # rBRIEF patch; the intensity-centroid radius is half of it
 _HARRIS_BLOCK = 7  # Harris window of ORB (OpenCV's HarrisResponses)
 _HARRIS_K = 0.04
-_PATTERN = np.array(ORB_PATTERN, np.int32)  # (256, 4): x1, y1, x2, y2 of each rBRIEF test
+# The 512 rBRIEF test points (float32, pixels from the corner): p1 of bit k at 2k, p2 at 2k + 1.
+_PATTERN_X = np.array(ORB_PATTERN, np.float32)[:, [0, 2]].ravel()
+_PATTERN_Y = np.array(ORB_PATTERN, np.float32)[:, [1, 3]].ravel()
 _PATTERN_REACH = 18  # px: the farthest a rotated test point lies from its corner (13 sqrt 2, rounded)
 _DEG2RAD_F32 = np.float32(math.pi / 180.0)  # OpenCV ORB's factorPI, a float
 _BLUR_KERNEL = cv2.getGaussianKernel(7, 2, ktype=cv2.CV_32F)  # ORB's 7x7, sigma 2 smoothing
@@ -308,26 +310,18 @@ def _ic_angle(img: NDArray[np.uint8], xy: NDArray[np.int32], umax: NDArray[np.in
 
 
 @njit(cache=True, nogil=True)
-def _rbrief(
-    img: U8, xy: NDArray[np.int32], angle_deg: F32, pattern: NDArray[np.int32], out: U8, first: int
-) -> None:
+def _rbrief(img: U8, xy: NDArray[np.int32], angle_deg: F32, px: F32, py: F32, out: U8, first: int) -> None:
     """rBRIEF descriptors of keypoints of one blurred level into ``out[first:first + n]``.
 
     ``img`` (h, w) uint8 is the level smoothed by ORB's 7x7, sigma 2 Gaussian; ``xy`` (n, 2)
-    int32 the keypoints in level pixels; ``angle_deg`` (n,) float32 their orientation.
-    Bit k is ``img[p1] < img[p2]`` with the pair ``pattern[k]`` rotated by the angle
-    (steered BRIEF, paper 003's rBRIEF), rounded to the nearest pixel in float32
-    arithmetic as OpenCV's ORB does, so the bits are OpenCV's.
+    int32 the keypoints in level pixels; ``angle_deg`` (n,) float32 their orientation;
+    ``px, py`` (2 n_bits,) float32 the test points, p1 and p2 of bit k at 2k and 2k + 1.
+    Bit k is ``img[p1] < img[p2]`` with both points rotated by the angle (steered BRIEF,
+    paper 003's rBRIEF), rounded to the nearest pixel in float32 arithmetic as OpenCV's ORB
+    does, so the bits are OpenCV's.
     """
-    n_bits = pattern.shape[0]
+    n_bits = px.shape[0] // 2
     magic = np.float32(12582912.0)  # 1.5 * 2**23: (x + magic) - magic rounds half to even
-    px = np.empty(2 * n_bits, np.float32)  # the 512 test points, p1 and p2 of bit k at 2k, 2k + 1
-    py = np.empty(2 * n_bits, np.float32)
-    for k in range(n_bits):
-        px[2 * k] = pattern[k, 0]
-        py[2 * k] = pattern[k, 1]
-        px[2 * k + 1] = pattern[k, 2]
-        py[2 * k + 1] = pattern[k, 3]
     flat = img.ravel()
     step = img.shape[1]
     offset = np.empty(2 * n_bits, np.int64)
@@ -643,7 +637,8 @@ class OrbExtractor:
         for lv, img in enumerate(levels):
             a, b = int(bounds[lv]), int(bounds[lv + 1])
             if b > a:
-                _rbrief(img, np.ascontiguousarray(xy[a:b] + self._pad), angle[a:b], _PATTERN, desc, a)
+                _rbrief(img, np.ascontiguousarray(xy[a:b] + self._pad), angle[a:b], _PATTERN_X, _PATTERN_Y,
+                        desc, a)
         return Features(
             uv=uv0.astype(np.float32),
             angle_deg=angle,
