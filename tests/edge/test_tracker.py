@@ -381,3 +381,43 @@ def test_warm_up_readies_the_kernels_a_frame_needs(aisle_clip: Path, tmp_path: P
     before, after = p.stdout.strip().splitlines()[-1].split("|")
     assert before == ""
     assert after == "match,rbrief,refine,rolling_shutter"
+
+
+def test_keypoints_behind_a_depth_edge_are_found() -> None:
+    """A keypoint reading the background next to a nearer surface is behind an edge; the
+    nearer side, a smooth slope, holes and NaN are not; ratio 0 turns the test off."""
+    from wardmap.edge.tracker import _behind_depth_edge
+
+    depth = np.full((40, 60), 1.0, np.float32)
+    depth[:, 30:] = 3.0  # a step: 1 m left of column 30, 3 m right
+    depth[:, 40:] = np.linspace(3.0, 3.3, 20, dtype=np.float32)  # a slope, 1.6 cm a pixel
+    depth[10, 10] = 0.0  # a hole
+    depth[30, 20] = np.nan
+    uv = np.array([[20.0, 20.0], [29.4, 20.0], [30.4, 20.0], [11.0, 11.0], [50.0, 20.0],
+                   [20.0, 29.0], [0.0, 0.0], [10.0, 10.0]], np.float32)
+    behind = _behind_depth_edge(depth, uv, 0.04)
+    assert behind.tolist() == [False, False, True, False, False, False, False, False]
+    assert not _behind_depth_edge(depth, uv, 0.0).any()
+    assert _behind_depth_edge(depth, uv[4:5], 0.004)[0]  # the slope is an edge at a tighter ratio
+
+
+def test_depth_edge_ratio_keeps_keypoints_behind_an_edge_out_of_the_map(aisle_clip: Path) -> None:
+    """The first keyframe's map points: with the option on, those of the keypoints behind a
+    depth edge are missing, and only those."""
+    from wardmap.edge.features import OrbExtractor
+    from wardmap.edge.tracker import _behind_depth_edge, _depth_at
+
+    reader = DatasetReader(aisle_clip)
+    f = reader.frame(0)
+    sizes = []
+    for ratio in (0.0, 0.04):
+        tracker = Tracker(reader.calibration, TrackerConfig(depth_edge_ratio=ratio, thermal=False))
+        tracker.track(TrackInput(f.stamp, f.rgb, f.depth_m))
+        sizes.append(len(tracker.map))
+    import cv2
+
+    feats = OrbExtractor(TrackerConfig().orb).extract(cv2.cvtColor(f.rgb, cv2.COLOR_RGB2GRAY))
+    z = _depth_at(f.depth_m, feats.uv)
+    behind = _behind_depth_edge(f.depth_m, feats.uv, 0.04) & (z > 0.3) & (z < 6.0)
+    assert behind.sum() > 0
+    assert sizes[0] - sizes[1] == behind.sum()
