@@ -1228,11 +1228,18 @@ def unroll_keypoints(
 _NEIGHBOURS_3X3 = np.array([(dv, du) for dv in (-1, 0, 1) for du in (-1, 0, 1)], np.intp)
 
 
+def _nearest_pixel(
+    shape: tuple[int, ...], uv: NDArray[np.float32]
+) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """Row and column (N,) of the pixel nearest each keypoint ``uv`` (N, 2), clipped to ``shape``."""
+    h, w = shape[:2]
+    return (np.clip(np.rint(uv[:, 1]).astype(np.intp), 0, h - 1),
+            np.clip(np.rint(uv[:, 0]).astype(np.intp), 0, w - 1))
+
+
 def _depth_at(depth: NDArray[np.float32], uv: NDArray[np.float32]) -> NDArray[np.float64]:
     """Depth (N,) metres at the nearest pixel of each keypoint ``uv`` (N, 2); 0 = none."""
-    h, w = depth.shape
-    u = np.clip(np.rint(uv[:, 0]).astype(np.intp), 0, w - 1)
-    v = np.clip(np.rint(uv[:, 1]).astype(np.intp), 0, h - 1)
+    v, u = _nearest_pixel(depth.shape, uv)
     return depth[v, u].astype(np.float64)
 
 
@@ -1246,8 +1253,7 @@ def _behind_depth_edge(
     if ratio <= 0.0 or len(uv) == 0:
         return np.zeros(len(uv), bool)
     h, w = depth.shape
-    u = np.clip(np.rint(uv[:, 0]).astype(np.intp), 0, w - 1)
-    v = np.clip(np.rint(uv[:, 1]).astype(np.intp), 0, h - 1)
+    v, u = _nearest_pixel((h, w), uv)
     win = depth[np.clip(v[:, None] + _NEIGHBOURS_3X3[:, 0], 0, h - 1),
                 np.clip(u[:, None] + _NEIGHBOURS_3X3[:, 1], 0, w - 1)]
     nearest = np.where(win > 0.0, win, np.inf).min(axis=1)

@@ -7,6 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 from procs import wardmap
@@ -414,8 +415,6 @@ def test_depth_edge_ratio_keeps_keypoints_behind_an_edge_out_of_the_map(aisle_cl
         tracker = Tracker(reader.calibration, TrackerConfig(depth_edge_ratio=ratio, thermal=False))
         tracker.track(TrackInput(f.stamp, f.rgb, f.depth_m))
         sizes.append(len(tracker.map))
-    import cv2
-
     feats = OrbExtractor(TrackerConfig().orb).extract(cv2.cvtColor(f.rgb, cv2.COLOR_RGB2GRAY))
     z = _depth_at(f.depth_m, feats.uv)
     behind = _behind_depth_edge(f.depth_m, feats.uv, 0.04) & (z > 0.3) & (z < 6.0)
