@@ -177,6 +177,7 @@ def main() -> None:
     print(f"one core; load average {load:.1f} while measuring (other processes slow the timings)\n")
     print(table)
     body = (
+        "## Tracking building blocks (one core)\n\n"
         f"Command: `python bench/features_speed.py --repeats {args.repeats} --write BENCHMARKS.md`  \n"
         f"Machine: {machine()}; OpenCV/numba threads = 1; load average {load:.1f}; "
         f"commit {git_rev()}.\n\n{table}\n"
