@@ -39,6 +39,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from wardmap.server.store import (
+    CompactPage,
+    CompactRow,
     KeyframeRef,
     ObjectDetail,
     ObjectHit,
@@ -61,6 +63,8 @@ log = logging.getLogger(__name__)
 __all__ = [
     "DEFAULT_LIMIT",
     "MAX_LIMIT",
+    "CompactPage",
+    "CompactRow",
     "KeyframeRef",
     "ObjectChange",
     "ObjectDetail",
@@ -482,14 +486,30 @@ class ObjectMap:
         Raises:
             ObjectMapError: a category the knowledge graph does not know.
         """
-        if q.category is not None and q.category not in self._classes:
-            raise ObjectMapError(
-                f"unknown category {q.category[:40]!r}; known categories: {', '.join(self._kg.names)}"
-            )
+        self._check_query_category(q)
         return self._store.find_objects(
             category=q.category, near=q.near, radius_m=q.radius_m, min_confidence=q.min_confidence,
             robot=q.robot, include_unconfirmed=q.include_unconfirmed, limit=q.limit, offset=q.offset,
         )
+
+    def find_compact(self, q: ObjectQuery) -> CompactPage:
+        """:meth:`find`'s page as compact rows ``(object_id, category, x, y, z, yaw, size_x,
+        size_y, size_z)`` (metres, radians): what a map view draws, without the records.
+
+        Raises:
+            ObjectMapError: a category the knowledge graph does not know.
+        """
+        self._check_query_category(q)
+        return self._store.find_compact(
+            category=q.category, near=q.near, radius_m=q.radius_m, min_confidence=q.min_confidence,
+            robot=q.robot, include_unconfirmed=q.include_unconfirmed, limit=q.limit, offset=q.offset,
+        )
+
+    def _check_query_category(self, q: ObjectQuery) -> None:
+        if q.category is not None and q.category not in self._classes:
+            raise ObjectMapError(
+                f"unknown category {q.category[:40]!r}; known categories: {', '.join(self._kg.names)}"
+            )
 
     def get(self, object_id: int, *, max_observations: int = 100) -> ObjectDetail | None:
         """One object with its latest ``max_observations`` observations (newest first) and the

@@ -259,6 +259,20 @@ class ObjectPage:
     next_offset: int | None
 
 
+CompactRow = tuple[int, str, float, float, float, float, float, float, float]
+"""What a floor view draws of an object: ``(object_id, category, x, y, z, yaw, size_x, size_y,
+size_z)``; the centre in map-frame metres, the yaw in radians, the size in metres."""
+
+
+@dataclass(frozen=True, eq=False)
+class CompactPage:
+    """One page of a query as :data:`CompactRow` tuples (same order and paging as its
+    :class:`ObjectPage`); ``next_offset`` is None on the last page."""
+
+    rows: list[CompactRow]
+    next_offset: int | None
+
+
 @dataclass(frozen=True, slots=True)
 class KeyframeRef:
     """A keyframe an object was observed in; ``stored`` says whether the store holds it."""

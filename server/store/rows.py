@@ -110,6 +110,8 @@ OBJECT_COLUMNS: Final = (
     "o.min_x, o.min_y, o.min_z, o.max_x, o.max_y, o.max_z, "
     "o.color_r, o.color_g, o.color_b, o.n_observations, o.first_seen_s, o.last_seen_s, o.confirmed"
 )
+COMPACT_COLUMNS: Final = "o.object_id, o.category, o.x, o.y, o.z, o.yaw, o.size_x, o.size_y, o.size_z"
+"""The columns of a :class:`~wardmap.server.store.records.CompactRow`, in its order."""
 OBS_COLUMNS: Final = (
     "observation_id, added_s, object_id, robot_id, session_id, seq, stamp, category, confidence, "
     "box_x1, box_y1, box_x2, box_y2, T_world_object, size_x, size_y, size_z"
@@ -185,10 +187,11 @@ def find_sql(
     include_unconfirmed: bool,
     limit: int,
     offset: int,
+    columns: str = OBJECT_COLUMNS,
 ) -> tuple[str, dict[str, Any]]:
     """The SELECT (and its parameters, ``:name`` placeholders) a store's ``find_objects`` runs:
-    up to ``limit + 1`` rows of :data:`OBJECT_COLUMNS`, then the squared distance to ``near``
-    when given.
+    up to ``limit + 1`` rows of ``columns`` (:data:`OBJECT_COLUMNS`; ``find_compact``:
+    :data:`COMPACT_COLUMNS`), then the squared distance to ``near`` when given.
 
     With ``radius_m`` the dialect's spatial index selects candidates whose bounds meet the cube
     of half-side ``radius_m`` around ``near`` (SQLite: the R*Tree; PostgreSQL: the GiST index
@@ -198,7 +201,7 @@ def find_sql(
     where: list[str] = []
     params: dict[str, Any] = {"limit": limit + 1, "offset": offset}
     source = "objects AS o"
-    select = OBJECT_COLUMNS
+    select = columns
     order = "o.object_id"
     if near is not None:
         params.update(px=near[0], py=near[1], pz=near[2])

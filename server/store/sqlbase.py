@@ -42,6 +42,8 @@ from wardmap.server.store.records import (
     Checkpoint,
     ClaimedKeyframe,
     ClosedSession,
+    CompactPage,
+    CompactRow,
     Cursor,
     GraphChange,
     GraphEdgeRow,
@@ -73,6 +75,7 @@ from wardmap.server.store.records import (
     Vec3,
 )
 from wardmap.server.store.rows import (
+    COMPACT_COLUMNS,
     OBJECT_COLUMNS,
     OBS_COLUMNS,
     TOKEN_COLUMNS,
@@ -606,6 +609,33 @@ class SqlMapStore:
             for r in page
         ]
         return ObjectPage(hits, offset + limit if len(rows) > limit else None)
+
+    def find_compact(
+        self,
+        *,
+        category: str | None = None,
+        near: Vec3 | None = None,
+        radius_m: float | None = None,
+        min_confidence: float | None = None,
+        robot: str | None = None,
+        include_unconfirmed: bool = False,
+        limit: int = 100,
+        offset: int = 0,
+    ) -> CompactPage:
+        """See :meth:`~wardmap.server.store.protocol.ObjectStore.find_compact`."""
+        sql, params = find_sql(
+            self.dialect,
+            category=category, near=near, radius_m=radius_m, min_confidence=min_confidence, robot=robot,
+            include_unconfirmed=include_unconfirmed, limit=limit, offset=offset, columns=COMPACT_COLUMNS,
+        )
+        with self._read("object map query") as conn:
+            rows = conn.execute(sql, params).fetchall()
+        page: list[CompactRow] = [
+            (int(r[0]), str(r[1]), float(r[2]), float(r[3]), float(r[4]), float(r[5]), float(r[6]),
+             float(r[7]), float(r[8]))
+            for r in rows[:limit]
+        ]
+        return CompactPage(page, offset + limit if len(rows) > limit else None)
 
     def object_detail(self, object_id: int, max_observations: int) -> ObjectDetail | None:
         """See :meth:`~wardmap.server.store.protocol.ObjectStore.object_detail`."""

@@ -30,9 +30,9 @@ from wardmap.server.objectmap import (
     MAX_LIMIT,
     MAX_OBSERVATIONS,
     MAX_OFFSET,
+    CompactRow,
     ObjectMapError,
     ObjectQuery,
-    ObjectRecord,
     parse_near,
 )
 from wardmap.shared import geojson
@@ -47,11 +47,10 @@ COMPACT_COLUMNS = ("object_id", "category", "x", "y", "z", "yaw", "size_x", "siz
 """The rows of ``format=compact``: what a floor view draws, metres and radians rounded to 1e-3."""
 
 
-def _compact_row(record: ObjectRecord) -> list[Any]:
-    x, y, z = record.position
-    sx, sy, sz = record.size
-    return [record.object_id, record.category, round(float(x), 3), round(float(y), 3), round(float(z), 3),
-            round(float(record.yaw), 3), round(float(sx), 3), round(float(sy), 3), round(float(sz), 3)]
+def _compact_row(row: CompactRow) -> list[Any]:
+    oid, category, x, y, z, yaw, sx, sy, sz = row
+    return [oid, category, round(x, 3), round(y, 3), round(z, 3), round(yaw, 3), round(sx, 3), round(sy, 3),
+            round(sz, 3)]
 
 
 def _vec(values: Any) -> list[float]:
@@ -98,14 +97,16 @@ async def objects(
     as_geojson = format == "geojson" or (format is None and geojson.MEDIA_TYPE in (accept or ""))
     try:
         centre = None if near is None else parse_near(near)
-        page = objects.find(ObjectQuery(category, centre, radius, min_confidence, robot, limit, offset,
-                                        include_unconfirmed == "true"))
+        query = ObjectQuery(category, centre, radius, min_confidence, robot, limit, offset,
+                            include_unconfirmed == "true")
+        if format == "compact":  # the web page's map: no records built, far fewer bytes than json
+            compact = objects.find_compact(query)
+            rows = [_compact_row(r) for r in compact.rows]
+            return FastJSONResponse({"columns": COMPACT_COLUMNS, "rows": rows,
+                                     "limit": limit, "offset": offset, "next_offset": compact.next_offset})
+        page = objects.find(query)
     except ObjectMapError as exc:
         raise HTTPException(422, str(exc)) from exc
-    if format == "compact":  # the web page's map: far fewer bytes and less encoding time than json
-        rows = [_compact_row(hit.record) for hit in page.hits]
-        return FastJSONResponse({"columns": COMPACT_COLUMNS, "rows": rows,
-                             "limit": limit, "offset": offset, "next_offset": page.next_offset})
     if as_geojson:
         return JSONResponse(
             geojson.feature_collection((map_object(hit.record, hit.distance_m) for hit in page.hits),

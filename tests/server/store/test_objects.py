@@ -104,6 +104,31 @@ def test_find_filters_orders_and_pages(store: MapStore) -> None:
     assert [h.record.object_id for h in last.hits] == [3, 5] and last.next_offset is None
 
 
+def test_compact_pages_are_the_found_records_columns(store: MapStore) -> None:
+    """find_compact gives, for every filter and page of find_objects, the same objects in the same
+    order with the same next offset, each as (id, category, centre, yaw, size) of its record."""
+    turned = ObjectRow(6, "cart", 0.8, yaw_transform(2.0, -1.0, 0.7, 0.4), 0.7,
+                       (0.0, 0.0, float(np.sin(0.35)), float(np.cos(0.35))), (0.9, 0.6, 1.1),
+                       (1.4, -1.6, 0.0), (2.6, -0.4, 1.1), None, True)
+    store.write_objects(
+        [_row(1, 0.0), _row(2, 3.0, category="bed", confidence=0.5), _row(3, -1.0, 1.0),
+         _row(4, 10.0, confirmed=False), _row(5, 1.0), turned],
+        [_obs(3, "r2", 0)], 100.0)
+    queries: list[dict[str, object]] = [
+        {}, {"include_unconfirmed": True}, {"category": "bed"}, {"min_confidence": 0.6}, {"robot": "r2"},
+        {"near": (0.0, 0.0, 1.0)}, {"near": (0.0, 0.0, 1.0), "radius_m": 1.5}, {"limit": 2},
+        {"limit": 2, "offset": 2}, {"limit": 2, "offset": 4}, {"category": "door", "robot": "nobody"},
+    ]
+    for q in queries:
+        full, compact = store.find_objects(**q), store.find_compact(**q)  # type: ignore[arg-type]
+        assert compact.next_offset == full.next_offset, q
+        want = [(h.record.object_id, h.record.category, *h.record.position, h.record.yaw, *h.record.size)
+                for h in full.hits]
+        assert compact.rows == want, q
+        assert all(type(v) is float for row in compact.rows for v in row[2:]), q
+    assert store.find_compact(category="cart").rows == [(6, "cart", 2.0, -1.0, 0.4, 0.7, 0.9, 0.6, 1.1)]
+
+
 def test_detail_and_counts(store: MapStore) -> None:
     """object_detail gives the newest observations first (capped) and their keyframes, saying which
     the store holds; counts split by confirmation and category."""

@@ -278,3 +278,6 @@ def test_compact_rows_are_the_objects_rounded(object_client: TestClient) -> None
         assert row[:2] == [o["object_id"], o["category"]]
         assert np.allclose(row[2:], [*o["position"], o["yaw"], *o["size"]], atol=5e-4, rtol=0)
         assert all(round(v, 3) == v for v in row[2:])
+    # The compact path validates as the others do: an unknown category is 422, not an empty page.
+    bad = object_client.get("/v1/objects", params={"format": "compact", "category": "unicorn"})
+    assert bad.status_code == 422 and "unknown category" in bad.json()["detail"]
